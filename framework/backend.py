@@ -1,0 +1,123 @@
+"""The one owner of the OpenCL context, queue and compiled programs.
+
+Kernels live as ``.cl`` files beside the plugin that uses them.  :func:`program` compiles a file once per
+context (memoised on the file's content and build options), so a graph that calls the same stage a hundred
+times builds its kernels once.  PoCL additionally keeps compiled binaries on disk in ``POCL_CACHE_DIR``; we point
+that at a per-user cache directory unless the user already set it, so a second process skips compilation too.
+
+The device is chosen by ``BTFORGE_DEVICE`` (a substring of the platform or device name, e.g. ``pthread`` or
+``cuda``) or the CLI's ``--device``; by default the first CPU device of PoCL, else the first device found.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BtforgeInputError
+
+_lock = threading.RLock()
+_backend: "Backend | None" = None
+
+
+def default_cache_root() -> Path:
+    root = os.environ.get("BTFORGE_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "btforge"
+    )
+    return Path(root)
+
+
+def _prepare_pocl_environment() -> None:
+    os.environ.setdefault("POCL_CACHE_DIR", str(default_cache_root() / "pocl"))
+    # The pip PoCL wheel registers itself through an ICD file pyopencl finds; nothing else to do here.
+
+
+class Backend:
+    """An OpenCL context with its queue and a memo of built programs."""
+
+    def __init__(self, device_hint: str | None = None):
+        _prepare_pocl_environment()
+        import pyopencl as cl
+
+        self.cl = cl
+        self.device = _choose_device(cl, device_hint)
+        self.context = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.context)
+        self._programs: dict[tuple[str, str], "cl.Program"] = {}
+        self.builds = 0  # how many compilations this context did (tests check memoisation)
+
+    @property
+    def description(self) -> str:
+        return f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
+
+    def program(self, cl_file: str | os.PathLike, options: tuple[str, ...] = ()) -> "cl.Program":
+        """The compiled program of ``cl_file``; built on first use in this context, then reused."""
+        source = Path(cl_file).read_text()
+        key = (hashlib.sha256(source.encode()).hexdigest(), " ".join(options))
+        with _lock:
+            prog = self._programs.get(key)
+            if prog is None:
+                prog = self.cl.Program(self.context, source).build(options=list(options))
+                self._programs[key] = prog
+                self.builds += 1
+            return prog
+
+    def to_device(self, array: np.ndarray):
+        mf = self.cl.mem_flags
+        return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(array))
+
+    def empty(self, nbytes: int):
+        return self.cl.Buffer(self.context, self.cl.mem_flags.WRITE_ONLY, size=max(int(nbytes), 1))
+
+    def from_device(self, buffer, shape, dtype) -> np.ndarray:
+        out = np.empty(shape, dtype=dtype)
+        self.cl.enqueue_copy(self.queue, out, buffer)
+        return out
+
+
+def _choose_device(cl, hint: str | None):
+    devices = [d for p in cl.get_platforms() for d in p.get_devices()]
+    if not devices:
+        raise BtforgeInputError(
+            "OpenCL", "expected at least one OpenCL device, found none",
+            "install PoCL with `pip install pocl-binary-distribution`",
+        )
+    hint = hint if hint is not None else os.environ.get("BTFORGE_DEVICE")
+    if hint:
+        for d in devices:
+            if hint.lower() in f"{d.platform.name} {d.name}".lower():
+                return d
+        names = ", ".join(f"'{d.platform.name.strip()} / {d.name.strip()}'" for d in devices)
+        raise BtforgeInputError(
+            "device", f"no OpenCL device matches '{hint}'; found {names}",
+            "set BTFORGE_DEVICE (or --device) to part of one of these names",
+        )
+    cpus = [d for d in devices if d.type & cl.device_type.CPU]
+    return (cpus or devices)[0]
+
+
+def get_backend() -> Backend:
+    """The process-wide backend, created on first use."""
+    global _backend
+    with _lock:
+        if _backend is None:
+            _backend = Backend()
+        return _backend
+
+
+def select_device(hint: str | None) -> Backend:
+    """Replace the process-wide backend by one on the device matching ``hint``."""
+    global _backend
+    with _lock:
+        _backend = Backend(hint)
+        return _backend
+
+
+def texel_chunks(n_texels: int, bytes_per_texel: int, budget_bytes: int = 256 << 20):
+    """Split ``range(n_texels)`` into slices whose working set stays under ``budget_bytes``."""
+    step = max(1, min(n_texels, budget_bytes // max(1, bytes_per_texel)))
+    for start in range(0, n_texels, step):
+        yield slice(start, min(n_texels, start + step))

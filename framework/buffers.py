@@ -1,0 +1,316 @@
+"""Typed, immutable, validated buffers: the only things that cross a stage boundary.
+
+Every buffer is a frozen dataclass whose ``__post_init__`` validates shapes, dtypes and ranges and freezes its
+arrays (``writeable=False``).  A buffer has a content key (BLAKE2 over its type, metadata and array bytes) that
+the executor uses for caching, and it serialises itself generically: array fields go into an ``.npz`` file,
+everything else into JSON metadata.
+
+Adding a type is a local change: subclass :class:`Buffer` (or :class:`ReflectanceModel`, :class:`PerTexel`),
+give it a ``type_name``, validate in ``__post_init__``, and return the class from the plugin's
+``btforge_buffer_types`` hook.  Port declarations name types by ``type_name``; a port accepts any subclass.
+"""
+from __future__ import annotations
+
+import abc
+import dataclasses
+import hashlib
+import io
+import json
+from typing import Any, ClassVar, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from .errors import BtforgeInputError
+
+# ----------------------------------------------------------------------------------------------- validation
+
+
+def _shape_text(shape: Sequence[Any]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+def check_array(
+    name: str,
+    value: Any,
+    shape: Sequence[str | int],
+    dtype: Any | Sequence[Any],
+    *,
+    finite: bool = False,
+    owner: str = "",
+) -> np.ndarray:
+    """Check that ``value`` is an ndarray of ``shape`` (ints fixed, strings free) and one of ``dtype``.
+
+    The message reads like ``'radiance' must be (V, L, H, W, C) float32, got (H, W, 9) float64``.
+    """
+    dtypes = tuple(np.dtype(d) for d in (dtype if isinstance(dtype, (list, tuple)) else (dtype,)))
+    want = f"{_shape_text(shape)} {' or '.join(str(d) for d in dtypes)}"
+    what = f"{owner} '{name}'".strip() if owner else f"'{name}'"
+    if not isinstance(value, np.ndarray):
+        raise BtforgeInputError(what, f"must be {want}, got {type(value).__name__}",
+                                "pass a numpy array")
+    got = f"{_shape_text(value.shape)} {value.dtype}"
+    ok = value.ndim == len(shape) and value.dtype in dtypes
+    bound: dict[str, int] = {}
+    if ok:
+        for want_dim, have in zip(shape, value.shape):
+            if isinstance(want_dim, int) and want_dim != have:
+                ok = False
+            elif isinstance(want_dim, str):
+                if bound.setdefault(want_dim, have) != have:
+                    ok = False
+    if not ok:
+        raise BtforgeInputError(what, f"must be {want}, got {got}")
+    if finite and value.dtype.kind == "f" and not np.isfinite(value).all():
+        bad = int((~np.isfinite(value)).sum())
+        raise BtforgeInputError(what, f"must be finite, found {bad} NaN/Inf values",
+                                "mask or repair the bad samples before building the buffer")
+    return value
+
+
+def frozen(array: np.ndarray) -> np.ndarray:
+    """A C-contiguous read-only view (a copy only when the input is not contiguous or still writeable by others)."""
+    out = np.ascontiguousarray(array)
+    if out is array and array.flags.writeable and array.base is None:
+        out = array.view()
+    out.flags.writeable = False
+    return out
+
+
+def unit_directions(name: str, dirs: Any, owner: str = "") -> np.ndarray:
+    """Validate an ``(N, 3)`` array of directions and return them normalised as float32."""
+    arr = np.asarray(dirs, dtype=np.float64)
+    check_array(name, arr, ("N", 3), np.float64, finite=True, owner=owner)
+    norms = np.linalg.norm(arr, axis=1)
+    if arr.shape[0] and norms.min() < 1e-9:
+        i = int(np.argmin(norms))
+        raise BtforgeInputError(f"{owner} '{name}'".strip(), f"direction {i} is zero", "give a non-zero vector")
+    return (arr / norms[:, None]).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------- base types
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Buffer:
+    """Base of all buffers.  Subclasses are frozen dataclasses that validate in ``__post_init__``."""
+
+    type_name: ClassVar[str] = "Buffer"
+
+    # -- content addressing ------------------------------------------------------------------------------
+    def payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """Split the fields into JSON metadata and arrays; override when fields are not plain."""
+        meta: dict[str, Any] = {}
+        arrays: dict[str, np.ndarray] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                arrays[f.name] = value
+            else:
+                meta[f.name] = list(value) if isinstance(value, tuple) else value
+        return meta, arrays
+
+    @classmethod
+    def from_payload(cls, meta: dict[str, Any], arrays: Mapping[str, np.ndarray]) -> "Buffer":
+        kwargs = dict(meta)
+        for f in dataclasses.fields(cls):
+            if f.name in kwargs and isinstance(kwargs[f.name], list):
+                kwargs[f.name] = tuple(kwargs[f.name])
+        kwargs.update(arrays)
+        return cls(**kwargs)
+
+    @property
+    def content_key(self) -> str:
+        cached = self.__dict__.get("_content_key")
+        if cached is None:
+            h = hashlib.blake2b(digest_size=20)
+            meta, arrays = self.payload()
+            h.update(self.type_name.encode())
+            h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+            for name in sorted(arrays):
+                a = np.ascontiguousarray(arrays[name])
+                h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+                h.update(memoryview(a).cast("B"))
+            cached = h.hexdigest()
+            object.__setattr__(self, "_content_key", cached)
+        return cached
+
+    # -- serialisation (cache entries, `btforge info`) ---------------------------------------------------
+    def to_bytes(self) -> bytes:
+        meta, arrays = self.payload()
+        bio = io.BytesIO()
+        header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
+        np.savez(bio, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
+        return bio.getvalue()
+
+    @staticmethod
+    def from_file(path, types: Mapping[str, type["Buffer"]]) -> "Buffer":
+        with np.load(path, allow_pickle=False) as z:
+            header = json.loads(bytes(z["__header__"]).decode())
+            arrays = {k: z[k] for k in z.files if k != "__header__"}
+        cls = types.get(header["type"])
+        if cls is None:
+            raise BtforgeInputError(str(path), f"holds a buffer of unknown type '{header['type']}'",
+                                    "install the plugin that defines it")
+        return cls.from_payload(header["meta"], arrays)
+
+    def describe(self) -> str:
+        meta, arrays = self.payload()
+        parts = [f"{k} {_shape_text(v.shape)} {v.dtype}" for k, v in arrays.items()]
+        return f"{self.type_name}: " + ", ".join(parts)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in self.payload()[1].values()))
+
+
+# ----------------------------------------------------------------------------------------------- samples
+
+SRGB_LUT_SIZE = 256
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """The sRGB electro-optical transfer function, on values in [0, 1]."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
+SRGB8_TO_LINEAR.flags.writeable = False
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SampleStack(Buffer):
+    """Measured radiance of a surface under many lights (and views).
+
+    ``samples`` is ``[n_view, n_light, H, W, C]``: either linear float32 radiance, or - to keep a large 8-bit
+    capture at a quarter of the memory - the camera's sRGB-encoded uint8 values (``encoding='srgb8'``), decoded
+    to linear on access by :meth:`linear`.  ``lights`` are unit vectors toward the light in the surface frame
+    (z up), ``[n_light, 3]``; ``views`` are unit vectors toward the camera, ``[n_view, 3]``.  A top-view RTI
+    capture has one view, ``(0, 0, 1)``.
+    """
+
+    type_name: ClassVar[str] = "SampleStack"
+
+    samples: np.ndarray
+    lights: np.ndarray
+    views: np.ndarray
+    channels: tuple[str, ...] = ("R", "G", "B")
+    encoding: str = "linear"
+    names: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        if self.encoding not in ("linear", "srgb8"):
+            raise BtforgeInputError("SampleStack 'encoding'", f"must be 'linear' or 'srgb8', got {self.encoding!r}")
+        dtype = np.float32 if self.encoding == "linear" else np.uint8
+        samples = self.samples
+        if isinstance(samples, np.ndarray) and samples.ndim == 4:
+            samples = samples[None]
+        check_array("samples", samples, ("V", "L", "H", "W", "C"), dtype, owner="SampleStack")
+        if self.encoding == "linear" and not np.isfinite(samples).all():
+            v, l, y, x, c = np.argwhere(~np.isfinite(samples))[0]
+            where = f"light {l}" + (f" ({self.names[l]})" if l < len(self.names) else "")
+            raise BtforgeInputError(
+                f"SampleStack, {where}", f"expected finite radiance, found NaN/Inf at view {v}, pixel (row {y}, column {x})",
+                "repair or mask the image before fitting")
+        lights = unit_directions("lights", self.lights, owner="SampleStack")
+        views = unit_directions("views", self.views, owner="SampleStack")
+        if lights.shape[0] != samples.shape[1]:
+            raise BtforgeInputError("SampleStack 'lights'", f"must have one row per light ({samples.shape[1]}), got {lights.shape[0]}")
+        if views.shape[0] != samples.shape[0]:
+            raise BtforgeInputError("SampleStack 'views'", f"must have one row per view ({samples.shape[0]}), got {views.shape[0]}")
+        if len(self.channels) != samples.shape[4]:
+            raise BtforgeInputError("SampleStack 'channels'", f"must name {samples.shape[4]} channels, got {self.channels!r}")
+        if self.names and len(self.names) != lights.shape[0]:
+            raise BtforgeInputError("SampleStack 'names'", f"must have one name per light ({lights.shape[0]}), got {len(self.names)}")
+        object.__setattr__(self, "samples", frozen(samples))
+        object.__setattr__(self, "lights", frozen(lights))
+        object.__setattr__(self, "views", frozen(views))
+        object.__setattr__(self, "channels", tuple(self.channels))
+        object.__setattr__(self, "names", tuple(self.names))
+
+    @property
+    def n_view(self) -> int:
+        return self.samples.shape[0]
+
+    @property
+    def n_light(self) -> int:
+        return self.samples.shape[1]
+
+    @property
+    def height(self) -> int:
+        return self.samples.shape[2]
+
+    @property
+    def width(self) -> int:
+        return self.samples.shape[3]
+
+    @property
+    def n_channel(self) -> int:
+        return self.samples.shape[4]
+
+    def linear(self, rows: slice = slice(None)) -> np.ndarray:
+        """Linear float32 radiance ``[V, L, h, W, C]`` for a band of rows (all rows by default)."""
+        band = self.samples[:, :, rows]
+        if self.encoding == "linear":
+            return band
+        return SRGB8_TO_LINEAR[band]
+
+    def row_bands(self, budget_bytes: int = 128 << 20) -> Iterator[slice]:
+        """Bands of rows whose linear float32 samples fit in ``budget_bytes``: the unit of streamed work."""
+        row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
+        step = max(1, min(self.height, budget_bytes // max(row_bytes, 1)))
+        for start in range(0, self.height, step):
+            yield slice(start, min(self.height, start + step))
+
+
+# ----------------------------------------------------------------------------------------------- models
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PerTexel(Buffer):
+    """A buffer with one record per texel on an ``H x W`` grid (stacks, models, height fields).
+
+    :meth:`texel_fields` names the arrays whose two leading axes (or axes 2-3 for stacks) are the texel grid, so
+    a coordinate map can be replayed on any per-texel buffer without knowing its type.
+    """
+
+    type_name: ClassVar[str] = "PerTexel"
+    texel_fields: ClassVar[tuple[str, ...]] = ()
+
+    @property
+    def height(self) -> int:
+        return getattr(self, self.texel_fields[0]).shape[0]
+
+    @property
+    def width(self) -> int:
+        return getattr(self, self.texel_fields[0]).shape[1]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ReflectanceModel(PerTexel, abc.ABC):
+    """A fitted per-texel reflectance function that can be evaluated at any light (and view).
+
+    Every representation (PTM, Lafortune, spherical harmonics, ...) implements :meth:`evaluate`, so a renderer
+    relights any of them without knowing which it is.  ``view_dependent`` is False for models of light only
+    (a PTM), which lets a renderer skip per-pixel view directions.
+    """
+
+    type_name: ClassVar[str] = "ReflectanceModel"
+    view_dependent: ClassVar[bool] = False
+
+    @property
+    @abc.abstractmethod
+    def channels(self) -> tuple[str, ...]:
+        """Names of the colour channels the model evaluates to."""
+
+    @abc.abstractmethod
+    def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None) -> np.ndarray:
+        """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` (and ``views [V, 3]``)."""
+
+
+CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel)

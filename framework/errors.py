@@ -1,0 +1,48 @@
+"""One error type for everything a user can get wrong.
+
+A :class:`BtforgeInputError` names the thing at fault (graph node, port, parameter, file, line), says what was
+expected and what was found, and hints at the fix.  The CLI prints it as a few plain lines and exits with code 2;
+tracebacks are only shown behind ``--debug``.
+"""
+from __future__ import annotations
+
+
+class BtforgeError(Exception):
+    """Base of every error btforge raises on purpose."""
+
+
+class BtforgeInputError(BtforgeError):
+    """Bad input: a graph, a parameter, a file or an array that cannot be used as given.
+
+    Parameters
+    ----------
+    what
+        The thing at fault, e.g. ``"node 'fit', port 'stack'"`` or ``"capture/dirs.lp, line 7"``.
+    problem
+        What is wrong, ideally phrased as ``expected ..., found ...``.
+    hint
+        How to fix it (optional).
+    """
+
+    exit_code = 2
+
+    def __init__(self, what: str, problem: str, hint: str | None = None):
+        self.what = what
+        self.problem = problem
+        self.hint = hint
+        super().__init__(self.render())
+
+    def render(self) -> str:
+        text = f"{self.what}: {self.problem}" if self.what else self.problem
+        if self.hint:
+            text += f"\n  hint: {self.hint}"
+        return text
+
+    def located(self, prefix: str) -> "BtforgeInputError":
+        """The same error with ``prefix`` (e.g. the graph node) put in front of what it names."""
+        where = f"{prefix}, {self.what}" if self.what else prefix
+        return BtforgeInputError(where, self.problem, self.hint)
+
+
+class BtforgeWarning(UserWarning):
+    """A result was produced but the user should know something about it (clamped light, ill-conditioned fit)."""
