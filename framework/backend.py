@@ -47,6 +47,7 @@ class Backend:
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self._programs: dict[tuple[str, str], "cl.Program"] = {}
+        self._kernels: dict[tuple[str, str, str], "cl.Kernel"] = {}
         self.builds = 0  # how many compilations this context did (tests check memoisation)
 
     @property
@@ -64,6 +65,21 @@ class Backend:
                 self._programs[key] = prog
                 self.builds += 1
             return prog
+
+    def kernel(self, cl_file: str | os.PathLike, name: str, options: tuple[str, ...] = ()) -> "cl.Kernel":
+        """The kernel ``name`` of ``cl_file``, built and retrieved once per context (kernel objects are reused)."""
+        with _lock:
+            key = (str(Path(cl_file).resolve()), name, " ".join(options))
+            kern = self._kernels.get(key)
+            if kern is None:
+                kern = self.cl.Kernel(self.program(cl_file, options), name)
+                self._kernels[key] = kern
+            return kern
+
+    def run(self, kernel: "cl.Kernel", global_size: tuple[int, ...], *args) -> None:
+        """Set the arguments of ``kernel`` and enqueue it over ``global_size`` (work-group size left to the device)."""
+        kernel.set_args(*args)
+        self.cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, None)
 
     def to_device(self, array: np.ndarray):
         mf = self.cl.mem_flags

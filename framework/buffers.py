@@ -44,9 +44,9 @@ def check_array(
     """
     dtypes = tuple(np.dtype(d) for d in (dtype if isinstance(dtype, (list, tuple)) else (dtype,)))
     want = f"{_shape_text(shape)} {' or '.join(str(d) for d in dtypes)}"
-    what = f"{owner} '{name}'".strip() if owner else f"'{name}'"
+    what = owner or "array"
     if not isinstance(value, np.ndarray):
-        raise BtforgeInputError(what, f"must be {want}, got {type(value).__name__}",
+        raise BtforgeInputError(what, f"'{name}' must be {want}, got {type(value).__name__}",
                                 "pass a numpy array")
     got = f"{_shape_text(value.shape)} {value.dtype}"
     ok = value.ndim == len(shape) and value.dtype in dtypes
@@ -59,10 +59,10 @@ def check_array(
                 if bound.setdefault(want_dim, have) != have:
                     ok = False
     if not ok:
-        raise BtforgeInputError(what, f"must be {want}, got {got}")
+        raise BtforgeInputError(what, f"'{name}' must be {want}, got {got}")
     if finite and value.dtype.kind == "f" and not np.isfinite(value).all():
         bad = int((~np.isfinite(value)).sum())
-        raise BtforgeInputError(what, f"must be finite, found {bad} NaN/Inf values",
+        raise BtforgeInputError(what, f"'{name}' must be finite, found {bad} NaN/Inf values",
                                 "mask or repair the bad samples before building the buffer")
     return value
 
@@ -260,6 +260,11 @@ class SampleStack(Buffer):
             return band
         return SRGB8_TO_LINEAR[band]
 
+    def image(self, view: int, light: int) -> np.ndarray:
+        """Linear float32 radiance ``[H, W, C]`` of one view and light."""
+        frame = self.samples[view, light]
+        return frame if self.encoding == "linear" else SRGB8_TO_LINEAR[frame]
+
     def row_bands(self, budget_bytes: int = 128 << 20) -> Iterator[slice]:
         """Bands of rows whose linear float32 samples fit in ``budget_bytes``: the unit of streamed work."""
         row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
@@ -313,4 +318,23 @@ class ReflectanceModel(PerTexel, abc.ABC):
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` (and ``views [V, 3]``)."""
 
 
-CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel)
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scores(Buffer):
+    """Named scalar measurements (PSNR, error, timing) produced by a comparing stage."""
+
+    type_name: ClassVar[str] = "Scores"
+
+    values: dict
+
+    def __post_init__(self):
+        if not isinstance(self.values, dict) or not all(isinstance(k, str) for k in self.values):
+            raise BtforgeInputError("Scores 'values'", f"must be a dict with string keys, got {type(self.values).__name__}")
+        clean = {}
+        for key, value in self.values.items():
+            if not isinstance(value, (int, float, str, bool)) and value is not None:
+                raise BtforgeInputError(f"Scores '{key}'", f"must be a number or string, got {type(value).__name__}")
+            clean[key] = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+        object.__setattr__(self, "values", clean)
+
+
+CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel, Scores)

@@ -1,0 +1,107 @@
+"""Polynomial texture maps: fit on OpenCL, read and write HP ``.ptm`` files."""
+from __future__ import annotations
+
+from btforge import REQUIRED, Param, declare_stage, hookimpl
+from btforge.errors import BtforgeInputError
+
+from .model import PTMModel, fit_ptm
+
+
+@declare_stage(
+    "ptm.fit",
+    inputs={"stack": "SampleStack"},
+    outputs={"model": "PTMModel"},
+    params=[
+        Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
+              choices=("rgb", "lrgb")),
+        Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
+              ".ptm files hold; auto picks srgb for 8-bit captures and linear otherwise",
+              choices=("auto", "linear", "srgb")),
+        Param("rcond", "float", 1e-3, "singular values of the light design matrix below rcond x the largest are "
+              "clamped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
+    ],
+)
+def ptm_fit(ctx, stack, *, variant, space, rcond):
+    """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
+
+    Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
+    matrix, streamed over bands of rows, so memory stays near the size of the stack itself.  A light set whose
+    design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by clamping small
+    singular values, with a warning naming the condition number.
+
+    Outputs
+    -------
+    model : PTMModel
+        ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
+    """
+    model, solver = fit_ptm(stack, variant, space, rcond=rcond)
+    ctx.note("condition_number", round(solver.condition_number, 3))
+    ctx.note("space", model.space)
+    if solver.clamped:
+        ctx.warn(f"light directions are ill-conditioned for a PTM (condition number {solver.condition_number:.3g}); "
+                 f"{solver.clamped} singular value(s) below {rcond:g} x the largest were clamped")
+    return {"model": model}
+
+
+def _ptm_file_precheck(params, paths):
+    from .ptmfile import describe_ptm
+    path = paths.input(params["path"])
+    describe_ptm(path)
+    return [path]
+
+
+@declare_stage("ptm.read", outputs={"model": "PTMModel"},
+               params=[Param("path", "path", REQUIRED, "the .ptm file (PTM_1.2: LRGB, RGB or JPEG_LRGB)")],
+               precheck=_ptm_file_precheck)
+def ptm_read(ctx, *, path):
+    """Read an HP ``.ptm`` file (PTM_FORMAT_LRGB, PTM_FORMAT_RGB, or PTM_FORMAT_JPEG_LRGB with plane prediction).
+
+    The model's ``space`` is ``srgb``: PTM files hold display values, decoded to linear when relit.
+    """
+    from .ptmfile import read_ptm
+    content = read_ptm(ctx.paths.input(path))
+    ctx.note("file_format", content.file_format)
+    albedo = content.albedo if content.albedo is not None else content.coeffs[..., :0, 0]
+    return {"model": PTMModel(content.coeffs, albedo.astype("float32"), content.variant, "srgb")}
+
+
+@declare_stage("ptm.write", inputs={"model": "PTMModel"},
+               params=[Param("path", "outpath", REQUIRED, "the .ptm file to write (relative paths land under --out)")],
+               side_effects=True)
+def ptm_write(ctx, model, *, path):
+    """Write a PTM as an HP ``.ptm`` file (raw PTM_FORMAT_LRGB or PTM_FORMAT_RGB, 8 bits per coefficient).
+
+    Each coefficient gets the scale and bias that make its whole range representable, and values are rounded,
+    so a write/read round trip changes no relit pixel by more than one 8-bit step.  Only ``srgb``-space models
+    can be written: the file format has no colour space and viewers show the values as display values.
+    """
+    from .ptmfile import write_ptm
+    if model.space != "srgb":
+        raise BtforgeInputError("ptm.write 'model'", "expected a PTM of sRGB display values (space: srgb), found a linear one",
+                                "fit with `space: srgb` (the default for 8-bit captures) to write .ptm files")
+    if len(model.channel_names) != 3:
+        raise BtforgeInputError("ptm.write 'model'", f"expected 3 colour channels, found {len(model.channel_names)}")
+    target = ctx.paths.output(path)
+    write_ptm(target, model.variant, model.coeffs, model.albedo if model.variant == "lrgb" else None)
+    ctx.note("written", str(target))
+    return {}
+
+
+def _describe_ptm(path):
+    from .ptmfile import describe_ptm
+    return describe_ptm(path)
+
+
+@hookimpl
+def btforge_stages():
+    return [ptm_fit, ptm_read, ptm_write]
+
+
+@hookimpl
+def btforge_buffer_types():
+    return [PTMModel]
+
+
+@hookimpl
+def btforge_info_readers():
+    return {".ptm": _describe_ptm}

@@ -1,0 +1,90 @@
+"""Relighting: evaluate any reflectance model at new lights."""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge import Param, SampleStack, declare_stage, hookimpl
+from btforge.buffers import Scores, linear_to_srgb
+from btforge.errors import BtforgeInputError
+
+
+def resolve_lights(value, paths) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Lights from a list of [x, y, z] or a ``.lp`` file: unit ``[L, 3]`` float32 and per-light names."""
+    from btforge.plugins.stackio.lightfile import parse_light_list, read_light_file
+    if isinstance(value, str):
+        entries = read_light_file(paths.input(value), require_images=False)
+        return np.array([e.light for e in entries], np.float32), tuple(e.filename for e in entries)
+    lights = parse_light_list(value)
+    return lights, ()
+
+
+@declare_stage(
+    "relight",
+    inputs={"model": "ReflectanceModel", "at": "SampleStack"},
+    optional_inputs=("at",),
+    outputs={"stack": "SampleStack"},
+    params=[Param("lights", "lights", None, "light directions (toward the light, z up) as [[x, y, z], ...] or a .lp "
+                  "file; leave out to relight at the lights of the stack wired to 'at'")],
+)
+def relight(ctx, model, at=None, *, lights):
+    """Evaluate a reflectance model (PTM, and any other representation) at the given lights.
+
+    Inputs
+    ------
+    model : ReflectanceModel
+        Any fitted representation.
+    at : SampleStack, optional
+        Relight at this stack's lights (e.g. held-out lights of a capture) instead of the ``lights`` param.
+
+    Outputs
+    -------
+    stack : SampleStack
+        Linear radiance, one image per light, named after the light file's entries when there is one.
+    """
+    if lights is None and at is None:
+        raise BtforgeInputError("relight", "expected the 'lights' param or a stack wired to input 'at', found neither",
+                                "add `params: {lights: [[0, 0, 1]]}` or `inputs: {at: NODE.stack}`")
+    if lights is not None:
+        directions, names = resolve_lights(lights, ctx.paths)
+    else:
+        directions, names = at.lights, at.names
+    values = model.evaluate(directions)
+    return {"stack": SampleStack(values, directions, np.array([[0.0, 0.0, 1.0]]), model.channels, names=names)}
+
+
+@declare_stage("stack.compare", inputs={"stack": "SampleStack", "reference": "SampleStack"},
+               outputs={"scores": "Scores"},
+               params=[Param("peak", "float", 1.0, "the signal peak for PSNR (1.0 for images in [0, 1])", low=1e-9)])
+def stack_compare(ctx, stack, reference, *, peak):
+    """Compare a predicted stack with a measured one at the same lights: PSNR (dB), RMSE and max error.
+
+    Errors are computed on display values (sRGB-encoded, clipped to [0, 1]) when the reference is an 8-bit
+    capture, so the figures match what RTI tools report; on linear values otherwise.
+    """
+    if stack.samples.shape[:2] != reference.samples.shape[:2] or stack.samples.shape[2:] != reference.samples.shape[2:]:
+        raise BtforgeInputError("stack.compare", f"expected stacks of equal shape, found {stack.samples.shape} and "
+                                f"{reference.samples.shape}", "relight at the reference's lights (wire it to relight's 'at')")
+    if not np.allclose(stack.lights, reference.lights, atol=1e-4):
+        raise BtforgeInputError("stack.compare", "expected the same light directions in both stacks",
+                                "relight at the reference's lights (wire it to relight's 'at')")
+    display = reference.encoding == "srgb8"
+    sq_sum, count, worst = 0.0, 0, 0.0
+    for rows in reference.row_bands():
+        a, b = stack.linear(rows), reference.linear(rows)
+        if display:
+            a, b = linear_to_srgb(a), linear_to_srgb(b)
+        diff = np.abs(a.astype(np.float64) - b)
+        sq_sum += float((diff ** 2).sum())
+        count += diff.size
+        worst = max(worst, float(diff.max()))
+    mse = sq_sum / max(count, 1)
+    psnr = float("inf") if mse == 0 else 10 * np.log10(peak ** 2 / mse)
+    scores = {"psnr_db": round(psnr, 3), "rmse": mse ** 0.5, "max_abs_error": worst, "domain": "srgb" if display else "linear"}
+    for key, value in scores.items():
+        ctx.note(key, value)
+    return {"scores": Scores(scores)}
+
+
+@hookimpl
+def btforge_stages():
+    return [relight, stack_compare]

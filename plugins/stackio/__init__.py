@@ -1,0 +1,143 @@
+"""Reading and writing multi-light captures (``.lp`` / ``.lvp`` light files with PNG, JPEG, TIFF or EXR images)."""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
+from btforge.atomic import atomic_write
+from btforge.buffers import linear_to_srgb
+from btforge.errors import BtforgeInputError
+
+
+def _light_file_precheck(params, paths):
+    from .lightfile import read_light_file
+    path = paths.input(params["path"])
+    entries = read_light_file(path, require_images=True)
+    return [path] + [path.parent / e.filename for e in entries]
+
+
+@declare_stage(
+    "stack.read",
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("path", "path", REQUIRED, "the light file: .lp (filename x y z per line after the count)"),
+        Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
+              "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
+    ],
+    precheck=_light_file_precheck,
+)
+def stack_read(ctx, *, path, transfer):
+    """Read a multi-light capture: a light file and the images it lists.
+
+    Light directions are normalised; one a hair below the horizon (within 1 degree) is clamped with a warning;
+    a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
+    8-bit in memory (decoded to linear on use), a quarter of the float size.
+    """
+    from .images import load_stack
+    stack = load_stack(ctx.paths.input(path), transfer=transfer)
+    ctx.note("lights", stack.n_light)
+    ctx.note("size", [stack.height, stack.width])
+    return {"stack": stack}
+
+
+@declare_stage(
+    "stack.write",
+    inputs={"stack": "SampleStack"},
+    params=[
+        Param("dir", "outpath", REQUIRED, "folder for the images and their light file (relative to --out)"),
+        Param("format", "choice", "exr", "exr: linear float images; png: 8-bit sRGB", choices=("exr", "png")),
+        Param("half", "bool", False, "write EXR as 16-bit half floats"),
+    ],
+    side_effects=True,
+)
+def stack_write(ctx, stack, *, dir, format, half):
+    """Write a stack as one image per light plus a light file listing them in light order.
+
+    Every file is written atomically.
+    """
+    from .images import write_stack
+    written = write_stack(stack, ctx.paths.output(dir), fmt=format, half=half)
+    ctx.note("files", len(written))
+    return {}
+
+
+@declare_stage(
+    "stack.contact_sheet",
+    inputs={"stack": "SampleStack"},
+    params=[
+        Param("path", "outpath", REQUIRED, "the PNG to write (relative to --out)"),
+        Param("columns", "int", 8, "images per row", low=1),
+        Param("exposure", "float", 1.0, "multiplier applied to linear radiance before sRGB encoding", low=0.0),
+    ],
+    side_effects=True,
+)
+def contact_sheet(ctx, stack, *, path, columns, exposure):
+    """Write every light's image of a stack side by side in one sRGB PNG, for a quick look."""
+    from PIL import Image
+    n = stack.n_view * stack.n_light
+    cols = min(columns, n)
+    rows = -(-n // cols)
+    h, w, c = stack.height, stack.width, stack.n_channel
+    sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
+    for i in range(n):
+        v, l = divmod(i, stack.n_light)
+        tile = stack.image(v, l) * exposure
+        tile = tile if c == 3 else np.repeat(tile[..., :1], 3, axis=2)
+        r, q = divmod(i, cols)
+        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = np.round(linear_to_srgb(tile) * 255)
+    target = ctx.paths.output(path)
+    with atomic_write(target) as handle:
+        Image.fromarray(sheet).save(handle, format="PNG")
+    ctx.note("written", str(target))
+    return {}
+
+
+@declare_stage(
+    "stack.split",
+    inputs={"stack": "SampleStack"},
+    outputs={"fit": "SampleStack", "test": "SampleStack"},
+    params=[Param("every", "int", 5, "hold out every N-th light (the 1st, (N+1)-th, ...) as the test set", low=2)],
+)
+def stack_split(ctx, stack, *, every):
+    """Split a stack's lights into a fitting set and a held-out test set (every N-th light)."""
+    held = np.zeros(stack.n_light, bool)
+    held[::every] = True
+    if held.sum() == 0 or (~held).sum() == 0:
+        raise BtforgeInputError("stack.split", f"expected lights on both sides of the split, found {stack.n_light} lights",
+                                "use a smaller 'every'")
+
+    def part(mask):
+        idx = np.flatnonzero(mask)
+        names = tuple(stack.names[i] for i in idx) if stack.names else ()
+        return SampleStack(stack.samples[:, idx], stack.lights[idx], stack.views, stack.channels, stack.encoding, names)
+
+    ctx.note("fit_lights", int((~held).sum()))
+    ctx.note("test_lights", int(held.sum()))
+    return {"fit": part(~held), "test": part(held)}
+
+
+def _describe_light_file(path):
+    from .lightfile import read_light_file
+    entries = read_light_file(path, require_images=False)
+    lights = np.array([e.light for e in entries])
+    elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1, 1)))
+    return {"kind": "light file", "lights": len(entries), "views": len({e.view for e in entries}),
+            "elevation_deg": [round(float(elevation.min()), 2), round(float(elevation.max()), 2)],
+            "first": entries[0].filename if entries else None}
+
+
+def _describe_exr(path):
+    from .images import read_exr
+    pixels = read_exr(path)
+    return {"kind": "OpenEXR image", "shape": list(pixels.shape), "dtype": str(pixels.dtype),
+            "min": float(np.min(pixels)), "max": float(np.max(pixels))}
+
+
+@hookimpl
+def btforge_stages():
+    return [stack_read, stack_write, contact_sheet, stack_split]
+
+
+@hookimpl
+def btforge_info_readers():
+    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr}

@@ -1,0 +1,190 @@
+"""The ``btforge`` command line: run, validate, stages, info, bench.
+
+Bad input prints one clear message (no traceback unless ``--debug``) and exits with code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import yaml
+
+from .errors import BtforgeError, BtforgeInputError, BtforgeWarning
+
+
+def _parse_sets(items: list[str]) -> dict:
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise BtforgeInputError(f"--set {item}", "expected NODE.PARAM=VALUE", "e.g. --set fit.variant=lrgb")
+        out[key] = yaml.safe_load(value) if value else ""
+    return out
+
+
+def _print_report(result, stream) -> None:
+    rows = [("node", "stage", "status", "seconds", "peak MB", "notes")]
+    for r in result.report:
+        notes = ", ".join(f"{k}={v}" for k, v in r.notes.items() if k != "warnings")
+        rows.append((r.node, r.stage, r.status, f"{r.seconds:.2f}" if r.status == "ran" else "-",
+                     f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb else "-", notes[:90]))
+    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row[:5], widths)) + "  " + row[5], file=stream)
+
+
+def cmd_run(args) -> int:
+    from .runner import run
+    result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
+                 use_cache=not args.no_cache, quiet=False, report_path=args.report)
+    _print_report(result, sys.stderr)
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from .graph import check_graph, load_graph
+    from .registry import default_registry
+    checked = check_graph(load_graph(args.graph, _parse_sets(args.set)), default_registry(),
+                          Path(args.out) if args.out else None)
+    print(f"{args.graph}: ok ({len(checked.stages)} nodes, {checked.dag.number_of_edges()} edges)")
+    return 0
+
+
+def stage_record(st) -> dict:
+    return {
+        "name": st.name, "plugin": st.plugin, "version": st.version, "summary": st.summary, "doc": st.doc,
+        "inputs": {p: {"type": t, "optional": p in st.optional_inputs} for p, t in st.inputs.items()},
+        "outputs": dict(st.outputs),
+        "params": [{"name": p.name, "type": p.type_text(), "default": None if p.required else _jsonable(p.default),
+                    "required": p.required, "doc": p.doc} for p in st.params],
+    }
+
+
+def _jsonable(value):
+    return list(value) if isinstance(value, tuple) else value
+
+
+def cmd_stages(args) -> int:
+    from .registry import default_registry
+    reg = default_registry()
+    records = [stage_record(reg.stages[n]) for n in sorted(reg.stages) if not args.name or n in args.name]
+    if args.json:
+        print(json.dumps(records, indent=2, default=str))
+        return 0
+    for rec in records:
+        print(f"{rec['name']}  ({rec['plugin']}, v{rec['version']})")
+        for line in rec["doc"].splitlines():
+            print(f"    {line}")
+        for port, info in rec["inputs"].items():
+            print(f"    input  {port}: {info['type']}{' (optional)' if info['optional'] else ''}")
+        for port, tname in rec["outputs"].items():
+            print(f"    output {port}: {tname}")
+        for p in rec["params"]:
+            default = "required" if p["required"] else f"default {p['default']!r}"
+            print(f"    param  {p['name']} ({p['type']}, {default}): {p['doc']}")
+        print()
+    return 0
+
+
+def cmd_info(args) -> int:
+    from .registry import default_registry
+    path = Path(args.file)
+    if not path.exists():
+        raise BtforgeInputError(str(path), "file not found")
+    readers = default_registry().info_readers
+    reader = readers.get(path.suffix.lower())
+    if reader is None:
+        raise BtforgeInputError(str(path), f"no reader describes '{path.suffix}' files",
+                                f"known: {', '.join(sorted(readers))}")
+    info = reader(path)
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        print(path)
+        for key, value in info.items():
+            print(f"  {key}: {value}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from . import bench
+    return bench.main(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="btforge", description="Reflectance textures as a graph of stages.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("--device", help="OpenCL device: part of its platform or device name (or BTFORGE_DEVICE)")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="run a graph (only what the requested outputs need)")
+    p.add_argument("graph")
+    p.add_argument("--out", help="folder where output paths resolve (default: current folder)")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
+    p.add_argument("--only", action="append", metavar="NODE", help="run only what this node needs (repeatable)")
+    p.add_argument("--report", metavar="FILE.json", help="write the per-node report as JSON")
+    p.add_argument("--cache", help="cache folder (default: $BTFORGE_CACHE_DIR/nodes or ~/.cache/btforge/nodes)")
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the node cache")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("validate", help="check a graph without running it")
+    p.add_argument("graph")
+    p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE")
+    p.add_argument("--out")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("stages", help="list the installed stages with their ports, params and docs")
+    p.add_argument("name", nargs="*", help="only these stages")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_stages)
+
+    p = sub.add_parser("info", help="describe a .ptm, .lp/.lvp or .exr file")
+    p.add_argument("file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_info)
+
+    from . import bench
+    bench.add_parser(sub).set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, BtforgeWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        elif args.debug:
+            print(warnings.formatwarning(message, category, filename, lineno, line), file=sys.stderr, end="")
+
+    warnings.showwarning = show_warning
+    try:
+        if args.device:
+            from .backend import select_device
+            select_device(args.device)
+        return args.func(args) or 0
+    except BtforgeInputError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc.render()}", file=sys.stderr)
+        return exc.exit_code
+    except BtforgeError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:  # output piped into `head` and the like
+        sys.stderr.close()
+        return 0
+    except KeyboardInterrupt:
+        print("interrupted (outputs and cache entries are written atomically: nothing half-written was kept)",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

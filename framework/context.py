@@ -1,0 +1,48 @@
+"""What a running stage sees besides its inputs and parameters."""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from .errors import BtforgeWarning
+from .stages import RunPaths
+
+
+@dataclasses.dataclass
+class StageContext:
+    """Per-node context: where paths resolve, and a place to leave notes for the run report.
+
+    Attributes
+    ----------
+    node
+        The graph node's name (used in messages).
+    paths
+        Resolves input paths against the graph's folder and output paths against the run's output folder.
+    notes
+        Facts the stage reports (condition numbers, counts, compression rates); they land in the run report.
+    """
+
+    node: str
+    paths: RunPaths = dataclasses.field(default_factory=lambda: RunPaths(Path.cwd(), Path.cwd()))
+    notes: dict[str, Any] = dataclasses.field(default_factory=dict)
+    quiet: bool = False
+
+    def note(self, key: str, value: Any) -> None:
+        self.notes[key] = value
+
+    def warn(self, message: str) -> None:
+        """A warning that names the node; collected in the report and shown by the CLI."""
+        self.notes.setdefault("warnings", []).append(message)
+        warnings.warn(f"node '{self.node}': {message}", BtforgeWarning, stacklevel=2)
+
+    def progress(self, message: str) -> None:
+        if not self.quiet:
+            print(f"    {self.node}: {message}", file=sys.stderr, flush=True)
+
+    @property
+    def backend(self):
+        from .backend import get_backend
+        return get_backend()

@@ -1,0 +1,265 @@
+"""Node graphs: plain YAML data, checked completely before anything runs.
+
+A graph file is a mapping ``nodes: {name: {stage, params, inputs}}``; an input is wired as ``node.port``.
+:func:`load_graph` parses it (keeping line numbers for messages), and :func:`check_graph` validates stages,
+parameters, ports, port types, cycles and input files against the registry, collecting every problem it finds
+into one :class:`BtforgeInputError`.  The checked graph is a networkx ``DiGraph`` whose edges carry the ports.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import networkx as nx
+import yaml
+
+from .errors import BtforgeInputError
+from .registry import Registry, did_you_mean
+from .stages import RunPaths, Stage
+
+NODE_KEYS = ("stage", "params", "inputs")
+
+
+class _LineDict(dict):
+    """A mapping that remembers the source line of each key."""
+
+    lines: dict[str, int]
+    line: int
+
+
+class _LineLoader(yaml.SafeLoader):
+    pass
+
+
+def _construct_mapping(loader: _LineLoader, node: yaml.MappingNode) -> _LineDict:
+    loader.flatten_mapping(node)
+    out = _LineDict()
+    out.lines = {}
+    out.line = node.start_mark.line + 1
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        out[key] = loader.construct_object(value_node, deep=True)
+        out.lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+_LineLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeSpec:
+    name: str
+    stage: str
+    params: Mapping[str, Any]
+    inputs: Mapping[str, tuple[str, str]]
+    line: int | None = None
+    param_lines: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    input_lines: Mapping[str, int] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class GraphSpec:
+    """A parsed graph (not yet checked): its nodes and where its relative paths resolve."""
+
+    nodes: Mapping[str, NodeSpec]
+    source: str
+    graph_dir: Path
+
+    def where(self, node: str | None = None, line: int | None = None) -> str:
+        text = self.source
+        if line:
+            text += f", line {line}"
+        if node:
+            text += f", node '{node}'"
+        return text
+
+
+def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> GraphSpec:
+    """Parse a graph file (or an already-loaded mapping) and apply ``--set NODE.PARAM=VALUE`` overrides."""
+    if isinstance(graph, Mapping):
+        data, source, graph_dir = graph, "<graph>", Path.cwd()
+    else:
+        path = Path(graph)
+        if not path.is_file():
+            raise BtforgeInputError(str(path), "graph file not found", "check the path")
+        try:
+            data = yaml.load(path.read_text(), Loader=_LineLoader)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f"{path}, line {mark.line + 1}" if mark else str(path)
+            raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
+        source, graph_dir = str(path), path.resolve().parent
+
+    if not isinstance(data, Mapping) or not isinstance(data.get("nodes"), Mapping) or not data["nodes"]:
+        raise BtforgeInputError(source, "expected a mapping with a non-empty 'nodes:' mapping at the top",
+                                "see graphs/demo.yaml for the layout")
+    unknown_top = [k for k in data if k not in ("nodes", "description")]
+    if unknown_top:
+        raise BtforgeInputError(source, f"unknown top-level key '{unknown_top[0]}'", "only 'nodes' and 'description' are allowed")
+
+    nodes: dict[str, NodeSpec] = {}
+    node_lines = getattr(data["nodes"], "lines", {})
+    for name, body in data["nodes"].items():
+        line = node_lines.get(name)
+        where = f"{source}{f', line {line}' if line else ''}, node '{name}'"
+        if not isinstance(name, str) or not name or "." in name:
+            raise BtforgeInputError(where, "node names must be non-empty strings without dots",
+                                    "rename the node (dots separate node and port in wiring)")
+        if not isinstance(body, Mapping):
+            raise BtforgeInputError(where, f"expected a mapping with 'stage', 'params', 'inputs', found {type(body).__name__}")
+        extra = [k for k in body if k not in NODE_KEYS]
+        if extra:
+            raise BtforgeInputError(where, f"unknown key '{extra[0]}'", did_you_mean(str(extra[0]), NODE_KEYS))
+        if not isinstance(body.get("stage"), str):
+            raise BtforgeInputError(where, "expected 'stage: NAME'", "add the stage this node runs, see `btforge stages`")
+        params = body.get("params") or {}
+        inputs = body.get("inputs") or {}
+        for key, value in (("params", params), ("inputs", inputs)):
+            if not isinstance(value, Mapping):
+                raise BtforgeInputError(where, f"expected '{key}' to be a mapping, found {type(value).__name__}")
+        wired: dict[str, tuple[str, str]] = {}
+        for port, ref in inputs.items():
+            if not isinstance(ref, str) or ref.count(".") != 1 or not all(ref.split(".")):
+                iline = getattr(inputs, "lines", {}).get(port)
+                raise BtforgeInputError(f"{source}{f', line {iline}' if iline else ''}, node '{name}', input '{port}'",
+                                        f"expected 'node.port', found {ref!r}", "wire inputs as e.g. 'fit.model'")
+            src, src_port = ref.split(".")
+            wired[port] = (src, src_port)
+        nodes[name] = NodeSpec(
+            name=name, stage=body["stage"], params=dict(params), inputs=wired, line=line,
+            param_lines=dict(getattr(params, "lines", {})), input_lines=dict(getattr(inputs, "lines", {})),
+        )
+
+    for key, value in (overrides or {}).items():
+        node, _, param = key.partition(".")
+        if node not in nodes or not param:
+            raise BtforgeInputError(f"--set {key}", f"expected NODE.PARAM with a node of the graph, found '{key}'",
+                                    did_you_mean(node, nodes))
+        spec = nodes[node]
+        nodes[node] = dataclasses.replace(spec, params={**spec.params, param: value})
+    return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckedGraph:
+    """A graph that passed every check: typed stages, coerced params, and the dependency DiGraph."""
+
+    spec: GraphSpec
+    stages: Mapping[str, Stage]
+    params: Mapping[str, Mapping[str, Any]]
+    dag: nx.DiGraph
+
+    def needed_for(self, targets: list[str] | None) -> list[str]:
+        """Nodes to evaluate, in dependency order, to produce ``targets`` (default: every sink node)."""
+        if not targets:
+            targets = [n for n in self.dag if self.dag.out_degree(n) == 0]
+        needed: set[str] = set()
+        for t in targets:
+            if t not in self.dag:
+                raise BtforgeInputError(f"--only {t}", "is not a node of the graph", did_you_mean(t, self.dag))
+            needed |= nx.ancestors(self.dag, t) | {t}
+        return [n for n in nx.lexicographical_topological_sort(self.dag) if n in needed]
+
+
+def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None) -> CheckedGraph:
+    """Validate everything that can be validated without running a stage; raise one error listing all problems."""
+    problems: list[str] = []
+    hints: list[str] = []
+    paths = RunPaths(spec.graph_dir, out_dir or Path.cwd())
+
+    def problem(where: str, text: str, hint: str | None = None) -> None:
+        problems.append(f"{where}: {text}" + (f" ({hint})" if hint else ""))
+
+    stages: dict[str, Stage] = {}
+    for name, node in spec.nodes.items():
+        if node.stage in registry.stages:
+            stages[name] = registry.stages[node.stage]
+        else:
+            problem(spec.where(name, node.line), f"unknown stage '{node.stage}'", did_you_mean(node.stage, registry.stages))
+
+    params: dict[str, dict[str, Any]] = {}
+    for name, st in stages.items():
+        node = spec.nodes[name]
+        values: dict[str, Any] = {}
+        for key, raw in node.params.items():
+            param = st.param(key)
+            where = spec.where(name, node.param_lines.get(key, node.line)) + f", param '{key}'"
+            if param is None:
+                problem(where, f"stage '{st.name}' has no such parameter",
+                        did_you_mean(key, [p.name for p in st.params]))
+                continue
+            try:
+                values[key] = param.coerce(raw, where)
+            except BtforgeInputError as exc:
+                problems.append(exc.render().replace("\n  hint: ", " (") + (")" if exc.hint else ""))
+        for p in st.params:
+            if p.name not in values and p.name not in node.params:
+                if p.required:
+                    problem(spec.where(name, node.line), f"missing required param '{p.name}' ({p.type_text()}: {p.doc})")
+                else:
+                    values[p.name] = p.default
+        for p in st.params:
+            if p.kind == "path" and isinstance(values.get(p.name), str):
+                target = paths.input(values[p.name])
+                if not target.exists():
+                    problem(spec.where(name, node.param_lines.get(p.name, node.line)) + f", param '{p.name}'",
+                            f"input file not found: {target}", "paths are relative to the graph file's folder")
+            if p.kind == "lights" and isinstance(values.get(p.name), str):
+                target = paths.input(values[p.name])
+                if not target.exists():
+                    problem(spec.where(name, node.param_lines.get(p.name, node.line)) + f", param '{p.name}'",
+                            f"light file not found: {target}", "paths are relative to the graph file's folder")
+        params[name] = values
+
+    dag = nx.DiGraph()
+    dag.add_nodes_from(spec.nodes)
+    for name, st in stages.items():
+        node = spec.nodes[name]
+        for port, (src, src_port) in node.inputs.items():
+            where = spec.where(name, node.input_lines.get(port, node.line)) + f", input '{port}'"
+            if port not in st.inputs:
+                problem(where, f"stage '{st.name}' has no input port '{port}'", did_you_mean(port, st.inputs))
+                continue
+            if src not in spec.nodes:
+                problem(where, f"wired to unknown node '{src}'", did_you_mean(src, spec.nodes))
+                continue
+            dag.add_edge(src, name, ports=(src_port, port))
+            src_stage = stages.get(src)
+            if src_stage is None:
+                continue
+            if src_port not in src_stage.outputs:
+                problem(where, f"node '{src}' ({src_stage.name}) has no output port '{src_port}'",
+                        did_you_mean(src_port, src_stage.outputs))
+                continue
+            have, want = src_stage.outputs[src_port], st.inputs[port]
+            if not registry.accepts(want, have):
+                problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
+                        "wire an output of the expected type")
+        for port in st.inputs:
+            if port not in node.inputs and port not in st.optional_inputs:
+                problem(spec.where(name, node.line), f"input port '{port}' ({st.inputs[port]}) is not wired",
+                        f"add 'inputs: {{{port}: NODE.PORT}}'")
+
+    try:
+        cycle = nx.find_cycle(dag)
+    except nx.NetworkXNoCycle:
+        cycle = None
+    if cycle:
+        loop = " -> ".join([e[0] for e in cycle] + [cycle[0][0]])
+        problem(spec.source, f"the graph has a cycle: {loop}", "a node cannot depend on its own output")
+
+    if not problems:
+        for name, st in stages.items():
+            if st.precheck is not None:
+                try:
+                    st.precheck(params[name], paths)
+                except BtforgeInputError as exc:
+                    problems.append(exc.located(spec.where(name, spec.nodes[name].line)).render().replace("\n  hint: ", " (hint: ") + (")" if exc.hint else ""))
+
+    if problems:
+        if len(problems) == 1:
+            raise BtforgeInputError("", problems[0])
+        raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
+    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag)

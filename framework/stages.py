@@ -1,0 +1,228 @@
+"""Declaring stages: typed ports, typed parameters with defaults and docs.
+
+A stage is a plain function ``fn(ctx, **inputs, **params) -> dict[port, Buffer]`` wrapped by :func:`stage`, which
+records its ports and parameters so a graph can be checked before anything runs.  The function's NumPy-style
+docstring is the documentation ``btforge stages`` prints.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import os
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+from .errors import BtforgeInputError
+
+# Parameter kinds and what they accept.  'path' is an existing input file (checked before a run, resolved
+# against the graph file's folder); 'outpath' is where a stage writes (resolved against the run's --out).
+PARAM_KINDS = ("str", "int", "float", "bool", "choice", "path", "outpath", "lights", "ints", "any")
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """A stage parameter.
+
+    Parameters
+    ----------
+    name, kind, default, doc
+        ``kind`` is one of ``PARAM_KINDS``; ``default`` of ``REQUIRED`` makes the parameter mandatory.
+    choices
+        Allowed values for kind ``choice``.
+    low, high
+        Inclusive bounds for ``int`` / ``float``.
+    length
+        Required length for kind ``ints`` (e.g. 2 for a size ``[H, W]``); None allows any length.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    doc: str
+    choices: tuple[Any, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    length: int | None = None
+
+    def __post_init__(self):
+        if self.kind not in PARAM_KINDS:
+            raise ValueError(f"Param {self.name!r}: kind must be one of {PARAM_KINDS}, got {self.kind!r}")
+        if self.kind == "choice" and not self.choices:
+            raise ValueError(f"Param {self.name!r}: a choice parameter needs choices")
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+    def type_text(self) -> str:
+        if self.kind == "choice":
+            return "|".join(str(c) for c in self.choices)
+        if self.kind == "lights":
+            return "list of [x, y, z] or .lp path"
+        if self.kind == "ints":
+            return f"list of {self.length or 'N'} ints"
+        if self.low is not None and self.high is not None:
+            return f"{self.kind} in [{self.low}, {self.high}]"
+        if self.low is not None:
+            return f"{self.kind} >= {self.low}"
+        if self.high is not None:
+            return f"{self.kind} <= {self.high}"
+        return self.kind
+
+    def coerce(self, value: Any, where: str) -> Any:
+        """Check ``value`` against this parameter's kind; return it normalised. ``where`` names node and param."""
+        def bad(found: str, hint: str | None = None):
+            return BtforgeInputError(where, f"expected {self.type_text()}, found {found}", hint)
+
+        kind = self.kind
+        if kind == "bool":
+            if not isinstance(value, bool):
+                raise bad(repr(value), "write true or false")
+            return value
+        if kind == "int":
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise bad(repr(value))
+            self._check_bounds(value, where)
+            return value
+        if kind == "float":
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise bad(repr(value))
+            self._check_bounds(float(value), where)
+            return float(value)
+        if kind == "choice":
+            if value not in self.choices:
+                from difflib import get_close_matches
+                near = get_close_matches(str(value), [str(c) for c in self.choices], n=1)
+                raise bad(repr(value), f"did you mean '{near[0]}'?" if near else None)
+            return value
+        if kind in ("str", "path", "outpath"):
+            if not isinstance(value, (str, os.PathLike)) or str(value) == "":
+                raise bad(repr(value))
+            return str(value)
+        if kind == "ints":
+            if isinstance(value, int) and not isinstance(value, bool) and self.length:
+                value = [value] * self.length
+            if not isinstance(value, (list, tuple)) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+                raise bad(repr(value))
+            if self.length and len(value) != self.length:
+                raise bad(f"{len(value)} values")
+            for v in value:
+                self._check_bounds(v, where)
+            return tuple(value)
+        if kind == "lights":
+            if isinstance(value, (str, os.PathLike)):
+                return str(value)
+            if not isinstance(value, (list, tuple)) or not value or not all(
+                isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+                for v in value
+            ):
+                raise bad(repr(value)[:80], "give [[x, y, z], ...] or the path of a .lp file")
+            return tuple(tuple(float(x) for x in v) for v in value)
+        return value
+
+    def _check_bounds(self, value: float, where: str) -> None:
+        if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+            raise BtforgeInputError(where, f"expected {self.type_text()}, found {value}")
+
+
+class _Required:
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+REQUIRED: Any = _Required()
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """A registered stage: its function plus everything needed to check a graph without running it."""
+
+    name: str
+    fn: Callable[..., Mapping[str, Any]]
+    inputs: Mapping[str, str]
+    outputs: Mapping[str, str]
+    params: tuple[Param, ...]
+    version: str = "1"
+    optional_inputs: frozenset[str] = frozenset()
+    side_effects: bool = False
+    precheck: Callable[[Mapping[str, Any], "RunPaths"], None] | None = None
+    plugin: str = ""
+
+    @property
+    def doc(self) -> str:
+        return inspect.cleandoc(self.fn.__doc__ or "")
+
+    @property
+    def summary(self) -> str:
+        return self.doc.splitlines()[0] if self.doc else ""
+
+    def param(self, name: str) -> Param | None:
+        return next((p for p in self.params if p.name == name), None)
+
+    def __call__(self, *args, **kwargs):
+        """Call the stage directly (for plugin authors' tests): ``stage(ctx=None, **inputs, **params)``.
+
+        Missing parameters take their defaults and a default :class:`~btforge.context.StageContext` is made when
+        ``ctx`` is not given.  Inputs must be buffers of the declared types.
+        """
+        from .context import StageContext
+        ctx = kwargs.pop("ctx", None) or (args[0] if args else None) or StageContext(node=self.name)
+        values = {}
+        for p in self.params:
+            if p.name in kwargs:
+                values[p.name] = p.coerce(kwargs.pop(p.name), f"stage '{self.name}', param '{p.name}'")
+            elif p.required:
+                raise BtforgeInputError(f"stage '{self.name}'", f"param '{p.name}' is required")
+            else:
+                values[p.name] = p.default
+        return self.fn(ctx, **kwargs, **values)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPaths:
+    """Where relative paths resolve: inputs against the graph's folder, outputs against the run's output folder."""
+
+    graph_dir: Path
+    out_dir: Path
+
+    def input(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        return p if p.is_absolute() else self.graph_dir / p
+
+    def output(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        return p if p.is_absolute() else self.out_dir / p
+
+
+def declare_stage(
+    name: str,
+    *,
+    inputs: Mapping[str, str] | None = None,
+    outputs: Mapping[str, str] | None = None,
+    params: Sequence[Param] = (),
+    version: str = "1",
+    optional_inputs: Sequence[str] = (),
+    side_effects: bool = False,
+    precheck: Callable | None = None,
+) -> Callable[[Callable], Stage]:
+    """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
+
+    ``version`` is part of every cache key: bump it when the stage's results change for the same inputs.
+    ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
+    ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
+    it runs during validation, before any stage does.
+    """
+
+    def wrap(fn: Callable) -> Stage:
+        declared = set(inputs or {}) | {p.name for p in params}
+        sig = inspect.signature(fn)
+        accepted = set(list(sig.parameters)[1:])
+        if declared != accepted:
+            raise TypeError(f"stage {name!r}: function takes {sorted(accepted)}, declared {sorted(declared)}")
+        return Stage(
+            name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
+            version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
+            precheck=precheck, plugin=fn.__module__,
+        )
+
+    return wrap

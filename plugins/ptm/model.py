@@ -1,0 +1,242 @@
+"""The PTM reflectance model and its fit, with OpenCL kernels (``ptm.cl``) and their NumPy twins.
+
+A polynomial texture map (Malzbender et al. 2001) stores per texel a biquadratic in the light's projected
+direction ``(lu, lv)``: terms ``(lu^2, lv^2, lu*lv, lu, lv, 1)``.  Variant ``rgb`` has one polynomial per
+channel; ``lrgb`` one luminance polynomial scaled by a per-texel colour.  ``space`` says what the polynomial
+evaluates to: ``linear`` radiance, or ``srgb`` display values (what ``.ptm`` files hold) that are clipped to
+[0, 1] and decoded to linear on evaluation.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from btforge.backend import get_backend
+from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen,
+                             linear_to_srgb, srgb_to_linear, unit_directions)
+from btforge.errors import BtforgeInputError
+
+KERNELS = Path(__file__).with_name("ptm.cl")
+N_TERMS = 6
+MAX_CHANNELS = 4  # the kernels keep per-channel accumulators in registers
+VARIANTS = ("lrgb", "rgb")
+SPACES = ("linear", "srgb")
+
+
+def ptm_terms(lights: np.ndarray) -> np.ndarray:
+    """The six PTM basis terms at each unit light ``[L, 3]`` -> ``[L, 6]`` float64."""
+    u = np.asarray(lights, dtype=np.float64)[:, 0]
+    v = np.asarray(lights, dtype=np.float64)[:, 1]
+    return np.stack([u * u, v * v, u * v, u, v, np.ones_like(u)], axis=1)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PTMModel(ReflectanceModel):
+    """Per-texel polynomial texture map.
+
+    ``coeffs`` is ``[H, W, K, 6]`` float32 (K = channels for ``rgb``, 1 for ``lrgb``); ``albedo`` is the
+    ``[H, W, C]`` colour of an ``lrgb`` model (``[H, W, 0]`` for ``rgb``).
+    """
+
+    type_name: ClassVar[str] = "PTMModel"
+    texel_fields: ClassVar[tuple[str, ...]] = ("coeffs", "albedo")
+
+    coeffs: np.ndarray
+    albedo: np.ndarray
+    variant: str = "rgb"
+    space: str = "linear"
+    channel_names: tuple[str, ...] = ("R", "G", "B")
+
+    def __post_init__(self):
+        owner = "PTMModel"
+        if self.variant not in VARIANTS:
+            raise BtforgeInputError(f"{owner} 'variant'", f"must be one of {VARIANTS}, got {self.variant!r}")
+        if self.space not in SPACES:
+            raise BtforgeInputError(f"{owner} 'space'", f"must be one of {SPACES}, got {self.space!r}")
+        n_channel = len(self.channel_names)
+        if not 1 <= n_channel <= MAX_CHANNELS:
+            raise BtforgeInputError(f"{owner} 'channel_names'", f"must name 1 to {MAX_CHANNELS} channels, got {n_channel}")
+        k = 1 if self.variant == "lrgb" else n_channel
+        check_array("coeffs", self.coeffs, ("H", "W", k, N_TERMS), np.float32, finite=True, owner=owner)
+        h, w = self.coeffs.shape[:2]
+        albedo_channels = n_channel if self.variant == "lrgb" else 0
+        check_array("albedo", self.albedo, (h, w, albedo_channels), np.float32, finite=True, owner=owner)
+        object.__setattr__(self, "coeffs", frozen(self.coeffs))
+        object.__setattr__(self, "albedo", frozen(self.albedo))
+        object.__setattr__(self, "channel_names", tuple(self.channel_names))
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.channel_names
+
+    def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
+        lights = unit_directions("lights", lights, owner="PTM evaluation")
+        flat_coeffs = self.coeffs.reshape(-1, self.coeffs.shape[2], N_TERMS)
+        flat_albedo = self.albedo.reshape(self.height * self.width, self.albedo.shape[2])
+        if engine == "numpy":
+            flat = evaluate_ptm_numpy(flat_coeffs, flat_albedo, lights, self.variant, self.space)
+        else:
+            flat = evaluate_ptm_opencl(flat_coeffs, flat_albedo, lights, self.variant, self.space)
+        return flat.reshape(1, len(lights), self.height, self.width, len(self.channel_names))
+
+
+# ----------------------------------------------------------------------------------------------- evaluation
+
+
+def evaluate_ptm_numpy(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarray, variant: str, space: str) -> np.ndarray:
+    """Reference evaluation: ``coeffs [N, K, 6]``, ``albedo [N, C]`` -> ``[L, N, C]`` float32 linear."""
+    terms = ptm_terms(lights).astype(np.float32)
+    poly = np.einsum("li,nki->lnk", terms, coeffs, dtype=np.float32)
+    value = albedo[None] * poly if variant == "lrgb" else poly
+    value = np.maximum(value, 0.0)
+    if space == "srgb":
+        value = srgb_to_linear(np.minimum(value, 1.0)).astype(np.float32)
+    return value.astype(np.float32)
+
+
+def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarray, variant: str, space: str,
+                        budget_bytes: int = 256 << 20) -> np.ndarray:
+    backend = get_backend()
+    kernel = backend.kernel(KERNELS, "ptm_eval")
+    n_texel, k, _ = coeffs.shape
+    n_channel = albedo.shape[1] if variant == "lrgb" else k
+    n_light = len(lights)
+    out = np.empty((n_light, n_texel, n_channel), dtype=np.float32)
+    lights_dev = backend.to_device(np.ascontiguousarray(lights, dtype=np.float32))
+    # Chunk over texels so device buffers stay bounded whatever the image size.
+    per_texel = 4 * (k * N_TERMS + max(albedo.shape[1], 1) + n_light * n_channel)
+    albedo_src = albedo if albedo.shape[1] else np.zeros((n_texel, 1), np.float32)
+    for chunk in _chunks(n_texel, per_texel, budget_bytes):
+        n = chunk.stop - chunk.start
+        c_dev = backend.to_device(coeffs[chunk])
+        a_dev = backend.to_device(albedo_src[chunk])
+        o_dev = backend.empty(n_light * n * n_channel * 4)
+        backend.run(kernel, (n, n_light), c_dev, a_dev, lights_dev, np.int32(n_light),
+                         np.int32(n), np.int32(n_channel), np.int32(variant == "lrgb"), np.int32(space == "srgb"), o_dev)
+        out[:, chunk] = backend.from_device(o_dev, (n_light, n, n_channel), np.float32)
+    return out
+
+
+def _chunks(n: int, bytes_per_item: int, budget: int):
+    step = max(1, min(n, budget // max(bytes_per_item, 1)))
+    for start in range(0, n, step):
+        yield slice(start, min(n, start + step))
+
+
+# ----------------------------------------------------------------------------------------------- fitting
+
+
+@dataclasses.dataclass(frozen=True)
+class PTMSolve:
+    """The per-light weights that turn samples into coefficients (a regularised pseudo-inverse)."""
+
+    solve: np.ndarray   # [6, L]
+    design: np.ndarray  # [L, 6]
+    condition_number: float
+    clamped: int        # how many singular values were raised to the floor
+
+
+def ptm_solver(lights: np.ndarray, rcond: float = 1e-3) -> PTMSolve:
+    """Pseudo-inverse of the PTM design matrix, clamping singular values below ``rcond`` x the largest.
+
+    Light sets that barely vary in one direction (all at one elevation, clustered, grazing) make the design
+    matrix nearly singular; clamping bounds the coefficients instead of letting noise blow them up.
+    """
+    lights = np.asarray(lights, dtype=np.float64)
+    if len(lights) < N_TERMS:
+        raise BtforgeInputError(
+            "ptm.fit", f"expected at least {N_TERMS} lights for a 6-coefficient PTM, found {len(lights)}",
+            "capture more lights, or use a representation with fewer coefficients")
+    design = ptm_terms(lights)
+    u, s, vt = np.linalg.svd(design, full_matrices=False)
+    floor = s[0] * rcond
+    condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    clamped = int((s < floor).sum())
+    s_eff = np.maximum(s, floor)
+    solve = (vt.T / s_eff) @ u.T
+    return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped)
+
+
+def resolve_space(stack: SampleStack, space: str) -> str:
+    if space == "auto":
+        return "srgb" if stack.encoding == "srgb8" else "linear"
+    return space
+
+
+def _band_samples(stack: SampleStack, rows: slice, space: str):
+    """Samples of a band of rows as ``[L, n, C]`` in the kernel's input form, plus the byte-decoding table."""
+    band = stack.samples[0, :, rows]
+    flat_shape = (band.shape[0], band.shape[1] * band.shape[2], band.shape[3])
+    if stack.encoding == "srgb8":
+        lut = (np.arange(256, dtype=np.float32) / 255.0) if space == "srgb" else SRGB8_TO_LINEAR
+        return np.ascontiguousarray(band).reshape(flat_shape), np.ascontiguousarray(lut, np.float32)
+    values = band if space == "linear" else linear_to_srgb(band).astype(np.float32)
+    return np.ascontiguousarray(values).reshape(flat_shape), None
+
+
+def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
+    """Reference fit of ``samples [L, N, C]`` -> ``(coeffs [N, K, 6], albedo [N, C or 0])`` float32."""
+    values = (lut[samples] if lut is not None else samples).astype(np.float64)
+    solve = solver.solve.astype(np.float64)
+    if variant == "rgb":
+        coeffs = np.einsum("kl,lnc->nck", solve, values)
+        return coeffs.astype(np.float32), np.zeros((values.shape[1], 0), np.float32)
+    luminance = values.mean(axis=2)                                   # [L, N]
+    coeffs = solve @ luminance                                        # [6, N]
+    poly = solver.design.astype(np.float64) @ coeffs                  # [L, N]
+    pp = (poly * poly).sum(axis=0)                                    # [N]
+    cross = np.einsum("ln,lnc->nc", poly, values)
+    scale = np.where(pp[:, None] > 1e-20, cross / np.where(pp > 1e-20, pp, 1.0)[:, None], 1.0)
+    norm = np.maximum(scale.max(axis=1), 1.0)
+    albedo = scale / norm[:, None]
+    coeffs = (coeffs * norm[None]).T[:, None, :]
+    return coeffs.astype(np.float32), albedo.astype(np.float32)
+
+
+def fit_ptm_opencl(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
+    backend = get_backend()
+    sample_type = "uchar" if samples.dtype == np.uint8 else "float"
+    options = (f"-DSAMPLE_T={sample_type}",) + (("-DUSE_LUT",) if lut is not None else ())
+    kernel = backend.kernel(KERNELS, "ptm_fit", options)
+    n_light, n_texel, n_channel = samples.shape
+    k = 1 if variant == "lrgb" else n_channel
+    s_dev = backend.to_device(samples)
+    lut_dev = backend.to_device(lut if lut is not None else np.zeros(1, np.float32))
+    solve_dev = backend.to_device(solver.solve)
+    design_dev = backend.to_device(solver.design)
+    c_dev = backend.empty(n_texel * k * N_TERMS * 4)
+    a_dev = backend.empty(n_texel * n_channel * 4)
+    backend.run(kernel, (n_texel,), s_dev, lut_dev, solve_dev, design_dev, np.int32(n_light),
+                    np.int32(n_texel), np.int32(n_channel), np.int32(variant == "lrgb"), c_dev, a_dev)
+    coeffs = backend.from_device(c_dev, (n_texel, k, N_TERMS), np.float32)
+    if variant == "rgb":
+        return coeffs, np.zeros((n_texel, 0), np.float32)
+    return coeffs, backend.from_device(a_dev, (n_texel, n_channel), np.float32)
+
+
+def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
+            rcond: float = 1e-3, budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
+    """Least-squares PTM fit of a single-view stack, streamed over bands of rows."""
+    if stack.n_view != 1:
+        raise BtforgeInputError(
+            "ptm.fit 'stack'", f"expected a single-view stack (a PTM depends on the light only), found {stack.n_view} views",
+            "select one view, or fit a view-dependent representation")
+    if stack.n_channel > MAX_CHANNELS:
+        raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
+    space = resolve_space(stack, space)
+    solver = ptm_solver(stack.lights, rcond)
+    fit_band = fit_ptm_numpy if engine == "numpy" else fit_ptm_opencl
+    h, w, c = stack.height, stack.width, stack.n_channel
+    k = 1 if variant == "lrgb" else c
+    coeffs = np.empty((h * w, k, N_TERMS), np.float32)
+    albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
+    for rows in stack.row_bands(budget_bytes):
+        samples, lut = _band_samples(stack, rows, space)
+        texels = slice(rows.start * w, rows.stop * w)
+        coeffs[texels], albedo[texels] = fit_band(samples, lut, solver, variant)
+    model = PTMModel(coeffs.reshape(h, w, k, N_TERMS), albedo.reshape(h, w, albedo.shape[1]), variant, space,
+                     stack.channels)
+    return model, solver

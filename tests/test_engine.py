@@ -1,0 +1,153 @@
+"""The engine: plugin registration, demand-driven runs, content-addressed caching, reports, atomic writes."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+import btforge
+from btforge import BtforgeError, BtforgeInputError
+from btforge.atomic import atomic_write
+from btforge.buffers import SampleStack
+from btforge.registry import Registry
+
+from fixtures import toy_plugin
+
+
+@pytest.fixture
+def registry():
+    toy_plugin.CALLS.clear()
+    return Registry(load_entry_points=True, extra_plugins=[toy_plugin])
+
+
+GRAPH = {
+    "nodes": {
+        "src": {"stage": "toy.source", "params": {"n": 5}},
+        "twice": {"stage": "toy.scale", "inputs": {"numbers": "src.numbers"}},
+        "thrice": {"stage": "toy.scale", "params": {"factor": 3.0}, "inputs": {"numbers": "src.numbers"}},
+        "sum": {"stage": "toy.add", "inputs": {"a": "twice.numbers", "b": "thrice.numbers"}},
+        "text": {"stage": "toy.describe", "params": {"label": "total"}, "inputs": {"numbers": "sum.numbers"}},
+        "side": {"stage": "toy.scale", "params": {"factor": -1.0}, "inputs": {"numbers": "src.numbers"}},
+    }
+}
+
+
+def test_builtin_families_come_from_entry_points():
+    reg = Registry()
+    assert {"stack.read", "stack.write", "ptm.fit", "ptm.read", "ptm.write", "relight"} <= set(reg.stages)
+    assert {"SampleStack", "PTMModel", "ReflectanceModel"} <= set(reg.types)
+
+
+def test_run_returns_typed_buffers_of_requested_nodes(registry, tmp_path):
+    result = btforge.run(GRAPH, only=["text"], registry=registry, cache_dir=tmp_path)
+    assert set(result) == {"text"}
+    assert result["text"]["text"].text == "total: 50.0"
+    status = {r.node: r.status for r in result.report}
+    assert status["side"] == "not needed"  # demand-driven: nothing else is computed
+    assert toy_plugin.CALLS == {"toy.source": 1, "toy.scale": 2, "toy.add": 1, "toy.describe": 1}
+
+
+def test_default_targets_are_the_sinks(registry, tmp_path):
+    result = btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert set(result) == {"text", "side"}
+
+
+def test_changed_param_reruns_only_what_depends_on_it(registry, tmp_path):
+    btforge.run(GRAPH, only=["text"], registry=registry, cache_dir=tmp_path)
+    toy_plugin.CALLS.clear()
+    result = btforge.run(GRAPH, only=["text"], set={"thrice.factor": 4.0}, registry=registry, cache_dir=tmp_path)
+    status = {r.node: r.status for r in result.report}
+    assert status == {"src": "cached", "twice": "cached", "thrice": "ran", "sum": "ran", "text": "ran",
+                      "side": "not needed"}
+    assert result["text"]["text"].text == "total: 60.0"
+    # a cached upstream node is never loaded when only its content key is needed... but its output is when used
+    assert toy_plugin.CALLS == {"toy.scale": 1, "toy.add": 1, "toy.describe": 1}
+
+
+def test_second_identical_run_is_all_cache_hits(registry, tmp_path):
+    first = btforge.run(GRAPH, only=["text"], registry=registry, cache_dir=tmp_path)
+    toy_plugin.CALLS.clear()
+    second = btforge.run(GRAPH, only=["text"], registry=registry, cache_dir=tmp_path)
+    assert toy_plugin.CALLS == {}
+    assert second["text"]["text"].text == first["text"]["text"].text
+    assert {r.status for r in second.report} == {"cached", "not needed"}
+    assert second.report[-2].notes["total"] == 50.0  # notes survive the cache
+
+
+def test_half_written_cache_entry_is_a_miss(registry, tmp_path):
+    btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
+    for manifest in tmp_path.rglob("manifest.json"):
+        manifest.unlink()  # what a crash between the data and the manifest leaves behind
+    toy_plugin.CALLS.clear()
+    btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
+    assert toy_plugin.CALLS == {"toy.source": 1}
+
+
+def test_report_file(registry, tmp_path):
+    report = tmp_path / "report.json"
+    btforge.run(GRAPH, only=["sum"], registry=registry, cache_dir=tmp_path / "c", report_path=report)
+    data = json.loads(report.read_text())
+    rows = {r["node"]: r for r in data["nodes"]}
+    assert rows["sum"]["status"] == "ran" and rows["sum"]["seconds"] >= 0 and rows["sum"]["peak_rss_mb"] > 0
+    assert rows["text"]["status"] == "not needed"
+
+
+def test_plugin_returning_the_wrong_type_is_caught(registry, tmp_path):
+    with pytest.raises(BtforgeError, match="returned Text on port 'numbers', declared Numbers"):
+        btforge.run({"nodes": {"b": {"stage": "toy.broken"}}}, registry=registry, cache_dir=tmp_path)
+
+
+def test_stage_callable_directly():
+    ptm_fit = btforge.stage("ptm.fit")
+    rng = np.random.default_rng(1)
+    lights = np.column_stack([rng.uniform(-0.6, 0.6, (12, 2)), np.ones(12)])
+    stack = SampleStack(rng.uniform(0, 1, (1, 12, 4, 5, 3)).astype(np.float32), lights, [[0, 0, 1]])
+    model = ptm_fit(stack=stack, variant="lrgb")["model"]
+    assert model.coeffs.shape == (4, 5, 1, 6)
+    with pytest.raises(BtforgeInputError, match="expected rgb\\|lrgb"):
+        ptm_fit(stack=stack, variant="xyz")
+
+
+def test_unknown_stage_has_did_you_mean():
+    with pytest.raises(BtforgeInputError, match="did you mean 'ptm.fit'"):
+        btforge.stage("ptm.fitt")
+
+
+def test_duplicate_stage_names_are_refused():
+    class Clash:
+        @staticmethod
+        @btforge.hookimpl
+        def btforge_stages():
+            return [toy_plugin.source]
+    with pytest.raises(BtforgeInputError, match="is defined by both"):
+        Registry(load_entry_points=False, extra_plugins=[toy_plugin, Clash])
+
+
+def test_buffers_are_immutable_and_validated():
+    stack = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
+    with pytest.raises(ValueError):
+        stack.samples[0, 0, 0, 0, 0] = 1.0
+    with pytest.raises(BtforgeInputError, match=r"'samples' must be \(V, L, H, W, C\) float32, got \(2, 2, 9\) float64"):
+        SampleStack(np.zeros((2, 2, 9)), np.eye(3), [[0, 0, 1]])
+    bad = np.zeros((1, 3, 2, 2, 3), np.float32)
+    bad[0, 1, 1, 0, 2] = np.nan
+    with pytest.raises(BtforgeInputError, match=r"light 1.*row 1, column 0"):
+        SampleStack(bad, np.eye(3), [[0, 0, 1]])
+
+
+def test_content_key_follows_content():
+    a = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
+    b = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
+    c = SampleStack(np.ones((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
+    assert a.content_key == b.content_key != c.content_key
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(target) as handle:
+            handle.write(b"half")
+            raise RuntimeError("crash mid-write")
+    assert target.read_bytes() == b"old"
+    assert os.listdir(tmp_path) == ["out.bin"]
