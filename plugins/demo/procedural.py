@@ -176,7 +176,7 @@ def make_material(height: int, width: int, *, bumps: int = 40, bump_height: floa
     rows = np.arange(h, dtype=np.float64)
     cols = np.arange(w, dtype=np.float64)
 
-    # Bumps sized so that ``bumps`` of them roughly cover the area; a radius at most half the shorter side keeps
+    # Bumps sized so that ``bumps`` of them cover about three quarters of the area; a radius at most half the shorter side keeps
     # the minimum-image distance exact, so a bump is round and smooth where it crosses an edge.
     typical_radius = math.sqrt(h * w / max(bumps, 1)) * 0.5
     max_radius = max(1.0, 0.5 * min(h, w))

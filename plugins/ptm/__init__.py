@@ -6,6 +6,8 @@ from btforge.errors import BtforgeInputError
 
 from .model import PTMModel, fit_ptm
 
+POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
+
 
 @declare_stage(
     "ptm.fit",
@@ -40,6 +42,9 @@ def ptm_fit(ctx, stack, *, variant, space, rcond):
     if solver.clamped:
         ctx.warn(f"light directions are ill-conditioned for a PTM (condition number {solver.condition_number:.3g}); "
                  f"{solver.clamped} singular value(s) below {rcond:g} x the largest were clamped")
+    elif solver.condition_number > POOR_CONDITION:
+        ctx.warn(f"light directions are poorly conditioned for a PTM (condition number {solver.condition_number:.3g}): "
+                 "noise in the samples is amplified up to that factor; lights at more elevations would help")
     return {"model": model}
 
 
