@@ -19,11 +19,13 @@ POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noi
         Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
               ".ptm files hold; auto picks srgb for 8-bit captures and linear otherwise",
               choices=("auto", "linear", "srgb")),
+        Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
+              "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
         Param("rcond", "float", 1e-3, "singular values of the light design matrix below rcond x the largest are "
               "clamped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
     ],
 )
-def ptm_fit(ctx, stack, *, variant, space, rcond):
+def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
@@ -37,6 +39,7 @@ def ptm_fit(ctx, stack, *, variant, space, rcond):
         ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
     """
     model, solver = fit_ptm(stack, variant, space, rcond=rcond)
+    model = model.with_basis(basis)
     ctx.note("condition_number", round(solver.condition_number, 3))
     ctx.note("space", model.space)
     if solver.clamped:
@@ -46,6 +49,20 @@ def ptm_fit(ctx, stack, *, variant, space, rcond):
         ctx.warn(f"light directions are poorly conditioned for a PTM (condition number {solver.condition_number:.3g}): "
                  "noise in the samples is amplified up to that factor; lights at more elevations would help")
     return {"model": model}
+
+
+@declare_stage("ptm.basis", inputs={"model": "PTMModel"}, outputs={"model": "PTMModel"},
+               params=[Param("basis", "choice", "orthonormal", "the basis to express the coefficients in",
+                             choices=("raw", "orthonormal"))])
+def ptm_basis(ctx, model, *, basis):
+    """Re-express PTM coefficients in the raw PTM terms or the orthonormal 2D Legendre basis, and back.
+
+    The reflectance functions do not change (relighting gives the same images); only the coordinates do.  In
+    the orthonormal basis (Hel-Or, Malzbender & Gelb 2003) the Euclidean distance between two texels'
+    coefficient vectors equals the L2 distance between their functions over [-1, 1]^2, so synthesis can
+    compare and blend texels directly.  The colour of an ``lrgb`` model stays as it is.
+    """
+    return {"model": model.with_basis(basis)}
 
 
 def _ptm_file_precheck(params, paths):
@@ -87,6 +104,7 @@ def ptm_write(ctx, model, *, path):
     if len(model.channel_names) != 3:
         raise BtforgeInputError("ptm.write 'model'", f"expected 3 colour channels, found {len(model.channel_names)}")
     target = ctx.paths.output(path)
+    model = model.with_basis("raw")
     write_ptm(target, model.variant, model.coeffs, model.albedo if model.variant == "lrgb" else None)
     ctx.note("written", str(target))
     return {}
@@ -99,7 +117,7 @@ def _describe_ptm(path):
 
 @hookimpl
 def btforge_stages():
-    return [ptm_fit, ptm_read, ptm_write]
+    return [ptm_fit, ptm_basis, ptm_read, ptm_write]
 
 
 @hookimpl

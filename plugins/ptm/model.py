@@ -19,11 +19,14 @@ from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, che
                              linear_to_srgb, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
 
+from .legendre import to_orthonormal, to_raw
+
 KERNELS = Path(__file__).with_name("ptm.cl")
 N_TERMS = 6
 MAX_CHANNELS = 4  # the kernels keep per-channel accumulators in registers
 VARIANTS = ("lrgb", "rgb")
 SPACES = ("linear", "srgb")
+BASES = ("raw", "orthonormal")
 
 
 def ptm_terms(lights: np.ndarray) -> np.ndarray:
@@ -49,9 +52,12 @@ class PTMModel(ReflectanceModel):
     variant: str = "rgb"
     space: str = "linear"
     channel_names: tuple[str, ...] = ("R", "G", "B")
+    basis: str = "raw"
 
     def __post_init__(self):
         owner = "PTMModel"
+        if self.basis not in BASES:
+            raise BtforgeInputError(f"{owner} 'basis'", f"must be one of {BASES}, got {self.basis!r}")
         if self.variant not in VARIANTS:
             raise BtforgeInputError(f"{owner} 'variant'", f"must be one of {VARIANTS}, got {self.variant!r}")
         if self.space not in SPACES:
@@ -72,9 +78,17 @@ class PTMModel(ReflectanceModel):
     def channels(self) -> tuple[str, ...]:
         return self.channel_names
 
+    def with_basis(self, basis: str) -> "PTMModel":
+        """The same functions with coefficients in the ``raw`` or ``orthonormal`` (Legendre) basis."""
+        if basis == self.basis:
+            return self
+        convert = to_orthonormal if basis == "orthonormal" else to_raw
+        return dataclasses.replace(self, coeffs=convert(self.coeffs), basis=basis)
+
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         lights = unit_directions("lights", lights, owner="PTM evaluation")
-        flat_coeffs = self.coeffs.reshape(-1, self.coeffs.shape[2], N_TERMS)
+        raw = self.with_basis("raw")
+        flat_coeffs = raw.coeffs.reshape(-1, self.coeffs.shape[2], N_TERMS)
         flat_albedo = self.albedo.reshape(self.height * self.width, self.albedo.shape[2])
         if engine == "numpy":
             flat = evaluate_ptm_numpy(flat_coeffs, flat_albedo, lights, self.variant, self.space)

@@ -1,0 +1,7 @@
+"""The sh representation (under construction: registers no stage until it is finished)."""
+from btforge import hookimpl
+
+
+@hookimpl
+def btforge_stages():
+    return []
