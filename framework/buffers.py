@@ -129,7 +129,8 @@ class Buffer:
             for name in sorted(arrays):
                 a = np.ascontiguousarray(arrays[name])
                 h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
-                h.update(memoryview(a).cast("B"))
+                if a.size:
+                    h.update(a.reshape(-1).view(np.uint8))
             cached = h.hexdigest()
             object.__setattr__(self, "_content_key", cached)
         return cached

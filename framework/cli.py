@@ -180,6 +180,12 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into `head` and the like
         sys.stderr.close()
         return 0
+    except Exception as exc:  # a bug, not bad input: keep the message short, the traceback behind --debug
+        if args.debug:
+            raise
+        print(f"error: internal error ({type(exc).__name__}: {exc}); rerun with --debug for the traceback",
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted (outputs and cache entries are written atomically: nothing half-written was kept)",
               file=sys.stderr)

@@ -63,7 +63,8 @@ def stack_write(ctx, stack, *, dir, format, half):
 
 @declare_stage(
     "stack.contact_sheet",
-    inputs={"stack": "SampleStack"},
+    inputs={"stack": "SampleStack", "beside": "SampleStack"},
+    optional_inputs=("beside",),
     params=[
         Param("path", "outpath", REQUIRED, "the PNG to write (relative to --out)"),
         Param("columns", "int", 8, "images per row", low=1),
@@ -71,20 +72,27 @@ def stack_write(ctx, stack, *, dir, format, half):
     ],
     side_effects=True,
 )
-def contact_sheet(ctx, stack, *, path, columns, exposure):
-    """Write every light's image of a stack side by side in one sRGB PNG, for a quick look."""
+def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure):
+    """Write every light's image of a stack in one sRGB PNG grid, for a quick look.
+
+    With a second stack wired to ``beside`` (e.g. the measured images at the same lights), each tile shows
+    the two side by side: ``stack`` left, ``beside`` right.
+    """
     from PIL import Image
+    if beside is not None and beside.samples.shape[:4] != stack.samples.shape[:4]:
+        raise BtforgeInputError("stack.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
+                                f"found {beside.samples.shape[:4]}")
     n = stack.n_view * stack.n_light
     cols = min(columns, n)
     rows = -(-n // cols)
-    h, w, c = stack.height, stack.width, stack.n_channel
+    h, w = stack.height, stack.width * (2 if beside is not None else 1)
     sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
     for i in range(n):
         v, l = divmod(i, stack.n_light)
-        tile = stack.image(v, l) * exposure
-        tile = tile if c == 3 else np.repeat(tile[..., :1], 3, axis=2)
+        parts = [stack.image(v, l)] + ([beside.image(v, l)] if beside is not None else [])
+        tile = np.concatenate([p if p.shape[2] == 3 else np.repeat(p[..., :1], 3, axis=2) for p in parts], axis=1)
         r, q = divmod(i, cols)
-        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = np.round(linear_to_srgb(tile) * 255)
+        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = np.round(linear_to_srgb(tile * exposure) * 255)
     target = ctx.paths.output(path)
     with atomic_write(target) as handle:
         Image.fromarray(sheet).save(handle, format="PNG")
