@@ -81,6 +81,27 @@ class Backend:
         kernel.set_args(*args)
         self.cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, None)
 
+    def host_input(self, array: np.ndarray):
+        """A read-only device view of a C-contiguous host array, without a copy where the device shares host memory.
+
+        On a CPU device (PoCL) this saves a full copy of large inputs such as a whole capture.
+        """
+        mf = self.cl.mem_flags
+        return self.cl.Buffer(self.context, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=np.ascontiguousarray(array))
+
+    def host_output(self, array: np.ndarray):
+        """A device buffer that writes straight into ``array``; call :meth:`finish_output` before reading it."""
+        mf = self.cl.mem_flags
+        return self.cl.Buffer(self.context, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=array)
+
+    def finish_output(self, buffer, array: np.ndarray) -> None:
+        """Make the device's writes to a :meth:`host_output` buffer visible in ``array``."""
+        mapped, _ = self.cl.enqueue_map_buffer(self.queue, buffer, self.cl.map_flags.READ, 0, array.shape, array.dtype)
+        if mapped.__array_interface__["data"][0] != array.__array_interface__["data"][0]:
+            array[...] = mapped  # the device kept its own copy; bring the results over
+        mapped.base.release()
+        self.queue.finish()
+
     def to_device(self, array: np.ndarray):
         mf = self.cl.mem_flags
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(array))

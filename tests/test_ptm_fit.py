@@ -63,8 +63,9 @@ def test_fit_equals_independent_least_squares():
 def test_fit_streams_in_bands_with_identical_result():
     rng = np.random.default_rng(8)
     s = stack_of(rng.uniform(0, 1, (1, 16, 40, 9, 3)).astype(np.float32), dome(16, 8))
-    whole, _ = fit_ptm(s, "rgb")
-    banded, _ = fit_ptm(s, "rgb", budget_bytes=16 * 9 * 3 * 4 * 3)  # three rows per band
+    whole, _ = fit_ptm(s, "rgb", "srgb")  # a linear stack fitted in display space goes band by band
+    banded, _ = fit_ptm(s, "rgb", "srgb", budget_bytes=16 * 9 * 3 * 8 * 27)  # three rows per band
+    assert banded.coeffs.shape == whole.coeffs.shape
     np.testing.assert_array_equal(whole.coeffs, banded.coeffs)
 
 

@@ -180,15 +180,20 @@ def resolve_space(stack: SampleStack, space: str) -> str:
     return space
 
 
-def _band_samples(stack: SampleStack, rows: slice, space: str):
-    """Samples of a band of rows as ``[L, n, C]`` in the kernel's input form, plus the byte-decoding table."""
-    band = stack.samples[0, :, rows]
-    flat_shape = (band.shape[0], band.shape[1] * band.shape[2], band.shape[3])
+def _kernel_input(stack: SampleStack, space: str):
+    """The samples as ``[L, H*W, C]`` (a view of the stack), the byte-decoding table, and a converter if needed.
+
+    Bytes are decoded by a 256-entry table inside the kernel (identity/255 for display space, the sRGB curve
+    for linear space), so an 8-bit capture is fitted in place.  Only a linear stack fitted in display space
+    needs its values converted, band by band.
+    """
+    samples = stack.samples[0].reshape(stack.n_light, stack.height * stack.width, stack.n_channel)
     if stack.encoding == "srgb8":
         lut = (np.arange(256, dtype=np.float32) / 255.0) if space == "srgb" else SRGB8_TO_LINEAR
-        return np.ascontiguousarray(band).reshape(flat_shape), np.ascontiguousarray(lut, np.float32)
-    values = band if space == "linear" else linear_to_srgb(band).astype(np.float32)
-    return np.ascontiguousarray(values).reshape(flat_shape), None
+        return samples, np.ascontiguousarray(lut, np.float32), None
+    if space == "linear":
+        return samples, None, None
+    return samples, None, lambda band: linear_to_srgb(band).astype(np.float32)
 
 
 def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
@@ -210,30 +215,36 @@ def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve,
     return coeffs.astype(np.float32), albedo.astype(np.float32)
 
 
-def fit_ptm_opencl(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
+def fit_ptm_opencl(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str,
+                   coeffs: np.ndarray, albedo: np.ndarray) -> None:
+    """Fit ``samples [L, N, C]`` into the preallocated ``coeffs [N, K, 6]`` and ``albedo [N, C or 0]``.
+
+    Inputs and outputs are handed to the device without copies where it shares host memory (PoCL on a CPU).
+    """
     backend = get_backend()
     sample_type = "uchar" if samples.dtype == np.uint8 else "float"
     options = (f"-DSAMPLE_T={sample_type}",) + (("-DUSE_LUT",) if lut is not None else ())
     kernel = backend.kernel(KERNELS, "ptm_fit", options)
     n_light, n_texel, n_channel = samples.shape
-    k = 1 if variant == "lrgb" else n_channel
-    s_dev = backend.to_device(samples)
-    lut_dev = backend.to_device(lut if lut is not None else np.zeros(1, np.float32))
-    solve_dev = backend.to_device(solver.solve)
-    design_dev = backend.to_device(solver.design)
-    c_dev = backend.empty(n_texel * k * N_TERMS * 4)
-    a_dev = backend.empty(n_texel * n_channel * 4)
-    backend.run(kernel, (n_texel,), s_dev, lut_dev, solve_dev, design_dev, np.int32(n_light),
-                    np.int32(n_texel), np.int32(n_channel), np.int32(variant == "lrgb"), c_dev, a_dev)
-    coeffs = backend.from_device(c_dev, (n_texel, k, N_TERMS), np.float32)
-    if variant == "rgb":
-        return coeffs, np.zeros((n_texel, 0), np.float32)
-    return coeffs, backend.from_device(a_dev, (n_texel, n_channel), np.float32)
+    albedo_target = albedo if albedo.size else np.zeros(1, np.float32)
+    s_dev = backend.host_input(samples)
+    c_dev = backend.host_output(coeffs)
+    a_dev = backend.host_output(albedo_target)
+    backend.run(kernel, (n_texel,), s_dev, backend.to_device(lut if lut is not None else np.zeros(1, np.float32)),
+                backend.to_device(solver.solve), backend.to_device(solver.design), np.int32(n_light),
+                np.int32(n_texel), np.int32(0), np.int32(n_texel), np.int32(n_channel), np.int32(variant == "lrgb"),
+                c_dev, a_dev)
+    backend.finish_output(c_dev, coeffs)
+    backend.finish_output(a_dev, albedo_target)
 
 
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
             rcond: float = 1e-3, budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
-    """Least-squares PTM fit of a single-view stack, streamed over bands of rows."""
+    """Least-squares PTM fit of a single-view stack.
+
+    The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
+    result, so memory stays near the stack plus its coefficients; other paths go band by band.
+    """
     if stack.n_view != 1:
         raise BtforgeInputError(
             "ptm.fit 'stack'", f"expected a single-view stack (a PTM depends on the light only), found {stack.n_view} views",
@@ -242,15 +253,22 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
     space = resolve_space(stack, space)
     solver = ptm_solver(stack.lights, rcond)
-    fit_band = fit_ptm_numpy if engine == "numpy" else fit_ptm_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c
     coeffs = np.empty((h * w, k, N_TERMS), np.float32)
     albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
-    for rows in stack.row_bands(budget_bytes):
-        samples, lut = _band_samples(stack, rows, space)
-        texels = slice(rows.start * w, rows.stop * w)
-        coeffs[texels], albedo[texels] = fit_band(samples, lut, solver, variant)
+    samples, lut, convert = _kernel_input(stack, space)
+    if engine == "opencl" and convert is None:
+        fit_ptm_opencl(samples, lut, solver, variant, coeffs, albedo)
+    else:
+        per_texel = stack.n_light * c * 8  # the reference works in float64
+        for texels in _chunks(h * w, per_texel, budget_bytes):
+            band = samples[:, texels]
+            band = convert(band) if convert else band
+            if engine == "numpy":
+                coeffs[texels], albedo[texels] = fit_ptm_numpy(band, lut, solver, variant)
+            else:
+                fit_ptm_opencl(np.ascontiguousarray(band), lut, solver, variant, coeffs[texels], albedo[texels])
     model = PTMModel(coeffs.reshape(h, w, k, N_TERMS), albedo.reshape(h, w, albedo.shape[1]), variant, space,
                      stack.channels)
     return model, solver

@@ -16,18 +16,23 @@ inline float load_sample(__global const SAMPLE_T *s, size_t i, __constant float 
 
 // samples: [L, n_texel, C] ; solve: [6, L] (pseudo-inverse of the design matrix) ; design: [L, 6]
 // coeffs out: [n_texel, K, 6] with K = C (rgb) or 1 (lrgb) ; albedo out: [n_texel, C] (lrgb only)
-__kernel void ptm_fit(__global const SAMPLE_T *samples, __constant float *lut,
+// Work-item t handles texel t of the outputs and texel (texel_offset + t) of the samples, so a launch can cover
+// one band of a whole capture that is read in place.
+__kernel void ptm_fit(__global const SAMPLE_T *samples_all, __constant float *lut,
                       __constant float *solve, __constant float *design,
-                      const int n_light, const int n_texel, const int n_channel, const int luminance,
+                      const int n_light, const int sample_stride, const int texel_offset, const int n_texel,
+                      const int n_channel, const int luminance,
                       __global float *coeffs, __global float *albedo)
 {
     const int t = get_global_id(0);
     if (t >= n_texel) return;
+    // Index samples as [L, sample_stride, C] from the band's first texel.
+    __global const SAMPLE_T *samples = samples_all + (size_t)texel_offset * n_channel;
     if (!luminance) {
         for (int c = 0; c < n_channel; ++c) {
             float acc[6] = {0.f, 0.f, 0.f, 0.f, 0.f, 0.f};
             for (int l = 0; l < n_light; ++l) {
-                const float y = load_sample(samples, ((size_t)l * n_texel + t) * n_channel + c, lut);
+                const float y = load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
                 for (int k = 0; k < 6; ++k) acc[k] += solve[k * n_light + l] * y;
             }
             for (int k = 0; k < 6; ++k) coeffs[((size_t)t * n_channel + c) * 6 + k] = acc[k];
@@ -39,7 +44,7 @@ __kernel void ptm_fit(__global const SAMPLE_T *samples, __constant float *lut,
     const float inv_c = 1.0f / (float)n_channel;
     for (int l = 0; l < n_light; ++l) {
         float y = 0.f;
-        for (int c = 0; c < n_channel; ++c) y += load_sample(samples, ((size_t)l * n_texel + t) * n_channel + c, lut);
+        for (int c = 0; c < n_channel; ++c) y += load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
         y *= inv_c;
         for (int k = 0; k < 6; ++k) acc[k] += solve[k * n_light + l] * y;
     }
@@ -49,7 +54,7 @@ __kernel void ptm_fit(__global const SAMPLE_T *samples, __constant float *lut,
         float p = 0.f;
         for (int k = 0; k < 6; ++k) p += design[l * 6 + k] * acc[k];
         pp += p * p;
-        for (int c = 0; c < n_channel; ++c) cross[c] += p * load_sample(samples, ((size_t)l * n_texel + t) * n_channel + c, lut);
+        for (int c = 0; c < n_channel; ++c) cross[c] += p * load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
     }
     float scale[4];
     float top = 0.f;
