@@ -185,7 +185,57 @@ SRGB8_TO_LINEAR.flags.writeable = False
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class SampleStack(Buffer):
+class PerTexel(Buffer):
+    """A buffer with one record per texel on an ``H x W`` grid (stacks, models, height fields).
+
+    ``texel_fields`` names the arrays that hold per-texel data, with the texel grid at axes
+    ``texel_axis, texel_axis + 1``.  :meth:`remap` gathers those arrays through a coordinate map, so a synthesis
+    result can be replayed on any per-texel buffer without knowing its type.  ``blendable`` says whether a
+    weighted mean of two texels' records is the record of the mean function (true for linear representations
+    such as radiance, PTM and SH coefficients; false for non-linear ones such as Lafortune lobes).
+    """
+
+    type_name: ClassVar[str] = "PerTexel"
+    texel_fields: ClassVar[tuple[str, ...]] = ()
+    texel_axis: ClassVar[int] = 0
+    blendable: ClassVar[bool] = True
+
+    @property
+    def height(self) -> int:
+        return getattr(self, self.texel_fields[0]).shape[self.texel_axis]
+
+    @property
+    def width(self) -> int:
+        return getattr(self, self.texel_fields[0]).shape[self.texel_axis + 1]
+
+    def remap(self, rows: np.ndarray, cols: np.ndarray, blend_rows: np.ndarray | None = None,
+              blend_cols: np.ndarray | None = None, blend_weight: np.ndarray | None = None) -> "PerTexel":
+        """A buffer of the same type whose texel (i, j) is this buffer's texel (rows[i, j], cols[i, j]).
+
+        With a blend record, the result is ``(1 - w) * texel(rows, cols) + w * texel(blend_rows, blend_cols)``
+        for blendable buffers, and the texel with the larger weight otherwise.
+        """
+        ax = self.texel_axis
+        use_blend = blend_weight is not None and bool(np.any(blend_weight > 0))
+        if use_blend and not self.blendable:
+            second = blend_weight > 0.5
+            rows, cols = np.where(second, blend_rows, rows), np.where(second, blend_cols, cols)
+            use_blend = False
+        changes = {}
+        for name in self.texel_fields:
+            array = getattr(self, name)
+            index = (slice(None),) * ax
+            gathered = array[index + (rows, cols)]
+            if use_blend:
+                w = blend_weight.reshape(blend_weight.shape + (1,) * (array.ndim - ax - 2)).astype(np.float32)
+                other = array[index + (blend_rows, blend_cols)]
+                gathered = ((1 - w) * gathered + w * other).astype(array.dtype)
+            changes[name] = gathered
+        return dataclasses.replace(self, **changes)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SampleStack(PerTexel):
     """Measured radiance of a surface under many lights (and views).
 
     ``samples`` is ``[n_view, n_light, H, W, C]``: either linear float32 radiance, or - to keep a large 8-bit
@@ -196,6 +246,8 @@ class SampleStack(Buffer):
     """
 
     type_name: ClassVar[str] = "SampleStack"
+    texel_fields: ClassVar[tuple[str, ...]] = ("samples",)
+    texel_axis: ClassVar[int] = 2
 
     samples: np.ndarray
     lights: np.ndarray
@@ -243,14 +295,6 @@ class SampleStack(Buffer):
         return self.samples.shape[1]
 
     @property
-    def height(self) -> int:
-        return self.samples.shape[2]
-
-    @property
-    def width(self) -> int:
-        return self.samples.shape[3]
-
-    @property
     def n_channel(self) -> int:
         return self.samples.shape[4]
 
@@ -275,26 +319,6 @@ class SampleStack(Buffer):
 
 
 # ----------------------------------------------------------------------------------------------- models
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class PerTexel(Buffer):
-    """A buffer with one record per texel on an ``H x W`` grid (stacks, models, height fields).
-
-    :meth:`texel_fields` names the arrays whose two leading axes (or axes 2-3 for stacks) are the texel grid, so
-    a coordinate map can be replayed on any per-texel buffer without knowing its type.
-    """
-
-    type_name: ClassVar[str] = "PerTexel"
-    texel_fields: ClassVar[tuple[str, ...]] = ()
-
-    @property
-    def height(self) -> int:
-        return getattr(self, self.texel_fields[0]).shape[0]
-
-    @property
-    def width(self) -> int:
-        return getattr(self, self.texel_fields[0]).shape[1]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -338,4 +362,60 @@ class Scores(Buffer):
         object.__setattr__(self, "values", clean)
 
 
-CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel, Scores)
+@dataclasses.dataclass(frozen=True, eq=False)
+class CoordMap(Buffer):
+    """For each output texel, the exemplar texel it copies: the result of every synthesizer.
+
+    ``coords`` is ``[H, W, 2]`` int32 (row, column) into an exemplar of ``source_size``.  Where a synthesizer
+    blends (overlapping blocks), ``blend_coords`` names the second texel and ``blend_weight`` its weight in
+    [0, 1]; both are empty (``[0, 0, 2]``, ``[0, 0]``) when nothing is blended.  A map is a few bytes per texel,
+    so a large synthesized texture costs a map rather than a copy, and replays on any per-texel buffer.
+    """
+
+    type_name: ClassVar[str] = "CoordMap"
+
+    coords: np.ndarray
+    source_size: tuple[int, int]
+    blend_coords: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))
+    blend_weight: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    wrap: bool = False
+
+    def __post_init__(self):
+        check_array("coords", self.coords, ("H", "W", 2), np.int32, owner="CoordMap")
+        src_h, src_w = (int(v) for v in self.source_size)
+        for name in ("coords",) + (("blend_coords",) if self.blend_weight.size else ()):
+            c = getattr(self, name)
+            if c.size and (c.min() < 0 or c[..., 0].max() >= src_h or c[..., 1].max() >= src_w):
+                raise BtforgeInputError("CoordMap", f"'{name}' must lie inside the {src_h} x {src_w} exemplar, "
+                                        f"found rows {c[..., 0].min()}..{c[..., 0].max()}, columns {c[..., 1].min()}..{c[..., 1].max()}")
+        if self.blend_weight.size:
+            h, w = self.coords.shape[:2]
+            check_array("blend_coords", self.blend_coords, (h, w, 2), np.int32, owner="CoordMap")
+            check_array("blend_weight", self.blend_weight, (h, w), np.float32, finite=True, owner="CoordMap")
+            if self.blend_weight.min() < 0 or self.blend_weight.max() > 1:
+                raise BtforgeInputError("CoordMap", "'blend_weight' must lie in [0, 1]")
+        object.__setattr__(self, "source_size", (src_h, src_w))
+        for name in ("coords", "blend_coords", "blend_weight"):
+            object.__setattr__(self, name, frozen(getattr(self, name)))
+
+    @property
+    def height(self) -> int:
+        return self.coords.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.coords.shape[1]
+
+    def apply(self, source: PerTexel) -> PerTexel:
+        """Replay the map on ``source`` (which must have the exemplar's size)."""
+        if (source.height, source.width) != self.source_size:
+            raise BtforgeInputError("materialize 'source'", f"expected a {self.source_size[0]} x {self.source_size[1]} "
+                                    f"exemplar, found {source.height} x {source.width}",
+                                    "replay the map on a buffer of the exemplar it was synthesized from")
+        rows, cols = self.coords[..., 0], self.coords[..., 1]
+        if self.blend_weight.size:
+            return source.remap(rows, cols, self.blend_coords[..., 0], self.blend_coords[..., 1], self.blend_weight)
+        return source.remap(rows, cols)
+
+
+CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel, Scores, CoordMap)

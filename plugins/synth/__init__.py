@@ -1,0 +1,40 @@
+"""Texture synthesis of reflectance functions: every synthesizer outputs a coordinate map into the exemplar.
+
+``materialize`` replays a map on any per-texel buffer (a stack, a PTM, Lafortune or SH model), so one synthesis
+serves every representation, and ``coords.write`` saves a map as an EXR image.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge import REQUIRED, Param, declare_stage, hookimpl
+
+
+@declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "PerTexel"})
+def materialize(ctx, coords, source):
+    """Apply a coordinate map to any per-texel buffer; the output has the type of ``source``.
+
+    Each output texel copies the exemplar texel the map names; where the map blends two texels, linear
+    representations (radiance, PTM, SH) are blended with the map's weight and non-linear ones (Lafortune)
+    take the texel with the larger weight.
+    """
+    out = coords.apply(source)
+    ctx.note("size", [out.height, out.width])
+    return {"output": out}
+
+
+@declare_stage("coords.write", inputs={"coords": "CoordMap"},
+               params=[Param("path", "outpath", REQUIRED, "the .exr file to write (relative to --out)")],
+               side_effects=True)
+def coords_write(ctx, coords, *, path):
+    """Write a coordinate map as a float32 EXR: R = exemplar row, G = exemplar column, B = blend weight."""
+    from btforge.plugins.stackio.images import write_exr
+    weight = coords.blend_weight if coords.blend_weight.size else np.zeros(coords.coords.shape[:2], np.float32)
+    image = np.dstack([coords.coords.astype(np.float32), weight])
+    write_exr(ctx.paths.output(path), image)
+    return {}
+
+
+@hookimpl
+def btforge_stages():
+    return [materialize, coords_write]
