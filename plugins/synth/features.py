@@ -1,0 +1,61 @@
+"""Per-texel appearance vectors that synthesizers compare: one definition shared by every synthesizer.
+
+Distances between these vectors should approximate L2 distances between the texels' reflectance functions:
+
+- a PTM is expressed in the orthonormal Legendre basis (Hel-Or et al. 2003), where that holds exactly for the
+  luminance/colour polynomials, with the colour of an ``lrgb`` model appended;
+- a stack uses its radiance under every light and view;
+- any other reflectance model is evaluated at a fixed set of lights spread over the hemisphere.
+
+Long vectors are reduced by PCA (an orthogonal projection, so distances shrink only by the discarded energy).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge.buffers import PerTexel, ReflectanceModel, SampleStack, unit_directions
+
+FEATURE_LIGHTS = 25  # lights at which models of unknown form are sampled
+
+
+def probe_lights(n: int = FEATURE_LIGHTS) -> np.ndarray:
+    """``n`` unit directions spread over the upper hemisphere (a Fibonacci spiral above 10 degrees)."""
+    i = np.arange(n) + 0.5
+    z = np.sin(np.radians(10)) + (1 - np.sin(np.radians(10))) * i / n
+    phi = i * np.pi * (3 - np.sqrt(5))
+    r = np.sqrt(1 - z * z)
+    return unit_directions("probe lights", np.column_stack([r * np.cos(phi), r * np.sin(phi), z]))
+
+
+def texel_features(buffer: PerTexel, max_dims: int | None = 32, seed: int = 0) -> np.ndarray:
+    """Appearance vectors ``[H, W, D]`` float32 for any per-texel buffer (see the module docstring)."""
+    from btforge.plugins.ptm.model import PTMModel
+    if isinstance(buffer, PTMModel):
+        ortho = buffer.with_basis("orthonormal")
+        parts = [ortho.coeffs.reshape(buffer.height, buffer.width, -1)]
+        if ortho.albedo.size:
+            parts.append(ortho.albedo)
+        features = np.concatenate(parts, axis=2)
+    elif isinstance(buffer, SampleStack):
+        features = np.moveaxis(buffer.linear(), (2, 3), (0, 1)).reshape(buffer.height, buffer.width, -1)
+    elif isinstance(buffer, ReflectanceModel):
+        relit = buffer.evaluate(probe_lights())
+        features = np.moveaxis(relit, (2, 3), (0, 1)).reshape(buffer.height, buffer.width, -1)
+    else:
+        arrays = [np.asarray(getattr(buffer, f), np.float32) for f in buffer.texel_fields]
+        features = np.concatenate([a.reshape(buffer.height, buffer.width, -1) for a in arrays], axis=2)
+    features = np.ascontiguousarray(features, dtype=np.float32)
+    if max_dims is not None and features.shape[2] > max_dims:
+        features = pca_reduce(features, max_dims, seed)
+    return features
+
+
+def pca_reduce(features: np.ndarray, dims: int, seed: int = 0, sample: int = 20000) -> np.ndarray:
+    """Project ``[H, W, D]`` vectors onto their ``dims`` leading principal axes (fitted on a texel sample)."""
+    h, w, d = features.shape
+    flat = features.reshape(-1, d).astype(np.float64)
+    rng = np.random.default_rng(seed)
+    pick = flat if len(flat) <= sample else flat[rng.choice(len(flat), sample, replace=False)]
+    mean = pick.mean(axis=0)
+    _, _, vt = np.linalg.svd(pick - mean, full_matrices=False)
+    return ((flat - mean) @ vt[:dims].T).astype(np.float32).reshape(h, w, dims)
