@@ -58,4 +58,5 @@ def pca_reduce(features: np.ndarray, dims: int, seed: int = 0, sample: int = 200
     pick = flat if len(flat) <= sample else flat[rng.choice(len(flat), sample, replace=False)]
     mean = pick.mean(axis=0)
     _, _, vt = np.linalg.svd(pick - mean, full_matrices=False)
+    dims = min(dims, vt.shape[0])  # a tiny exemplar has fewer axes than asked for
     return ((flat - mean) @ vt[:dims].T).astype(np.float32).reshape(h, w, dims)
