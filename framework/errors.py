@@ -38,6 +38,11 @@ class BtforgeInputError(BtforgeError):
             text += f"\n  hint: {self.hint}"
         return text
 
+    def one_line(self) -> str:
+        """The message on one line, the hint in parentheses (for lists of problems)."""
+        text = f"{self.what}: {self.problem}" if self.what else self.problem
+        return f"{text} ({self.hint})" if self.hint else text
+
     def located(self, prefix: str) -> "BtforgeInputError":
         """The same error with ``prefix`` (e.g. the graph node) put in front of what it names."""
         where = f"{prefix}, {self.what}" if self.what else prefix

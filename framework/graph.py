@@ -193,7 +193,7 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
             try:
                 values[key] = param.coerce(raw, where)
             except BtforgeInputError as exc:
-                problems.append(exc.render().replace("\n  hint: ", " (") + (")" if exc.hint else ""))
+                problems.append(exc.one_line())
         for p in st.params:
             if p.name not in values and p.name not in node.params:
                 if p.required:
@@ -217,10 +217,15 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
     dag.add_nodes_from(spec.nodes)
     for name, st in stages.items():
         node = spec.nodes[name]
+        try:
+            ports = st.input_ports(params[name], paths)
+        except BtforgeInputError as exc:
+            problems.append(exc.located(spec.where(name, node.line)).one_line())
+            continue
         for port, (src, src_port) in node.inputs.items():
             where = spec.where(name, node.input_lines.get(port, node.line)) + f", input '{port}'"
-            if port not in st.inputs:
-                problem(where, f"stage '{st.name}' has no input port '{port}'", did_you_mean(port, st.inputs))
+            if port not in ports:
+                problem(where, f"stage '{st.name}' has no input port '{port}'", did_you_mean(port, ports))
                 continue
             if src not in spec.nodes:
                 problem(where, f"wired to unknown node '{src}'", did_you_mean(src, spec.nodes))
@@ -233,13 +238,13 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 problem(where, f"node '{src}' ({src_stage.name}) has no output port '{src_port}'",
                         did_you_mean(src_port, src_stage.outputs))
                 continue
-            have, want = src_stage.outputs[src_port], st.inputs[port]
+            have, want = src_stage.outputs[src_port], ports[port]
             if not registry.accepts(want, have):
                 problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
                         "wire an output of the expected type")
-        for port in st.inputs:
+        for port in ports:
             if port not in node.inputs and port not in st.optional_inputs:
-                problem(spec.where(name, node.line), f"input port '{port}' ({st.inputs[port]}) is not wired",
+                problem(spec.where(name, node.line), f"input port '{port}' ({ports[port]}) is not wired",
                         f"add 'inputs: {{{port}: NODE.PORT}}'")
 
     try:
@@ -256,7 +261,7 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 try:
                     st.precheck(params[name], paths)
                 except BtforgeInputError as exc:
-                    problems.append(exc.located(spec.where(name, spec.nodes[name].line)).render().replace("\n  hint: ", " (hint: ") + (")" if exc.hint else ""))
+                    problems.append(exc.located(spec.where(name, spec.nodes[name].line)).one_line())
 
     if problems:
         if len(problems) == 1:

@@ -147,6 +147,7 @@ class Stage:
     side_effects: bool = False
     precheck: Callable[[Mapping[str, Any], "RunPaths"], None] | None = None
     plugin: str = ""
+    dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
 
     @property
     def doc(self) -> str:
@@ -155,6 +156,13 @@ class Stage:
     @property
     def summary(self) -> str:
         return self.doc.splitlines()[0] if self.doc else ""
+
+    def input_ports(self, params: Mapping[str, Any] | None = None, paths: "RunPaths | None" = None) -> dict[str, str]:
+        """The node's input ports: the declared ones plus those its parameters call for (``dynamic_inputs``)."""
+        ports = dict(self.inputs)
+        if self.dynamic_inputs is not None and params is not None:
+            ports.update(self.dynamic_inputs(params, paths or RunPaths(Path.cwd(), Path.cwd())))
+        return ports
 
     def param(self, name: str) -> Param | None:
         return next((p for p in self.params if p.name == name), None)
@@ -204,6 +212,7 @@ def declare_stage(
     optional_inputs: Sequence[str] = (),
     side_effects: bool = False,
     precheck: Callable | None = None,
+    dynamic_inputs: Callable | None = None,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -211,18 +220,23 @@ def declare_stage(
     ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
     it runs during validation, before any stage does.
+    ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
+    has one port per material its scene names); the function then takes them as ``**kwargs``.
     """
 
     def wrap(fn: Callable) -> Stage:
         declared = set(inputs or {}) | {p.name for p in params}
         sig = inspect.signature(fn)
-        accepted = set(list(sig.parameters)[1:])
+        accepted = {n for n, p in list(sig.parameters.items())[1:] if p.kind != p.VAR_KEYWORD}
+        takes_kwargs = any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
+        if dynamic_inputs is not None and not takes_kwargs:
+            raise TypeError(f"stage {name!r}: a stage with dynamic_inputs must accept **kwargs")
         if declared != accepted:
             raise TypeError(f"stage {name!r}: function takes {sorted(accepted)}, declared {sorted(declared)}")
         return Stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
-            precheck=precheck, plugin=fn.__module__,
+            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs,
         )
 
     return wrap

@@ -151,3 +151,19 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             raise RuntimeError("crash mid-write")
     assert target.read_bytes() == b"old"
     assert os.listdir(tmp_path) == ["out.bin"]
+
+
+def test_ports_that_depend_on_params(registry, tmp_path):
+    graph = {"nodes": {
+        "src": {"stage": "toy.source", "params": {"n": 3}},
+        "sum": {"stage": "toy.total", "params": {"names": ["a", "b"]},
+                "inputs": {"a": "src.numbers", "b": "src.numbers"}},
+    }}
+    result = btforge.run(graph, registry=registry, cache_dir=tmp_path)
+    np.testing.assert_array_equal(result["sum"]["numbers"].values, [0, 2, 4])
+    graph["nodes"]["sum"]["inputs"] = {"a": "src.numbers"}
+    with pytest.raises(BtforgeInputError, match="input port 'b' \\(Numbers\\) is not wired"):
+        btforge.run(graph, registry=registry, cache_dir=tmp_path)
+    graph["nodes"]["sum"]["inputs"] = {"a": "src.numbers", "b": "src.numbers", "c": "src.numbers"}
+    with pytest.raises(BtforgeInputError, match="has no input port 'c'"):
+        btforge.run(graph, registry=registry, cache_dir=tmp_path)
