@@ -111,6 +111,9 @@ def evaluate_ptm_numpy(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarra
     return value.astype(np.float32)
 
 
+SRGB_TABLE = srgb_to_linear(np.linspace(0.0, 1.0, 4097)).astype(np.float32)  # matches SRGB_TABLE_STEPS in ptm.cl
+
+
 def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarray, variant: str, space: str,
                         budget_bytes: int = 256 << 20) -> np.ndarray:
     backend = get_backend()
@@ -120,6 +123,7 @@ def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarr
     n_light = len(lights)
     out = np.empty((n_light, n_texel, n_channel), dtype=np.float32)
     lights_dev = backend.to_device(np.ascontiguousarray(lights, dtype=np.float32))
+    table_dev = backend.to_device(SRGB_TABLE)
     # Chunk over texels so device buffers stay bounded whatever the image size.
     per_texel = 4 * (k * N_TERMS + max(albedo.shape[1], 1) + n_light * n_channel)
     albedo_src = albedo if albedo.shape[1] else np.zeros((n_texel, 1), np.float32)
@@ -129,7 +133,7 @@ def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarr
         a_dev = backend.to_device(albedo_src[chunk])
         o_dev = backend.empty(n_light * n * n_channel * 4)
         backend.run(kernel, (n, n_light), c_dev, a_dev, lights_dev, np.int32(n_light),
-                         np.int32(n), np.int32(n_channel), np.int32(variant == "lrgb"), np.int32(space == "srgb"), o_dev)
+                         np.int32(n), np.int32(n_channel), np.int32(variant == "lrgb"), np.int32(space == "srgb"), table_dev, o_dev)
         out[:, chunk] = backend.from_device(o_dev, (n_light, n, n_channel), np.float32)
     return out
 

@@ -2,6 +2,8 @@
 // Terms are (lu^2, lv^2, lu*lv, lu, lv, 1) for a unit light (lu, lv, lw).
 // Build options: -DSAMPLE_T=uchar|float ; -DUSE_LUT when samples are bytes decoded through a 256-entry table.
 
+#define SRGB_TABLE_STEPS 4096
+
 #ifndef SAMPLE_T
 #define SAMPLE_T float
 #endif
@@ -68,11 +70,20 @@ __kernel void ptm_fit(__global const SAMPLE_T *samples_all, __constant float *lu
     for (int k = 0; k < 6; ++k) coeffs[(size_t)t * 6 + k] = acc[k] * norm;
 }
 
+// The sRGB curve sampled at SRGB_TABLE_STEPS + 1 points and interpolated: pow() costs more than the whole
+// polynomial on CPU devices, and interpolation is exact to ~1e-8 on this smooth curve.
+inline float srgb_decode(float value, __constant float *table) {
+    const float x = clamp(value, 0.0f, 1.0f) * (float)SRGB_TABLE_STEPS;
+    const int i = min((int)x, SRGB_TABLE_STEPS - 1);
+    const float f = x - (float)i;
+    return table[i] + f * (table[i + 1] - table[i]);
+}
+
 // coeffs: [n_texel, K, 6] ; albedo: [n_texel, C] (ignored unless K == 1) ; lights: [L, 3]
 // out: [L, n_texel, C].  srgb != 0: the polynomial gives display values, clipped to [0, 1] and decoded to linear.
 __kernel void ptm_eval(__global const float *coeffs, __global const float *albedo, __constant float *lights,
                        const int n_light, const int n_texel, const int n_channel, const int luminance,
-                       const int srgb, __global float *out)
+                       const int srgb, __constant float *srgb_table, __global float *out)
 {
     const int t = get_global_id(0);
     const int l = get_global_id(1);
@@ -89,10 +100,7 @@ __kernel void ptm_eval(__global const float *coeffs, __global const float *albed
     for (int c = 0; c < n_channel; ++c) {
         float value = luminance ? albedo[(size_t)t * n_channel + c] * poly[0] : poly[c];
         value = fmax(value, 0.0f);
-        if (srgb) {
-            value = fmin(value, 1.0f);
-            value = value <= 0.04045f ? value / 12.92f : pow((value + 0.055f) / 1.055f, 2.4f);
-        }
+        if (srgb) value = srgb_decode(value, srgb_table);
         out[((size_t)l * n_texel + t) * n_channel + c] = value;
     }
 }
