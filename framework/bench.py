@@ -35,7 +35,7 @@ def make_synthetic_capture(folder: Path, size: int, n_lights: int, quality: int 
     import numpy as np
     from PIL import Image
 
-    from btforge.buffers import linear_to_srgb
+    from btforge.buffers import linear_to_srgb8
     from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
     from btforge.plugins.stackio.lightfile import write_light_file
 
@@ -46,7 +46,7 @@ def make_synthetic_capture(folder: Path, size: int, n_lights: int, quality: int 
         batch = render_lights(material, lights[start:start + 8])
         for i, image in enumerate(batch, start):
             name = f"light_{i:03d}.jpg"
-            Image.fromarray(np.round(linear_to_srgb(image) * 255).astype(np.uint8)).save(folder / name, quality=quality)
+            Image.fromarray(linear_to_srgb8(image)).save(folder / name, quality=quality)
             names.append(name)
     lp = folder / "dirs.lp"
     write_light_file(lp, names, lights)

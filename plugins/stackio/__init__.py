@@ -5,7 +5,7 @@ import numpy as np
 
 from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
 from btforge.atomic import atomic_write
-from btforge.buffers import linear_to_srgb
+from btforge.buffers import linear_to_srgb8
 from btforge.errors import BtforgeInputError
 
 
@@ -92,10 +92,10 @@ def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure):
         parts = [stack.image(v, l)] + ([beside.image(v, l)] if beside is not None else [])
         tile = np.concatenate([p if p.shape[2] == 3 else np.repeat(p[..., :1], 3, axis=2) for p in parts], axis=1)
         r, q = divmod(i, cols)
-        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = np.round(linear_to_srgb(tile * exposure) * 255)
+        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = linear_to_srgb8(tile * exposure)
     target = ctx.paths.output(path)
     with atomic_write(target) as handle:
-        Image.fromarray(sheet).save(handle, format="PNG")
+        Image.fromarray(sheet).save(handle, format="PNG", compress_level=1)  # large sheets: speed over size
     ctx.note("written", str(target))
     return {}
 

@@ -26,7 +26,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from btforge.atomic import atomic_output_path, atomic_write
-from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb, srgb_to_linear
+from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb8, srgb_to_linear
 from btforge.errors import BtforgeInputError
 
 from .lightfile import LightFileEntry, image_path, read_light_file, write_light_file
@@ -496,7 +496,7 @@ def write_png(path: str | os.PathLike, linear_float: Any, bits: int = 8) -> None
         raise BtforgeInputError(path_text, f"expected bits 8 or 16, found {bits!r}")
     array = _image_planes(linear_float, path_text, "an image")
     if bits == 8:
-        encoded = np.rint(linear_to_srgb(array) * 255.0).astype(np.uint8)
+        encoded = linear_to_srgb8(array)
         _write_png_uint8(path, encoded)
         return
     encoded = np.rint(np.clip(array.astype(np.float64), 0.0, 1.0) * 65535.0).astype(np.uint16)
