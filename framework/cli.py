@@ -74,6 +74,9 @@ def cmd_stages(args) -> int:
     if args.json:
         print(json.dumps(records, indent=2, default=str))
         return 0
+    if args.markdown:
+        print(stages_markdown(records))
+        return 0
     for rec in records:
         print(f"{rec['name']}  ({rec['plugin']}, v{rec['version']})")
         for line in rec["doc"].splitlines():
@@ -87,6 +90,37 @@ def cmd_stages(args) -> int:
             print(f"    param  {p['name']} ({p['type']}, {default}): {p['doc']}")
         print()
     return 0
+
+
+def _numpydoc_to_markdown(doc: str) -> str:
+    """NumPy-style section underlines would turn into Markdown headings: make them bold labels instead."""
+    lines = doc.splitlines()
+    out = []
+    for i, line in enumerate(lines):
+        if set(line.strip()) == {"-"} and i > 0:
+            out[-1] = f"**{out[-1].strip()}**\n"
+            continue
+        out.append(line)
+    return "\n".join(out)
+
+
+def stages_markdown(records: list[dict]) -> str:
+    """The stage reference as Markdown (README's "Stages" section is this output)."""
+    out = []
+    for rec in records:
+        out.append(f"#### `{rec['name']}`\n")
+        out.append(_numpydoc_to_markdown(rec["doc"]) + "\n")
+        ports = [f"input `{p}`: {i['type']}{' (optional)' if i['optional'] else ''}" for p, i in rec["inputs"].items()]
+        ports += [f"output `{p}`: {t}" for p, t in rec["outputs"].items()]
+        if ports:
+            out.append("Ports: " + "; ".join(ports) + ".\n")
+        if rec["params"]:
+            out.append("| param | type | default | meaning |\n|---|---|---|---|")
+            for p in rec["params"]:
+                default = "required" if p["required"] else f"`{p['default']}`"
+                out.append(f"| `{p['name']}` | {p['type'].replace('|', ' or ')} | {default} | {p['doc']} |")
+            out.append("")
+    return "\n".join(out)
 
 
 def cmd_info(args) -> int:
@@ -139,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("stages", help="list the installed stages with their ports, params and docs")
     p.add_argument("name", nargs="*", help="only these stages")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in README)")
     p.set_defaults(func=cmd_stages)
 
     p = sub.add_parser("info", help="describe a .ptm, .lp/.lvp or .exr file")

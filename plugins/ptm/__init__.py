@@ -29,7 +29,8 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
-    matrix, streamed over bands of rows, so memory stays near the size of the stack itself.  A light set whose
+    matrix.  The kernel reads an 8-bit capture in place (decoding bytes through a table) and writes straight
+    into the result, so memory stays near the stack plus its coefficients.  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by clamping small
     singular values, with a warning naming the condition number.
 

@@ -1,0 +1,440 @@
+"""Double spherical harmonics (view x light) fitted by constrained least squares, optionally 8-bit quantized.
+
+Following Leung et al. ("Tileable BTF", after Lam, Leung & Wong 2006), each texel's reflectance per channel is
+
+    f(l, v) = sum_{a < k_v} sum_{b < k_l} c[a, b] Y_a(v) Y_b(l)
+
+with ``Y`` the orthonormal real spherical harmonics of :func:`real_sh`.  **Order** ``N`` means bands
+``0 .. N-1``, i.e. ``N^2`` functions: ``k_l = light_order^2``, ``k_v = view_order^2``.  A single-view stack
+(``view_order`` 1) has ``k_v = 1`` and ``Y_0(v) = 1 / sqrt(4 pi)``, so ``f(l) = sum_b (c[0, b] / sqrt(4 pi)) Y_b(l)``:
+single SH over the light, with coefficients scaled by ``sqrt(4 pi)``.
+
+**Constrained least squares.**  Samples cover the upper hemisphere only, so plain least squares is free to
+make the function large below the horizon (and, at high orders, to blow up fitting noise).  We minimise
+``||A c - y||^2 + lambda ||c||^2`` and pick per texel and channel the smallest ``lambda >= 0`` whose solution's
+energy ``||c||^2`` (its L2 norm over the whole sphere, or sphere x sphere, as the basis is orthonormal) obeys the
+**energy bound**::
+
+    ||c||^2  <=  energy_factor * (4 pi)^2 * mean(y^2)
+
+``2 pi * mean(y^2)`` estimates the energy over a sampled hemisphere (exact when samples are uniform in solid
+angle).  The bound allows twice that per sampled hemisphere - the energy of the function's mirror image about
+the horizon, i.e. as much below the horizon as above and no more - and a view-independent model (``k_v = 1``) is
+constant over the whole view sphere (4 pi).  Both cases give ``(4 pi)^2 mean(y^2)``; ``energy_factor`` scales
+it (default :data:`DEFAULT_ENERGY_FACTOR` = 1, the mirror rule; ``inf`` gives plain minimum-norm least squares).
+A constant function meets the bound with equality, so the bound carries a relative slack of ``ENERGY_SLACK``
+(1e-4) to keep rounding from regularising it.  By Cauchy-Schwarz and the addition theorem
+(``sum_b Y_b(l)^2 = k_l / 4 pi``) the bound caps the function everywhere on the sphere(s):
+``|f(l, v)| <= ||c|| sqrt(k_l k_v) / (4 pi) = sqrt(energy_factor k_l k_v mean(y^2))``.
+
+``A`` is the same for every texel (``kron(Y_view, Y_light)``), and so is its SVD, the Kronecker product of the two
+small SVDs computed once on the host.  With ``p = U^T y`` the solution for any ``lambda`` is
+``c = V diag(s / (s^2 + lambda)) p`` and its energy ``sum (s_i p_i / (s_i^2 + lambda))^2`` decreases with
+``lambda``, so the per-texel bisection (OpenCL kernel ``sh_lambda``, NumPy twin :func:`cls_weights_numpy`) is
+cheap.  Singular values below ``RCOND`` x the largest of each factor are treated as exact zeros (the minimum-norm
+solution ignores those directions).
+
+**Quantization** (optional) stores each coefficient as ``uint8``: per coefficient index ``(a, b)`` over all
+texels and channels, ``bias`` is the minimum and ``scale`` the range / 255, values are rounded, so dequantized
+coefficients ``q * scale + bias`` are within half a step of the fitted ones.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from btforge.backend import get_backend, texel_chunks
+from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, unit_directions
+from btforge.errors import BtforgeInputError
+
+KERNELS = Path(__file__).with_name("sh.cl")
+MAX_ORDER = 10
+DEFAULT_ENERGY_FACTOR = 1.0
+ENERGY_SLACK = 1e-4   # relative slack on the bound: a constant texel meets it exactly and must not be clamped by rounding
+RCOND = 1e-6          # singular values of a factor below this x its largest count as zero
+LAMBDA_SPAN = 40.0    # bisection over log2(lambda) in [log2(hi) - SPAN, log2(hi)]; mirrors sh.cl
+LAMBDA_ITERS = 32
+FOUR_PI = 4.0 * math.pi
+
+
+# ----------------------------------------------------------------------------------------------- basis
+
+
+def real_sh(order: int, dirs) -> np.ndarray:
+    """Orthonormal real spherical harmonics of bands ``0 .. order-1`` at unit ``dirs [N, 3]`` -> ``[N, order^2]`` float64.
+
+    Index ``l^2 + l + m`` holds ``Y_l^m``, ``-l <= m <= l``; no Condon-Shortley phase, so band 1 is
+    ``sqrt(3 / 4 pi) * (y, z, x)`` and ``Y_0 = 1 / sqrt(4 pi)``.  ``m > 0`` uses ``cos(m phi)``, ``m < 0``
+    ``sin(|m| phi)``.  Computed from Cartesian coordinates (no angles), so it is exact at the poles.
+    """
+    if not isinstance(order, (int, np.integer)) or order < 0:
+        raise BtforgeInputError("real_sh 'order'", f"must be an int >= 0, got {order!r}")
+    d = np.asarray(dirs, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise BtforgeInputError("real_sh 'dirs'", f"must be (N, 3), got {d.shape}")
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    d = d / np.where(norms > 0, norms, 1.0)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    out = np.zeros((d.shape[0], order * order), dtype=np.float64)
+    cos_m, sin_m = np.ones_like(x), np.zeros_like(x)   # Re, Im of (x + i y)^m = sin^m(theta) e^{i m phi}
+    p_mm = 1.0                                         # (2m - 1)!!: P_m^m(z) / sin^m(theta)
+    for m in range(order):
+        if m > 0:
+            cos_m, sin_m = x * cos_m - y * sin_m, x * sin_m + y * cos_m
+            p_mm *= 2 * m - 1
+        p_prev, p_cur = None, np.full_like(z, p_mm)
+        for l in range(m, order):
+            if l == m + 1:
+                p_prev, p_cur = p_cur, (2 * m + 1) * z * p_cur
+            elif l > m + 1:
+                p_prev, p_cur = p_cur, ((2 * l - 1) * z * p_cur - (l + m - 1) * p_prev) / (l - m)
+            norm = math.sqrt((2 * l + 1) / FOUR_PI * math.factorial(l - m) / math.factorial(l + m))
+            if m == 0:
+                out[:, l * l + l] = norm * p_cur
+            else:
+                out[:, l * l + l + m] = math.sqrt(2.0) * norm * p_cur * cos_m
+                out[:, l * l + l - m] = math.sqrt(2.0) * norm * p_cur * sin_m
+    return out
+
+
+def compression_rate(k_l: int, k_v: int, n_light: int, n_view: int) -> float:
+    """Coefficients per texel and channel over raw samples per texel and channel, at the same bit depth.
+
+    ``compression_rate(25, 25, 81, 81) == 625 / 6561`` (9.53 %, Table II of Leung et al.).
+    """
+    return (k_l * k_v) / (n_light * n_view)
+
+
+# ----------------------------------------------------------------------------------------------- model
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SHModel(ReflectanceModel):
+    """Per-texel double spherical harmonics ``f(l, v) = sum_ab c[a, b] Y_a(v) Y_b(l)`` (see the module docs).
+
+    ``coeffs`` is ``[H, W, C, k_v, k_l]``: float32, or uint8 when ``quantized`` (then the coefficient is
+    ``q * scale[a, b] + bias[a, b]``).  ``scale`` / ``bias`` are ``[k_v, k_l]`` float32 (ones / zeros when not
+    quantized).  ``k_l = light_order^2``, ``k_v = view_order^2``.
+    """
+
+    type_name: ClassVar[str] = "SHModel"
+    texel_fields: ClassVar[tuple[str, ...]] = ("coeffs",)
+
+    coeffs: np.ndarray
+    scale: np.ndarray
+    bias: np.ndarray
+    light_order: int = 4
+    view_order: int = 1
+    quantized: bool = False
+    channel_names: tuple[str, ...] = ("R", "G", "B")
+
+    def __post_init__(self):
+        owner = "SHModel"
+        for name in ("light_order", "view_order"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
+                raise BtforgeInputError(f"{owner} '{name}'", f"must be an int in [1, {MAX_ORDER}], got {value!r}")
+        if not isinstance(self.quantized, (bool, np.bool_)):
+            raise BtforgeInputError(f"{owner} 'quantized'", f"must be a bool, got {self.quantized!r}")
+        k_l, k_v = int(self.light_order) ** 2, int(self.view_order) ** 2
+        n_channel = len(self.channel_names)
+        if n_channel < 1:
+            raise BtforgeInputError(f"{owner} 'channel_names'", "must name at least one channel")
+        dtype = np.uint8 if self.quantized else np.float32
+        check_array("coeffs", self.coeffs, ("H", "W", n_channel, k_v, k_l), dtype, finite=True, owner=owner)
+        check_array("scale", self.scale, (k_v, k_l), np.float32, finite=True, owner=owner)
+        check_array("bias", self.bias, (k_v, k_l), np.float32, finite=True, owner=owner)
+        if (self.scale < 0).any():
+            raise BtforgeInputError(f"{owner} 'scale'", "must be >= 0 (a quantization step)")
+        object.__setattr__(self, "light_order", int(self.light_order))
+        object.__setattr__(self, "view_order", int(self.view_order))
+        object.__setattr__(self, "quantized", bool(self.quantized))
+        object.__setattr__(self, "coeffs", frozen(self.coeffs))
+        object.__setattr__(self, "scale", frozen(self.scale))
+        object.__setattr__(self, "bias", frozen(self.bias))
+        object.__setattr__(self, "channel_names", tuple(self.channel_names))
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.channel_names
+
+    @property
+    def view_dependent(self) -> bool:  # type: ignore[override]
+        return self.view_order > 1
+
+    @property
+    def k_l(self) -> int:
+        return self.light_order ** 2
+
+    @property
+    def k_v(self) -> int:
+        return self.view_order ** 2
+
+    def dequantized(self) -> np.ndarray:
+        """The coefficients as float32 ``[H, W, C, k_v, k_l]`` (the stored ones when not quantized)."""
+        if not self.quantized:
+            return self.coeffs
+        return (self.coeffs.astype(np.float32) * self.scale + self.bias).astype(np.float32)
+
+    def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
+        """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` and ``views [V, 3]``, clipped at 0.
+
+        ``views`` defaults to the top view ``(0, 0, 1)``.  Directions below the horizon are allowed (the model
+        is defined on the whole sphere), though nothing was measured there.
+        """
+        lights = unit_directions("lights", lights, owner="SH evaluation")
+        views = unit_directions("views", [[0.0, 0.0, 1.0]] if views is None else views, owner="SH evaluation")
+        yl = real_sh(self.light_order, lights).astype(np.float32)
+        yv = real_sh(self.view_order, views).astype(np.float32)
+        n_texel = self.height * self.width
+        flat = self.coeffs.reshape(n_texel, len(self.channel_names), self.k_v, self.k_l)
+        if engine == "numpy":
+            out = evaluate_sh_numpy(flat, self.scale, self.bias, self.quantized, yv, yl)
+        elif engine == "opencl":
+            out = evaluate_sh_opencl(flat, self.scale, self.bias, self.quantized, yv, yl)
+        else:
+            raise BtforgeInputError("SH evaluation 'engine'", f"must be 'opencl' or 'numpy', got {engine!r}")
+        return out.reshape(len(views), len(lights), self.height, self.width, len(self.channel_names))
+
+
+# ----------------------------------------------------------------------------------------------- evaluation
+
+
+def evaluate_sh_numpy(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, quantized: bool,
+                      yv: np.ndarray, yl: np.ndarray) -> np.ndarray:
+    """Reference evaluation: ``coeffs [N, C, k_v, k_l]`` at basis rows ``yv [V, k_v]``, ``yl [L, k_l]`` -> ``[V, L, N, C]``."""
+    c = coeffs.astype(np.float32) * scale + bias if quantized else coeffs
+    q = np.matmul(c, yl.T.astype(np.float32))                     # [N, C, k_v, L]
+    out = np.einsum("va,ncal->vlnc", yv.astype(np.float32), q)
+    return np.maximum(out, 0.0).astype(np.float32)
+
+
+def evaluate_sh_opencl(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, quantized: bool,
+                       yv: np.ndarray, yl: np.ndarray, budget_bytes: int = 256 << 20) -> np.ndarray:
+    backend = get_backend()
+    n_texel, n_channel, k_v, k_l = coeffs.shape
+    n_view, n_light = yv.shape[0], yl.shape[0]
+    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ())
+    kernel = backend.kernel(KERNELS, "sh_eval", options)
+    out = np.empty((n_view, n_light, n_texel, n_channel), dtype=np.float32)
+    scale_dev = backend.to_device(np.ascontiguousarray(scale, np.float32))
+    bias_dev = backend.to_device(np.ascontiguousarray(bias, np.float32))
+    yv_dev = backend.to_device(np.ascontiguousarray(yv, np.float32))
+    yl_dev = backend.to_device(np.ascontiguousarray(yl, np.float32))
+    per_texel = n_channel * (k_v * k_l * coeffs.itemsize + n_view * n_light * 4)
+    for chunk in texel_chunks(n_texel, per_texel, budget_bytes):
+        n = chunk.stop - chunk.start
+        c_dev = backend.to_device(np.ascontiguousarray(coeffs[chunk]))
+        o_dev = backend.empty(n_view * n_light * n * n_channel * 4)
+        backend.run(kernel, (n, n_light), c_dev, scale_dev, bias_dev, yv_dev, yl_dev, np.int32(k_v), np.int32(k_l),
+                    np.int32(n_view), np.int32(n_light), np.int32(n), np.int32(n_channel), o_dev)
+        out[:, :, chunk] = backend.from_device(o_dev, (n_view, n_light, n, n_channel), np.float32)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- fitting
+
+
+@dataclasses.dataclass(frozen=True)
+class SHSolver:
+    """The shared SVD of the design matrix ``kron(Y_view, Y_light)``, kept as its two factors.
+
+    ``u_*`` ``[n, r]``, ``s_*`` ``[r]``, ``v_*`` ``[k, r]`` for view and light; ``s`` is the flattened Kronecker
+    product ``s_v[i] * s_l[j]`` at index ``i * r_l + j``.
+    """
+
+    u_v: np.ndarray
+    s_v: np.ndarray
+    v_v: np.ndarray
+    u_l: np.ndarray
+    s_l: np.ndarray
+    v_l: np.ndarray
+
+    @property
+    def s(self) -> np.ndarray:
+        return np.outer(self.s_v, self.s_l).ravel()
+
+    @property
+    def rank(self) -> int:
+        return len(self.s_v) * len(self.s_l)
+
+    def project(self, y: np.ndarray) -> np.ndarray:
+        """``U^T y`` for samples ``y [V, L, N]`` -> ``[N, r_v * r_l]`` float32 (BLAS on the host)."""
+        n_view, n_light, n = y.shape
+        t = np.matmul(self.u_l.T.astype(np.float32), y)                          # [V, r_l, N]
+        p = self.u_v.T.astype(np.float32) @ t.reshape(n_view, -1)               # [r_v, r_l * N]
+        p = p.reshape(len(self.s_v), len(self.s_l), n)
+        return np.ascontiguousarray(p.transpose(2, 0, 1)).reshape(n, -1)
+
+
+def _factor_svd(basis: np.ndarray):
+    u, s, vt = np.linalg.svd(basis, full_matrices=False)
+    keep = s > s[0] * RCOND if s.size and s[0] > 0 else np.zeros(s.shape, bool)
+    return u[:, keep], s[keep], vt[keep].T
+
+
+def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int) -> SHSolver:
+    """SVD of the light and view SH design matrices (the design matrix's Kronecker factors)."""
+    u_l, s_l, v_l = _factor_svd(real_sh(light_order, lights))
+    u_v, s_v, v_v = _factor_svd(real_sh(view_order, views))
+    return SHSolver(u_v, s_v, v_v, u_l, s_l, v_l)
+
+
+def energy_root(y: np.ndarray, energy_factor: float) -> np.ndarray:
+    """``sqrt`` of the energy bound per texel-channel for samples ``y [V, L, N]``: ``factor (4 pi)^2 mean(y^2)``
+    (times ``1 + ENERGY_SLACK``, so that functions meeting the bound exactly, like a constant, stay unregularised)."""
+    mean_sq = np.einsum("vln,vln->n", y, y, dtype=np.float64) / (y.shape[0] * y.shape[1])
+    if math.isinf(energy_factor):
+        return np.where(mean_sq > 0, np.inf, 0.0).astype(np.float32)
+    return (FOUR_PI * np.sqrt(energy_factor * (1.0 + ENERGY_SLACK) * mean_sq)).astype(np.float32)
+
+
+def cls_weights_numpy(proj: np.ndarray, s: np.ndarray, root_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of kernel ``sh_lambda``: per row of ``proj [N, r]`` the smallest lambda whose solution's energy is
+    within ``root_target^2``, by bisection over ``log2(lambda)``.  Returns ``(lambda [N], weights [N, r])``."""
+    p = proj.astype(np.float64)
+    s = s.astype(np.float64)
+    root = root_target.astype(np.float64)
+    n = p.shape[0]
+    live = root > np.finfo(np.float32).tiny
+    inv_root = np.where(live, 1.0 / np.where(live, root, 1.0), 0.0)
+    q = p * inv_root[:, None]
+
+    def energy(rows, lam):
+        w = s * q[rows] / (s * s + lam[:, None])
+        return (w * w).sum(axis=1)
+
+    lam = np.zeros(n)
+    idx = np.flatnonzero(live)
+    idx = idx[energy(idx, np.zeros(len(idx))) > 1.0]
+    if len(idx):
+        hi = 0.5 * np.log2(((s * q[idx]) ** 2).sum(axis=1))
+        lo = hi - LAMBDA_SPAN
+        floor = lo.copy()
+        tiny = energy(idx, np.exp2(floor)) <= 1.0     # below 2^-40 of the bracket: as good as zero
+        for _ in range(LAMBDA_ITERS):
+            mid = 0.5 * (lo + hi)
+            ok = energy(idx, np.exp2(mid)) <= 1.0
+            hi = np.where(ok, mid, hi)
+            lo = np.where(ok, lo, mid)
+        hi = np.where(tiny, floor, hi)
+        lam[idx] = np.exp2(hi)
+    weights = s * p / (s * s + lam[:, None])
+    weights[~live] = 0.0
+    return lam.astype(np.float32), weights
+
+
+def cls_coeffs_numpy(proj: np.ndarray, root_target: np.ndarray, solver: SHSolver) -> tuple[np.ndarray, np.ndarray]:
+    """Reference constrained solve: ``proj [N, r]`` -> ``(coeffs [N, k_v, k_l] float32, lambda [N])``."""
+    lam, w = cls_weights_numpy(proj, solver.s, root_target)
+    w = w.reshape(-1, len(solver.s_v), len(solver.s_l))
+    coeffs = np.einsum("ai,nij,bj->nab", solver.v_v, w, solver.v_l, optimize=True)
+    return coeffs.astype(np.float32), lam
+
+
+def cls_coeffs_opencl(proj: np.ndarray, root_target: np.ndarray, solver: SHSolver) -> tuple[np.ndarray, np.ndarray]:
+    backend = get_backend()
+    n, r = proj.shape
+    r_v, r_l = len(solver.s_v), len(solver.s_l)
+    k_v, k_l = solver.v_v.shape[0], solver.v_l.shape[0]
+    lambda_kernel = backend.kernel(KERNELS, "sh_lambda")
+    solve_kernel = backend.kernel(KERNELS, "sh_solve", (f"-DMAX_RV={max(r_v, 1)}",))
+    p_dev = backend.to_device(np.ascontiguousarray(proj, np.float32))
+    s_dev = backend.to_device(solver.s.astype(np.float32))
+    root_dev = backend.to_device(np.ascontiguousarray(root_target, np.float32))
+    lam_dev = backend.empty(n * 4)
+    w_dev = backend.cl.Buffer(backend.context, backend.cl.mem_flags.READ_WRITE, size=max(n * r * 4, 1))
+    backend.run(lambda_kernel, (n,), p_dev, s_dev, root_dev, np.int32(r), np.int32(n), lam_dev, w_dev)
+    vv_dev = backend.to_device(solver.v_v.astype(np.float32))
+    vl_dev = backend.to_device(solver.v_l.astype(np.float32))
+    c_dev = backend.empty(n * k_v * k_l * 4)
+    backend.run(solve_kernel, (n, k_l), w_dev, vv_dev, vl_dev, np.int32(r_v), np.int32(r_l), np.int32(k_v),
+                np.int32(k_l), np.int32(n), c_dev)
+    coeffs = backend.from_device(c_dev, (n, k_v, k_l), np.float32)
+    return coeffs, backend.from_device(lam_dev, (n,), np.float32)
+
+
+def quantize_coeffs(coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Uniform 8-bit quantization per coefficient index over all texels and channels.
+
+    ``coeffs [..., k_v, k_l]`` float32 -> ``(q uint8, scale [k_v, k_l], bias [k_v, k_l])`` with
+    ``bias = min``, ``scale = (max - min) / 255`` (1 where the range is empty) and ``q = round((c - bias) / scale)``.
+    """
+    flat = coeffs.reshape(-1, *coeffs.shape[-2:]).astype(np.float64)
+    if flat.shape[0] == 0:
+        ones = np.ones(coeffs.shape[-2:], np.float32)
+        return coeffs.astype(np.uint8), ones, np.zeros_like(ones)
+    lo, hi = flat.min(axis=0), flat.max(axis=0)
+    bias = lo.astype(np.float32)
+    scale = ((hi - lo) / 255.0).astype(np.float32)
+    scale = np.where(scale > 0, scale, np.float32(1.0)).astype(np.float32)
+    q = np.rint((coeffs.astype(np.float64) - bias.astype(np.float64)) / scale.astype(np.float64))
+    return np.clip(q, 0, 255).astype(np.uint8), scale, bias
+
+
+def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quantize: bool = False, *,
+           engine: str = "opencl", budget_bytes: int = 64 << 20,
+           energy_factor: float = DEFAULT_ENERGY_FACTOR) -> tuple[SHModel, dict]:
+    """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
+
+    ``view_order`` is forced to 1 for a single-view stack.  Returns the model and a dict of statistics:
+    ``lambda`` (``[H, W, C]`` float32), ``lambda_median``, ``lambda_max``, ``clamped`` (texel-channels whose
+    constraint was active, ``lambda > 0``), ``clamped_fraction``, ``compression_rate_percent``,
+    ``n_coefficients``, ``n_samples``, ``rank``, ``underdetermined``, ``view_order``, ``energy_factor``.
+    """
+    for name, value in (("light_order", light_order), ("view_order", view_order)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
+            raise BtforgeInputError(f"sh.fit '{name}'", f"expected an int in [1, {MAX_ORDER}], found {value!r}")
+    if not energy_factor > 0:
+        raise BtforgeInputError("sh.fit 'energy_factor'", f"expected a positive number, found {energy_factor!r}")
+    if engine not in ("opencl", "numpy"):
+        raise BtforgeInputError("sh.fit 'engine'", f"expected 'opencl' or 'numpy', found {engine!r}")
+    if stack.n_view == 1:
+        view_order = 1
+    k_l, k_v = light_order ** 2, view_order ** 2
+    solver = sh_solver(stack.lights, stack.views, light_order, view_order)
+    solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
+    h, w, c = stack.height, stack.width, stack.n_channel
+    n_samples = stack.n_view * stack.n_light
+    coeffs = np.empty((h * w * c, k_v, k_l), np.float32)
+    lam = np.empty(h * w * c, np.float32)
+    # Working set per row: the samples plus projections, weights and coefficients.
+    scale = n_samples / (n_samples + 2 * solver.rank + k_v * k_l)
+    for rows in stack.row_bands(max(1, int(budget_bytes * scale))):
+        y = stack.linear(rows)
+        y = np.ascontiguousarray(y).reshape(stack.n_view, stack.n_light, -1)
+        proj = solver.project(y)
+        root = energy_root(y, energy_factor)
+        span = slice(rows.start * w * c, rows.stop * w * c)
+        coeffs[span], lam[span] = solve(proj, root, solver)
+    if not np.isfinite(coeffs).all():  # cannot happen with a finite bound; guard the buffer's invariant anyway
+        raise BtforgeInputError("sh.fit", "the solve produced non-finite coefficients",
+                                "lower the orders or use a finite energy_factor")
+    coeffs = coeffs.reshape(h, w, c, k_v, k_l)
+    if quantize:
+        q, qscale, qbias = quantize_coeffs(coeffs)
+        model = SHModel(q, qscale, qbias, light_order, view_order, True, stack.channels)
+    else:
+        model = SHModel(coeffs, np.ones((k_v, k_l), np.float32), np.zeros((k_v, k_l), np.float32),
+                        light_order, view_order, False, stack.channels)
+    clamped = int((lam > 0).sum())
+    stats = {
+        "lambda": lam.reshape(h, w, c),
+        "lambda_median": float(np.median(lam)) if lam.size else 0.0,
+        "lambda_max": float(lam.max()) if lam.size else 0.0,
+        "clamped": clamped,
+        "clamped_fraction": clamped / max(lam.size, 1),
+        "compression_rate_percent": 100.0 * compression_rate(k_l, k_v, stack.n_light, stack.n_view),
+        "n_coefficients": k_l * k_v,
+        "n_samples": n_samples,
+        "rank": solver.rank,
+        "underdetermined": solver.rank < k_l * k_v,
+        "view_order": view_order,
+        "energy_factor": energy_factor,
+        "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
+    }
+    return model, stats

@@ -1,0 +1,132 @@
+// Double spherical harmonics (view x light): constrained least-squares solve and evaluation.
+//
+// The design matrix of one texel's samples is the Kronecker product of the view and light SH matrices, so
+// its SVD is the Kronecker product of their SVDs (done once on the host).  Per texel-channel the host
+// projects the samples on the left singular vectors (proj = U^T y, [r_v, r_l]); here we
+//   sh_lambda: find by bisection the smallest lambda >= 0 with  sum_i (s_i p_i / (s_i^2 + lambda))^2 <= E,
+//              and write the weights w_i = s_i p_i / (s_i^2 + lambda)   (the solution in the right-singular basis);
+//   sh_solve:  rotate back, c[a, b] = sum_i sum_j Vv[a, i] w[i, j] Vl[b, j].
+//   sh_eval:   f(v, l) = sum_a Yv[v, a] sum_b c[a, b] Yl[l, b], clipped at 0 (coefficients optionally 8-bit).
+//
+// Build options: -DMAX_RV=<r_v> (sh_solve) ; -DMAX_KV=<k_v> (sh_eval) ; -DQUANTIZED (sh_eval, uchar coefficients).
+
+#ifndef MAX_RV
+#define MAX_RV 1
+#endif
+#ifndef MAX_KV
+#define MAX_KV 1
+#endif
+#ifndef LAMBDA_SPAN
+#define LAMBDA_SPAN 40.0f   // the bisection searches log2(lambda) in [log2(hi) - SPAN, log2(hi)]
+#endif
+#ifndef LAMBDA_ITERS
+#define LAMBDA_ITERS 32
+#endif
+
+// Energy of the solution at lambda, in units of the target (p_scaled = p / sqrt(E)).
+inline float cls_energy(__global const float *p, __global const float *s, const int r, const float inv_root,
+                        const float lambda)
+{
+    float g = 0.f;
+    for (int i = 0; i < r; ++i) {
+        const float w = s[i] * (p[i] * inv_root) / (s[i] * s[i] + lambda);
+        g += w * w;
+    }
+    return g;
+}
+
+// proj: [n, r] ; s: [r] (all > 0) ; root_target: [n] = sqrt(allowed energy) (0: black texel, +inf: no bound)
+// lambda out: [n] ; weights out: [n, r]
+__kernel void sh_lambda(__global const float *proj, __global const float *s, __global const float *root_target,
+                        const int r, const int n, __global float *lambda_out, __global float *weights)
+{
+    const int t = get_global_id(0);
+    if (t >= n) return;
+    __global const float *p = proj + (size_t)t * r;
+    __global float *w = weights + (size_t)t * r;
+    const float root = root_target[t];
+    if (!(root > FLT_MIN)) {            // nothing was measured (or the bound is zero): the zero function
+        lambda_out[t] = 0.f;
+        for (int i = 0; i < r; ++i) w[i] = 0.f;
+        return;
+    }
+    const float inv_root = 1.0f / root;  // 0 when the bound is infinite: plain least squares
+    float lambda = 0.f;
+    if (cls_energy(p, s, r, inv_root, 0.f) > 1.0f) {
+        // g(lambda) <= sum_i (s_i p_i)^2 / lambda^2, so this upper end satisfies the bound.
+        float sp = 0.f;
+        for (int i = 0; i < r; ++i) {
+            const float q = s[i] * p[i] * inv_root;
+            sp += q * q;
+        }
+        float hi = 0.5f * log2(sp);
+        float lo = hi - LAMBDA_SPAN;
+        if (cls_energy(p, s, r, inv_root, exp2(lo)) <= 1.0f) {
+            hi = lo;                     // below 2^-40 of the bracket: as good as zero, but still inside the bound
+        } else {
+            for (int it = 0; it < LAMBDA_ITERS; ++it) {
+                const float mid = 0.5f * (lo + hi);
+                if (cls_energy(p, s, r, inv_root, exp2(mid)) <= 1.0f) hi = mid; else lo = mid;
+            }
+        }
+        lambda = exp2(hi);
+    }
+    lambda_out[t] = lambda;
+    for (int i = 0; i < r; ++i) w[i] = s[i] * p[i] / (s[i] * s[i] + lambda);
+}
+
+// weights: [n, r_v * r_l] ; vv: [k_v, r_v] ; vl: [k_l, r_l] ; coeffs out: [n, k_v, k_l].  Global size (n, k_l).
+__kernel void sh_solve(__global const float *weights, __global const float *vv, __global const float *vl,
+                       const int r_v, const int r_l, const int k_v, const int k_l, const int n,
+                       __global float *coeffs)
+{
+    const int t = get_global_id(0);
+    const int b = get_global_id(1);
+    if (t >= n || b >= k_l) return;
+    __global const float *w = weights + (size_t)t * r_v * r_l;
+    float tmp[MAX_RV];
+    for (int i = 0; i < r_v; ++i) {
+        float acc = 0.f;
+        for (int j = 0; j < r_l; ++j) acc += w[i * r_l + j] * vl[b * r_l + j];
+        tmp[i] = acc;
+    }
+    for (int a = 0; a < k_v; ++a) {
+        float acc = 0.f;
+        for (int i = 0; i < r_v; ++i) acc += vv[a * r_v + i] * tmp[i];
+        coeffs[((size_t)t * k_v + a) * k_l + b] = acc;
+    }
+}
+
+#ifdef QUANTIZED
+#define COEFF_T uchar
+#define COEFF(i, ab) ((float)coeffs[i] * scale[ab] + bias[ab])
+#else
+#define COEFF_T float
+#define COEFF(i, ab) (coeffs[i])
+#endif
+
+// coeffs: [n_texel, C, k_v, k_l] ; scale, bias: [k_v, k_l] ; yv: [V, k_v] ; yl: [L, k_l]
+// out: [V, L, n_texel, C].  Global size (n_texel, L).
+__kernel void sh_eval(__global const COEFF_T *coeffs, __global const float *scale, __global const float *bias,
+                      __global const float *yv, __global const float *yl,
+                      const int k_v, const int k_l, const int n_view, const int n_light, const int n_texel,
+                      const int n_channel, __global float *out)
+{
+    const int t = get_global_id(0);
+    const int l = get_global_id(1);
+    if (t >= n_texel || l >= n_light) return;
+    float q[MAX_KV];
+    for (int c = 0; c < n_channel; ++c) {
+        const size_t base = ((size_t)t * n_channel + c) * k_v * k_l;
+        for (int a = 0; a < k_v; ++a) {
+            float acc = 0.f;
+            for (int b = 0; b < k_l; ++b) acc += COEFF(base + a * k_l + b, a * k_l + b) * yl[l * k_l + b];
+            q[a] = acc;
+        }
+        for (int v = 0; v < n_view; ++v) {
+            float acc = 0.f;
+            for (int a = 0; a < k_v; ++a) acc += yv[v * k_v + a] * q[a];
+            out[(((size_t)v * n_light + l) * n_texel + t) * n_channel + c] = fmax(acc, 0.0f);
+        }
+    }
+}
