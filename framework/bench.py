@@ -27,6 +27,14 @@ def add_parser(sub):
     q.add_argument("--variant", default="rgb", choices=("rgb", "lrgb"))
     q.add_argument("--repeat", type=int, default=5, help="repetitions; medians are reported")
     q.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+    r = which.add_parser("representations", help="fit time, relight time, size and held-out error of every representation")
+    r.add_argument("--stack", required=True, help="the capture to fit (.lp or .lvp)")
+    r.add_argument("--test", help="held-out capture at other lights (default: every fifth light of --stack)")
+    r.add_argument("--out", required=True, help="folder for representations.csv and representations.png")
+    r.add_argument("--crop", type=int, default=0, help="use only the central CROP x CROP texels (0: all)")
+    r.add_argument("--repeat", type=int, default=1, help="fits per representation; the median time is reported")
+    r.add_argument("--only", action="append", help="only these representation families (ptm, lafortune, sh)")
     return p
 
 
@@ -123,7 +131,108 @@ def bench_ptm(args) -> dict:
     return figures
 
 
+# (family, stage, params) of every configuration the representations bench compares.
+REPRESENTATIONS = (
+    [("ptm", "ptm.fit", {"variant": v}) for v in ("lrgb", "rgb")]
+    + [("lafortune", "lafortune.fit", {"lobes": k}) for k in (1, 2, 3, 4)]
+    + [("sh", "sh.fit", {"light_order": n}) for n in (2, 3, 4, 5, 6)]
+)
+
+
+def _label(stage: str, params: dict) -> str:
+    return stage.split(".")[0] + " " + " ".join(f"{k}={v}" for k, v in params.items())
+
+
+def _central_crop(stack, size: int):
+    from btforge.buffers import SampleStack
+    if not size or (stack.height <= size and stack.width <= size):
+        return stack
+    r0, c0 = max(0, (stack.height - size) // 2), max(0, (stack.width - size) // 2)
+    part = stack.samples[:, :, r0:r0 + size, c0:c0 + size]
+    return SampleStack(part, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
+
+
+def bench_representations(args) -> list[dict]:
+    import csv
+    import io
+
+    import numpy as np
+
+    from btforge import stage as get_stage
+    from btforge.buffers import SampleStack
+    from btforge.plugins.relight import compare_stacks
+    from btforge.plugins.stackio.images import load_stack
+    from btforge.registry import default_registry
+
+    from .atomic import atomic_write_text
+    from .plot import scatter_png
+
+    stack = _central_crop(load_stack(Path(args.stack)), args.crop)
+    if args.test:
+        fit, test = stack, _central_crop(load_stack(Path(args.test)), args.crop)
+    else:
+        held = np.zeros(stack.n_light, bool)
+        held[::5] = True
+
+        def part(mask):
+            return SampleStack(stack.samples[:, mask], stack.lights[mask], stack.views, stack.channels, stack.encoding)
+        fit, test = part(~held), part(held)
+    registered = default_registry().stages
+    rows = []
+    for family, stage_name, params in REPRESENTATIONS:
+        if args.only and family not in args.only:
+            continue
+        label = _label(stage_name, params)
+        if stage_name not in registered:
+            print(f"  {label:28s} skipped: stage '{stage_name}' is not installed", file=sys.stderr)
+            continue
+        if family == "ptm" and fit.n_view > 1:
+            print(f"  {label:28s} skipped: a PTM models a single view", file=sys.stderr)
+            continue
+        fit_stage = get_stage(stage_name)
+        fit_stage(stack=_central_crop(fit, 8), **params)  # build kernels outside the timing
+        times = []
+        for _ in range(max(1, args.repeat)):
+            start = time.perf_counter()
+            model = fit_stage(stack=fit, **params)["model"]
+            times.append(time.perf_counter() - start)
+        model.evaluate(test.lights[:1], test.views[:1])
+        start = time.perf_counter()
+        values = model.evaluate(test.lights, test.views)
+        relight_s = time.perf_counter() - start
+        if values.shape[0] != test.n_view:
+            values = np.broadcast_to(values, (test.n_view,) + values.shape[1:])
+        predicted = SampleStack(np.ascontiguousarray(values), test.lights, test.views, model.channels)
+        scores = compare_stacks(predicted, test)
+        megapixels = test.n_view * test.n_light * test.height * test.width / 1e6
+        row = {"representation": family, "params": " ".join(f"{k}={v}" for k, v in params.items()),
+               "fit_seconds": round(statistics.median(times), 4),
+               "relight_seconds_per_megapixel": round(relight_s / megapixels, 5),
+               "bytes_per_texel": round(model.nbytes / (model.height * model.width), 2),
+               "psnr_db": scores["psnr_db"], "psnr_db_worst_light": scores["psnr_db_worst_light"],
+               "max_abs_error": scores["max_abs_error"], "domain": scores["domain"]}
+        rows.append(row)
+        print(f"  {label:28s} fit {row['fit_seconds']:8.3f} s  relight {row['relight_seconds_per_megapixel']:.4f} s/MP  "
+              f"{row['bytes_per_texel']:7.1f} B/texel  PSNR {row['psnr_db']:6.2f} dB", file=sys.stderr)
+    out = Path(args.out)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["representation"])
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(out / "representations.csv", buffer.getvalue())
+    scatter_png(out / "representations.png", [r["fit_seconds"] for r in rows], [r["psnr_db"] for r in rows],
+                [f"{r['representation']} {r['params']}" for r in rows], [r["representation"] for r in rows],
+                title=f"held-out PSNR vs fit time: {args.stack} ({test.width}x{test.height}, "
+                      f"{fit.n_view * fit.n_light} fit / {test.n_view * test.n_light} test samples)",
+                xlabel="fit seconds", ylabel=f"PSNR dB ({rows[0]['domain'] if rows else ''})")
+    return rows
+
+
 def main(args) -> int:
+    if args.bench == "representations":
+        rows = bench_representations(args)
+        print(f"wrote {Path(args.out) / 'representations.csv'} and representations.png ({len(rows)} representations)")
+        return 0
     if args.bench == "ptm":
         figures = bench_ptm(args)
         print(f"PTM bench ({figures['variant']}) on {figures['stack']}: {figures['size'][0]}x{figures['size'][1]}, "

@@ -24,9 +24,11 @@ def resolve_lights(value, paths) -> tuple[np.ndarray, tuple[str, ...]]:
     optional_inputs=("at",),
     outputs={"stack": "SampleStack"},
     params=[Param("lights", "lights", None, "light directions (toward the light, z up) as [[x, y, z], ...] or a .lp "
-                  "file; leave out to relight at the lights of the stack wired to 'at'")],
+                  "file; leave out to relight at the lights of the stack wired to 'at'"),
+            Param("views", "lights", None, "view directions (toward the camera) as [[x, y, z], ...] for view-dependent "
+                  "models; default: the stack wired to 'at', else straight above [0, 0, 1]")],
 )
-def relight(ctx, model, at=None, *, lights):
+def relight(ctx, model, at=None, *, lights, views):
     """Evaluate a reflectance model (PTM, and any other representation) at the given lights.
 
     Inputs
@@ -39,7 +41,7 @@ def relight(ctx, model, at=None, *, lights):
     Outputs
     -------
     stack : SampleStack
-        Linear radiance, one image per light, named after the light file's entries when there is one.
+        Linear radiance ``[views, lights, H, W, C]``, named after the light file's entries when there is one.
     """
     if lights is None and at is None:
         raise BtforgeInputError("relight", "expected the 'lights' param or a stack wired to input 'at', found neither",
@@ -48,8 +50,44 @@ def relight(ctx, model, at=None, *, lights):
         directions, names = resolve_lights(lights, ctx.paths)
     else:
         directions, names = at.lights, at.names
-    values = model.evaluate(directions)
-    return {"stack": SampleStack(values, directions, np.array([[0.0, 0.0, 1.0]]), model.channels, names=names)}
+    if views is not None:
+        view_dirs, _ = resolve_lights(views, ctx.paths)
+    elif at is not None:
+        view_dirs = at.views
+    else:
+        view_dirs = np.array([[0.0, 0.0, 1.0]], np.float32)
+    values = model.evaluate(directions, view_dirs)
+    if values.shape[0] != len(view_dirs):  # a model of the light only looks the same from every view
+        values = np.broadcast_to(values, (len(view_dirs),) + values.shape[1:])
+    return {"stack": SampleStack(np.ascontiguousarray(values), directions, view_dirs, model.channels, names=names)}
+
+
+def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0) -> dict:
+    """PSNR (overall, worst and median light), RMSE and max error of ``stack`` against ``reference``.
+
+    On display values (sRGB-encoded, clipped) when the reference is an 8-bit capture, as RTI tools report it;
+    on linear values otherwise.  Streams over bands of rows.
+    """
+    display = reference.encoding == "srgb8"
+    per_light_sq = np.zeros(reference.n_light)
+    worst = 0.0
+    for rows in reference.row_bands():
+        a, b = stack.linear(rows), reference.linear(rows)
+        if display:
+            a, b = linear_to_srgb(a), linear_to_srgb(b)
+        diff = np.abs(a.astype(np.float64) - b)
+        per_light_sq += (diff ** 2).sum(axis=(0, 2, 3, 4))
+        worst = max(worst, float(diff.max()))
+    per_light_mse = per_light_sq / (reference.n_view * reference.height * reference.width * reference.n_channel)
+
+    def psnr(mse):
+        return float("inf") if mse == 0 else float(10 * np.log10(peak ** 2 / mse))
+
+    mse = float(per_light_mse.mean())
+    per_light = [psnr(m) for m in per_light_mse]
+    return {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(per_light), 3),
+            "psnr_db_median_light": round(float(np.median(per_light)), 3), "rmse": round(mse ** 0.5, 6),
+            "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
 
 
 @declare_stage("stack.compare", inputs={"stack": "SampleStack", "reference": "SampleStack"},
@@ -68,26 +106,7 @@ def stack_compare(ctx, stack, reference, *, peak):
     if not np.allclose(stack.lights, reference.lights, atol=1e-4):
         raise BtforgeInputError("stack.compare", "expected the same light directions in both stacks",
                                 "relight at the reference's lights (wire it to relight's 'at')")
-    display = reference.encoding == "srgb8"
-    per_light_sq = np.zeros(reference.n_light)
-    worst = 0.0
-    for rows in reference.row_bands():
-        a, b = stack.linear(rows), reference.linear(rows)
-        if display:
-            a, b = linear_to_srgb(a), linear_to_srgb(b)
-        diff = np.abs(a.astype(np.float64) - b)
-        per_light_sq += (diff ** 2).sum(axis=(0, 2, 3, 4))
-        worst = max(worst, float(diff.max()))
-    per_light_mse = per_light_sq / (reference.n_view * reference.height * reference.width * reference.n_channel)
-
-    def psnr(mse):
-        return float("inf") if mse == 0 else float(10 * np.log10(peak ** 2 / mse))
-
-    mse = float(per_light_mse.mean())
-    per_light = [psnr(m) for m in per_light_mse]
-    scores = {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(per_light), 3),
-              "psnr_db_median_light": round(float(np.median(per_light)), 3), "rmse": round(mse ** 0.5, 6),
-              "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
+    scores = compare_stacks(stack, reference, peak)
     for key, value in scores.items():
         ctx.note(key, value)
     return {"scores": Scores(scores)}

@@ -1,0 +1,72 @@
+"""Small scatter plots for benchmark reports, drawn with Pillow (no plotting library needed)."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+from PIL import Image, ImageDraw, ImageFont
+
+PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 86, 75),
+           (227, 119, 194), (127, 127, 127)]
+
+
+def pareto_front(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
+    """Indices of points no other point beats on both axes (smaller x, larger y), ordered by x."""
+    order = sorted(range(len(xs)), key=lambda i: (xs[i], -ys[i]))
+    front, best = [], -math.inf
+    for i in order:
+        if ys[i] > best:
+            front.append(i)
+            best = ys[i]
+    return front
+
+
+def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel: str, log_x: bool = True,
+                size=(960, 640)) -> None:
+    """Write a labelled scatter plot with the Pareto front (less x, more y) marked, atomically, as PNG."""
+    from .atomic import atomic_write
+    width, height = size
+    left, right, top, bottom = 80, 30, 50, 70
+    img = Image.new("RGB", size, "white")
+    draw = ImageDraw.Draw(img)
+    font = ImageFont.load_default()
+    finite = [(x, y) for x, y in zip(xs, ys) if x > 0 and math.isfinite(y)]
+    fx = [math.log10(x) if log_x else x for x, _ in finite] or [0.0, 1.0]
+    fy = [y for _, y in finite] or [0.0, 1.0]
+    x0, x1 = min(fx), max(fx)
+    y0, y1 = min(fy), max(fy)
+    pad_x, pad_y = max((x1 - x0) * 0.08, 0.1), max((y1 - y0) * 0.08, 0.5)
+    x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
+
+    def to_px(x, y):
+        xv = math.log10(x) if log_x else x
+        return (left + (xv - x0) / (x1 - x0) * (width - left - right),
+                height - bottom - (y - y0) / (y1 - y0) * (height - top - bottom))
+
+    draw.rectangle([left, top, width - right, height - bottom], outline="black")
+    for k in range(6):  # ticks
+        yv = y0 + (y1 - y0) * k / 5
+        py = height - bottom - (yv - y0) / (y1 - y0) * (height - top - bottom)
+        draw.line([left - 4, py, left, py], fill="black")
+        draw.text((8, py - 6), f"{yv:.1f}", fill="black", font=font)
+        xv = x0 + (x1 - x0) * k / 5
+        px = left + (xv - x0) / (x1 - x0) * (width - left - right)
+        draw.line([px, height - bottom, px, height - bottom + 4], fill="black")
+        draw.text((px - 18, height - bottom + 8), f"{10 ** xv:.3g}" if log_x else f"{xv:.3g}", fill="black", font=font)
+    draw.text((left, 15), title, fill="black", font=font)
+    draw.text((width // 2 - 60, height - 30), xlabel + (" (log scale)" if log_x else ""), fill="black", font=font)
+    draw.text((8, top - 30), ylabel, fill="black", font=font)
+
+    valid = [i for i, (x, y) in enumerate(zip(xs, ys)) if x > 0 and math.isfinite(y)]
+    front = [valid[j] for j in pareto_front([xs[i] for i in valid], [ys[i] for i in valid])]
+    if len(front) > 1:
+        draw.line([to_px(xs[i], ys[i]) for i in front], fill=(120, 120, 120), width=2)
+    colours = {g: PALETTE[k % len(PALETTE)] for k, g in enumerate(dict.fromkeys(groups))}
+    for i in valid:
+        px, py = to_px(xs[i], ys[i])
+        r = 6 if i in front else 4
+        draw.ellipse([px - r, py - r, px + r, py + r], fill=colours[groups[i]], outline="black" if i in front else None)
+        draw.text((px + 8, py - 6), labels[i], fill=colours[groups[i]], font=font)
+    draw.text((width - right - 260, top + 8), "outlined + grey line: Pareto front", fill=(90, 90, 90), font=font)
+    with atomic_write(path) as handle:
+        img.save(handle, format="PNG")
