@@ -10,24 +10,26 @@ from btforge.errors import BtforgeInputError
 
 
 def _light_file_precheck(params, paths):
-    from .lightfile import read_light_file
+    from .lightfile import image_path, read_capture_index
     path = paths.input(params["path"])
-    entries = read_light_file(path, require_images=True)
-    return [path] + [path.parent / e.filename for e in entries]
+    entries = read_capture_index(path, require_images=True)
+    return [path] + [image_path(path, e.filename) for e in entries]
 
 
 @declare_stage(
     "stack.read",
     outputs={"stack": "SampleStack"},
     params=[
-        Param("path", "path", REQUIRED, "the light file: .lp (filename x y z per line after the count)"),
+        Param("path", "path", REQUIRED, "the capture: a .lp light file (filename x y z per line after the count), "
+              "a .lvp light-and-view file (filename lx ly lz vx vy vz), or a UBO-style BTF folder whose image "
+              "names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi})"),
         Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
     precheck=_light_file_precheck,
 )
 def stack_read(ctx, *, path, transfer):
-    """Read a multi-light capture: a light file and the images it lists.
+    """Read a multi-light (and multi-view) capture: a light file and the images it lists, or a BTF folder.
 
     Light directions are normalised; one a hair below the horizon (within 1 degree) is clamped with a warning;
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay

@@ -29,7 +29,7 @@ from btforge.atomic import atomic_output_path, atomic_write
 from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb8, srgb_to_linear
 from btforge.errors import BtforgeInputError
 
-from .lightfile import LightFileEntry, image_path, read_light_file, write_light_file
+from .lightfile import LightFileEntry, image_path, read_capture_index, write_light_file
 
 __all__ = ["read_image", "read_exr", "load_stack", "write_stack", "write_exr", "write_png"]
 
@@ -291,8 +291,8 @@ def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads
     Parameters
     ----------
     light_file
-        A ``.lp`` file (one view, ``(0, 0, 1)``) or a ``.lvp`` file, whose rows are grouped by view direction
-        into ``[V, L, ...]``.
+        A ``.lp`` file (one view, ``(0, 0, 1)``), a ``.lvp`` file, whose rows are grouped by view direction
+        into ``[V, L, ...]``, or a UBO-style BTF folder whose image names carry the angles.
     transfer
         ``'auto'``: 8-bit images are sRGB (kept as uint8, ``encoding='srgb8'``), 16-bit and float images are
         linear (float32).  ``'srgb'``: decode every image with the sRGB curve (8-bit stays ``srgb8``; 16-bit
@@ -317,7 +317,7 @@ def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise BtforgeInputError("load_stack 'threads'", f"expected a positive integer, found {threads!r}")
     path_text = str(light_file)
-    entries = read_light_file(light_file, require_images=True)
+    entries = read_capture_index(light_file, require_images=True)
     if entries[0].view is None:
         views, grid = np.array([[0.0, 0.0, 1.0]]), [list(range(len(entries)))]
     else:

@@ -67,8 +67,55 @@ class LightFileEntry:
 
 
 def image_path(light_file: str | os.PathLike, filename: str) -> Path:
-    """Where the image ``filename`` listed in ``light_file`` lives: names are relative to the file's folder."""
-    return Path(light_file).parent / filename
+    """Where the image ``filename`` listed in ``light_file`` lives: names are relative to the file's folder
+    (or to the capture folder itself, for a BTF folder)."""
+    source = Path(light_file)
+    return (source if source.is_dir() else source.parent) / filename
+
+
+# Bonn UBO-style BTF image names carry the angles in degrees: tl<theta light>_pl<phi light>_tv<theta view>_pv<phi view>
+_UBO_NAME = re.compile(r"tl(?P<tl>[+-]?\d+(?:\.\d+)?)_pl(?P<pl>[+-]?\d+(?:\.\d+)?)_"
+                       r"tv(?P<tv>[+-]?\d+(?:\.\d+)?)_pv(?P<pv>[+-]?\d+(?:\.\d+)?)", re.IGNORECASE)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
+
+
+def _from_angles(theta_deg: float, phi_deg: float) -> tuple[float, float, float]:
+    theta, phi = math.radians(theta_deg), math.radians(phi_deg)
+    return (math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta))
+
+
+def read_btf_folder(folder: str | os.PathLike) -> list[LightFileEntry]:
+    """The images of a Bonn UBO-style BTF folder, whose names carry the light and view angles.
+
+    Names look like ``tl15_pl0_tv30_pv120.png`` (theta from the zenith and phi in degrees, for light and view;
+    any prefix or suffix around that pattern is allowed).  Entries are ordered by view, then light, so every view
+    lists its lights in the same order; ``line`` is the position in that order.
+    """
+    folder = Path(folder)
+    found = []
+    for path in sorted(folder.iterdir()):
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        match = _UBO_NAME.search(path.stem)
+        if match is None:
+            continue
+        angles = {k: float(v) for k, v in match.groupdict().items()}
+        what = f"{folder}/{path.name}"
+        light = _checked_direction(_from_angles(angles["tl"], angles["pl"]), what, "light")
+        view = _checked_direction(_from_angles(angles["tv"], angles["pv"]), what, "view")
+        found.append(((angles["tv"], angles["pv"], angles["tl"], angles["pl"]), path.name, light, view))
+    if not found:
+        raise BtforgeInputError(str(folder), "expected images named like tl15_pl0_tv30_pv120.png (a UBO-style BTF "
+                                "folder), found none", "give a .lp/.lvp light file, or a folder of such images")
+    found.sort(key=lambda item: item[0])
+    return [LightFileEntry(i, name, light, view) for i, (_, name, light, view) in enumerate(found, 1)]
+
+
+def read_capture_index(path: str | os.PathLike, *, require_images: bool = True) -> list[LightFileEntry]:
+    """The entries of a capture: a ``.lp``/``.lvp`` light file, or a UBO-style BTF folder."""
+    if Path(path).is_dir():
+        return read_btf_folder(path)
+    return read_light_file(path, require_images=require_images)
 
 
 # ----------------------------------------------------------------------------------------------- checks
