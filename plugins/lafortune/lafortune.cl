@@ -1,0 +1,501 @@
+// Per-texel Lafortune lobes: Levenberg-Marquardt fit (one work-item per texel and fitted signal) and evaluation.
+// The algorithm, its constants and its guards are documented in model.py, whose NumPy twins follow this code.
+//
+// Model of one signal in a texel frame F (rows t, b, n):  value = max(uz, 0) * (rho + sum_i max(C_i . x, 0)^n_i),
+// x = (ux vx, uy vy, uz vz), u and v the light and view in the frame.  Parameters q: q[0] = rho, lobe i at
+// q[1 + 4i .. 3 + 4i] = (Cx, Cy, Cz) and q[4 + 4i] = ln n_i.
+// Build options: -DNLOBE=k (lobes per fitted signal, 1..7) ; -DMAXC=4 (largest channel count).
+
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef NLOBE
+#define NLOBE 1
+#endif
+#ifndef MAXC
+#define MAXC 4
+#endif
+#define NP (1 + 4 * NLOBE)
+
+#define P_MAX 6.907755278982137f     // ln 1000
+#define LOBE_CAP 10.0f
+#define T_CAP 20.0f
+#define B_MIN 1e-30f
+#define LAM0 1e-3f
+#define LAM_DOWN 0.1f
+#define LAM_UP 10.0f
+#define LAM_MIN 1e-7f
+#define LAM_MAX 1e7f
+#define FTOL 1e-4f
+#define ETOL 1e-9f
+#define ATOL 1e-12f
+#define D_FLOOR 1e-9f
+#define W_FLOOR 1e-3f
+#ifndef N_DIRS
+#define N_DIRS 3          // start shapes: N_DIRS directions (kernel argument cand_dirs) x N_EXPS exponents
+#endif
+#ifndef N_EXPS
+#define N_EXPS 16
+#endif
+#define N_CAND (N_DIRS * N_EXPS)
+
+inline void to_frame(const float *F, __global const float *d, float *out) {
+    for (int i = 0; i < 3; ++i) out[i] = (F[3 * i] * d[0] + F[3 * i + 1] * d[1]) + F[3 * i + 2] * d[2];
+}
+
+inline float lobe_value(float cx, float cy, float cz, float n, const float *x) {
+    const float b = (cx * x[0] + cy * x[1]) + cz * x[2];
+    if (!(b > B_MIN)) return 0.0f;                // never a negative base to a non-integer power
+    return exp(fmin(n * log(b), T_CAP));
+}
+
+// ----------------------------------------------------------------------------------------------- evaluation
+
+// frames [n, 9] ; diffuse [n, 1 or C] ; lobes [n, K, 3] ; expo [n, K] ; colour [n, C] (lum) ; out [V, L, n, C]
+__kernel void lafortune_eval(__global const float *frames, __global const float *diffuse, __global const float *lobes,
+                             __global const float *expo, __global const float *colour,
+                             __global const float *lights, __global const float *views,
+                             const int n_light, const int n_view, const int n_texel, const int n_channel,
+                             const int k_total, const int luminance, __global float *out)
+{
+    const int t = get_global_id(0), l = get_global_id(1), v = get_global_id(2);
+    if (t >= n_texel || l >= n_light || v >= n_view) return;
+    float F[9];
+    for (int i = 0; i < 9; ++i) F[i] = frames[(size_t)t * 9 + i];
+    float u[3], w[3], x[3];
+    to_frame(F, lights + 3 * l, u);
+    to_frame(F, views + 3 * v, w);
+    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
+    const float c = fmax(u[2], 0.0f);
+    __global float *o = out + (((size_t)v * n_light + l) * n_texel + t) * n_channel;
+    __global const float *lob = lobes + (size_t)t * k_total * 3;
+    __global const float *ex = expo + (size_t)t * k_total;
+    if (luminance) {
+        float f = diffuse[t];
+        for (int k = 0; k < k_total; ++k) f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
+        const float value = c * f;
+        for (int ch = 0; ch < n_channel; ++ch) o[ch] = colour[(size_t)t * n_channel + ch] * value;
+    } else {
+        const int per = k_total / n_channel;
+        for (int ch = 0; ch < n_channel; ++ch) {
+            float f = diffuse[(size_t)t * n_channel + ch];
+            for (int j = 0; j < per; ++j) {
+                const int k = ch * per + j;
+                f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
+            }
+            o[ch] = c * f;
+        }
+    }
+}
+
+// ----------------------------------------------------------------------------------------------- fit
+//
+// Inside the fit a lobe is held as (psi, alpha, p): C = exp(alpha / n) psi with max_j |psi_j| = 1, the lobe is
+// exp(alpha + n ln(psi . x)).  State z[0] = rho, lobe i at z[1 + 5i .. 5 + 5i] = (psi_x, psi_y, psi_z, alpha, p).
+// A step moves rho, per lobe the two psi components other than the largest (held at +-1), alpha and p.
+
+#define NS (1 + 5 * NLOBE)
+
+typedef struct {
+    __global const float *samples;   // [S, n_texel, C]
+    __global const float *lights;    // [L, 3]
+    __global const float *views;     // [V, 3]
+    float F[9];
+    int n_light, n_texel, n_channel, n_sample, t, channel;   // channel < 0: the channel mean (luminance)
+} Texel;
+
+inline void geometry(const Texel *tx, int s, float *x, float *c) {
+    float u[3], w[3];
+    to_frame(tx->F, tx->lights + 3 * (s % tx->n_light), u);
+    to_frame(tx->F, tx->views + 3 * (s / tx->n_light), w);
+    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
+    *c = fmax(u[2], 0.0f);
+}
+
+inline __global const float *sample_ptr(const Texel *tx, int s) {
+    return tx->samples + ((size_t)s * tx->n_texel + tx->t) * tx->n_channel;
+}
+
+inline float load_y(const Texel *tx, int s) {
+    __global const float *p = sample_ptr(tx, s);
+    if (tx->channel >= 0) return p[tx->channel];
+    float acc = 0.0f;
+    for (int ch = 0; ch < tx->n_channel; ++ch) acc += p[ch];
+    return acc / (float)tx->n_channel;
+}
+
+inline void exponents_of(const float *z, int k, float *nexp) {
+    for (int i = 0; i < k; ++i) nexp[i] = exp(z[5 + 5 * i]);
+}
+
+inline float state_lobe(const float *z, int i, float n, const float *x) {
+    const float *psi = z + 1 + 5 * i;
+    const float b = (psi[0] * x[0] + psi[1] * x[1]) + psi[2] * x[2];
+    if (!(b > B_MIN)) return 0.0f;
+    return exp(fmin(psi[3] + n * log(b), T_CAP));
+}
+
+inline float model_at(const float *z, const float *nexp, int k, const float *x, float c) {
+    float f = z[0];
+    for (int i = 0; i < k; ++i) f += state_lobe(z, i, nexp[i], x);
+    return c * f;
+}
+
+float cost_of(const Texel *tx, const float *z, int k) {
+    float nexp[NLOBE];
+    exponents_of(z, k, nexp);
+    float acc = 0.0f;
+    for (int s = 0; s < tx->n_sample; ++s) {
+        float x[3], c;
+        geometry(tx, s, x, &c);
+        const float r = load_y(tx, s) - model_at(z, nexp, k, x, c);
+        acc += r * r;
+    }
+    return acc;
+}
+
+// rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= log_cap,
+// so each lobe's peak over all directions, exp(alpha), stays below LOBE_CAP x the brightest sample.
+inline void project(float *z, int k, float log_cap) {
+    z[0] = fmax(z[0], 0.0f);
+    for (int i = 0; i < k; ++i) {
+        float *l = z + 1 + 5 * i;
+        l[4] = clamp(l[4], 0.0f, P_MAX);
+        const float n = exp(l[4]);
+        const float mx = fmax(fmax(fabs(l[0]), fabs(l[1])), fabs(l[2]));
+        const int live = mx > B_MIN;
+        const float msafe = live ? mx : 1.0f;
+        for (int j = 0; j < 3; ++j) l[j] = l[j] / msafe;
+        l[3] = fmin(l[3] + (live ? n * log(msafe) : 0.0f), log_cap);
+    }
+}
+
+// State index of each free parameter: rho, then per lobe the psi components other than the largest, alpha, p.
+inline void free_columns(const float *z, int k, int *cols) {
+    cols[0] = 0;
+    for (int i = 0; i < k; ++i) {
+        const float *l = z + 1 + 5 * i;
+        int frozen = 0;
+        if (fabs(l[1]) > fabs(l[frozen])) frozen = 1;
+        if (fabs(l[2]) > fabs(l[frozen])) frozen = 2;
+        cols[1 + 4 * i] = 1 + 5 * i + (frozen == 0 ? 1 : 0);
+        cols[2 + 4 * i] = 1 + 5 * i + (frozen == 2 ? 1 : 2);
+        cols[3 + 4 * i] = 4 + 5 * i;
+        cols[4 + 4 * i] = 5 + 5 * i;
+    }
+}
+
+// The error that decides between stage results: the signal's squared error (rgb), or the RGB error after the
+// non-negative least-squares colour (lum; the colour is written to colour_out when given).
+float criterion(const Texel *tx, const float *z, int k, float *colour_out) {
+    if (tx->channel >= 0) return cost_of(tx, z, k);
+    float nexp[NLOBE];
+    exponents_of(z, k, nexp);
+    float ff = 0.0f, fy[MAXC], colour[MAXC];
+    for (int ch = 0; ch < MAXC; ++ch) fy[ch] = 0.0f;
+    for (int s = 0; s < tx->n_sample; ++s) {
+        float x[3], c;
+        geometry(tx, s, x, &c);
+        const float f = model_at(z, nexp, k, x, c);
+        __global const float *p = sample_ptr(tx, s);
+        ff += f * f;
+        for (int ch = 0; ch < tx->n_channel; ++ch) fy[ch] += f * p[ch];
+    }
+    for (int ch = 0; ch < tx->n_channel; ++ch) colour[ch] = ff > 1e-30f ? fmax(fy[ch] / ff, 0.0f) : 1.0f;
+    float sse = 0.0f;
+    for (int s = 0; s < tx->n_sample; ++s) {
+        float x[3], c;
+        geometry(tx, s, x, &c);
+        const float f = model_at(z, nexp, k, x, c);
+        __global const float *p = sample_ptr(tx, s);
+        for (int ch = 0; ch < tx->n_channel; ++ch) {
+            const float r = colour[ch] * f - p[ch];
+            sse += r * r;
+        }
+    }
+    if (colour_out)
+        for (int ch = 0; ch < tx->n_channel; ++ch) colour_out[ch] = colour[ch];
+    return sse;
+}
+
+// In-place Cholesky of the lower triangle of A (row stride NP); 0 when a pivot is not positive.
+inline int cholesky(float *A, int n) {
+    for (int j = 0; j < n; ++j) {
+        float s = A[j * NP + j];
+        for (int m = 0; m < j; ++m) s -= A[j * NP + m] * A[j * NP + m];
+        if (!(s > 0.0f)) return 0;
+        const float d = sqrt(s);
+        A[j * NP + j] = d;
+        for (int i = j + 1; i < n; ++i) {
+            float v = A[i * NP + j];
+            for (int m = 0; m < j; ++m) v -= A[i * NP + m] * A[j * NP + m];
+            A[i * NP + j] = v / d;
+        }
+    }
+    return 1;
+}
+
+inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
+    float y[NP];
+    for (int i = 0; i < n; ++i) {
+        float v = b[i];
+        for (int m = 0; m < i; ++m) v -= A[i * NP + m] * y[m];
+        y[i] = v / A[i * NP + i];
+    }
+    for (int i = n - 1; i >= 0; --i) {
+        float v = y[i];
+        for (int m = i + 1; m < n; ++m) v -= A[m * NP + i] * x[m];
+        x[i] = v / A[i * NP + i];
+    }
+}
+
+// Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.
+// Returns the steps tried; *cost_out is the final cost, *converged whether a stopping test was met.
+int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float atol, float etol, int max_iter,
+                        float *cost_out, int *converged) {
+    const int np = 1 + 4 * k;
+    float H[NP * NP], A[NP * NP], g[NP], dg[NP], delta[NP], trial[NS], J[NP], full[NS], nexp[NLOBE];
+    int cols[NP];
+    float cost = cost_of(tx, z, k);
+    float lam = LAM0;
+    int need = 1, its = 0, conv = 0;
+    while (its < max_iter) {
+        if (need) {
+            for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
+            for (int i = 0; i < np; ++i) g[i] = 0.0f;
+            exponents_of(z, k, nexp);
+            free_columns(z, k, cols);
+            for (int s = 0; s < tx->n_sample; ++s) {
+                float x[3], c;
+                geometry(tx, s, x, &c);
+                full[0] = c;
+                float f = z[0];
+                for (int i = 0; i < k; ++i) {
+                    const float *l = z + 1 + 5 * i;
+                    const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
+                    float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
+                    if (b > B_MIN) {
+                        const float lb = log(b);
+                        const float e = l[3] + nexp[i] * lb;
+                        v = exp(fmin(e, T_CAP));
+                        if (e <= T_CAP) {
+                            dpsi = v * nexp[i] / b;
+                            da = v;
+                            dp = v * nexp[i] * lb;
+                        }
+                    }
+                    for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
+                    full[4 + 5 * i] = c * da;
+                    full[5 + 5 * i] = c * dp;
+                    f += v;
+                }
+                for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
+                const float r = load_y(tx, s) - c * f;
+                for (int a = 0; a < np; ++a) {
+                    g[a] += J[a] * r;
+                    for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
+                }
+            }
+            float dmax = 0.0f;
+            for (int i = 0; i < np; ++i) dmax = fmax(dmax, H[i * NP + i]);
+            for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
+            need = 0;
+            int zero = 1;
+            for (int i = 0; i < np; ++i) zero &= (g[i] == 0.0f);
+            if (cost <= atol || zero) { conv = 1; break; }
+        }
+        ++its;
+        for (int i = 0; i < np; ++i) {
+            for (int j = 0; j <= i; ++j) A[i * NP + j] = H[i * NP + j];
+            A[i * NP + i] += lam * dg[i];
+        }
+        const int ok = cholesky(A, np);
+        float trial_cost = INFINITY;
+        if (ok) {
+            cholesky_solve(A, g, delta, np);
+            for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
+            for (int a = 0; a < np; ++a) trial[cols[a]] += delta[a];
+            project(trial, k, log_cap);
+            trial_cost = cost_of(tx, trial, k);
+        }
+        if (ok && trial_cost < cost) {            // NaN compares false: rejected
+            const float gain = cost - trial_cost;
+            const int small = gain <= FTOL * cost + etol;
+            for (int i = 0; i < 1 + 5 * k; ++i) z[i] = trial[i];
+            cost = trial_cost;
+            lam = fmax(lam * LAM_DOWN, LAM_MIN);
+            need = 1;
+            if (small) { conv = 1; break; }
+        } else {
+            lam *= LAM_UP;
+            if (lam > LAM_MAX) { conv = 1; break; }   // no descent left at this point: a stationary point
+        }
+    }
+    *cost_out = cost;
+    *converged = conv;
+    return its;
+}
+
+// min over rho >= 0, 0 <= w <= wmax of |t - rho c - w g|^2, from the sums of products.
+inline float nnls_box(float scc, float sgg, float scg, float sct, float sgt, float stt, float wmax, float *rho, float *w) {
+#define BOX_COST(r, ww) (stt - 2 * (r) * sct - 2 * (ww) * sgt + (r) * (r) * scc + 2 * (r) * (ww) * scg + (ww) * (ww) * sgg)
+    float br = 0.0f, bw = 0.0f, bc = INFINITY;
+    const float det = scc * sgg - scg * scg;
+    if (det > 1e-12f * scc * sgg && det > 0.0f) {
+        const float r4 = (sgg * sct - scg * sgt) / det, w4 = (scc * sgt - scg * sct) / det;
+        if (r4 >= 0.0f && w4 >= 0.0f && w4 <= wmax) {
+            const float c4 = BOX_COST(r4, w4);
+            if (c4 < bc) { br = r4; bw = w4; bc = c4; }
+        }
+    }
+    const float r1 = scc > 0.0f ? fmax(sct / scc, 0.0f) : 0.0f;
+    const float c1 = BOX_COST(r1, 0.0f);
+    if (c1 < bc) { br = r1; bw = 0.0f; bc = c1; }
+    const float w2 = sgg > 0.0f ? clamp(sgt / sgg, 0.0f, wmax) : 0.0f;
+    const float c2 = BOX_COST(0.0f, w2);
+    if (c2 < bc) { br = 0.0f; bw = w2; bc = c2; }
+    const float r3 = scc > 0.0f ? fmax((sct - wmax * scg) / scc, 0.0f) : 0.0f;
+    const float c3 = BOX_COST(r3, wmax);
+    if (c3 < bc) { br = r3; bw = wmax; bc = c3; }
+#undef BOX_COST
+    *rho = br;
+    *w = bw;
+    return bc;
+}
+
+// samples [S = V * L, n_texel, C] (s = view * L + light) ; frames [n_texel, 9].  Work-item (t, signal): the
+// luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel, signal): diffuse
+// [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse, iterations, not-converged
+// flag [n, n_signal]; colour [n, C] for luminance.
+__kernel void lafortune_fit(__global const float *samples, __global const float *frames,
+                            __global const float *lights, __global const float *views,
+                            __global const float *CAND_DIRS, __global const float *CAND_EXPS,
+                            const int n_light, const int n_view, const int n_texel, const int n_channel,
+                            const int luminance, const int max_iter, const int n_starts,
+                            __global float *diffuse_out, __global float *lobes_out, __global float *expo_out,
+                            __global float *colour_out, __global float *sse_out, __global int *iter_out,
+                            __global int *flag_out)
+{
+    const int t = get_global_id(0), sig = get_global_id(1);
+    if (t >= n_texel) return;
+    const int n_signal = luminance ? 1 : n_channel;
+    if (sig >= n_signal) return;
+    Texel tx;
+    tx.samples = samples; tx.lights = lights; tx.views = views;
+    for (int i = 0; i < 9; ++i) tx.F[i] = frames[(size_t)t * 9 + i];
+    tx.n_light = n_light; tx.n_texel = n_texel; tx.n_channel = n_channel;
+    tx.n_sample = n_light * n_view; tx.t = t; tx.channel = luminance ? -1 : sig;
+
+    float ymax = 0.0f, energy = 0.0f, scc = 0.0f, scy = 0.0f;
+    for (int s = 0; s < tx.n_sample; ++s) {
+        float x[3], c;
+        geometry(&tx, s, x, &c);
+        const float y = load_y(&tx, s);
+        ymax = fmax(ymax, fabs(y));
+        energy += y * y;
+        scc += c * c;
+        scy += c * y;
+    }
+    const float log_cap = log(LOBE_CAP * fmax(ymax, 1e-12f));
+    const float capval = exp(log_cap);
+    const float atol = ATOL * energy, etol = ETOL * energy;
+
+    float z[NS], start[NS], best[NS];
+    for (int i = 0; i < NS; ++i) z[i] = 0.0f;
+    z[0] = scc > 0.0f ? fmax(scy / scc, 0.0f) : 0.0f;
+    float crit = criterion(&tx, z, 0, 0);
+    int flag = 0, its_total = 0;
+    ulong used = 0ul;
+
+    for (int k = 1; k <= NLOBE; ++k) {
+        const int j = k - 1;
+        // Score every start shape against the residual of the earlier lobes (rho and amplitude in closed form).
+        float nexp[NLOBE];
+        exponents_of(z, j, nexp);
+        float stt = 0.0f, sct = 0.0f;
+        float sgg[N_CAND], scg[N_CAND], sgt[N_CAND], ccost[N_CAND], crho[N_CAND], cw[N_CAND];
+        for (int ci = 0; ci < N_CAND; ++ci) { sgg[ci] = 0.0f; scg[ci] = 0.0f; sgt[ci] = 0.0f; }
+        for (int s = 0; s < tx.n_sample; ++s) {
+            float x[3], c;
+            geometry(&tx, s, x, &c);
+            float prev = 0.0f;
+            for (int i = 0; i < j; ++i) prev += state_lobe(z, i, nexp[i], x);
+            const float target = load_y(&tx, s) - c * prev;
+            stt += target * target;
+            sct += c * target;
+            for (int di = 0; di < N_DIRS; ++di) {
+                const float b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
+                if (!(b > B_MIN) || c == 0.0f) continue;     // the shape is 0 here (as lobe_value gives)
+                const float lb = log(b);
+                for (int ei = 0; ei < N_EXPS; ++ei) {
+                    const int ci = ei * N_DIRS + di;
+                    const float g = c * exp(fmin(CAND_EXPS[ei] * lb, T_CAP));
+                    sgg[ci] += g * g;
+                    scg[ci] += c * g;
+                    sgt[ci] += g * target;
+                }
+            }
+        }
+        for (int ci = 0; ci < N_CAND; ++ci) {
+            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, capval, &crho[ci], &cw[ci]);
+            if ((used >> ci) & 1ul) ccost[ci] = INFINITY;
+        }
+        // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.
+        float lowest = INFINITY, best_cost = INFINITY;
+        int best_conv = 0, best_ci = 0;
+        for (int attempt = 0; attempt < n_starts; ++attempt) {
+            int ci = -1, cb = -1;
+            for (int cj = 0; cj < N_CAND; ++cj) {
+                if (!(ccost[cj] < INFINITY)) continue;
+                if (ci < 0 || ccost[cj] < ccost[ci]) ci = cj;
+                if (CAND_EXPS[cj / N_DIRS] < lowest && (cb < 0 || ccost[cj] < ccost[cb])) cb = cj;
+            }
+            if (cb >= 0) ci = cb;
+            if (ci < 0) break;
+            ccost[ci] = INFINITY;
+            const int di = ci % N_DIRS, ei = ci / N_DIRS;
+            lowest = fmin(lowest, CAND_EXPS[ei]);
+            const float w0 = fmax(cw[ci], W_FLOOR * ymax);
+            for (int i = 0; i < NS; ++i) start[i] = z[i];
+            start[0] = crho[ci];
+            for (int d = 0; d < 3; ++d) start[1 + 5 * j + d] = w0 > 0.0f ? CAND_DIRS[3 * di + d] : 0.0f;
+            start[4 + 5 * j] = log(w0 > 0.0f ? w0 : 1.0f);
+            start[5 + 5 * j] = log(CAND_EXPS[ei]);
+            project(start, k, log_cap);
+            int conv = 0;
+            float cost = 0.0f;
+            its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, max_iter, &cost, &conv);
+            if (attempt == 0 || cost < best_cost) {
+                for (int i = 0; i < NS; ++i) best[i] = start[i];
+                best_cost = cost;
+                best_conv = conv;
+                best_ci = ci;
+            }
+        }
+        used |= 1ul << best_ci;
+        const float new_crit = criterion(&tx, best, k, 0);
+        if (new_crit < crit) {                     // else keep k - 1 lobes, this one switched off (psi = 0)
+            for (int i = 0; i < NS; ++i) z[i] = best[i];
+            crit = new_crit;
+            flag = !best_conv;
+        }
+    }
+
+    const int k_total = NLOBE * n_signal;
+    diffuse_out[(size_t)t * n_signal + sig] = z[0];
+    for (int i = 0; i < NLOBE; ++i) {
+        const size_t k = (size_t)t * k_total + sig * NLOBE + i;
+        const float *l = z + 1 + 5 * i;
+        const float n = exp(l[4]);
+        const float scale = exp(l[3] / n);
+        for (int d = 0; d < 3; ++d) lobes_out[k * 3 + d] = scale * l[d];
+        expo_out[k] = n;
+    }
+    if (luminance) {
+        float colour[MAXC];
+        criterion(&tx, z, NLOBE, colour);
+        for (int ch = 0; ch < n_channel; ++ch) colour_out[(size_t)t * n_channel + ch] = colour[ch];
+    }
+    sse_out[(size_t)t * n_signal + sig] = crit;
+    iter_out[(size_t)t * n_signal + sig] = its_total;
+    flag_out[(size_t)t * n_signal + sig] = flag;
+}
