@@ -87,6 +87,17 @@ def unit_directions(name: str, dirs: Any, owner: str = "") -> np.ndarray:
     return (arr / norms[:, None]).astype(np.float32)
 
 
+def upper_hemisphere(name: str, dirs: np.ndarray, owner: str = "SampleStack") -> np.ndarray:
+    """Refuse directions below the surface (z < 0): a measured sample cannot be lit or seen from below."""
+    below = np.flatnonzero(dirs[:, 2] < -1e-6)
+    if below.size:
+        i = int(below[0])
+        raise BtforgeInputError(owner, f"'{name}' must lie on the upper hemisphere (z >= 0), found {below.size} below it, "
+                                f"first row {i}: {dirs[i].round(4).tolist()}",
+                                "directions point from the surface toward the light or camera, with z up")
+    return dirs
+
+
 # ----------------------------------------------------------------------------------------------- base types
 
 
@@ -281,8 +292,8 @@ class SampleStack(PerTexel):
             raise BtforgeInputError(
                 f"SampleStack, {where}", f"expected finite radiance, found NaN/Inf at view {v}, pixel (row {y}, column {x})",
                 "repair or mask the image before fitting")
-        lights = unit_directions("lights", self.lights, owner="SampleStack")
-        views = unit_directions("views", self.views, owner="SampleStack")
+        lights = upper_hemisphere("lights", unit_directions("lights", self.lights, owner="SampleStack"))
+        views = upper_hemisphere("views", unit_directions("views", self.views, owner="SampleStack"))
         if lights.shape[0] != samples.shape[1]:
             raise BtforgeInputError("SampleStack 'lights'", f"must have one row per light ({samples.shape[1]}), got {lights.shape[0]}")
         if views.shape[0] != samples.shape[0]:

@@ -135,6 +135,11 @@ def test_buffers_are_immutable_and_validated():
         SampleStack(bad, np.eye(3), [[0, 0, 1]])
 
 
+def test_stack_refuses_directions_below_the_horizon():
+    with pytest.raises(BtforgeInputError, match=r"'lights' must lie on the upper hemisphere.*row 1"):
+        SampleStack(np.zeros((1, 2, 2, 2, 3), np.float32), [[0, 0, 1], [0.5, 0, -0.5]], [[0, 0, 1]])
+
+
 def test_content_key_follows_content():
     a = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
     b = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
