@@ -9,6 +9,8 @@ import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 
+from . import scoring
+
 
 @declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "PerTexel"})
 def materialize(ctx, coords, source):
@@ -37,4 +39,4 @@ def coords_write(ctx, coords, *, path):
 
 @hookimpl
 def btforge_stages():
-    return [materialize, coords_write]
+    return [materialize, coords_write, *scoring.STAGES]
