@@ -97,6 +97,32 @@ class PTMModel(ReflectanceModel):
         return flat.reshape(1, len(lights), self.height, self.width, len(self.channel_names))
 
 
+    def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
+                        views_local: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
+        """Linear radiance ``[N, C]`` float32 of texel ``(rows[i], cols[i])`` at its own light ``lights_local[i]``.
+
+        For renderers: every item has its own texel and its own unit light in that texel's frame (x along the
+        columns, y toward row 0, z out of the surface), e.g. one per pixel.  ``views_local`` is ignored: a PTM is
+        a function of the light only.  Same arithmetic as :meth:`evaluate` (kernel ``ptm_eval_scattered``).
+        """
+        rows = np.asarray(rows)
+        cols = np.asarray(cols)
+        lights_local = np.ascontiguousarray(lights_local, dtype=np.float32)
+        if rows.shape != cols.shape or rows.ndim != 1 or lights_local.shape != (rows.shape[0], 3):
+            raise BtforgeInputError("PTM evaluate_texels", f"expected rows [N], cols [N] and lights [N, 3], found "
+                                    f"{rows.shape}, {cols.shape} and {lights_local.shape}")
+        if rows.size and (rows.min() < 0 or rows.max() >= self.height or cols.min() < 0 or cols.max() >= self.width):
+            raise BtforgeInputError("PTM evaluate_texels", f"texel indices must lie inside the {self.height} x "
+                                    f"{self.width} model")
+        texels = (rows.astype(np.int64) * self.width + cols).astype(np.int32)
+        raw = self.with_basis("raw")
+        flat_coeffs = raw.coeffs.reshape(-1, self.coeffs.shape[2], N_TERMS)
+        flat_albedo = self.albedo.reshape(self.height * self.width, self.albedo.shape[2])
+        if engine == "numpy":
+            return evaluate_ptm_scattered_numpy(flat_coeffs, flat_albedo, texels, lights_local, self.variant, self.space)
+        return evaluate_ptm_scattered_opencl(flat_coeffs, flat_albedo, texels, lights_local, self.variant, self.space)
+
+
 # ----------------------------------------------------------------------------------------------- evaluation
 
 
@@ -135,6 +161,38 @@ def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarr
         backend.run(kernel, (n, n_light), c_dev, a_dev, lights_dev, np.int32(n_light),
                          np.int32(n), np.int32(n_channel), np.int32(variant == "lrgb"), np.int32(space == "srgb"), table_dev, o_dev)
         out[:, chunk] = backend.from_device(o_dev, (n_light, n, n_channel), np.float32)
+    return out
+
+
+def evaluate_ptm_scattered_numpy(coeffs: np.ndarray, albedo: np.ndarray, texels: np.ndarray, lights: np.ndarray,
+                                 variant: str, space: str) -> np.ndarray:
+    """Reference scattered evaluation: texel ``texels[i]`` of ``coeffs [T, K, 6]`` at ``lights[i]`` -> ``[N, C]``."""
+    terms = ptm_terms(lights).astype(np.float32)
+    poly = np.einsum("ni,nki->nk", terms, coeffs[texels], dtype=np.float32)
+    value = albedo[texels] * poly if variant == "lrgb" else poly
+    value = np.maximum(value, 0.0)
+    if space == "srgb":
+        value = srgb_to_linear(np.minimum(value, 1.0)).astype(np.float32)
+    return value.astype(np.float32)
+
+
+def evaluate_ptm_scattered_opencl(coeffs: np.ndarray, albedo: np.ndarray, texels: np.ndarray, lights: np.ndarray,
+                                  variant: str, space: str) -> np.ndarray:
+    """Scattered evaluation on OpenCL (kernel ``ptm_eval_scattered``); the model is read in place, not copied."""
+    backend = get_backend()
+    kernel = backend.kernel(KERNELS, "ptm_eval_scattered")
+    n_channel = albedo.shape[1] if variant == "lrgb" else coeffs.shape[1]
+    n = len(texels)
+    out = np.empty((n, n_channel), dtype=np.float32)
+    if n == 0:
+        return out
+    albedo_src = albedo if albedo.shape[1] else np.zeros(1, np.float32)
+    o_dev = backend.host_output(out)
+    backend.run(kernel, (n,), backend.host_input(coeffs), backend.host_input(albedo_src),
+                backend.to_device(np.ascontiguousarray(texels, np.int32)), backend.to_device(lights),
+                np.int32(n), np.int32(n_channel), np.int32(variant == "lrgb"), np.int32(space == "srgb"),
+                backend.to_device(SRGB_TABLE), o_dev)
+    backend.finish_output(o_dev, out)
     return out
 
 

@@ -104,3 +104,31 @@ __kernel void ptm_eval(__global const float *coeffs, __global const float *albed
         out[((size_t)l * n_texel + t) * n_channel + c] = value;
     }
 }
+
+// Scattered evaluation (for renderers): item i evaluates texel texels[i] of the model at its own light lights[i].
+// coeffs: [n_model_texel, K, 6] ; albedo: [n_model_texel, C] (ignored unless K == 1) ; texels: [n] flat indices
+// row * width + col ; lights: [n, 3] unit, in the texel's frame ; out: [n, C].  Same arithmetic as ptm_eval.
+__kernel void ptm_eval_scattered(__global const float *coeffs, __global const float *albedo,
+                                 __global const int *texels, __global const float *lights,
+                                 const int n, const int n_channel, const int luminance,
+                                 const int srgb, __constant float *srgb_table, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t t = (size_t)texels[i];
+    const float u = lights[3 * (size_t)i], v = lights[3 * (size_t)i + 1];
+    const float term[6] = {u * u, v * v, u * v, u, v, 1.0f};
+    const int k_count = luminance ? 1 : n_channel;
+    float poly[4];
+    for (int k = 0; k < k_count; ++k) {
+        float p = 0.f;
+        for (int j = 0; j < 6; ++j) p += coeffs[(t * k_count + k) * 6 + j] * term[j];
+        poly[k] = p;
+    }
+    for (int c = 0; c < n_channel; ++c) {
+        float value = luminance ? albedo[t * n_channel + c] * poly[0] : poly[c];
+        value = fmax(value, 0.0f);
+        if (srgb) value = srgb_decode(value, srgb_table);
+        out[(size_t)i * n_channel + c] = value;
+    }
+}

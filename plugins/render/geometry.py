@@ -1,0 +1,318 @@
+"""Meshes for rendering: built-in primitives with UVs, PLY/OBJ files read with open3d, transforms, tangent frames.
+
+Every mesh ends up as world-space triangles with per-corner attributes (``[F, 3, ...]``): UV, shading normal,
+tangent and bitangent.  Tangents come from the parameterization - ``T`` along dP/du, ``B`` toward dP/dv - so a
+light expressed in the frame ``(T, B, N)`` is in the texture's own frame: x along the texture's columns, y toward
+its top row, z out of the surface, the frame an RTI capture (and the model fitted to it) uses.
+
+UV convention: ``u`` runs along a model's columns (u = 0 at the left edge, 1 at the right), ``v`` up its rows
+(v = 1 at row 0, the top of the image).  The primitives are parameterized so that, seen from outside, ``T x B``
+is the outward normal:
+
+* plane: in the local xy plane, normal +z, u along +x, v along +y, UV (0, 0)-(1, 1) across the plane;
+* sphere: poles on the local y axis, u = longitude (0.5 faces +z, increasing toward +x), v = latitude (1 at +y);
+* torus: around the local z axis, u around the ring (counter-clockwise seen from +z), v around the tube (0 at the
+  outer equator, increasing upward);
+* cube: every face carries the whole texture, upright (v toward +y, or toward -z / +z on the top / bottom faces).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+from btforge.errors import BtforgeInputError
+
+from .scene import MeshSpec, Scene
+
+DEFAULT_SEGMENTS = {"plane": (1, 1), "sphere": (128, 64), "torus": (96, 48), "cube": (1, 1)}
+
+
+@dataclasses.dataclass
+class BuiltMesh:
+    """A mesh in world space, ready to ray-cast and shade."""
+
+    spec: MeshSpec
+    positions: np.ndarray   # [V, 3] float32
+    triangles: np.ndarray   # [F, 3] int32
+    corner_uv: np.ndarray   # [F, 3, 2] float32 (zeros when the mesh has none)
+    corner_n: np.ndarray    # [F, 3, 3] float32 unit shading normals
+    corner_t: np.ndarray    # [F, 3, 3] float32 unit tangents (dP/du)
+    corner_b: np.ndarray    # [F, 3, 3] float32 unit bitangents (toward dP/dv, perpendicular to T and N)
+    has_uv: bool
+    closed: bool
+    convex: bool
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+# ----------------------------------------------------------------------------------------------- primitives
+
+
+def _grid(nu: int, nv: int):
+    i, j = np.meshgrid(np.arange(nu + 1), np.arange(nv + 1))
+    return (i / nu).ravel(), (j / nv).ravel()
+
+
+def _quads(nu: int, nv: int, drop_first_row_lower: bool = False, drop_last_row_upper: bool = False) -> np.ndarray:
+    stride = nu + 1
+    j, i = np.meshgrid(np.arange(nv), np.arange(nu), indexing="ij")
+    a = (j * stride + i).ravel()
+    b, c, d = a + 1, a + stride + 1, a + stride
+    jj = j.ravel()
+    lower = np.stack([a, b, c], 1)
+    upper = np.stack([a, c, d], 1)
+    if drop_first_row_lower:  # at the south pole a and b coincide
+        lower = lower[jj != 0]
+    if drop_last_row_upper:   # at the north pole c and d coincide
+        upper = upper[jj != nv - 1]
+    return np.concatenate([lower, upper]).astype(np.int32)
+
+
+def make_primitive(spec: MeshSpec):
+    """``(positions [V, 3], triangles [F, 3], uv [V, 2], normals [V, 3])`` of a primitive, in its local frame."""
+    nu, nv = spec.segments or DEFAULT_SEGMENTS[spec.primitive]
+    if spec.primitive == "plane":
+        u, v = _grid(nu, nv)
+        sx, sy = spec.size
+        pos = np.stack([(u - 0.5) * sx, (v - 0.5) * sy, np.zeros_like(u)], 1)
+        normals = np.tile([0.0, 0.0, 1.0], (len(u), 1))
+        return pos, _quads(nu, nv), np.stack([u, v], 1), normals
+    if spec.primitive == "sphere":
+        nu, nv = max(nu, 3), max(nv, 2)
+        u, v = _grid(nu, nv)
+        lon = 2 * np.pi * (u - 0.5)
+        lat = np.pi * (v - 0.5)
+        n = np.stack([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)], 1)
+        return n * spec.radius, _quads(nu, nv, True, True), np.stack([u, v], 1), n
+    if spec.primitive == "torus":
+        nu, nv = max(nu, 3), max(nv, 3)
+        u, v = _grid(nu, nv)
+        a, b = 2 * np.pi * u, 2 * np.pi * v
+        big, small = spec.major_radius, spec.minor_radius
+        ring = big + small * np.cos(b)
+        pos = np.stack([ring * np.cos(a), ring * np.sin(a), small * np.sin(b)], 1)
+        n = np.stack([np.cos(b) * np.cos(a), np.cos(b) * np.sin(a), np.sin(b)], 1)
+        return pos, _quads(nu, nv), np.stack([u, v], 1), n
+    # cube: (normal, u axis, v axis) with u x v = normal
+    faces = [((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (-1, 0, 0), (0, 1, 0)),
+             ((1, 0, 0), (0, 0, -1), (0, 1, 0)), ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+             ((0, 1, 0), (1, 0, 0), (0, 0, -1)), ((0, -1, 0), (1, 0, 0), (0, 0, 1))]
+    half = spec.size[0] / 2
+    pos, tris, uv, normals = [], [], [], []
+    for k, (n, au, av) in enumerate(faces):
+        n, au, av = (np.asarray(x, float) for x in (n, au, av))
+        for cu, cv in ((0, 0), (1, 0), (1, 1), (0, 1)):
+            pos.append(n * half + (2 * cu - 1) * half * au + (2 * cv - 1) * half * av)
+            uv.append((cu, cv))
+            normals.append(n)
+        tris += [(4 * k, 4 * k + 1, 4 * k + 2), (4 * k, 4 * k + 2, 4 * k + 3)]
+    return np.asarray(pos), np.asarray(tris, np.int32), np.asarray(uv, float), np.asarray(normals)
+
+
+# ----------------------------------------------------------------------------------------------- files
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_UV_NAMES = (("u", "v"), ("s", "t"), ("texture_u", "texture_v"), ("texture_s", "texture_t"))
+
+
+def _ply_vertex_uv(path: Path) -> np.ndarray | None:
+    """Per-vertex UVs of a PLY file (open3d ignores them), or None when it has none."""
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            return None
+        fmt, elements = None, []
+        while True:
+            line = f.readline()
+            if not line:
+                return None
+            words = line.decode("ascii", "replace").split()
+            if not words:
+                continue
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and elements:
+                elements[-1][2].append(("list",) if words[1] == "list" else (words[1], words[2]))
+            elif words[0] == "end_header":
+                break
+        if not elements or elements[0][0] != "vertex":
+            return None
+        _, count, props = elements[0]
+        names = [p[1] for p in props if p[0] != "list"]
+        pair = next(((a, b) for a, b in _UV_NAMES if a in names and b in names), None)
+        if pair is None or any(p[0] == "list" for p in props):
+            return None
+        if fmt == "ascii":
+            table = np.loadtxt(f, max_rows=count, ndmin=2, usecols=range(len(props)))
+            return np.stack([table[:, names.index(pair[0])], table[:, names.index(pair[1])]], 1)
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
+        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype, count=count)
+        return np.stack([data[pair[0]], data[pair[1]]], 1).astype(np.float64)
+
+
+def read_mesh_file(path: str, where: str = "") -> dict[str, np.ndarray]:
+    """Read a PLY/OBJ triangle mesh with open3d: ``positions [V, 3]``, ``triangles [F, 3]``, ``corner_uv [F, 3, 2]``
+    (``[0, 3, 2]`` when the file has no texture coordinates)."""
+    import open3d as o3d
+
+    where = where or str(path)
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
+    positions = np.asarray(mesh.vertices, dtype=np.float64)
+    triangles = np.asarray(mesh.triangles, dtype=np.int64)
+    if len(triangles) == 0 or len(positions) == 0:
+        raise BtforgeInputError(where, f"cannot read a triangle mesh from {Path(path).name} (no triangles found)",
+                                "check that the file is a complete PLY or OBJ mesh with faces")
+    if not np.isfinite(positions).all():
+        raise BtforgeInputError(where, f"{Path(path).name} has NaN/Inf vertex positions")
+    corner_uv = np.zeros((0, 3, 2), np.float32)
+    if mesh.has_triangle_uvs() and len(mesh.triangle_uvs) == 3 * len(triangles):
+        corner_uv = np.asarray(mesh.triangle_uvs, dtype=np.float32).reshape(-1, 3, 2)
+    elif Path(path).suffix.lower() == ".ply":
+        uv = _ply_vertex_uv(Path(path))
+        if uv is not None and len(uv) == len(positions):
+            corner_uv = uv[triangles].astype(np.float32)
+    if corner_uv.size and not np.isfinite(corner_uv).all():
+        raise BtforgeInputError(where, f"{Path(path).name} has NaN/Inf texture coordinates")
+    return {"positions": positions.astype(np.float32), "triangles": triangles.astype(np.int32),
+            "corner_uv": corner_uv}
+
+
+# ----------------------------------------------------------------------------------------------- frames
+
+
+def _normalize(v: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    out = v / np.where(n > 1e-20, n, 1.0)
+    if fallback is not None:
+        out = np.where(n > 1e-20, out, fallback)
+    return out
+
+
+def _any_perpendicular(n: np.ndarray) -> np.ndarray:
+    axis = np.where(np.abs(n[..., :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    return _normalize(np.cross(np.cross(n, axis), n))
+
+
+def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals."""
+    p = positions[triangles]
+    face = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 x area
+    acc = np.zeros_like(positions, dtype=np.float64)
+    for k in range(3):
+        np.add.at(acc, triangles[:, k], face)
+    return _normalize(acc, np.array([0.0, 0.0, 1.0]))
+
+
+def tangent_frames(positions: np.ndarray, triangles: np.ndarray, corner_uv: np.ndarray,
+                   corner_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-corner unit tangents (along dP/du) and bitangents (toward dP/dv), orthogonal to the corner normals.
+
+    Each triangle's dP/du and dP/dv (from its edges and UV differences) are accumulated, weighted by the
+    triangle's area, over the corners that share a vertex *and* a UV (so a UV seam keeps two frames), then
+    Gram-Schmidt-orthogonalised against the normal.  The bitangent is ``+-N x T``, the sign following dP/dv, so a
+    mirrored parameterization gives a mirrored (left-handed) frame, as the texture is then seen mirrored.
+    """
+    p = positions[triangles].astype(np.float64)
+    uv = corner_uv.astype(np.float64)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    ok = np.abs(det) > 1e-14
+    safe = np.where(ok, det, 1.0)[:, None]
+    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe
+    b = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) / safe
+    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)[:, None] * ok[:, None]
+    t, b = _normalize(t) * area, _normalize(b) * area
+    # corners sharing a vertex and a UV share a frame
+    keys = np.concatenate([triangles.reshape(-1, 1).astype(np.float64), uv.reshape(-1, 2)], 1)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    acc_t = np.zeros((inverse.max() + 1, 3))
+    acc_b = np.zeros_like(acc_t)
+    np.add.at(acc_t, inverse, np.repeat(t, 3, axis=0))
+    np.add.at(acc_b, inverse, np.repeat(b, 3, axis=0))
+    n = corner_normals.reshape(-1, 3).astype(np.float64)
+    ct, cb = acc_t[inverse], acc_b[inverse]
+    ct = ct - n * np.sum(n * ct, axis=1, keepdims=True)
+    ct = _normalize(ct)
+    missing = np.linalg.norm(ct, axis=1) < 0.5
+    if missing.any():
+        ct[missing] = _any_perpendicular(n[missing])
+    sign = np.where(np.sum(np.cross(n, ct) * cb, axis=1) < 0, -1.0, 1.0)[:, None]
+    cb = sign * np.cross(n, ct)
+    return ct.reshape(-1, 3, 3), cb.reshape(-1, 3, 3)
+
+
+def _rotation(degrees) -> np.ndarray:
+    rx, ry, rz = np.radians(degrees)
+    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
+    mx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    my = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    mz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return mz @ my @ mx
+
+
+def build_mesh(spec: MeshSpec, scene: Scene | None = None) -> BuiltMesh:
+    """The world-space mesh of ``spec`` (primitive, or a file whose contents ``scene`` holds)."""
+    if spec.primitive:
+        pos, tris, uv, normals = make_primitive(spec)
+        corner_uv = uv[tris]
+        corner_n = normals[tris]
+        has_uv, closed = True, spec.closed
+    else:
+        content = scene.file_arrays(spec.file)
+        pos = content["positions"].astype(np.float64)
+        tris = content["triangles"].astype(np.int64)
+        has_uv = content["corner_uv"].shape[0] == len(tris)
+        corner_uv = content["corner_uv"].astype(np.float64) if has_uv else np.zeros((len(tris), 3, 2))
+        corner_n = vertex_normals(pos, tris)[tris]
+        closed = is_closed(tris)
+    corner_t, corner_b = tangent_frames(pos, tris, corner_uv, corner_n)
+
+    linear = _rotation(spec.rotate) @ np.diag(spec.scale)
+    normal_matrix = np.linalg.inv(linear).T
+    pos = pos @ linear.T + np.asarray(spec.position)
+    corner_n = _normalize(corner_n @ normal_matrix.T)
+    corner_t = _normalize(corner_t @ linear.T)
+    corner_b = _normalize(corner_b @ linear.T)
+    if np.linalg.det(linear) < 0:  # a mirroring transform flips the winding; keep faces pointing outward
+        order = [0, 2, 1]
+        tris, corner_uv, corner_n = tris[:, order], corner_uv[:, order], corner_n[:, order]
+        corner_t, corner_b = corner_t[:, order], corner_b[:, order]
+    return BuiltMesh(spec, pos.astype(np.float32), tris.astype(np.int32), corner_uv.astype(np.float32),
+                     corner_n.astype(np.float32), corner_t.astype(np.float32), corner_b.astype(np.float32),
+                     has_uv, closed, spec.convex)
+
+
+def is_closed(triangles: np.ndarray) -> bool:
+    """Whether every edge is shared by exactly two triangles (a watertight surface)."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(len(counts) and np.all(counts == 2))
+
+
+def point_inside(mesh: BuiltMesh, point: np.ndarray) -> bool:
+    """Whether ``point`` lies inside the closed ``mesh`` (odd crossings along most of three rays)."""
+    import open3d as o3d
+
+    welded_pos, welded_tris = _welded(mesh)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(welded_pos), o3d.core.Tensor(welded_tris))
+    dirs = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, -0.8018], [0.8729, -0.2182, 0.4364]])
+    rays = np.concatenate([np.tile(point, (3, 1)), dirs], 1).astype(np.float32)
+    counts = scene.count_intersections(o3d.core.Tensor(rays)).numpy()
+    return int(np.sum(counts % 2 == 1)) >= 2
+
+
+def _welded(mesh: BuiltMesh) -> tuple[np.ndarray, np.ndarray]:
+    return np.ascontiguousarray(mesh.positions, np.float32), np.ascontiguousarray(mesh.triangles, np.uint32)
