@@ -28,6 +28,10 @@ def add_parser(sub):
     q.add_argument("--repeat", type=int, default=5, help="repetitions; medians are reported")
     q.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
+    g = which.add_parser("render", help="one 640 x 480 frame: PTM sphere, directional light + shadows; 64-light environment")
+    g.add_argument("--repeat", type=int, default=5)
+    g.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
     r = which.add_parser("representations", help="fit time, relight time, size and held-out error of every representation")
     r.add_argument("--stack", required=True, help="the capture to fit (.lp or .lvp)")
     r.add_argument("--test", help="held-out capture at other lights (default: every fifth light of --stack)")
@@ -231,7 +235,19 @@ def bench_representations(args) -> list[dict]:
     return rows
 
 
+def _report_plugin_bench(figures: dict, json_path: str | None) -> None:
+    for key, value in figures.items():
+        print(f"  {key}: {value}")
+    if json_path:
+        from .atomic import atomic_write_text
+        atomic_write_text(json_path, json.dumps(figures, indent=2, default=str))
+
+
 def main(args) -> int:
+    if args.bench == "render":
+        from btforge.plugins.render.bench import benchmark_render
+        _report_plugin_bench(benchmark_render(repeat=args.repeat), args.json)
+        return 0
     if args.bench == "representations":
         rows = bench_representations(args)
         print(f"wrote {Path(args.out) / 'representations.csv'} and representations.png ({len(rows)} representations)")
