@@ -9,7 +9,7 @@ import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 
-from . import scoring
+from . import jumpmap, kcoherence, scoring
 
 
 @declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "PerTexel"})
@@ -39,4 +39,4 @@ def coords_write(ctx, coords, *, path):
 
 @hookimpl
 def btforge_stages():
-    return [materialize, coords_write, *scoring.STAGES]
+    return [materialize, coords_write, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]

@@ -57,6 +57,9 @@ def pca_reduce(features: np.ndarray, dims: int, seed: int = 0, sample: int = 200
     rng = np.random.default_rng(seed)
     pick = flat if len(flat) <= sample else flat[rng.choice(len(flat), sample, replace=False)]
     mean = pick.mean(axis=0)
-    _, _, vt = np.linalg.svd(pick - mean, full_matrices=False)
-    dims = min(dims, vt.shape[0])  # a tiny exemplar has fewer axes than asked for
-    return ((flat - mean) @ vt[:dims].T).astype(np.float32).reshape(h, w, dims)
+    # Principal axes from the small D x D covariance: cheaper and steadier than an SVD of the samples.
+    centred = pick - mean
+    eigenvalues, axes = np.linalg.eigh(centred.T @ centred)
+    dims = min(dims, len(pick))  # a tiny exemplar has fewer axes than asked for
+    leading = axes[:, ::-1][:, :dims]
+    return ((flat - mean) @ leading).astype(np.float32).reshape(h, w, dims)

@@ -1,0 +1,108 @@
+// Jump-map walk, one anti-diagonal wavefront per launch: pixels (y, x) with x + 2 y == t, y = y0 .. y0 + ny - 1.
+// Twin: walk_numpy in jumpmap.py (same float32 comparisons and sums in the same order, so identical results).
+//
+// A neighbour q is synthesized ("done") when its wavefront x + 2 y (after wrapping) is below t.  Directions d:
+// left, up, right, down; candidate d continues the source of that neighbour by one texel towards the pixel,
+// replaced by a jump target with the texel's jump probability, or forced to jump from the source when the copy
+// would leave the exemplar.  Candidates are compared over the done pixels of the 3 x 3 window (row-major); the
+// first lowest wins.  flags[p]: bit 0 the chosen candidate jumped, bit 1 the jump was forced.
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef JUMPS
+#define JUMPS 3
+#endif
+
+__constant int NBR_Y[4] = {0, -1, 0, 1};
+__constant int NBR_X[4] = {-1, 0, 1, 0};
+
+inline int pick_target(const int texel, const float u, __global const float *cumulative,
+                       __global const int *targets)
+{
+    int j = 0;
+    for (int i = 0; i < JUMPS; ++i) {
+        if (u >= cumulative[texel * JUMPS + i]) ++j;
+    }
+    return targets[texel * JUMPS + min(j, JUMPS - 1)];
+}
+
+__kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, const int wo, const int wrap,
+                      const int t, const int y0, const int ny,
+                      __global const float *uniform, __global const int *fallback,
+                      __global const int *targets, __global const float *cumulative,
+                      __global const float *probability,
+                      __global const int *tex, __global const int *tex_pad, const int he, const int we,
+                      __global const float *table, const int nt)
+{
+    const int gi = get_global_id(0);
+    if (gi >= ny) return;
+    const int y = y0 + gi;
+    const int x = t - 2 * y;
+    if (y < 0 || y >= ho || x < 0 || x >= wo) return;
+    const int p = y * wo + x;
+    const int wp = we + 2;
+    int cand[4];
+    uchar flag[4];
+    for (int d = 0; d < 4; ++d) {
+        cand[d] = -1;
+        flag[d] = 0;
+        int qy = y + NBR_Y[d], qx = x + NBR_X[d];
+        if (wrap) {
+            qy = (qy + ho) % ho;
+            qx = (qx + wo) % wo;
+        } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
+            continue;
+        }
+        if (qx + 2 * qy >= t) continue;
+        const int s = src[qy * wo + qx];
+        const int sy = s / we - NBR_Y[d], sx = s % we - NBR_X[d];
+        const float u0 = uniform[((size_t)p * 4 + d) * 2], u1 = uniform[((size_t)p * 4 + d) * 2 + 1];
+        if (sy >= 0 && sy < he && sx >= 0 && sx < we) {
+            int c = sy * we + sx;
+            if (targets[c * JUMPS] >= 0 && u0 < probability[c]) {
+                c = pick_target(c, u1, cumulative, targets);
+                flag[d] = 1;
+            }
+            cand[d] = c;
+        } else {
+            const int f = pick_target(s, u1, cumulative, targets);
+            if (f >= 0) {
+                cand[d] = (f / we - NBR_Y[d]) * we + f % we - NBR_X[d];
+                flag[d] = 3;
+            } else {
+                cand[d] = clamp(sy, 0, he - 1) * we + clamp(sx, 0, we - 1);
+                flag[d] = 2;
+            }
+        }
+    }
+    float cost[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    for (int oy = -1; oy <= 1; ++oy) {
+        for (int ox = -1; ox <= 1; ++ox) {
+            if (!oy && !ox) continue;
+            int qy = y + oy, qx = x + ox;
+            if (wrap) {
+                qy = (qy + ho) % ho;
+                qx = (qx + wo) % wo;
+            } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
+                continue;
+            }
+            if (qx + 2 * qy >= t) continue;
+            const int tq = tex[src[qy * wo + qx]];
+            for (int d = 0; d < 4; ++d) {
+                if (cand[d] < 0) continue;
+                const int c = cand[d];
+                cost[d] += table[tex_pad[(c / we + 1 + oy) * wp + c % we + 1 + ox] * nt + tq];
+            }
+        }
+    }
+    int best = -1;
+    for (int d = 0; d < 4; ++d) {
+        if (cand[d] >= 0 && (best < 0 || cost[d] < cost[best])) best = d;
+    }
+    if (best < 0) {
+        src[p] = fallback[p];
+        flags[p] = 0;
+    } else {
+        src[p] = cand[best];
+        flags[p] = flag[best];
+    }
+}

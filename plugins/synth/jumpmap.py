@@ -1,0 +1,298 @@
+"""Jump-map synthesis (Zelinka & Garland 2002): a fast random walk over the exemplar.
+
+The analysis is shared with k-coherence synthesis (:mod:`.kcoherence`): textons of the exemplar's appearance
+vectors and the exact all-pairs neighbourhood search on OpenCL (:func:`~.kcoherence.neighbourhood_search`).
+The walk runs on OpenCL (``jumpmap.cl``, one launch per anti-diagonal wavefront) with a NumPy twin that gives
+identical results from the same random numbers.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from btforge import Param, declare_stage
+from btforge.backend import get_backend
+from btforge.buffers import CoordMap
+from btforge.errors import BtforgeInputError
+
+from .features import texel_features
+from .kcoherence import (DEFAULT_TEXTONS, LOCAL, MAX_NEIGHBORHOOD, Textons, _round_up, check_params,
+                         coherent_fraction, neighbourhood_search, normalise_features, pad_textons, texton_analysis,
+                         wavefront_rows)
+
+KERNELS = Path(__file__).with_name("jumpmap.cl")
+
+MAX_JUMPS = 16
+
+# The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
+# continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
+NEIGHBOUR = np.array([[0, -1], [-1, 0], [0, 1], [1, 0]], np.int64)   # left, up, right, down
+STEP = -NEIGHBOUR
+# The 3 x 3 window (without its centre) over which candidates are compared, row-major.
+WINDOW = np.array([[dy, dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx], np.int64)
+
+
+@dataclasses.dataclass(frozen=True)
+class JumpMap:
+    """Per exemplar texel: up to J jump targets, their choice probabilities, and the chance of jumping at all.
+
+    ``targets`` ``[N, J]`` int32 flat texel indices (-1: none), ``cumulative`` ``[N, J]`` cumulative choice
+    probabilities (1 at the last real target), ``probability`` ``[N]`` the chance that a walk arriving at the
+    texel jumps; ``distance`` ``[N, J]`` the neighbourhood distances (inf where missing).
+    """
+
+    height: int
+    width: int
+    textons: Textons
+    targets: np.ndarray
+    distance: np.ndarray
+    cumulative: np.ndarray
+    probability: np.ndarray
+
+
+def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = 0.1, neighborhood: int = 5,
+                   textons: int = DEFAULT_TEXTONS, engine: str = "opencl") -> JumpMap:
+    """Analyse ``[H, W, D]`` features into a :class:`JumpMap`.
+
+    Jump targets are the texels with the most similar ``neighborhood`` windows, at least ``neighborhood // 2 + 1``
+    texels away (Chebyshev) and one texel inside the exemplar's border (so a step in any direction after a jump
+    stays inside).  Target j of a texel has weight ``exp(-d_j / d_ref)`` (``d_ref``: the median distance of
+    the best targets); choice probabilities are the normalised weights, and the jump probability is
+    ``jump_probability`` scaled by the texel's total weight over the mean total (clipped to 1): a texel with
+    good jumps jumps more often, one without never.
+    """
+    h, w, _ = features.shape
+    tx = texton_analysis(normalise_features(features), min(textons, h * w), engine=engine)
+    allowed = np.zeros((h, w), bool)
+    allowed[1:-1, 1:-1] = True
+    targets, distance = neighbourhood_search(tx.labels, tx.table, neighborhood, jumps,
+                                             exclude=neighborhood // 2, allowed=allowed, engine=engine)
+    real = targets >= 0
+    best = distance[:, 0][real[:, 0]]
+    d_ref = float(np.median(best)) if best.size else 0.0
+    if not d_ref > 0:
+        d_ref = float(distance[real].mean()) if real.any() and distance[real].mean() > 0 else 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        weight = np.where(real, np.exp(-np.where(real, distance, 0.0).astype(np.float64) / d_ref), 0.0)
+    total = weight.sum(axis=1)
+    safe_total = np.where(total > 0, total, 1.0)
+    # missing targets get 2 (never reached by a uniform draw); the last real target closes at exactly 1
+    cumulative = np.where(real, np.minimum(np.cumsum(weight, axis=1) / safe_total[:, None], 1.0), 2.0)
+    last = np.maximum(real.sum(axis=1) - 1, 0)
+    cumulative[np.arange(len(last)), last] = np.where(total > 0, 1.0, 2.0)
+    mean_total = float(total.mean()) if total.size else 0.0
+    probability = np.clip(jump_probability * total / mean_total, 0.0, 1.0) if mean_total > 0 else np.zeros_like(total)
+    return JumpMap(h, w, tx, targets, distance, np.ascontiguousarray(cumulative, np.float32),
+                   probability.astype(np.float32))
+
+
+def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The jump target of each ``texel`` chosen by uniform ``u`` (-1 where the texel has none)."""
+    j = (u[:, None] >= jm.cumulative[texel]).sum(axis=1)
+    j = np.minimum(j, jm.targets.shape[1] - 1)
+    return jm.targets[texel, j]
+
+
+def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0,
+         engine: str = "opencl") -> tuple[np.ndarray, dict]:
+    """Synthesize ``[H, W, 2]`` int32 coordinates with the jump-map walk; returns them and counts.
+
+    Order: anti-diagonal wavefronts ``x + 2 y = t``.  Every pixel of a wavefront only needs pixels of earlier
+    wavefronts (left, upper-left, upper, upper-right; with ``wrap`` also whatever is already done across the
+    seams), so a wavefront is one launch (one vectorised step in the twin); without wrap the result is that of
+    scanline order.  Each done 4-neighbour offers a candidate: its source continued by one texel towards the pixel
+    (a coherent copy), replaced with the texel's jump probability by one of its jump targets, or forced to jump
+    when the copy would leave the exemplar.  The candidate whose 3 x 3 neighbourhood differs least from the
+    done neighbours (texton distances) wins.
+    """
+    ho, wo = int(size[0]), int(size[1])
+    rng = np.random.default_rng(seed)
+    uniform = rng.random((ho * wo, 4, 2), dtype=np.float32)
+    fallback = rng.integers(0, jm.height * jm.width, ho * wo).astype(np.int32)
+    if engine == "numpy":
+        src, flags = walk_numpy(jm, ho, wo, wrap, uniform, fallback)
+    else:
+        src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback)
+    coords = np.stack(np.divmod(src.reshape(ho, wo), jm.width), axis=-1).astype(np.int32)
+    return coords, {"jumps_taken": int((flags & 1).sum()), "forced_jumps": int((flags >> 1 & 1).sum())}
+
+
+def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
+    """The walk on OpenCL (``jm_walk``, one launch per wavefront): flat sources and per-pixel jump flags."""
+    backend = get_backend()
+    jumps = jm.targets.shape[1]
+    kernel = backend.kernel(KERNELS, "jm_walk", (f"-DJUMPS={jumps}",))
+    cl = backend.cl
+    src_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=4 * ho * wo)
+    flags_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=ho * wo)
+    # the device buffers must outlive the launches: set_args does not keep them alive
+    inputs = [backend.to_device(a) for a in (
+        uniform, fallback, np.ascontiguousarray(jm.targets, np.int32), jm.cumulative, jm.probability,
+        jm.textons.labels.ravel().astype(np.int32), pad_textons(jm.textons.labels, 1), jm.textons.table)]
+    uniform_dev, fallback_dev, targets_dev, cumulative_dev, probability_dev, tex_dev, tex_pad_dev, table_dev = inputs
+    kernel.set_args(src_dev, flags_dev, np.int32(ho), np.int32(wo), np.int32(wrap), np.int32(0), np.int32(0),
+                    np.int32(0), uniform_dev, fallback_dev, targets_dev, cumulative_dev, probability_dev, tex_dev,
+                    tex_pad_dev, np.int32(jm.height), np.int32(jm.width), table_dev, np.int32(jm.textons.count))
+    for t in range((wo - 1) + 2 * (ho - 1) + 1):
+        y0, ny = wavefront_rows(t, 2, ho, wo)
+        if ny <= 0:
+            continue
+        kernel.set_arg(5, np.int32(t))
+        kernel.set_arg(6, np.int32(y0))
+        kernel.set_arg(7, np.int32(ny))
+        cl.enqueue_nd_range_kernel(backend.queue, kernel, (_round_up(ny),), (LOCAL,))
+    src = backend.from_device(src_dev, (ho * wo,), np.int32)
+    flags = backend.from_device(flags_dev, (ho * wo,), np.uint8)
+    del inputs
+    return src, flags
+
+
+def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
+    """Twin of ``jm_walk``, vectorised over each wavefront: flat sources and per-pixel jump flags."""
+    he, we = jm.height, jm.width
+    tex = jm.textons.labels.ravel()
+    tex_pad = pad_textons(jm.textons.labels, 1)
+    table = jm.textons.table
+    has_jump = jm.targets[:, 0] >= 0
+    src = np.zeros(ho * wo, np.int64)
+    flags = np.zeros(ho * wo, np.uint8)
+    done = np.zeros(ho * wo, bool)
+    for t in range((wo - 1) + 2 * (ho - 1) + 1):
+        y0, ny = wavefront_rows(t, 2, ho, wo)
+        if ny <= 0:
+            continue
+        ys = np.arange(y0, y0 + ny)
+        xs = t - 2 * ys
+        p = ys * wo + xs
+        n = len(p)
+        cand = np.full((n, 4), -1, np.int64)
+        jumped = np.zeros((n, 4), bool)
+        forced = np.zeros((n, 4), bool)
+        for d in range(4):
+            qy, qx = ys + NEIGHBOUR[d, 0], xs + NEIGHBOUR[d, 1]
+            if wrap:
+                inside = np.ones(n, bool)
+                qy, qx = qy % ho, qx % wo
+            else:
+                inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
+                qy, qx = np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1)
+            q = qy * wo + qx
+            ok = inside & done[q]
+            s = src[q]
+            sy, sx = s // we + STEP[d, 0], s % we + STEP[d, 1]
+            out = (sy < 0) | (sy >= he) | (sx < 0) | (sx >= we)
+            u = uniform[p, d]
+            # coherent copy, or a jump from the copied texel
+            c = np.clip(sy, 0, he - 1) * we + np.clip(sx, 0, we - 1)
+            jump = ~out & has_jump[c] & (u[:, 0] < jm.probability[c])
+            c = np.where(jump, _pick(jm, c, u[:, 1]), c)
+            # forced: the copy leaves the exemplar, so jump from the source and step from the target
+            f_target = _pick(jm, s, u[:, 1])
+            f_ok = f_target >= 0
+            fy = np.where(f_ok, f_target // we + STEP[d, 0], np.clip(sy, 0, he - 1))
+            fx = np.where(f_ok, f_target % we + STEP[d, 1], np.clip(sx, 0, we - 1))
+            c = np.where(out, fy * we + fx, c)
+            cand[:, d] = np.where(ok, c, -1)
+            jumped[:, d] = ok & (jump | (out & f_ok))
+            forced[:, d] = ok & out
+        # compare every candidate's 3 x 3 neighbourhood with the done neighbours
+        valid = cand >= 0
+        safe = np.where(valid, cand, 0)
+        cy, cx = safe // we + 1, safe % we + 1
+        cost = np.zeros((n, 4), np.float32)
+        for oy, ox in WINDOW:
+            qy, qx = ys + oy, xs + ox
+            if wrap:
+                inside = np.ones(n, bool)
+                qy, qx = qy % ho, qx % wo
+            else:
+                inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
+                qy, qx = np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1)
+            q = qy * wo + qx
+            use = inside & done[q]
+            term = table[tex_pad[cy + oy, cx + ox], tex[src[q]][:, None]]
+            cost += np.where(use[:, None], term, np.float32(0))
+        key = np.where(valid, cost, np.float32(np.inf))
+        pick = np.argmin(key, axis=1)
+        pick = np.where(np.isfinite(key.min(axis=1)), pick, np.argmax(valid, axis=1))
+        rows = np.arange(n)
+        some = valid.any(axis=1)
+        src[p] = np.where(some, cand[rows, pick], fallback[p])
+        flags[p] = np.where(some, jumped[rows, pick] * 1 + forced[rows, pick] * 2, 0)
+        done[p] = True
+    return src.astype(np.int32), flags
+
+
+@declare_stage(
+    "jumpmap",
+    inputs={"exemplar": "PerTexel"},
+    outputs={"coords": "CoordMap"},
+    params=[
+        Param("size", "ints", (256, 256), "output size [H, W] in texels", low=1, length=2),
+        Param("seed", "int", 0, "random seed of the walk; the same seed gives the same result"),
+        Param("wrap", "bool", False, "make the result tile seamlessly (periodic output boundary)"),
+        Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
+        Param("jump_probability", "float", 0.1, "mean chance per step that the walk jumps instead of copying",
+              low=0.0, high=1.0),
+        Param("neighborhood", "int", 5, "odd window size of the neighbourhoods compared to find jump targets",
+              low=3, high=MAX_NEIGHBORHOOD),
+        Param("textons", "int", DEFAULT_TEXTONS, "texton (k-means cluster) count of the analysis", low=1, high=2048),
+    ],
+)
+def jumpmap(ctx, exemplar, *, size, seed, wrap, jumps, jump_probability, neighborhood, textons):
+    """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
+
+    Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (exact search over texton
+    distances, on OpenCL; texels near the texel itself are left out) with probabilities that fall with the
+    distance.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
+    (a coherent copy); with a probability that is higher where good jumps exist it jumps to one of that
+    texel's targets instead, and it must jump where the copy would leave the exemplar.  Of the candidates
+    from the left and upper neighbours (and, with ``wrap``, the right and lower ones across the seam) the one
+    whose 3 x 3 neighbourhood matches the pixels already synthesized best is taken.  Pixels are visited in
+    anti-diagonal wavefronts ``x + 2 y = t``, one OpenCL launch each (scanline-equivalent without wrap).
+
+    With ``wrap`` the output's last column and row continue into its first ones, so the result tiles.  There is
+    no correction pass: the closing row and column must agree with both sides, so the seam has fewer exact
+    coherent copies than the interior (the closing row more visibly than the closing column); use
+    ``kcoherence`` when seams matter most.
+
+    Outputs
+    -------
+    coords : CoordMap
+        ``[H, W, 2]`` (row, column) into the exemplar; replay it on any per-texel buffer with ``materialize``.
+
+    Notes
+    -----
+    textons, jump_targets (texels with at least one target), jumps_taken, forced_jumps, coherent_fraction,
+    seconds_analysis, seconds_synthesis.
+    """
+    size = tuple(int(v) for v in size)
+    check_params("jumpmap", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood)
+    if min(exemplar.height, exemplar.width) < neighborhood:
+        raise BtforgeInputError("jumpmap 'exemplar'", f"expected at least {neighborhood} x {neighborhood} texels "
+                                f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",
+                                "use a larger exemplar or a smaller neighborhood")
+    if not 1 <= jumps <= MAX_JUMPS:
+        raise BtforgeInputError("jumpmap param 'jumps'", f"expected an int in [1, {MAX_JUMPS}], found {jumps}")
+    if not 0.0 <= jump_probability <= 1.0:
+        raise BtforgeInputError("jumpmap param 'jump_probability'",
+                                f"expected a value in [0, 1], found {jump_probability}")
+    start = time.perf_counter()
+    jm = build_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
+                        neighborhood=neighborhood, textons=textons)
+    analysed = time.perf_counter()
+    coords, counts = walk(jm, size, wrap=wrap, seed=seed)
+    ctx.note("textons", jm.textons.count)
+    ctx.note("jump_targets", int((jm.targets[:, 0] >= 0).sum()))
+    ctx.note("jumps_taken", counts["jumps_taken"])
+    ctx.note("forced_jumps", counts["forced_jumps"])
+    ctx.note("coherent_fraction", round(coherent_fraction(coords, wrap), 4))
+    ctx.note("seconds_analysis", round(analysed - start, 3))
+    ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
+    return {"coords": CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)}
+
+
+STAGES = [jumpmap]

@@ -1,0 +1,179 @@
+"""Jump-map synthesis: shared analysis on OpenCL against NumPy, the walk, seams, tiles and relighting."""
+import numpy as np
+import pytest
+
+from btforge import BtforgeInputError
+from btforge.buffers import CoordMap, SampleStack
+from btforge.context import StageContext
+from btforge.plugins.ptm.model import PTMModel
+from btforge.plugins.synth import jumpmap as jm_module
+from btforge.plugins.synth import kcoherence as kc
+from btforge.plugins.synth import materialize
+from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.jumpmap import build_jump_map, jumpmap, walk
+
+LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1]]
+
+
+@pytest.fixture(scope="module")
+def material():
+    return kc.benchmark_exemplar(32, lights=8)
+
+
+def tiled_exemplar(period=16, copies=3, seed=0) -> SampleStack:
+    tile = np.random.default_rng(seed).random((4, period, period, 3), dtype=np.float32)
+    return SampleStack(np.tile(tile, (1, copies, copies, 1))[None], LIGHTS, [[0, 0, 1]])
+
+
+def pair_coherence(coords, period=None):
+    """Coherent fractions of (horizontal interior, vertical interior, horizontal seam, vertical seam) pairs."""
+    c = coords.astype(np.int64)
+    dh, dv = np.roll(c, -1, axis=1) - c, np.roll(c, -1, axis=0) - c
+    if period:
+        dh, dv = dh % period, dv % period
+    h_ok = (dh[..., 0] == 0) & (dh[..., 1] == 1)
+    v_ok = (dv[..., 0] == 1) & (dv[..., 1] == 0)
+    return np.array([h_ok[:, :-1].mean(), v_ok[:-1].mean(), h_ok[:, -1].mean(), v_ok[-1].mean()])
+
+
+def test_the_analysis_is_the_shared_search():
+    # one implementation of the neighbourhood search, imported - not a copy
+    assert jm_module.neighbourhood_search is kc.neighbourhood_search
+    assert jm_module.texton_analysis is kc.texton_analysis
+
+
+@pytest.mark.parametrize("case", ["material", "constant", "one-dim"])
+def test_jump_map_analysis_on_opencl_matches_numpy(material, case):
+    if case == "material":
+        features = texel_features(material)
+    elif case == "constant":
+        features = np.ones((12, 14, 3), np.float32)
+    else:
+        features = np.random.default_rng(1).random((15, 13, 1)).astype(np.float32)
+    a = build_jump_map(features, jumps=3)
+    b = build_jump_map(features, jumps=3, engine="numpy")
+    np.testing.assert_array_equal(a.targets, b.targets)
+    np.testing.assert_array_equal(a.distance, b.distance)
+    np.testing.assert_array_equal(a.probability, b.probability)
+
+
+@pytest.mark.parametrize("wrap,probability,size,case", [
+    (False, 0.1, (37, 41), "material"), (True, 0.1, (40, 33), "material"), (True, 1.0, (16, 64), "material"),
+    (False, 0.0, (25, 25), "material"), (True, 0.3, (21, 18), "constant"), (False, 0.5, (1, 30), "material"),
+])
+def test_walk_kernel_matches_numpy(material, wrap, probability, size, case):
+    features = texel_features(material) if case == "material" else np.ones((9, 10, 2), np.float32)
+    jm = build_jump_map(features, jumps=3, jump_probability=probability, neighborhood=5 if case == "material" else 3)
+    a, counts_a = walk(jm, size, wrap=wrap, seed=11)
+    b, counts_b = walk(jm, size, wrap=wrap, seed=11, engine="numpy")
+    np.testing.assert_array_equal(a, b)
+    assert counts_a == counts_b
+
+
+def test_jump_targets_are_away_from_the_texel_and_inside_the_border(material):
+    features = texel_features(material)
+    jm = build_jump_map(features, jumps=4, neighborhood=5)
+    h, w = jm.height, jm.width
+    ys, xs = np.divmod(np.arange(h * w), w)
+    real = jm.targets >= 0
+    assert real[:, 0].all()
+    ty, tx = np.divmod(np.where(real, jm.targets, 0), w)
+    assert (np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None]))[real] > 2).all()
+    assert ((ty >= 1) & (ty <= h - 2) & (tx >= 1) & (tx <= w - 2))[real].all()
+    # choice probabilities: cumulative, ending at 1; jump chance averages the requested probability
+    assert np.allclose(jm.cumulative[:, -1], 1.0)
+    assert (np.diff(jm.cumulative, axis=1) >= 0).all()
+    assert abs(jm.probability.mean() - 0.1) < 0.02
+    # a closer neighbourhood is at least as likely a choice as a farther one
+    choice = np.diff(np.concatenate([np.zeros((h * w, 1)), jm.cumulative], axis=1), axis=1)
+    assert (choice[:, :-1] >= choice[:, 1:] - 1e-6).all()
+
+
+def test_output_shape_range_determinism_and_notes(material):
+    ctx = StageContext(node="jm", quiet=True)
+    out = jumpmap(ctx=ctx, exemplar=material, size=[37, 45], seed=4)["coords"]
+    assert isinstance(out, CoordMap)
+    assert out.coords.shape == (37, 45, 2) and out.source_size == (32, 32)
+    assert out.coords.min() >= 0 and out.coords.max() < 32
+    again = jumpmap(exemplar=material, size=[37, 45], seed=4)["coords"]
+    np.testing.assert_array_equal(out.coords, again.coords)
+    other = jumpmap(exemplar=material, size=[37, 45], seed=5)["coords"]
+    assert (other.coords != out.coords).any()
+    assert ctx.notes["jumps_taken"] > 0 and ctx.notes["jump_targets"] == 32 * 32
+    assert 0 < ctx.notes["coherent_fraction"] <= 1
+
+
+def test_jump_probability_controls_the_jumps(material):
+    jm = build_jump_map(texel_features(material), jumps=3, jump_probability=0.0)
+    _, never = walk(jm, (48, 48), seed=1)
+    jm = build_jump_map(texel_features(material), jumps=3, jump_probability=0.5)
+    _, often = walk(jm, (48, 48), seed=1)
+    assert never["jumps_taken"] == never["forced_jumps"]      # only where a copy would leave the exemplar
+    assert often["jumps_taken"] > never["jumps_taken"] + 200
+
+
+def seam_mismatch(coords, features):
+    """Mean squared feature difference of neighbours (interior, seam), both directions pooled."""
+    f = features[coords[..., 0], coords[..., 1]].astype(np.float64)
+    dh = ((np.roll(f, -1, axis=1) - f) ** 2).sum(-1)
+    dv = ((np.roll(f, -1, axis=0) - f) ** 2).sum(-1)
+    return np.array([np.concatenate([dh[:, :-1].ravel(), dv[:-1].ravel()]).mean(),
+                     np.concatenate([dh[:, -1], dv[-1]]).mean()])
+
+
+def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
+    features = kc.normalise_features(texel_features(material))
+    coherence, mismatch = {}, {}
+    for wrap in (False, True):
+        runs = [jumpmap(exemplar=material, size=[64, 64], wrap=wrap, seed=s)["coords"].coords for s in range(3)]
+        coherence[wrap] = np.mean([pair_coherence(c) for c in runs], axis=0)
+        mismatch[wrap] = np.mean([seam_mismatch(c, features) for c in runs], axis=0)
+    stats = coherence, mismatch
+    # The walk has no correction pass: the last row and column close the torus and must agree with both
+    # sides, so the seam is somewhat worse than the interior (the closing row more than the closing column),
+    # but far better than the random cut without wrap.
+    assert mismatch[False][1] > 3 * mismatch[False][0], stats
+    assert mismatch[True][1] < 2.5 * mismatch[True][0], stats
+    assert mismatch[True][1] < 0.6 * mismatch[False][1], stats
+    interior, seam = coherence[True][:2].mean(), coherence[True][2:].mean()
+    assert seam > 0.55 * interior, stats
+    assert coherence[False][2:].mean() < 0.1, stats
+
+
+def test_periodic_tile_is_reproduced_in_large_coherent_patches():
+    coords = jumpmap(exemplar=tiled_exemplar(), size=[80, 80], seed=2, jump_probability=0.05)["coords"].coords
+    fractions = pair_coherence(coords, period=16)
+    assert fractions[:2].mean() > 0.8, fractions
+
+
+def test_relights_consistently_through_materialize():
+    rng = np.random.default_rng(7)
+    coeffs = rng.normal(0, 0.1, (20, 22, 3, 6)).astype(np.float32)
+    coeffs[..., 5] += 0.6
+    model = PTMModel(coeffs, np.zeros((20, 22, 0), np.float32))
+    coords = jumpmap(exemplar=model, size=[33, 29], seed=3)["coords"]
+    lights = np.array([[0.2, -0.3, 0.93]])
+    relit = materialize(coords=coords, source=model)["output"].evaluate(lights)
+    exemplar_relit = model.evaluate(lights)
+    r, c = coords.coords[..., 0], coords.coords[..., 1]
+    np.testing.assert_allclose(relit, exemplar_relit[:, :, r, c], rtol=1e-5, atol=1e-6)
+    stack = materialize(coords=coords, source=SampleStack(exemplar_relit, lights, [[0, 0, 1]]))["output"]
+    np.testing.assert_allclose(stack.samples, relit, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("params,name", [
+    ({"neighborhood": 6}, "neighborhood"),
+    ({"size": [8, 0]}, "size"),
+    ({"jumps": 0}, "jumps"),
+    ({"jump_probability": 1.5}, "jump_probability"),
+])
+def test_invalid_params_name_the_param(material, params, name):
+    with pytest.raises(BtforgeInputError) as info:
+        jumpmap(exemplar=material, **{"size": [16, 16], **params})
+    assert name in str(info.value)
+
+
+def test_tiny_exemplar_is_rejected():
+    tiny = SampleStack(np.ones((1, 4, 2, 5, 3), np.float32), LIGHTS, [[0, 0, 1]])
+    with pytest.raises(BtforgeInputError, match="exemplar"):
+        jumpmap(exemplar=tiny, size=[8, 8], neighborhood=3)

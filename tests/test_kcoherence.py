@@ -1,0 +1,262 @@
+"""k-coherence synthesis: OpenCL kernels against their NumPy twins, hard inputs, seams, tiles and relighting."""
+import numpy as np
+import pytest
+
+from btforge import BtforgeInputError
+from btforge.buffers import CoordMap, SampleStack
+from btforge.context import StageContext
+from btforge.plugins.ptm.model import PTMModel
+from btforge.plugins.synth import kcoherence as kc
+from btforge.plugins.synth import materialize
+from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.kcoherence import kcoherence
+
+LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1], [0, -1, 1], [1, 1, 2]]
+
+
+def stack_of(values: np.ndarray) -> SampleStack:
+    """A single-view stack from ``[L, H, W, C]`` radiance."""
+    return SampleStack(np.ascontiguousarray(values[None], np.float32), LIGHTS[:values.shape[0]], [[0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def material():
+    return kc.benchmark_exemplar(32, lights=8)
+
+
+def tiled_exemplar(period=16, copies=3, seed=0) -> SampleStack:
+    tile = np.random.default_rng(seed).random((4, period, period, 3), dtype=np.float32)
+    return stack_of(np.tile(tile, (1, copies, copies, 1)))
+
+
+def pair_coherence(coords: np.ndarray, period: int | None = None):
+    """Coherent fractions of (horizontal interior, vertical interior, horizontal seam, vertical seam) pairs.
+
+    A pair is coherent when the second source is the first plus one texel along the pair (modulo ``period``).
+    """
+    c = coords.astype(np.int64)
+    right, down = np.roll(c, -1, axis=1), np.roll(c, -1, axis=0)
+    dh, dv = right - c, down - c
+    if period:
+        dh, dv = dh % period, dv % period
+    h_ok = (dh[..., 0] == 0) & (dh[..., 1] == 1)
+    v_ok = (dv[..., 0] == 1) & (dv[..., 1] == 0)
+    return h_ok[:, :-1].mean(), v_ok[:-1].mean(), h_ok[:, -1].mean(), v_ok[-1].mean()
+
+
+def seam_mismatch(coords, features):
+    """Mean squared feature difference of neighbours (interior, seam), both directions pooled."""
+    f = features[coords[..., 0], coords[..., 1]].astype(np.float64)
+    dh = ((np.roll(f, -1, axis=1) - f) ** 2).sum(-1)
+    dv = ((np.roll(f, -1, axis=0) - f) ** 2).sum(-1)
+    interior = np.concatenate([dh[:, :-1].ravel(), dv[:-1].ravel()]).mean()
+    seam = np.concatenate([dh[:, -1], dv[-1]]).mean()
+    return interior, seam
+
+
+# --------------------------------------------------------------------------------------------- kernels vs twins
+
+
+@pytest.mark.parametrize("case", ["random", "one-dim", "constant", "huge", "many-centres"])
+def test_kmeans_assignment_kernel_matches_numpy(case):
+    rng = np.random.default_rng(1)
+    if case == "random":
+        x, c = rng.normal(size=(1000, 7)), rng.normal(size=(37, 7))
+    elif case == "one-dim":
+        x, c = rng.normal(size=(500, 1)), rng.normal(size=(5, 1))
+    elif case == "constant":  # every distance ties: the first centre wins
+        x, c = np.full((300, 4), 0.5), np.full((9, 4), 0.25)
+    elif case == "huge":  # distances overflow to inf in float32
+        x, c = rng.normal(size=(300, 3)) * 1e25, rng.normal(size=(6, 3)) * 1e25
+    else:
+        x, c = rng.random((2000, 32)), rng.random((300, 32))
+    x, c = x.astype(np.float32), c.astype(np.float32)
+    labels_cl, dist_cl = kc.assign_opencl(x, c)
+    labels_np, dist_np = kc.assign_numpy(x, c)
+    np.testing.assert_array_equal(labels_cl, labels_np)
+    np.testing.assert_array_equal(dist_cl, dist_np)
+    if case == "constant":
+        assert (labels_cl == 0).all()
+
+
+def _random_table(rng, n, d=3, scale=1.0):
+    centres = (rng.normal(size=(n, d)) * scale).astype(np.float32)
+    return centres, kc.texton_table(centres)
+
+
+@pytest.mark.parametrize("case", ["random", "constant", "huge", "masked", "short"])
+def test_neighbourhood_search_kernel_matches_numpy(case):
+    rng = np.random.default_rng(2)
+    h, w, n, m, exclude, allowed = 13, 11, 20, 4, 0, None
+    labels = rng.integers(0, n, (h, w)).astype(np.int32)
+    _, table = _random_table(rng, n)
+    if case == "constant":  # all neighbourhoods equal: every distance is 0, lists sorted by index
+        labels[:] = 3
+    elif case == "huge":  # sums overflow to inf: ties among inf resolved by index
+        table = np.where(table > 0, np.float32(1e38), np.float32(0))
+    elif case == "masked":
+        exclude = 2
+        allowed = rng.random((h, w)) < 0.5
+    elif case == "short":  # fewer candidates than asked for
+        h, w, m, exclude = 4, 4, 9, 1
+        labels = labels[:h, :w]
+    idx_cl, cost_cl = kc.neighbourhood_search(labels, table, 5, m, exclude=exclude, allowed=allowed)
+    idx_np, cost_np = kc.neighbourhood_search(labels, table, 5, m, exclude=exclude, allowed=allowed, engine="numpy")
+    np.testing.assert_array_equal(idx_cl, idx_np)
+    np.testing.assert_array_equal(cost_cl, cost_np)
+    ys, xs = np.divmod(np.arange(h * w), w)
+    real = idx_cl >= 0
+    rows = np.broadcast_to(np.arange(h * w)[:, None], idx_cl.shape)
+    # exclusion and mask respected; lists sorted
+    far = np.maximum(np.abs(ys[idx_cl] - ys[rows]), np.abs(xs[idx_cl] - xs[rows])) > exclude
+    assert far[real].all()
+    if allowed is not None:
+        assert allowed.ravel()[idx_cl[real]].all()
+    sorted_costs = np.where(real, cost_cl, np.inf)
+    assert (sorted_costs[:, 1:] >= sorted_costs[:, :-1]).all()
+    if case == "constant":
+        assert (cost_cl[real] == 0).all()
+    if case == "short":
+        assert (~real).any()
+
+
+def test_neighbourhood_search_is_exact_against_brute_force():
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 6, (9, 10)).astype(np.int32)
+    centres, table = _random_table(rng, 6)
+    idx, cost = kc.neighbourhood_search(labels, table, 3, 3, exclude=0)
+    padded = np.pad(centres[labels].astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")
+    windows = np.stack([padded[y:y + 3, x:x + 3].ravel() for y in range(9) for x in range(10)])
+    full = ((windows[:, None] - windows[None]) ** 2).sum(-1)
+    np.fill_diagonal(full, np.inf)
+    for p in range(90):
+        assert np.allclose(np.sort(full[p])[:3], cost[p], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("wrap,levels,k,neighborhood", [(False, 2, 4, 5), (True, 2, 3, 5), (False, 1, 1, 3),
+                                                       (True, 1, 6, 3)])
+def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood):
+    features = texel_features(material)
+    analysis = kc.analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels)
+    args = dict(k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=5, analysis=analysis)
+    a = kc.synthesize(features, (30, 23), **args)
+    b = kc.synthesize(features, (30, 23), engine="numpy", **args)
+    np.testing.assert_array_equal(a.coords, b.coords)
+
+
+@pytest.mark.parametrize("order", ["single", "launch"])
+def test_both_causal_pass_schedules_match_numpy(material, order, monkeypatch):
+    monkeypatch.setattr(kc, "CAUSAL_ORDER", order)
+    features = texel_features(material)
+    args = dict(k=3, neighborhood=5, levels=2, wrap=True, seed=9)
+    a = kc.synthesize(features, (45, 38), **args)
+    b = kc.synthesize(features, (45, 38), engine="numpy", **args)
+    np.testing.assert_array_equal(a.coords, b.coords)
+
+
+@pytest.mark.parametrize("case", ["constant", "one-dim", "huge"])
+def test_whole_pipeline_matches_numpy_on_hard_exemplars(case):
+    rng = np.random.default_rng(4)
+    if case == "constant":
+        features = np.full((16, 16, 3), 0.7, np.float32)
+    elif case == "one-dim":
+        features = rng.random((16, 18, 1)).astype(np.float32)
+    else:
+        features = (rng.normal(size=(16, 16, 4)) * 1e30).astype(np.float32)
+    args = dict(k=3, neighborhood=5, levels=2, seed=2)
+    a = kc.synthesize(features, (20, 24), **args)
+    b = kc.synthesize(features, (20, 24), engine="numpy", **args)
+    np.testing.assert_array_equal(a.coords, b.coords)
+    assert a.coords.min() >= 0 and a.coords[..., 0].max() < 16 and a.coords[..., 1].max() < features.shape[1]
+    if case == "constant":
+        assert a.levels[0].textons.count == 1
+
+
+# --------------------------------------------------------------------------------------------- the stage
+
+
+def test_output_shape_range_and_determinism(material):
+    ctx = StageContext(node="kc", quiet=True)
+    out = kcoherence(ctx=ctx, exemplar=material, size=[40, 52], k=4, levels=2, seed=7)["coords"]
+    assert isinstance(out, CoordMap)
+    assert out.coords.shape == (40, 52, 2) and out.coords.dtype == np.int32
+    assert out.source_size == (32, 32)
+    assert out.coords.min() >= 0 and out.coords.max() < 32
+    again = kcoherence(exemplar=material, size=[40, 52], k=4, levels=2, seed=7)["coords"]
+    np.testing.assert_array_equal(out.coords, again.coords)
+    other = kcoherence(exemplar=material, size=[40, 52], k=4, levels=2, seed=8)["coords"]
+    assert (other.coords != out.coords).any()
+    for key in ("textons", "texton_error", "kset_distance", "coherent_fraction", "seconds_analysis"):
+        assert key in ctx.notes
+    assert len(ctx.notes["textons"]) == 2
+
+
+def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
+    features = kc.normalise_features(texel_features(material))
+    analysis = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=2)
+    stats = {}
+    for wrap in (False, True):
+        runs = [kc.synthesize(features, (64, 64), levels=2, wrap=wrap, seed=s, analysis=analysis).coords
+                for s in range(3)]
+        coherence = np.mean([pair_coherence(c) for c in runs], axis=0)
+        mismatch = np.mean([seam_mismatch(c, features) for c in runs], axis=0)
+        stats[wrap] = coherence, mismatch
+    (coh_open, mis_open), (coh_wrap, mis_wrap) = stats[False], stats[True]
+    interior, seam = coh_wrap[:2].mean(), coh_wrap[2:].mean()
+    # Appearance: neighbours across the seam differ no more than interior neighbours (without wrap: a random cut).
+    assert mis_wrap[1] < 1.5 * mis_wrap[0], stats
+    assert mis_open[1] > 3 * mis_open[0], stats
+    # Coherent copies: the seam is where the scanline order meets itself, so fewer pairs there are exact copies
+    # than in the interior (about half), but far more than without wrap (none).
+    assert seam > 0.4 * interior, stats
+    assert seam > coh_open[2:].mean() + 0.15, stats
+
+
+def test_periodic_tile_is_reproduced_in_large_coherent_patches():
+    exemplar = tiled_exemplar(period=16, copies=3)
+    coords = kcoherence(exemplar=exemplar, size=[80, 80], k=3, levels=2, seed=1)["coords"].coords
+    fractions = pair_coherence(coords, period=16)
+    assert np.mean(fractions[:2]) > 0.8, fractions
+
+
+def test_relights_consistently_through_materialize():
+    rng = np.random.default_rng(6)
+    coeffs = rng.normal(0, 0.1, (24, 20, 3, 6)).astype(np.float32)
+    coeffs[..., 5] += 0.6
+    model = PTMModel(coeffs, np.zeros((24, 20, 0), np.float32))
+    coords = kcoherence(exemplar=model, size=[30, 34], k=3, levels=2, seed=3)["coords"]
+    lights = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86]])
+    relit = materialize(coords=coords, source=model)["output"].evaluate(lights)
+    exemplar_relit = model.evaluate(lights)
+    r, c = coords.coords[..., 0], coords.coords[..., 1]
+    np.testing.assert_allclose(relit, exemplar_relit[:, :, r, c], rtol=1e-5, atol=1e-6)
+    stack = SampleStack(exemplar_relit, lights, [[0, 0, 1]])
+    replayed = materialize(coords=coords, source=stack)["output"]
+    assert isinstance(replayed, SampleStack)
+    np.testing.assert_allclose(replayed.samples, relit, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("params,name", [
+    ({"neighborhood": 4}, "neighborhood"),
+    ({"neighborhood": 1}, "neighborhood"),
+    ({"k": 0}, "'k'"),
+    ({"size": [0, 16]}, "size"),
+    ({"levels": 4}, "levels"),     # 32 -> 4 texels at the coarsest level, smaller than 5 x 5
+    ({"levels": 0}, "levels"),
+])
+def test_invalid_params_name_the_param(material, params, name):
+    with pytest.raises(BtforgeInputError) as info:
+        kcoherence(exemplar=material, **{"size": [16, 16], **params})
+    assert name in str(info.value)
+
+
+def test_check_params_rejects_even_windows_directly():
+    with pytest.raises(BtforgeInputError, match="neighborhood"):
+        kc.check_params("kcoherence", (64, 64), size=(8, 8), neighborhood=6, k=2, levels=1)
+
+
+def test_benchmark_reports_figures():
+    figures = kc.benchmark_kcoherence(exemplar_size=16, size=24, levels=1, repeat=1)
+    for key in ("median_s", "analysis_median_s", "synthesis_median_s", "device"):
+        assert key in figures
+    assert figures["median_s"] > 0
