@@ -163,6 +163,25 @@ class CheckedGraph:
         return [n for n in nx.lexicographical_topological_sort(self.dag) if n in needed]
 
 
+def _resolve_output_types(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.DiGraph) -> dict[str, dict[str, str]]:
+    """Each node's output types; an output declared ``"=port"`` has the type of what is wired into ``port``
+    (a crop or a coordinate-map replay returns the type it was given)."""
+    resolved: dict[str, dict[str, str]] = {}
+    for name in nx.topological_sort(dag):
+        st = stages.get(name)
+        if st is None:
+            continue
+        wired = spec.nodes[name].inputs
+        types = {}
+        for port, declared in st.outputs.items():
+            if declared.startswith("="):
+                src, src_port = wired.get(declared[1:], (None, None))
+                declared = resolved.get(src, {}).get(src_port, st.inputs[declared[1:]])
+            types[port] = declared
+        resolved[name] = types
+    return resolved
+
+
 def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None) -> CheckedGraph:
     """Validate everything that can be validated without running a stage; raise one error listing all problems."""
     problems: list[str] = []
@@ -215,6 +234,8 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
 
     dag = nx.DiGraph()
     dag.add_nodes_from(spec.nodes)
+    node_ports: dict[str, dict[str, str]] = {}
+    typed_edges: list[tuple[str, str, str, str, str]] = []  # (where, src, src_port, node, port) to type-check
     for name, st in stages.items():
         node = spec.nodes[name]
         try:
@@ -238,10 +259,8 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 problem(where, f"node '{src}' ({src_stage.name}) has no output port '{src_port}'",
                         did_you_mean(src_port, src_stage.outputs))
                 continue
-            have, want = src_stage.outputs[src_port], ports[port]
-            if not registry.accepts(want, have):
-                problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
-                        "wire an output of the expected type")
+            typed_edges.append((where, src, src_port, name, port))
+        node_ports[name] = ports
         for port in ports:
             if port not in node.inputs and port not in st.optional_inputs:
                 problem(spec.where(name, node.line), f"input port '{port}' ({ports[port]}) is not wired",
@@ -254,6 +273,13 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
     if cycle:
         loop = " -> ".join([e[0] for e in cycle] + [cycle[0][0]])
         problem(spec.source, f"the graph has a cycle: {loop}", "a node cannot depend on its own output")
+    else:
+        output_types = _resolve_output_types(spec, stages, dag)
+        for where, src, src_port, name, port in typed_edges:
+            have, want = output_types[src][src_port], node_ports[name][port]
+            if not registry.accepts(want, have):
+                problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
+                        "wire an output of the expected type")
 
     if not problems:
         for name, st in stages.items():

@@ -53,7 +53,13 @@ class Registry:
                     other = self.stages[st.name].plugin
                     raise BtforgeInputError(f"stage '{st.name}'", f"is defined by both {other} and {st.plugin}",
                                             "uninstall one of the plugins or rename the stage")
+                for port, tname in st.outputs.items():
+                    if tname.startswith("=") and tname[1:] not in st.inputs:
+                        raise BtforgeInputError(f"stage '{st.name}', output '{port}'",
+                                                f"takes the type of input '{tname[1:]}', which the stage does not have")
                 for port, tname in {**st.inputs, **st.outputs}.items():
+                    if tname.startswith("="):
+                        continue
                     if tname not in self.types:
                         raise BtforgeInputError(f"stage '{st.name}', port '{port}'", f"names unknown buffer type '{tname}'",
                                                 f"known types: {', '.join(sorted(self.types))}")

@@ -122,7 +122,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             report.seconds = time.perf_counter() - start
             report.peak_rss_mb = round(mem.peak / 2**20, 1)
             report.status, report.notes = "ran", ctx.notes
-            _check_outputs(name, st, outputs or {}, registry)
+            _check_outputs(name, st, outputs or {}, inputs, registry)
             values[name] = dict(outputs or {})
             if use_cache and not st.side_effects:
                 cache.store(key, values[name], ctx.notes)
@@ -160,12 +160,13 @@ def _depends(graph: CheckedGraph, name: str, paths: RunPaths):
         yield from st.precheck(graph.params[name], paths) or ()
 
 
-def _check_outputs(name: str, st, outputs: Mapping[str, Any], registry: Registry) -> None:
+def _check_outputs(name: str, st, outputs: Mapping[str, Any], inputs: Mapping[str, Any], registry: Registry) -> None:
     if set(outputs) != set(st.outputs):
         raise BtforgeError(f"node '{name}': stage '{st.name}' ({st.plugin}) returned ports {sorted(outputs)}, "
                            f"declared {sorted(st.outputs)}")
     for port, value in outputs.items():
-        want = registry.types[st.outputs[port]]
+        declared = st.outputs[port]
+        want = type(inputs[declared[1:]]) if declared.startswith("=") else registry.types[declared]
         if not isinstance(value, want):
             raise BtforgeError(f"node '{name}': stage '{st.name}' returned {type(value).__name__} on port '{port}', "
                                f"declared {want.type_name}")

@@ -220,6 +220,8 @@ def declare_stage(
     ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
     it runs during validation, before any stage does.
+    An output typed ``"=port"`` has the type of whatever is wired into input ``port`` (a stage that crops or
+    remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
     has one port per material its scene names); the function then takes them as ``**kwargs``.
     """

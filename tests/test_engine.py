@@ -172,3 +172,17 @@ def test_ports_that_depend_on_params(registry, tmp_path):
     graph["nodes"]["sum"]["inputs"] = {"a": "src.numbers", "b": "src.numbers", "c": "src.numbers"}
     with pytest.raises(BtforgeInputError, match="has no input port 'c'"):
         btforge.run(graph, registry=registry, cache_dir=tmp_path)
+
+
+def test_outputs_typed_like_an_input_keep_the_wired_type(tmp_path):
+    graph = {"nodes": {
+        "material": {"stage": "demo.material", "params": {"size": [12, 12], "lights": 8}},
+        "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
+        "patch": {"stage": "crop", "params": {"origin": [2, 3], "size": [5, 6]}, "inputs": {"input": "fit.model"}},
+        "relit": {"stage": "relight", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "patch.output"}},
+    }}
+    result = btforge.run(graph, cache_dir=tmp_path)
+    assert result["relit"]["stack"].samples.shape == (1, 1, 5, 6, 3)
+    graph["nodes"]["patch"]["inputs"] = {"input": "material.stack"}  # a cropped stack is no model
+    with pytest.raises(BtforgeInputError, match="expects ReflectanceModel, but 'patch.output' gives SampleStack"):
+        btforge.run(graph, cache_dir=tmp_path)

@@ -12,7 +12,7 @@ from btforge import REQUIRED, Param, declare_stage, hookimpl
 from . import jumpmap, kcoherence, scoring
 
 
-@declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "PerTexel"})
+@declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "=source"})
 def materialize(ctx, coords, source):
     """Apply a coordinate map to any per-texel buffer; the output has the type of ``source``.
 
@@ -23,6 +23,20 @@ def materialize(ctx, coords, source):
     out = coords.apply(source)
     ctx.note("size", [out.height, out.width])
     return {"output": out}
+
+
+@declare_stage("crop", inputs={"input": "PerTexel"}, outputs={"output": "=input"},
+               params=[Param("origin", "ints", (0, 0), "top-left texel [row, column]", length=2, low=0),
+                       Param("size", "ints", REQUIRED, "size [H, W] of the crop", length=2, low=1)])
+def crop(ctx, input, *, origin, size):
+    """Cut a rectangle out of any per-texel buffer (a stack or a model), e.g. a small exemplar for synthesis."""
+    from btforge.errors import BtforgeInputError
+    (r0, c0), (h, w) = origin, size
+    if r0 + h > input.height or c0 + w > input.width:
+        raise BtforgeInputError("crop", f"expected the crop to fit in the {input.height} x {input.width} input, found "
+                                f"rows {r0}..{r0 + h - 1}, columns {c0}..{c0 + w - 1}", "move 'origin' or shrink 'size'")
+    rows, cols = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
+    return {"output": input.remap(rows, cols)}
 
 
 @declare_stage("coords.write", inputs={"coords": "CoordMap"},
@@ -39,4 +53,4 @@ def coords_write(ctx, coords, *, path):
 
 @hookimpl
 def btforge_stages():
-    return [materialize, coords_write, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
+    return [materialize, crop, coords_write, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
