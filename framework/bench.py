@@ -32,6 +32,14 @@ def add_parser(sub):
     g.add_argument("--repeat", type=int, default=5)
     g.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
+    y = which.add_parser("synthesis", help="synthesis quality (scores) against time over the synthesizers' knobs")
+    y.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crop is the exemplar")
+    y.add_argument("--out", required=True, help="folder for synthesis.csv and synthesis.png")
+    y.add_argument("--crop", type=int, default=64, help="exemplar size in texels (default 64)")
+    y.add_argument("--size", type=int, default=256, help="output size in texels (default 256)")
+    y.add_argument("--repeat", type=int, default=1, help="runs per configuration; the median time is reported")
+    y.add_argument("--only", action="append", help="only these synthesizers (quilt, kcoherence, jumpmap)")
+
     r = which.add_parser("representations", help="fit time, relight time, size and held-out error of every representation")
     r.add_argument("--stack", required=True, help="the capture to fit (.lp or .lvp)")
     r.add_argument("--test", help="held-out capture at other lights (default: every fifth light of --stack)")
@@ -247,6 +255,12 @@ def main(args) -> int:
     if args.bench == "render":
         from btforge.plugins.render.bench import benchmark_render
         _report_plugin_bench(benchmark_render(repeat=args.repeat), args.json)
+        return 0
+    if args.bench == "synthesis":
+        from btforge.plugins.synth.bench import bench_synthesis
+        rows = bench_synthesis(args.exemplar, args.out, crop=args.crop, size=args.size, repeat=args.repeat,
+                               only=args.only)
+        print(f"wrote {Path(args.out) / 'synthesis.csv'} and synthesis.png ({len(rows)} configurations)")
         return 0
     if args.bench == "representations":
         rows = bench_representations(args)

@@ -10,20 +10,21 @@ PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 
            (227, 119, 194), (127, 127, 127)]
 
 
-def pareto_front(xs: Sequence[float], ys: Sequence[float]) -> list[int]:
-    """Indices of points no other point beats on both axes (smaller x, larger y), ordered by x."""
-    order = sorted(range(len(xs)), key=lambda i: (xs[i], -ys[i]))
+def pareto_front(xs: Sequence[float], ys: Sequence[float], higher_is_better: bool = True) -> list[int]:
+    """Indices of points no other point beats on both axes (smaller x, better y), ordered by x."""
+    sign = 1.0 if higher_is_better else -1.0
+    order = sorted(range(len(xs)), key=lambda i: (xs[i], -sign * ys[i]))
     front, best = [], -math.inf
     for i in order:
-        if ys[i] > best:
+        if sign * ys[i] > best:
             front.append(i)
-            best = ys[i]
+            best = sign * ys[i]
     return front
 
 
 def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel: str, log_x: bool = True,
-                size=(960, 640)) -> None:
-    """Write a labelled scatter plot with the Pareto front (less x, more y) marked, atomically, as PNG."""
+                higher_is_better: bool = True, size=(960, 640)) -> None:
+    """Write a labelled scatter plot with the Pareto front (less x, better y) marked, atomically, as PNG."""
     from .atomic import atomic_write
     width, height = size
     left, right, top, bottom = 80, 30, 50, 70
@@ -58,7 +59,7 @@ def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel
     draw.text((8, top - 30), ylabel, fill="black", font=font)
 
     valid = [i for i, (x, y) in enumerate(zip(xs, ys)) if x > 0 and math.isfinite(y)]
-    front = [valid[j] for j in pareto_front([xs[i] for i in valid], [ys[i] for i in valid])]
+    front = [valid[j] for j in pareto_front([xs[i] for i in valid], [ys[i] for i in valid], higher_is_better)]
     if len(front) > 1:
         draw.line([to_px(xs[i], ys[i]) for i in front], fill=(120, 120, 120), width=2)
     colours = {g: PALETTE[k % len(PALETTE)] for k, g in enumerate(dict.fromkeys(groups))}
