@@ -2,7 +2,7 @@
 
 Stages: ``render`` (a scene with one input port per material it names -> a linear RGB ``Image``), ``scene.read``
 (a scene file with the meshes and maps it names -> a ``Scene``), ``image.write`` (EXR, PNG, GIF, MP4).
-The scene format is described in ``SCENES.md`` beside this file.
+The scene format is described in README.md, section "Scene format".
 """
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ def _scene_read_precheck(params, paths):
 
 
 @declare_stage("scene.read", outputs={"scene": "Scene"},
-               params=[Param("path", "path", REQUIRED, "the scene YAML file (see SCENES.md)")],
+               params=[Param("path", "path", REQUIRED, "the scene YAML file (format: README, Scene format)")],
                precheck=_scene_read_precheck)
 def scene_read(ctx, *, path):
     """Read and check a scene file with the meshes and environment maps it names, into one self-contained Scene.

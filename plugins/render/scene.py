@@ -2,7 +2,7 @@
 
 Everything a user can get wrong in a scene is reported here, with the key path at fault (``meshes.ground.material``),
 before anything renders: :func:`parse_scene` checks the structure and values; :func:`load_scene` also reads the
-files it names (meshes, environment maps).  The format is documented in ``SCENES.md`` beside this file.
+files it names (meshes, environment maps).  The format is documented in README.md, section "Scene format".
 """
 from __future__ import annotations
 
@@ -260,7 +260,7 @@ def read_scene_source(value: Any, paths) -> tuple[Mapping[str, Any], str, Path]:
         raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
     if not isinstance(data, Mapping):
         raise BtforgeInputError(f"scene {path}", f"expected a mapping at the top, found {type(data).__name__}",
-                                "see SCENES.md for the layout")
+                                "see the Scene format section of README.md")
     return data, str(path), path.parent
 
 
