@@ -196,7 +196,12 @@ class ToyViewModel(ReflectanceModel):
         return ("R", "G", "B")
 
     def evaluate(self, lights, views=None):
-        raise NotImplementedError
+        lights = np.asarray(lights, np.float32)
+        vz = np.ones(1, np.float32) if views is None else np.asarray(views, np.float32)[:, 2]
+        lobe = 0.3 + 0.7 * np.clip(vz, 0, 1) ** 8                                   # [V]
+        shade = np.maximum(lights[:, 2], 0)                                          # [L]
+        return (lobe[:, None, None, None, None] * shade[None, :, None, None, None] * self.albedo[None, None]
+                ).astype(np.float32)
 
     def evaluate_texels(self, rows, cols, lights, views=None):
         vz = np.ones(len(rows), np.float32) if views is None else np.asarray(views)[:, 2]
