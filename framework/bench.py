@@ -32,6 +32,16 @@ def add_parser(sub):
     g.add_argument("--repeat", type=int, default=5)
     g.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
 
+    qb = which.add_parser("quilt", help="quilting 512 x 512 from a 128 x 128 9-D PTM exemplar: rejection vs brute force")
+    qb.add_argument("--ptm", help="take the exemplar from the centre of this .ptm file (default: random smooth fields)")
+    qb.add_argument("--repeat", type=int, default=5)
+    qb.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
+    kb = which.add_parser("kcoherence", help="k-coherence 256 x 256, 3 levels, k = 6, 5 x 5 neighbourhood")
+    kb.add_argument("--exemplar-size", type=int, default=64, help="exemplar side in texels (default 64)")
+    kb.add_argument("--repeat", type=int, default=5)
+    kb.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+
     y = which.add_parser("synthesis", help="synthesis quality (scores) against time over the synthesizers' knobs")
     y.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crop is the exemplar")
     y.add_argument("--out", required=True, help="folder for synthesis.csv and synthesis.png")
@@ -255,6 +265,19 @@ def main(args) -> int:
     if args.bench == "render":
         from btforge.plugins.render.bench import benchmark_render
         _report_plugin_bench(benchmark_render(repeat=args.repeat), args.json)
+        return 0
+    if args.bench == "quilt":
+        from btforge.plugins.synth.quilting import benchmark_quilt
+        exemplar = None
+        if args.ptm:
+            from btforge import stage
+            exemplar = stage("ptm.read")(path=args.ptm)["model"]
+        figures = benchmark_quilt(repeat=args.repeat, exemplar=exemplar)
+        _report_plugin_bench(figures, args.json)
+        return 0
+    if args.bench == "kcoherence":
+        from btforge.plugins.synth.kcoherence import benchmark_kcoherence
+        _report_plugin_bench(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat), args.json)
         return 0
     if args.bench == "synthesis":
         from btforge.plugins.synth.bench import bench_synthesis

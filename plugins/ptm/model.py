@@ -78,6 +78,11 @@ class PTMModel(ReflectanceModel):
     def channels(self) -> tuple[str, ...]:
         return self.channel_names
 
+    @property
+    def blendable(self) -> bool:
+        # An lrgb texel is colour x polynomial: blending the two separately is not blending the functions.
+        return self.variant == "rgb"
+
     def with_basis(self, basis: str) -> "PTMModel":
         """The same functions with coefficients in the ``raw`` or ``orthonormal`` (Legendre) basis."""
         if basis == self.basis:

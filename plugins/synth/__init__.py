@@ -9,7 +9,7 @@ import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 
-from . import jumpmap, kcoherence, scoring
+from . import jumpmap, kcoherence, quilting, scoring
 
 
 @declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "=source"})
@@ -53,4 +53,4 @@ def coords_write(ctx, coords, *, path):
 
 @hookimpl
 def btforge_stages():
-    return [materialize, crop, coords_write, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
+    return [materialize, crop, coords_write, *quilting.STAGES, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
