@@ -251,7 +251,9 @@ class PerTexel(Buffer):
             if use_blend:
                 w = blend_weight.reshape(blend_weight.shape + (1,) * (array.ndim - ax - 2)).astype(np.float32)
                 other = array[index + (blend_rows, blend_cols)]
-                gathered = ((1 - w) * gathered + w * other).astype(array.dtype)
+                mixed = (1 - w) * gathered + w * other
+                # Integer records (quantized coefficients) round to the nearest code instead of truncating.
+                gathered = (np.rint(mixed) if array.dtype.kind in "iu" else mixed).astype(array.dtype)
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
 

@@ -186,3 +186,26 @@ def test_outputs_typed_like_an_input_keep_the_wired_type(tmp_path):
     graph["nodes"]["patch"]["inputs"] = {"input": "material.stack"}  # a cropped stack is no model
     with pytest.raises(BtforgeInputError, match="expects ReflectanceModel, but 'patch.output' gives SampleStack"):
         btforge.run(graph, cache_dir=tmp_path)
+
+
+def test_blending_integer_records_rounds():
+    from btforge.buffers import CoordMap
+    stack = SampleStack(np.array([10, 13], np.uint8).reshape(1, 1, 2, 1, 1), [[0, 0, 1]], [[0, 0, 1]], ("Y",),
+                        encoding="srgb8")
+    blend = CoordMap(np.zeros((1, 1, 2), np.int32), (2, 1), np.array([[[1, 0]]], np.int32),
+                     np.array([[0.5]], np.float32))
+    assert blend.apply(stack).samples[0, 0, 0, 0, 0] == 12  # 11.5 rounds to the even code; truncation gives 11
+
+
+def test_non_linear_models_take_the_heavier_texel():
+    from btforge.buffers import CoordMap
+    from btforge.plugins.lafortune.model import LafortuneModel
+    normals = np.array([[[0, 0, 1]], [[0.6, 0, 0.8]]], np.float32)                    # [2, 1, 3]
+    model = LafortuneModel(normals, np.array([[[0.2]], [[0.4]]], np.float32),
+                           np.array([[[[-1, -1, 1]]], [[[-0.5, -0.5, 0.9]]]], np.float32),
+                           np.array([[[10.0]], [[200.0]]], np.float32), np.full((2, 1, 3), 0.8, np.float32), "lum")
+    blend = CoordMap(np.zeros((1, 1, 2), np.int32), (2, 1), np.array([[[1, 0]]], np.int32),
+                     np.array([[0.7]], np.float32))
+    out = blend.apply(model)
+    for name in LafortuneModel.texel_fields:
+        np.testing.assert_array_equal(getattr(out, name)[0, 0], getattr(model, name)[1, 0])

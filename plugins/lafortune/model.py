@@ -143,6 +143,7 @@ class LafortuneModel(ReflectanceModel):
     type_name: ClassVar[str] = "LafortuneModel"
     view_dependent: ClassVar[bool] = True
     texel_fields: ClassVar[tuple[str, ...]] = ("normals", "diffuse", "lobes", "exponents", "colour")
+    blendable: ClassVar[bool] = False  # lobes are non-linear in their parameters: a mean of lobes is no mean lobe
 
     normals: np.ndarray
     diffuse: np.ndarray
