@@ -64,3 +64,15 @@ def test_demo_graph_validates():
     repo = Path(__file__).resolve().parents[1]
     checked = check_graph(load_graph(repo / "graphs" / "demo.yaml"), default_registry())
     assert "fit" in checked.stages
+
+
+SHIPPED_GRAPHS = sorted((Path(__file__).resolve().parents[1] / "graphs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", SHIPPED_GRAPHS, ids=[p.stem for p in SHIPPED_GRAPHS])
+def test_every_shipped_graph_validates(path):
+    from conftest import SHARED_DATA
+    if "shared/data" in path.read_text() and not SHARED_DATA.is_dir():
+        pytest.skip("needs ../shared/data")
+    checked = check_graph(load_graph(path), default_registry())
+    assert checked.dag.number_of_nodes() >= 2
