@@ -253,9 +253,17 @@ def bench_representations(args) -> list[dict]:
     return rows
 
 
+def _short(value):
+    """Long per-step lists (e.g. the fraction rejected after each projection) at a few steps, for the screen."""
+    if isinstance(value, list) and len(value) > 12 and all(isinstance(v, (int, float)) for v in value):
+        steps = [k for k in (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024) if k <= len(value)] + [len(value)]
+        return "after " + ", ".join(f"{k}: {value[k - 1]}" for k in dict.fromkeys(steps))
+    return value
+
+
 def _report_plugin_bench(figures: dict, json_path: str | None) -> None:
     for key, value in figures.items():
-        print(f"  {key}: {value}")
+        print(f"  {key}: {_short(value)}")
     if json_path:
         from .atomic import atomic_write_text
         atomic_write_text(json_path, json.dumps(figures, indent=2, default=str))
