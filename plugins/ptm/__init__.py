@@ -113,7 +113,12 @@ def ptm_write(ctx, model, *, path):
 
 def _describe_ptm(path):
     from .ptmfile import describe_ptm
-    return describe_ptm(path)
+    info = describe_ptm(path)
+    expected, found = info.get("expected_size_bytes"), info.get("size_bytes")
+    if expected is not None and found is not None and expected != found:
+        raise BtforgeInputError(str(path), f"the header promises {expected} bytes, the file has {found}",
+                                "the file is truncated or has trailing data; export it again")
+    return info
 
 
 @hookimpl
