@@ -36,7 +36,8 @@ def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel
     fy = [y for _, y in finite] or [0.0, 1.0]
     x0, x1 = min(fx), max(fx)
     y0, y1 = min(fy), max(fy)
-    pad_x, pad_y = max((x1 - x0) * 0.08, 0.1), max((y1 - y0) * 0.08, 0.5)
+    pad_x = max((x1 - x0) * 0.08, 0.1)
+    pad_y = (y1 - y0) * 0.08 or max(abs(y1) * 0.05, 1e-3)  # relative: scores may span 0.01 or 10 dB
     x0, x1, y0, y1 = x0 - pad_x, x1 + pad_x, y0 - pad_y, y1 + pad_y
 
     def to_px(x, y):
@@ -49,7 +50,7 @@ def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel
         yv = y0 + (y1 - y0) * k / 5
         py = height - bottom - (yv - y0) / (y1 - y0) * (height - top - bottom)
         draw.line([left - 4, py, left, py], fill="black")
-        draw.text((8, py - 6), f"{yv:.1f}", fill="black", font=font)
+        draw.text((8, py - 6), f"{yv:.3g}", fill="black", font=font)
         xv = x0 + (x1 - x0) * k / 5
         px = left + (xv - x0) / (x1 - x0) * (width - left - right)
         draw.line([px, height - bottom, px, height - bottom + 4], fill="black")
