@@ -442,4 +442,20 @@ class CoordMap(Buffer):
         return source.remap(rows, cols)
 
 
+def scattered_lookup(model: "ReflectanceModel", rows, cols, lights, views=None):
+    """Checked arguments of ``evaluate_texels``: int rows and cols ``[N]`` inside the model, float32 unit
+    ``lights [N, 3]`` and ``views [N, 3]`` (straight up when None)."""
+    owner = f"{model.type_name} evaluate_texels"
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    lights = np.ascontiguousarray(lights, dtype=np.float32)
+    n = rows.shape[0] if rows.ndim == 1 else -1
+    views = np.tile(np.float32([0, 0, 1]), (max(n, 0), 1)) if views is None else np.ascontiguousarray(views, np.float32)
+    if rows.shape != cols.shape or rows.ndim != 1 or lights.shape != (n, 3) or views.shape != (n, 3):
+        raise BtforgeInputError(owner, f"expected rows [N], cols [N], lights [N, 3] and views [N, 3], found "
+                                f"{rows.shape}, {cols.shape}, {lights.shape} and {views.shape}")
+    if rows.size and (rows.min() < 0 or rows.max() >= model.height or cols.min() < 0 or cols.max() >= model.width):
+        raise BtforgeInputError(owner, f"texel indices must lie inside the {model.height} x {model.width} model")
+    return rows, cols, lights, views
+
+
 CORE_TYPES: tuple[type[Buffer], ...] = (Buffer, SampleStack, PerTexel, ReflectanceModel, Scores, CoordMap)

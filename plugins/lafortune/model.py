@@ -66,7 +66,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.backend import get_backend, texel_chunks
-from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, unit_directions
+from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
 from btforge.errors import BtforgeInputError
 
 KERNELS = Path(__file__).with_name("lafortune.cl")
@@ -201,6 +201,30 @@ class LafortuneModel(ReflectanceModel):
             "exponents": self.exponents.reshape(n, -1),
             "colour": self.colour.reshape(n, self.colour.shape[2]),
         }
+
+    def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
+                        views_local: np.ndarray | None = None) -> np.ndarray:
+        """Linear radiance ``[N, C]`` of texel ``(rows[i], cols[i])`` at its own light and view in the surface
+        frame (for renderers), with the arithmetic of :func:`evaluate_lafortune_numpy`."""
+        rows, cols, lights_local, views_local = scattered_lookup(self, rows, cols, lights_local, views_local)
+        frames = texel_frames(self.normals[rows, cols])                                 # [N, 3, 3]
+        u = np.einsum("nij,nj->ni", frames, lights_local).astype(np.float32)
+        x = u * np.einsum("nij,nj->ni", frames, views_local).astype(np.float32)
+        diffuse, lobes, exponents = self.diffuse[rows, cols], self.lobes[rows, cols], self.exponents[rows, cols]
+        n_channel = len(self.channel_names)
+        n_signal = 1 if self.variant == "lum" else n_channel
+        per_signal = exponents.shape[1] // n_signal
+        cos = np.maximum(u[:, 2], np.float32(0))
+        out = np.empty((len(rows), n_channel), np.float32)
+        for sig in range(n_signal):
+            f = diffuse[:, sig].astype(np.float32)
+            for k in range(sig * per_signal, (sig + 1) * per_signal):
+                f = f + _lobe32(np.einsum("nc,nc->n", lobes[:, k], x), exponents[:, k])
+            if self.variant == "lum":
+                out[:] = self.colour[rows, cols] * (cos * f)[:, None]
+            else:
+                out[:, sig] = cos * f
+        return out
 
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` and ``views [V, 3]`` (top view

@@ -16,7 +16,7 @@ import numpy as np
 
 from btforge.backend import get_backend
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen,
-                             linear_to_srgb, srgb_to_linear, unit_directions)
+                             linear_to_srgb, scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
 
 from .legendre import to_orthonormal, to_raw
@@ -110,15 +110,7 @@ class PTMModel(ReflectanceModel):
         columns, y toward row 0, z out of the surface), e.g. one per pixel.  ``views_local`` is ignored: a PTM is
         a function of the light only.  Same arithmetic as :meth:`evaluate` (kernel ``ptm_eval_scattered``).
         """
-        rows = np.asarray(rows)
-        cols = np.asarray(cols)
-        lights_local = np.ascontiguousarray(lights_local, dtype=np.float32)
-        if rows.shape != cols.shape or rows.ndim != 1 or lights_local.shape != (rows.shape[0], 3):
-            raise BtforgeInputError("PTM evaluate_texels", f"expected rows [N], cols [N] and lights [N, 3], found "
-                                    f"{rows.shape}, {cols.shape} and {lights_local.shape}")
-        if rows.size and (rows.min() < 0 or rows.max() >= self.height or cols.min() < 0 or cols.max() >= self.width):
-            raise BtforgeInputError("PTM evaluate_texels", f"texel indices must lie inside the {self.height} x "
-                                    f"{self.width} model")
+        rows, cols, lights_local, _ = scattered_lookup(self, rows, cols, lights_local)
         texels = (rows.astype(np.int64) * self.width + cols).astype(np.int32)
         raw = self.with_basis("raw")
         flat_coeffs = raw.coeffs.reshape(-1, self.coeffs.shape[2], N_TERMS)

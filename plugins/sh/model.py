@@ -48,7 +48,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.backend import get_backend, texel_chunks
-from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, unit_directions
+from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
 from btforge.errors import BtforgeInputError
 
 KERNELS = Path(__file__).with_name("sh.cl")
@@ -179,6 +179,18 @@ class SHModel(ReflectanceModel):
         if not self.quantized:
             return self.coeffs
         return (self.coeffs.astype(np.float32) * self.scale + self.bias).astype(np.float32)
+
+    def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
+                        views_local: np.ndarray | None = None) -> np.ndarray:
+        """Linear radiance ``[N, C]`` of texel ``(rows[i], cols[i])`` at its own light and view (for renderers),
+        with the arithmetic of :func:`evaluate_sh_numpy`."""
+        rows, cols, lights_local, views_local = scattered_lookup(self, rows, cols, lights_local, views_local)
+        c = self.coeffs[rows, cols]
+        c = c.astype(np.float32) * self.scale + self.bias if self.quantized else c    # [N, C, k_v, k_l]
+        yl = real_sh(self.light_order, lights_local).astype(np.float32)              # [N, k_l]
+        yv = real_sh(self.view_order, views_local).astype(np.float32)                # [N, k_v]
+        out = np.einsum("ncab,na,nb->nc", c, yv, yl)
+        return np.maximum(out, 0.0).astype(np.float32)
 
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` and ``views [V, 3]``, clipped at 0.
