@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run a graph (only what the requested outputs need)")
     p.add_argument("graph")
-    p.add_argument("--out", help="folder where output paths resolve (default: current folder)")
+    p.add_argument("--out", help="folder where output paths resolve (default: ./out)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE", help="override a parameter")
     p.add_argument("--only", action="append", metavar="NODE", help="run only what this node needs (repeatable)")
     p.add_argument("--report", metavar="FILE.json", help="write the per-node report as JSON")

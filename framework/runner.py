@@ -21,6 +21,9 @@ from .registry import Registry, default_registry
 from .stages import RunPaths
 
 
+DEFAULT_OUT = Path("out")  # relative: resolved against the current folder when a stage writes
+
+
 def _rss_bytes() -> int:
     try:
         with open("/proc/self/statm") as f:
@@ -87,7 +90,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
                 out_dir: Path | None = None, cache_dir: Path | None = None, use_cache: bool = True,
                 quiet: bool = False) -> RunResult:
     registry = registry or default_registry()
-    paths = RunPaths(graph.spec.graph_dir, Path(out_dir) if out_dir else Path.cwd())
+    paths = RunPaths(graph.spec.graph_dir, Path(out_dir) if out_dir else DEFAULT_OUT)
     cache = NodeCache(cache_dir or default_cache_root() / "nodes")
     order = graph.needed_for(only)
     targets = set(only) if only else {n for n in order if graph.dag.out_degree(n) == 0}
@@ -187,11 +190,11 @@ def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = No
     set
         Parameter overrides ``{"node.param": value}``.
     out_dir, cache_dir
-        Where output paths resolve (default: the current folder) and where node outputs are cached.
+        Where output paths resolve (default: ``out`` in the current folder) and where node outputs are cached.
     """
     registry = registry or default_registry()
     spec = load_graph(graph, set)
-    out = Path(out_dir) if out_dir else Path.cwd()
+    out = Path(out_dir) if out_dir else DEFAULT_OUT
     checked = check_graph(spec, registry, out)
     result = run_checked(checked, only=list(only) if only else None, registry=registry, out_dir=out,
                          cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet)
