@@ -25,6 +25,19 @@ inline int pick_target(const int texel, const float u, __global const float *cum
     return targets[texel * JUMPS + min(j, JUMPS - 1)];
 }
 
+// Flat index of output pixel (qy, qx) one step from the image: wrapped around a tiling output, -1 outside one
+// that does not tile.
+inline int output_neighbour(int qy, int qx, const int ho, const int wo, const int wrap)
+{
+    if (wrap) {
+        qy = (qy + ho) % ho;
+        qx = (qx + wo) % wo;
+    } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
+        return -1;
+    }
+    return qy * wo + qx;
+}
+
 __kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, const int wo, const int wrap,
                       const int t, const int y0, const int ny,
                       __global const float *uniform, __global const int *fallback,
@@ -45,15 +58,9 @@ __kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, co
     for (int d = 0; d < 4; ++d) {
         cand[d] = -1;
         flag[d] = 0;
-        int qy = y + NBR_Y[d], qx = x + NBR_X[d];
-        if (wrap) {
-            qy = (qy + ho) % ho;
-            qx = (qx + wo) % wo;
-        } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
-            continue;
-        }
-        if (qx + 2 * qy >= t) continue;
-        const int s = src[qy * wo + qx];
+        const int q = output_neighbour(y + NBR_Y[d], x + NBR_X[d], ho, wo, wrap);
+        if (q < 0 || q % wo + 2 * (q / wo) >= t) continue;  // outside, or not yet synthesized
+        const int s = src[q];
         const int sy = s / we - NBR_Y[d], sx = s % we - NBR_X[d];
         const float u0 = uniform[((size_t)p * 4 + d) * 2], u1 = uniform[((size_t)p * 4 + d) * 2 + 1];
         if (sy >= 0 && sy < he && sx >= 0 && sx < we) {
@@ -78,15 +85,9 @@ __kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, co
     for (int oy = -1; oy <= 1; ++oy) {
         for (int ox = -1; ox <= 1; ++ox) {
             if (!oy && !ox) continue;
-            int qy = y + oy, qx = x + ox;
-            if (wrap) {
-                qy = (qy + ho) % ho;
-                qx = (qx + wo) % wo;
-            } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
-                continue;
-            }
-            if (qx + 2 * qy >= t) continue;
-            const int tq = tex[src[qy * wo + qx]];
+            const int q = output_neighbour(y + oy, x + ox, ho, wo, wrap);
+            if (q < 0 || q % wo + 2 * (q / wo) >= t) continue;
+            const int tq = tex[src[q]];
             for (int d = 0; d < 4; ++d) {
                 if (cand[d] < 0) continue;
                 const int c = cand[d];

@@ -150,6 +150,15 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, 
     return src, flags
 
 
+def _output_neighbour(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bool):
+    """Flat index of output pixels (qy, qx) and whether they exist: wrapped around a tiling output, clipped (and
+    marked outside) otherwise."""
+    if wrap:
+        return (qy % ho) * wo + qx % wo, np.ones(qy.shape, bool)
+    inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
+    return np.clip(qy, 0, ho - 1) * wo + np.clip(qx, 0, wo - 1), inside
+
+
 def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
     """Twin of ``jm_walk``, vectorised over each wavefront: flat sources and per-pixel jump flags."""
     he, we = jm.height, jm.width
@@ -172,14 +181,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
         jumped = np.zeros((n, 4), bool)
         forced = np.zeros((n, 4), bool)
         for d in range(4):
-            qy, qx = ys + NEIGHBOUR[d, 0], xs + NEIGHBOUR[d, 1]
-            if wrap:
-                inside = np.ones(n, bool)
-                qy, qx = qy % ho, qx % wo
-            else:
-                inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
-                qy, qx = np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1)
-            q = qy * wo + qx
+            q, inside = _output_neighbour(ys + NEIGHBOUR[d, 0], xs + NEIGHBOUR[d, 1], ho, wo, wrap)
             ok = inside & done[q]
             s = src[q]
             sy, sx = s // we + STEP[d, 0], s % we + STEP[d, 1]
@@ -204,14 +206,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
         cy, cx = safe // we + 1, safe % we + 1
         cost = np.zeros((n, 4), np.float32)
         for oy, ox in WINDOW:
-            qy, qx = ys + oy, xs + ox
-            if wrap:
-                inside = np.ones(n, bool)
-                qy, qx = qy % ho, qx % wo
-            else:
-                inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
-                qy, qx = np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1)
-            q = qy * wo + qx
+            q, inside = _output_neighbour(ys + oy, xs + ox, ho, wo, wrap)
             use = inside & done[q]
             term = table[tex_pad[cy + oy, cx + ox], tex[src[q]][:, None]]
             cost += np.where(use[:, None], term, np.float32(0))

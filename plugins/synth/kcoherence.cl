@@ -179,6 +179,18 @@ inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc,
 #define CAUSAL_PASS cur, prev, use_prev, fixed, ho, wo, wrap, step, off_dy, off_dx, noff, tex, tex_pad, he, we, \
                     wp, pad, table, nt, ksets, kmax, k
 
+// Flat index of output pixel (qy, qx): wrapped around a tiling output, -1 outside one that does not tile.
+inline int output_neighbour(int qy, int qx, const int ho, const int wo, const int wrap)
+{
+    if (wrap) {
+        qy = (qy % ho + ho) % ho;
+        qx = (qx % wo + wo) % wo;
+    } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
+        return -1;
+    }
+    return qy * wo + qx;
+}
+
 inline void causal_pixel(const int y, const int x, const int t, CAUSAL_ARGS)
 {
     if (y < 0 || y >= ho || x < 0 || x >= wo) return;
@@ -187,14 +199,9 @@ inline void causal_pixel(const int y, const int x, const int t, CAUSAL_ARGS)
     int ndy[NOFF], ndx[NOFF], nsrc[NOFF], ntex[NOFF];
     int n = 0;
     for (int o = 0; o < noff; ++o) {
-        int qy = y + off_dy[o], qx = x + off_dx[o];
-        if (wrap) {
-            qy = (qy % ho + ho) % ho;
-            qx = (qx % wo + wo) % wo;
-        } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
-            continue;
-        }
-        const int q = qy * wo + qx;
+        const int q = output_neighbour(y + off_dy[o], x + off_dx[o], ho, wo, wrap);
+        if (q < 0) continue;
+        const int qy = q / wo, qx = q % wo;
         int source;
         if (fixed[q] || qx + step * qy < t) source = cur[q];
         else if (use_prev && q != p) source = prev[q];
@@ -247,14 +254,8 @@ __kernel void kc_correct(__global const int *prev, __global int *cur, const int 
     int ndy[NOFF], ndx[NOFF], nsrc[NOFF], ntex[NOFF];
     int n = 0;
     for (int o = 0; o < noff; ++o) {
-        int qy = y + off_dy[o], qx = x + off_dx[o];
-        if (wrap) {
-            qy = (qy % ho + ho) % ho;
-            qx = (qx % wo + wo) % wo;
-        } else if (qy < 0 || qy >= ho || qx < 0 || qx >= wo) {
-            continue;
-        }
-        const int q = qy * wo + qx;
+        const int q = output_neighbour(y + off_dy[o], x + off_dx[o], ho, wo, wrap);
+        if (q < 0) continue;
         if (q == p) continue;
         ndy[n] = off_dy[o];
         ndx[n] = off_dx[o];
