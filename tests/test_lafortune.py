@@ -13,18 +13,10 @@ from btforge.plugins.lafortune.model import (EXPONENT_MAX, EXPONENT_MIN, Lafortu
                                              evaluate_lafortune_numpy, evaluate_lafortune_opencl, fit_lafortune,
                                              texel_frames)
 
+from lightsets import dome, lights_at
+
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 TOP = [[0.0, 0.0, 1.0]]
-
-
-def lights_at(elevations_deg, azimuths_deg):
-    el, az = np.radians(elevations_deg), np.radians(azimuths_deg)
-    return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-
-
-def dome(n, seed=0, min_el=10):
-    rng = np.random.default_rng(seed)
-    return lights_at(rng.uniform(min_el, 88, n), rng.uniform(0, 360, n))
 
 
 def spiral(n, min_el=15.0):

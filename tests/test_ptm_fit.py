@@ -10,17 +10,9 @@ from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack
 from btforge.plugins.ptm.model import PTMModel, evaluate_ptm_numpy, evaluate_ptm_opencl, fit_ptm, ptm_terms
 
+from lightsets import dome, lights_at
+
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def lights_at(elevations_deg, azimuths_deg):
-    el, az = np.radians(elevations_deg), np.radians(azimuths_deg)
-    return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-
-
-def dome(n, seed=0, min_el=10):
-    rng = np.random.default_rng(seed)
-    return lights_at(rng.uniform(min_el, 88, n), rng.uniform(0, 360, n))
 
 
 def stack_of(samples, lights, encoding="linear"):
