@@ -150,6 +150,7 @@ class CheckedGraph:
     stages: Mapping[str, Stage]
     params: Mapping[str, Mapping[str, Any]]
     dag: nx.DiGraph
+    files: Mapping[str, tuple[Path, ...]] = dataclasses.field(default_factory=dict)  # what each node reads
 
     def needed_for(self, targets: list[str] | None) -> list[str]:
         """Nodes to evaluate, in dependency order, to produce ``targets`` (default: every sink node)."""
@@ -281,16 +282,20 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
                         "wire an output of the expected type")
 
+    files: dict[str, tuple[Path, ...]] = {}
     if not problems:
         for name, st in stages.items():
+            read = [paths.input(params[name][p.name]) for p in st.params
+                    if p.kind in ("path", "lights") and isinstance(params[name].get(p.name), str)]
             if st.precheck is not None:
                 try:
-                    st.precheck(params[name], paths)
+                    read += list(st.precheck(params[name], paths) or ())
                 except BtforgeInputError as exc:
                     problems.append(exc.located(spec.where(name, spec.nodes[name].line)).one_line())
+            files[name] = tuple(read)
 
     if problems:
         if len(problems) == 1:
             raise BtforgeInputError("", problems[0])
         raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
-    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag)
+    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files)

@@ -103,8 +103,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         params = graph.params[name]
         wired = graph.spec.nodes[name].inputs
         input_keys = {port: _key_of(values[src][src_port]) for port, (src, src_port) in wired.items()}
-        files = list(_depends(graph, name, paths))
-        key = node_key(st.name, st.version, params, input_keys, files)
+        key = node_key(st.name, st.version, params, input_keys, graph.files.get(name, ()))
         report = reports[name]
         if not quiet:
             print(f"[{index}/{len(order)}] {name} ({st.name}) ...", file=sys.stderr, flush=True)
@@ -151,16 +150,6 @@ def _key_of(value: Any) -> str:
 def _materialize(outputs: Mapping[str, Any], port: str) -> Buffer:
     value = outputs[port]
     return value.load() if isinstance(value, _Lazy) else value
-
-
-def _depends(graph: CheckedGraph, name: str, paths: RunPaths):
-    st = graph.stages[name]
-    for p in st.params:
-        value = graph.params[name].get(p.name)
-        if p.kind in ("path", "lights") and isinstance(value, str):
-            yield paths.input(value)
-    if st.precheck is not None:
-        yield from st.precheck(graph.params[name], paths) or ()
 
 
 def _check_outputs(name: str, st, outputs: Mapping[str, Any], inputs: Mapping[str, Any], registry: Registry) -> None:
