@@ -10,8 +10,9 @@ import btforge
 from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack
 from btforge.plugins.lafortune.model import (EXPONENT_MAX, EXPONENT_MIN, LafortuneModel, estimate_normals,
-                                             evaluate_lafortune_numpy, evaluate_lafortune_opencl, fit_lafortune,
-                                             texel_frames)
+                                             evaluate_lafortune_numpy, evaluate_lafortune_opencl,
+                                             evaluate_lafortune_scattered_numpy, evaluate_lafortune_scattered_opencl,
+                                             fit_lafortune, texel_frames)
 
 from lightsets import dome, lights_at
 
@@ -132,6 +133,27 @@ def test_opencl_evaluation_matches_numpy(seed, variant, lobes, huge, n_view):
     assert np.isfinite(a).all() and (a >= 0).all()
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * max(1.0, float(np.abs(b).max())))
     assert not a[:, :, :3].any()                                            # black texels stay black
+
+
+@FAST
+@given(seed=st.integers(0, 2**16), variant=st.sampled_from(["lum", "rgb"]), lobes=st.integers(1, 7),
+       huge=st.booleans())
+def test_opencl_scattered_evaluation_matches_numpy(seed, variant, lobes, huge):
+    rng = np.random.default_rng(seed)
+    _, diffuse, C, exps, colour = random_model(rng, 37, variant, lobes, huge)
+    n = 200
+    texels = rng.integers(0, 37, n).astype(np.int32)
+    texels[:5] = [0, 1, 2, 36, 36]                                          # black texels and the last one
+    # each item its own light and view, in its texel's frame: grazing, below the horizon, straight up
+    lights = np.vstack([lights_at(rng.uniform(1, 10, 60), rng.uniform(0, 360, 60)), dome(100, seed, min_el=0),
+                        rng.normal(size=(39, 3)), [[0, 0, 1]]])
+    views = np.vstack([dome(n - 1, seed + 1, min_el=5), [[0, 0, 1]]])
+    lights, views = (np.float32(d / np.linalg.norm(d, axis=1, keepdims=True)) for d in (lights, views))
+    a = evaluate_lafortune_scattered_opencl(diffuse, C, exps, colour, texels, lights, views, variant, 3)
+    b = evaluate_lafortune_scattered_numpy(diffuse, C, exps, colour, texels, lights, views, variant, 3)
+    assert a.shape == (n, 3) and np.isfinite(a).all() and (a >= 0).all()
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * max(1.0, float(np.abs(b).max())))
+    assert not a[:3].any() and not a[lights[:, 2] <= 0].any()              # black texels, lights from below
 
 
 # ----------------------------------------------------------------------------------------------- recovery

@@ -12,8 +12,8 @@ from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack
 from btforge.context import StageContext
 from btforge.plugins.sh.model import (ENERGY_SLACK, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
-                                      energy_root, evaluate_sh_numpy, evaluate_sh_opencl, fit_sh, quantize_coeffs,
-                                      real_sh, sh_solver)
+                                      energy_root, evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
+                                      evaluate_sh_scattered_opencl, fit_sh, quantize_coeffs, real_sh, sh_solver)
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FOUR_PI = 4 * math.pi
@@ -163,6 +163,30 @@ def test_opencl_evaluation_matches_numpy(seed, quantized, magnitude, light_order
     a = evaluate_sh_opencl(coeffs, scale, bias, quantized, yv, yl)
     b = evaluate_sh_numpy(coeffs, scale, bias, quantized, yv, yl)
     assert a.shape == (3, 9, 37, 3) and np.isfinite(a).all() and (a >= 0).all()
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * magnitude * k_v * k_l)
+
+
+@FAST
+@given(seed=st.integers(0, 2 ** 16), quantized=st.booleans(), magnitude=st.sampled_from([1e-3, 1.0, 50.0]),
+       light_order=st.integers(1, 6), view_order=st.integers(1, 3))
+def test_opencl_scattered_evaluation_matches_numpy(seed, quantized, magnitude, light_order, view_order):
+    rng = np.random.default_rng(seed)
+    k_v, k_l = view_order ** 2, light_order ** 2
+    coeffs = (rng.normal(0, 1, (37, 3, k_v, k_l)) * magnitude).astype(np.float32)
+    coeffs[0] = 0.0                                                  # a black texel
+    scale, bias = np.ones((k_v, k_l), np.float32), np.zeros((k_v, k_l), np.float32)
+    if quantized:
+        coeffs, scale, bias = quantize_coeffs(coeffs)
+    n = 150
+    texels = rng.integers(0, 37, n).astype(np.int32)
+    dirs = rng.normal(size=(2 * n, 3))                               # each item its own light and view, any side
+    dirs[:4] = [[0, 0, 1], [1, 0, 0], [0, 0, -1], [0.999, 0, 0.0447]]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    yl = real_sh(light_order, dirs[:n]).astype(np.float32)
+    yv = real_sh(view_order, dirs[n:]).astype(np.float32)
+    a = evaluate_sh_scattered_opencl(coeffs, scale, bias, quantized, texels, yv, yl)
+    b = evaluate_sh_scattered_numpy(coeffs, scale, bias, quantized, texels, yv, yl)
+    assert a.shape == (n, 3) and np.isfinite(a).all() and (a >= 0).all()
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * magnitude * k_v * k_l)
 
 

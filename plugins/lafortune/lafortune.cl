@@ -50,7 +50,36 @@ inline float lobe_value(float cx, float cy, float cz, float n, const float *x) {
 
 // ----------------------------------------------------------------------------------------------- evaluation
 
-// frames [n, 9] ; diffuse [n, 1 or C] ; lobes [n, K, 3] ; expo [n, K] ; colour [n, C] (lum) ; out [V, L, n, C]
+// Texel t at light u and view w, both already in the texel's frame; writes its n_channel values to o.
+// diffuse [n, 1 or C] ; lobes [n, K, 3] ; expo [n, K] ; colour [n, C] (lum)
+inline void lafortune_texel(const size_t t, const float *u, const float *w, __global const float *diffuse,
+                            __global const float *lobes, __global const float *expo, __global const float *colour,
+                            const int n_channel, const int k_total, const int luminance, __global float *o)
+{
+    float x[3];
+    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
+    const float c = fmax(u[2], 0.0f);
+    __global const float *lob = lobes + t * k_total * 3;
+    __global const float *ex = expo + t * k_total;
+    if (luminance) {
+        float f = diffuse[t];
+        for (int k = 0; k < k_total; ++k) f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
+        const float value = c * f;
+        for (int ch = 0; ch < n_channel; ++ch) o[ch] = colour[t * n_channel + ch] * value;
+    } else {
+        const int per = k_total / n_channel;
+        for (int ch = 0; ch < n_channel; ++ch) {
+            float f = diffuse[t * n_channel + ch];
+            for (int j = 0; j < per; ++j) {
+                const int k = ch * per + j;
+                f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
+            }
+            o[ch] = c * f;
+        }
+    }
+}
+
+// frames [n, 9] (rows t, b, n) ; lights [L, 3], views [V, 3] in the surface frame ; out [V, L, n, C]
 __kernel void lafortune_eval(__global const float *frames, __global const float *diffuse, __global const float *lobes,
                              __global const float *expo, __global const float *colour,
                              __global const float *lights, __global const float *views,
@@ -61,30 +90,30 @@ __kernel void lafortune_eval(__global const float *frames, __global const float 
     if (t >= n_texel || l >= n_light || v >= n_view) return;
     float F[9];
     for (int i = 0; i < 9; ++i) F[i] = frames[(size_t)t * 9 + i];
-    float u[3], w[3], x[3];
+    float u[3], w[3];
     to_frame(F, lights + 3 * l, u);
     to_frame(F, views + 3 * v, w);
-    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
-    const float c = fmax(u[2], 0.0f);
-    __global float *o = out + (((size_t)v * n_light + l) * n_texel + t) * n_channel;
-    __global const float *lob = lobes + (size_t)t * k_total * 3;
-    __global const float *ex = expo + (size_t)t * k_total;
-    if (luminance) {
-        float f = diffuse[t];
-        for (int k = 0; k < k_total; ++k) f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
-        const float value = c * f;
-        for (int ch = 0; ch < n_channel; ++ch) o[ch] = colour[(size_t)t * n_channel + ch] * value;
-    } else {
-        const int per = k_total / n_channel;
-        for (int ch = 0; ch < n_channel; ++ch) {
-            float f = diffuse[(size_t)t * n_channel + ch];
-            for (int j = 0; j < per; ++j) {
-                const int k = ch * per + j;
-                f += lobe_value(lob[3 * k], lob[3 * k + 1], lob[3 * k + 2], ex[k], x);
-            }
-            o[ch] = c * f;
-        }
+    lafortune_texel(t, u, w, diffuse, lobes, expo, colour, n_channel, k_total, luminance,
+                    out + (((size_t)v * n_light + l) * n_texel + t) * n_channel);
+}
+
+// Scattered evaluation (for renderers): item i evaluates texel texels[i] at its own light lights[i] and view
+// views[i], both already turned into that texel's frame (by the host: one rotation per item).  out [n, C].
+__kernel void lafortune_eval_scattered(__global const float *diffuse, __global const float *lobes,
+                                       __global const float *expo, __global const float *colour,
+                                       __global const int *texels, __global const float *lights,
+                                       __global const float *views, const int n, const int n_channel,
+                                       const int k_total, const int luminance, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    float u[3], w[3];
+    for (int j = 0; j < 3; ++j) {
+        u[j] = lights[3 * (size_t)i + j];
+        w[j] = views[3 * (size_t)i + j];
     }
+    lafortune_texel((size_t)texels[i], u, w, diffuse, lobes, expo, colour, n_channel, k_total, luminance,
+                    out + (size_t)i * n_channel);
 }
 
 // ----------------------------------------------------------------------------------------------- fit

@@ -127,6 +127,12 @@ def _local(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return (f[..., 0] * d[..., 0] + f[..., 1] * d[..., 1]) + f[..., 2] * d[..., 2]
 
 
+def _local_each(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Item i's direction ``dirs[i]`` in its own frame ``frames[i]`` -> ``[N, 3]``, as :func:`_local`."""
+    d = np.asarray(dirs, np.float32)[:, None, :]
+    return (frames[..., 0] * d[..., 0] + frames[..., 1] * d[..., 1]) + frames[..., 2] * d[..., 2]
+
+
 # ----------------------------------------------------------------------------------------------- the model
 
 
@@ -203,28 +209,21 @@ class LafortuneModel(ReflectanceModel):
         }
 
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
-                        views_local: np.ndarray | None = None) -> np.ndarray:
-        """Linear radiance ``[N, C]`` of texel ``(rows[i], cols[i])`` at its own light and view in the surface
-        frame (for renderers), with the arithmetic of :func:`evaluate_lafortune_numpy`."""
+                        views_local: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
+        """Linear radiance ``[N, C]`` float32 of texel ``(rows[i], cols[i])`` at its own light and view in the
+        surface frame (for renderers).  The host turns each item's directions into its texel's frame; the lobes
+        are summed by kernel ``lafortune_eval_scattered`` (``engine="numpy"``: its NumPy twin)."""
         rows, cols, lights_local, views_local = scattered_lookup(self, rows, cols, lights_local, views_local)
-        frames = texel_frames(self.normals[rows, cols])                                 # [N, 3, 3]
-        u = np.einsum("nij,nj->ni", frames, lights_local).astype(np.float32)
-        x = u * np.einsum("nij,nj->ni", frames, views_local).astype(np.float32)
-        diffuse, lobes, exponents = self.diffuse[rows, cols], self.lobes[rows, cols], self.exponents[rows, cols]
-        n_channel = len(self.channel_names)
-        n_signal = 1 if self.variant == "lum" else n_channel
-        per_signal = exponents.shape[1] // n_signal
-        cos = np.maximum(u[:, 2], np.float32(0))
-        out = np.empty((len(rows), n_channel), np.float32)
-        for sig in range(n_signal):
-            f = diffuse[:, sig].astype(np.float32)
-            for k in range(sig * per_signal, (sig + 1) * per_signal):
-                f = f + _lobe32(np.einsum("nc,nc->n", lobes[:, k], x), exponents[:, k])
-            if self.variant == "lum":
-                out[:] = self.colour[rows, cols] * (cos * f)[:, None]
-            else:
-                out[:, sig] = cos * f
-        return out
+        frames = texel_frames(self.normals[rows, cols])
+        u, w = _local_each(frames, lights_local), _local_each(frames, views_local)
+        texels = (rows.astype(np.int64) * self.width + cols).astype(np.int32)
+        n = self.height * self.width
+        arrays = (self.diffuse.reshape(n, -1), self.lobes.reshape(n, -1, 3), self.exponents.reshape(n, -1),
+                  self.colour.reshape(n, self.colour.shape[2]))
+        if engine not in ("opencl", "numpy"):
+            raise BtforgeInputError("Lafortune evaluation 'engine'", f"must be 'opencl' or 'numpy', got {engine!r}")
+        run = evaluate_lafortune_scattered_numpy if engine == "numpy" else evaluate_lafortune_scattered_opencl
+        return run(*arrays, texels, u, w, self.variant, len(self.channel_names))
 
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` and ``views [V, 3]`` (top view
@@ -300,6 +299,46 @@ def evaluate_lafortune_opencl(frames, diffuse, lobes, exponents, colour, lights,
         backend.run(kernel, (n, n_light, n_view), *args, lights_dev, views_dev, np.int32(n_light), np.int32(n_view),
                     np.int32(n), np.int32(n_channel), np.int32(k_total), np.int32(variant == "lum"), o_dev)
         out[:, :, chunk] = backend.from_device(o_dev, (n_view, n_light, n, n_channel), np.float32)
+    return out
+
+
+def evaluate_lafortune_scattered_numpy(diffuse, lobes, exponents, colour, texels, lights, views, variant,
+                                      n_channel) -> np.ndarray:
+    """Reference scattered evaluation: texel ``texels[i]`` of the flat arrays at ``lights[i]`` and ``views[i]``,
+    both already in that texel's frame -> ``[N, C]`` float32, in the kernel's order of operations."""
+    x = lights * views
+    cos = np.maximum(lights[:, 2], np.float32(0))
+    n_signal = 1 if variant == "lum" else n_channel
+    per_signal = exponents.shape[1] // n_signal
+    lob, ex = lobes[texels], exponents[texels]
+    out = np.empty((len(texels), n_channel), np.float32)
+    for sig in range(n_signal):
+        f = diffuse[texels, sig].astype(np.float32)
+        for k in range(sig * per_signal, (sig + 1) * per_signal):
+            c = lob[:, k]
+            f = f + _lobe32((c[:, 0] * x[:, 0] + c[:, 1] * x[:, 1]) + c[:, 2] * x[:, 2], ex[:, k])
+        if variant == "lum":
+            out[:] = colour[texels] * (cos * f)[:, None]
+        else:
+            out[:, sig] = cos * f
+    return out
+
+
+def evaluate_lafortune_scattered_opencl(diffuse, lobes, exponents, colour, texels, lights, views, variant,
+                                       n_channel) -> np.ndarray:
+    """Scattered evaluation on OpenCL (kernel ``lafortune_eval_scattered``); the model is read in place."""
+    backend = get_backend()
+    kernel = backend.kernel(KERNELS, "lafortune_eval_scattered")
+    n = len(texels)
+    out = np.empty((n, n_channel), np.float32)
+    if n == 0:
+        return out
+    colour_src = colour if colour.shape[1] else np.zeros((1, 1), np.float32)
+    o_dev = backend.host_output(out)
+    backend.run(kernel, (n,), *(backend.host_input(a) for a in (diffuse, lobes, exponents, colour_src)),
+                *(backend.to_device(a) for a in (np.ascontiguousarray(texels, np.int32), lights, views)),
+                np.int32(n), np.int32(n_channel), np.int32(exponents.shape[1]), np.int32(variant == "lum"), o_dev)
+    backend.finish_output(o_dev, out)
     return out
 
 

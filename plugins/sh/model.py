@@ -181,16 +181,23 @@ class SHModel(ReflectanceModel):
         return (self.coeffs.astype(np.float32) * self.scale + self.bias).astype(np.float32)
 
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
-                        views_local: np.ndarray | None = None) -> np.ndarray:
-        """Linear radiance ``[N, C]`` of texel ``(rows[i], cols[i])`` at its own light and view (for renderers),
-        with the arithmetic of :func:`evaluate_sh_numpy`."""
+                        views_local: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
+        """Linear radiance ``[N, C]`` float32 of texel ``(rows[i], cols[i])`` at its own light and view (for
+        renderers): the host evaluates the SH basis per item, kernel ``sh_eval_scattered`` (``engine="numpy"``:
+        its NumPy twin) contracts it with the texel's coefficients."""
         rows, cols, lights_local, views_local = scattered_lookup(self, rows, cols, lights_local, views_local)
-        c = self.coeffs[rows, cols]
-        c = c.astype(np.float32) * self.scale + self.bias if self.quantized else c    # [N, C, k_v, k_l]
+        texels = (rows.astype(np.int64) * self.width + cols).astype(np.int32)
         yl = real_sh(self.light_order, lights_local).astype(np.float32)              # [N, k_l]
         yv = real_sh(self.view_order, views_local).astype(np.float32)                # [N, k_v]
-        out = np.einsum("ncab,na,nb->nc", c, yv, yl)
-        return np.maximum(out, 0.0).astype(np.float32)
+        flat = self.coeffs.reshape(self.height * self.width, len(self.channel_names), self.k_v, self.k_l)
+        self._check_engine(engine)
+        run = evaluate_sh_scattered_numpy if engine == "numpy" else evaluate_sh_scattered_opencl
+        return run(flat, self.scale, self.bias, self.quantized, texels, yv, yl)
+
+    @staticmethod
+    def _check_engine(engine: str) -> None:
+        if engine not in ("opencl", "numpy"):
+            raise BtforgeInputError("SH evaluation 'engine'", f"must be 'opencl' or 'numpy', got {engine!r}")
 
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` and ``views [V, 3]``, clipped at 0.
@@ -204,12 +211,9 @@ class SHModel(ReflectanceModel):
         yv = real_sh(self.view_order, views).astype(np.float32)
         n_texel = self.height * self.width
         flat = self.coeffs.reshape(n_texel, len(self.channel_names), self.k_v, self.k_l)
-        if engine == "numpy":
-            out = evaluate_sh_numpy(flat, self.scale, self.bias, self.quantized, yv, yl)
-        elif engine == "opencl":
-            out = evaluate_sh_opencl(flat, self.scale, self.bias, self.quantized, yv, yl)
-        else:
-            raise BtforgeInputError("SH evaluation 'engine'", f"must be 'opencl' or 'numpy', got {engine!r}")
+        self._check_engine(engine)
+        run = evaluate_sh_numpy if engine == "numpy" else evaluate_sh_opencl
+        out = run(flat, self.scale, self.bias, self.quantized, yv, yl)
         return out.reshape(len(views), len(lights), self.height, self.width, len(self.channel_names))
 
 
@@ -245,6 +249,37 @@ def evaluate_sh_opencl(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, 
         backend.run(kernel, (n, n_light), c_dev, scale_dev, bias_dev, yv_dev, yl_dev, np.int32(k_v), np.int32(k_l),
                     np.int32(n_view), np.int32(n_light), np.int32(n), np.int32(n_channel), o_dev)
         out[:, :, chunk] = backend.from_device(o_dev, (n_view, n_light, n, n_channel), np.float32)
+    return out
+
+
+def evaluate_sh_scattered_numpy(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, quantized: bool,
+                                texels: np.ndarray, yv: np.ndarray, yl: np.ndarray) -> np.ndarray:
+    """Reference scattered evaluation: texel ``texels[i]`` of ``coeffs [T, C, k_v, k_l]`` with item i's basis
+    values ``yv [N, k_v]`` and ``yl [N, k_l]`` -> ``[N, C]`` float32, clipped at 0."""
+    c = coeffs[texels]
+    c = c.astype(np.float32) * scale + bias if quantized else c
+    q = np.einsum("ncab,nb->nca", c, yl, dtype=np.float32)
+    return np.maximum(np.einsum("nca,na->nc", q, yv, dtype=np.float32), 0.0).astype(np.float32)
+
+
+def evaluate_sh_scattered_opencl(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, quantized: bool,
+                                 texels: np.ndarray, yv: np.ndarray, yl: np.ndarray) -> np.ndarray:
+    """Scattered evaluation on OpenCL (kernel ``sh_eval_scattered``); the coefficients are read in place."""
+    backend = get_backend()
+    n_channel, k_v, k_l = coeffs.shape[1:]
+    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ())
+    kernel = backend.kernel(KERNELS, "sh_eval_scattered", options)
+    n = len(texels)
+    out = np.empty((n, n_channel), np.float32)
+    if n == 0:
+        return out
+    o_dev = backend.host_output(out)
+    backend.run(kernel, (n,), backend.host_input(coeffs),
+                *(backend.to_device(np.ascontiguousarray(a, np.float32)) for a in (scale, bias)),
+                backend.to_device(np.ascontiguousarray(texels, np.int32)),
+                *(backend.to_device(np.ascontiguousarray(a, np.float32)) for a in (yv, yl)),
+                np.int32(k_v), np.int32(k_l), np.int32(n), np.int32(n_channel), o_dev)
+    backend.finish_output(o_dev, out)
     return out
 
 

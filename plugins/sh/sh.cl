@@ -105,6 +105,15 @@ __kernel void sh_solve(__global const float *weights, __global const float *vv, 
 #define COEFF(i, ab) (coeffs[i])
 #endif
 
+// sum_b c[a, b] yl[b] for row a of one texel-channel's coefficients starting at `base`.
+inline float sh_light_sum(__global const COEFF_T *coeffs, __global const float *scale, __global const float *bias,
+                          const size_t base, const int a, const int k_l, __global const float *yl)
+{
+    float acc = 0.f;
+    for (int b = 0; b < k_l; ++b) acc += COEFF(base + a * k_l + b, a * k_l + b) * yl[b];
+    return acc;
+}
+
 // coeffs: [n_texel, C, k_v, k_l] ; scale, bias: [k_v, k_l] ; yv: [V, k_v] ; yl: [L, k_l]
 // out: [V, L, n_texel, C].  Global size (n_texel, L).
 __kernel void sh_eval(__global const COEFF_T *coeffs, __global const float *scale, __global const float *bias,
@@ -118,15 +127,30 @@ __kernel void sh_eval(__global const COEFF_T *coeffs, __global const float *scal
     float q[MAX_KV];
     for (int c = 0; c < n_channel; ++c) {
         const size_t base = ((size_t)t * n_channel + c) * k_v * k_l;
-        for (int a = 0; a < k_v; ++a) {
-            float acc = 0.f;
-            for (int b = 0; b < k_l; ++b) acc += COEFF(base + a * k_l + b, a * k_l + b) * yl[l * k_l + b];
-            q[a] = acc;
-        }
+        for (int a = 0; a < k_v; ++a) q[a] = sh_light_sum(coeffs, scale, bias, base, a, k_l, yl + (size_t)l * k_l);
         for (int v = 0; v < n_view; ++v) {
             float acc = 0.f;
             for (int a = 0; a < k_v; ++a) acc += yv[v * k_v + a] * q[a];
             out[(((size_t)v * n_light + l) * n_texel + t) * n_channel + c] = fmax(acc, 0.0f);
         }
+    }
+}
+
+// Scattered evaluation (for renderers): item i evaluates texel texels[i] with its own basis values yv[i] [k_v]
+// and yl[i] [k_l] (the host evaluates the SH at each item's view and light).  out: [n, C].
+__kernel void sh_eval_scattered(__global const COEFF_T *coeffs, __global const float *scale,
+                                __global const float *bias, __global const int *texels,
+                                __global const float *yv, __global const float *yl,
+                                const int k_v, const int k_l, const int n, const int n_channel, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t t = (size_t)texels[i];
+    for (int c = 0; c < n_channel; ++c) {
+        const size_t base = (t * n_channel + c) * k_v * k_l;
+        float acc = 0.f;
+        for (int a = 0; a < k_v; ++a)
+            acc += yv[(size_t)i * k_v + a] * sh_light_sum(coeffs, scale, bias, base, a, k_l, yl + (size_t)i * k_l);
+        out[(size_t)i * n_channel + c] = fmax(acc, 0.0f);
     }
 }
