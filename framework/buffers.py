@@ -68,12 +68,31 @@ def check_array(
 
 
 def frozen(array: np.ndarray) -> np.ndarray:
-    """A C-contiguous read-only view (a copy only when the input is not contiguous or still writeable by others)."""
+    """``array`` as a C-contiguous array nobody can write, copied only when that cannot be had otherwise.
+
+    An array that owns its memory is frozen in place (no copy; the caller's reference turns read-only too), so a
+    large stack is never held twice.  A view is copied unless every array it looks into is read-only already:
+    its base could still be written through another reference.
+    """
     out = np.ascontiguousarray(array)
-    if out is array and array.flags.writeable and array.base is None:
-        out = array.view()
+    if out is array and _written_elsewhere(array):
+        out = array.copy()
     out.flags.writeable = False
     return out
+
+
+def _written_elsewhere(array: np.ndarray) -> bool:
+    base = array.base
+    while isinstance(base, np.ndarray):
+        if base.flags.writeable:
+            return True
+        base = base.base
+    if base is None or isinstance(base, bytes):
+        return False
+    try:
+        return not memoryview(base).readonly
+    except TypeError:  # an exporter we cannot inspect: assume the worst
+        return True
 
 
 def unit_directions(name: str, dirs: Any, owner: str = "") -> np.ndarray:

@@ -13,7 +13,7 @@ from typing import Any, Mapping
 from .atomic import atomic_write_text
 from .backend import default_cache_root
 from .buffers import Buffer
-from .cache import NodeCache, node_key
+from .cache import NodeCache
 from .context import StageContext
 from .errors import BtforgeError, BtforgeInputError
 from .graph import CheckedGraph, check_graph, load_graph
@@ -103,11 +103,11 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         params = graph.params[name]
         wired = graph.spec.nodes[name].inputs
         input_keys = {port: _key_of(values[src][src_port]) for port, (src, src_port) in wired.items()}
-        key = node_key(st.name, st.version, params, input_keys, graph.files.get(name, ()))
+        key = cache.key(st.name, st.version, params, input_keys, graph.files.get(name, ()))
         report = reports[name]
         if not quiet:
             print(f"[{index}/{len(order)}] {name} ({st.name}) ...", file=sys.stderr, flush=True)
-        manifest = cache.manifest(key) if use_cache and not st.side_effects else None
+        manifest = cache.manifest(key, st.outputs) if use_cache and not st.side_effects else None
         if manifest is not None:
             values[name] = {port: _Lazy(cache, key, port, info["content_key"], registry)
                             for port, info in manifest["outputs"].items()}
@@ -121,6 +121,11 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
                     outputs = st.fn(ctx, **inputs, **params)
                 except BtforgeInputError as exc:
                     raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
+                except BtforgeError:
+                    raise
+                except Exception as exc:  # a bug in the stage: say where it happened (traceback behind --debug)
+                    raise BtforgeError(f"node '{name}' ({st.name}, plugin {st.plugin}) failed: "
+                                       f"{type(exc).__name__}: {exc} (a bug in the stage; the CLI shows the traceback with --debug)") from exc
             report.seconds = time.perf_counter() - start
             report.peak_rss_mb = round(mem.peak / 2**20, 1)
             report.status, report.notes = "ran", ctx.notes
@@ -130,7 +135,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
                 cache.store(key, values[name], ctx.notes)
         if not quiet:
             print(f"      {report.status} in {report.seconds:.2f} s", file=sys.stderr, flush=True)
-        for src, _ in wired.values():  # free what no remaining node needs
+        for src in {src for src, _ in wired.values()}:  # free what no remaining node needs
             consumers[src] -= 1
             if consumers[src] == 0 and src not in targets:
                 values.pop(src, None)

@@ -83,6 +83,53 @@ def test_half_written_cache_entry_is_a_miss(registry, tmp_path):
     assert toy_plugin.CALLS == {"toy.source": 1}
 
 
+def test_damaged_cache_output_is_a_miss(registry, tmp_path):
+    btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
+    for data in tmp_path.rglob("numbers.npz"):
+        data.write_bytes(data.read_bytes()[:20])  # e.g. a disk that filled up under another tool
+    toy_plugin.CALLS.clear()
+    result = btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
+    assert toy_plugin.CALLS == {"toy.source": 1}
+    np.testing.assert_array_equal(result["src"]["numbers"].values, np.arange(5))
+
+
+def test_a_node_feeding_two_ports_and_another_node(registry, tmp_path):
+    graph = {"nodes": {
+        "src": {"stage": "toy.source", "params": {"n": 3}},
+        "sum": {"stage": "toy.add", "inputs": {"a": "src.numbers", "b": "src.numbers"}},
+        "twice": {"stage": "toy.scale", "inputs": {"numbers": "src.numbers"}},
+    }}
+    result = btforge.run(graph, registry=registry, cache_dir=tmp_path)
+    np.testing.assert_array_equal(result["sum"]["numbers"].values, [0, 2, 4])
+    np.testing.assert_array_equal(result["twice"]["numbers"].values, [0, 2, 4])
+
+
+def test_edited_input_file_reruns_even_with_its_old_mtime(registry, tmp_path):
+    data = tmp_path / "numbers.txt"
+    data.write_text("1\n2\n")
+    graph_file = tmp_path / "g.yaml"
+    graph_file.write_text("nodes:\n  read: {stage: toy.read, params: {path: numbers.txt}}\n")
+    first = btforge.run(graph_file, registry=registry, cache_dir=tmp_path / "cache")
+    np.testing.assert_array_equal(first["read"]["numbers"].values, [1, 2])
+    stamp = data.stat()
+    data.write_text("5\n6\n")  # same size; then the old times put back, as `cp -p` or `rsync -t` would
+    os.utime(data, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+    toy_plugin.CALLS.clear()
+    second = btforge.run(graph_file, registry=registry, cache_dir=tmp_path / "cache")
+    assert toy_plugin.CALLS == {"toy.read": 1}
+    np.testing.assert_array_equal(second["read"]["numbers"].values, [5, 6])
+    toy_plugin.CALLS.clear()
+    btforge.run(graph_file, registry=registry, cache_dir=tmp_path / "cache")
+    assert toy_plugin.CALLS == {}  # unchanged: a hit, with the digest remembered
+
+
+def test_a_crashing_stage_is_reported_by_node(registry, tmp_path):
+    graph = {"nodes": {"src": {"stage": "toy.source"}, "bad": {"stage": "toy.crash", "inputs": {"numbers": "src.numbers"}}}}
+    with pytest.raises(BtforgeError, match=r"node 'bad' \(toy.crash, plugin .*\) failed: IndexError") as info:
+        btforge.run(graph, registry=registry, cache_dir=tmp_path)
+    assert isinstance(info.value.__cause__, IndexError)
+
+
 def test_report_file(registry, tmp_path):
     report = tmp_path / "report.json"
     btforge.run(GRAPH, only=["sum"], registry=registry, cache_dir=tmp_path / "c", report_path=report)
@@ -124,9 +171,17 @@ def test_duplicate_stage_names_are_refused():
 
 
 def test_buffers_are_immutable_and_validated():
-    stack = SampleStack(np.zeros((1, 3, 2, 2, 3), np.float32), np.eye(3), [[0, 0, 1]])
+    samples = np.zeros((1, 3, 2, 2, 3), np.float32)
+    stack = SampleStack(samples, np.eye(3), [[0, 0, 1]])
+    key = stack.content_key
     with pytest.raises(ValueError):
         stack.samples[0, 0, 0, 0, 0] = 1.0
+    with pytest.raises(ValueError):  # nor through the array it was made from
+        samples[0, 0, 0, 0, 0] = 1.0
+    base = np.zeros((2, 3, 2, 2, 3), np.float32)
+    from_view = SampleStack(base[1:], np.eye(3), [[0, 0, 1]])
+    base[1] = 7.0  # a view's base stays the caller's: the buffer holds a copy
+    assert not from_view.samples.any() and from_view.content_key == key
     with pytest.raises(BtforgeInputError, match=r"'samples' must be \(V, L, H, W, C\) float32, got \(2, 2, 9\) float64"):
         SampleStack(np.zeros((2, 2, 9)), np.eye(3), [[0, 0, 1]])
     bad = np.zeros((1, 3, 2, 2, 3), np.float32)
