@@ -21,7 +21,11 @@ def _parse_sets(items: list[str]) -> dict:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise BtforgeInputError(f"--set {item}", "expected NODE.PARAM=VALUE", "e.g. --set fit.variant=lrgb")
-        out[key] = yaml.safe_load(value) if value else ""
+        try:
+            out[key] = yaml.safe_load(value) if value else ""
+        except yaml.YAMLError as exc:
+            raise BtforgeInputError(f"--set {item}", f"the value is not valid YAML ({getattr(exc, 'problem', exc)})",
+                                    "quote it for the shell, e.g. --set 'relit.lights=[[0, 0, 1]]'") from None
     return out
 
 

@@ -26,7 +26,6 @@ class _LineDict(dict):
     """A mapping that remembers the source line of each key."""
 
     lines: dict[str, int]
-    line: int
 
 
 class _LineLoader(yaml.SafeLoader):
@@ -37,9 +36,12 @@ def _construct_mapping(loader: _LineLoader, node: yaml.MappingNode) -> _LineDict
     loader.flatten_mapping(node)
     out = _LineDict()
     out.lines = {}
-    out.line = node.start_mark.line + 1
     for key_node, value_node in node.value:
         key = loader.construct_object(key_node, deep=True)
+        if key in out.lines:  # plain YAML keeps the last one silently: a node or param would vanish unseen
+            raise yaml.constructor.ConstructorError(
+                problem=f"duplicate key '{key}' (first given on line {out.lines[key]})",
+                problem_mark=key_node.start_mark)
         out[key] = loader.construct_object(value_node, deep=True)
         out.lines[key] = key_node.start_mark.line + 1
     return out
@@ -57,6 +59,13 @@ class NodeSpec:
     line: int | None = None
     param_lines: Mapping[str, int] = dataclasses.field(default_factory=dict)
     input_lines: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    overridden: frozenset[str] = frozenset()  # params given by --set, not by the file
+
+    def param_where(self, spec: "GraphSpec", key: str) -> str:
+        """Where param ``key`` was given: its line in the file, or the ``--set`` that overrode it."""
+        if key in self.overridden:
+            return f"--set {self.name}.{key}"
+        return spec.where(self.name, self.param_lines.get(key, self.line)) + f", param '{key}'"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +94,10 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
         if not path.is_file():
             raise BtforgeInputError(str(path), "graph file not found", "check the path")
         try:
-            data = yaml.load(path.read_text(), Loader=_LineLoader)
+            data = yaml.load(path.read_text(encoding="utf-8"), Loader=_LineLoader)
+        except UnicodeDecodeError as exc:
+            raise BtforgeInputError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.reason})",
+                                    "save the graph file as UTF-8") from None
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f"{path}, line {mark.line + 1}" if mark else str(path)
@@ -138,7 +150,8 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
             raise BtforgeInputError(f"--set {key}", f"expected NODE.PARAM with a node of the graph, found '{key}'",
                                     did_you_mean(node, nodes))
         spec = nodes[node]
-        nodes[node] = dataclasses.replace(spec, params={**spec.params, param: value})
+        nodes[node] = dataclasses.replace(spec, params={**spec.params, param: value},
+                                          overridden=spec.overridden | {param})
     return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
 
 
@@ -205,7 +218,7 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
         values: dict[str, Any] = {}
         for key, raw in node.params.items():
             param = st.param(key)
-            where = spec.where(name, node.param_lines.get(key, node.line)) + f", param '{key}'"
+            where = node.param_where(spec, key)
             if param is None:
                 problem(where, f"stage '{st.name}' has no such parameter",
                         did_you_mean(key, [p.name for p in st.params]))
@@ -220,17 +233,11 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                     problem(spec.where(name, node.line), f"missing required param '{p.name}' ({p.type_text()}: {p.doc})")
                 else:
                     values[p.name] = p.default
-        for p in st.params:
-            if p.kind == "path" and isinstance(values.get(p.name), str):
-                target = paths.input(values[p.name])
-                if not target.exists():
-                    problem(spec.where(name, node.param_lines.get(p.name, node.line)) + f", param '{p.name}'",
-                            f"input file not found: {target}", "paths are relative to the graph file's folder")
-            if p.kind == "lights" and isinstance(values.get(p.name), str):
-                target = paths.input(values[p.name])
-                if not target.exists():
-                    problem(spec.where(name, node.param_lines.get(p.name, node.line)) + f", param '{p.name}'",
-                            f"light file not found: {target}", "paths are relative to the graph file's folder")
+        for p, value in _file_params(st, values):
+            if not paths.input(value).exists():
+                what = "light file" if p.kind == "lights" else "input file"
+                problem(node.param_where(spec, p.name), f"{what} not found: {paths.input(value)}",
+                        "paths are relative to the graph file's folder")
         params[name] = values
 
     dag = nx.DiGraph()
@@ -285,8 +292,7 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
     files: dict[str, tuple[Path, ...]] = {}
     if not problems:
         for name, st in stages.items():
-            read = [paths.input(params[name][p.name]) for p in st.params
-                    if p.kind in ("path", "lights") and isinstance(params[name].get(p.name), str)]
+            read = [paths.input(value) for p, value in _file_params(st, params[name])]
             if st.precheck is not None:
                 try:
                     read += list(st.precheck(params[name], paths) or ())
@@ -299,3 +305,8 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
             raise BtforgeInputError("", problems[0])
         raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
     return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files)
+
+
+def _file_params(st: Stage, values: Mapping[str, Any]):
+    """(param, value) of the params naming a file the stage reads."""
+    return [(p, values[p.name]) for p in st.params if p.kind in ("path", "lights") and isinstance(values.get(p.name), str)]

@@ -15,7 +15,7 @@ BAD_GRAPHS = sorted((FIXTURES / "graphs").glob("*.yaml"))
 
 
 def expected_message(path: Path) -> str:
-    first = path.read_text().splitlines()[0]
+    first = path.read_text(encoding="latin-1").splitlines()[0]
     assert first.startswith("# expect: "), f"{path.name} must start with '# expect: ...'"
     return first[len("# expect: "):]
 
@@ -27,7 +27,7 @@ def test_bad_graph_is_rejected_with_a_clear_message(path):
     message = info.value.render()
     assert expected_message(path) in message
     assert path.name in message  # the file is named
-    if path.stem not in ("not_yaml", "no_nodes", "cycle"):
+    if path.stem not in ("not_yaml", "no_nodes", "cycle", "not_utf8"):
         assert "line " in message  # and the line
 
 
@@ -43,6 +43,24 @@ def test_every_problem_is_listed_at_once(tmp_path):
 def test_set_override_must_name_a_node():
     with pytest.raises(BtforgeInputError, match="expected NODE.PARAM"):
         load_graph(FIXTURES / "graphs" / "unknown_param.yaml", {"nosuch.variant": "rgb"})
+
+
+def test_an_overridden_param_is_blamed_on_its_set_not_the_file_line():
+    spec = load_graph(FIXTURES / "graphs" / "out_of_range_param.yaml")
+    node = next(n for n in spec.nodes.values() if n.param_lines)
+    key = next(iter(node.param_lines))
+    with pytest.raises(BtforgeInputError) as info:
+        check_graph(load_graph(FIXTURES / "graphs" / "out_of_range_param.yaml", {f"{node.name}.{key}": "junk"}),
+                    default_registry())
+    assert f"--set {node.name}.{key}" in info.value.render() and "line" not in info.value.render().split(":")[0]
+
+
+def test_cli_bad_set_value_is_a_clear_error():
+    demo = Path(__file__).resolve().parents[1] / "graphs" / "demo.yaml"
+    proc = subprocess.run([sys.executable, "-m", "btforge.cli", "validate", str(demo), "--set", "fit.variant=["],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "--set fit.variant=[" in proc.stderr and "not valid YAML" in proc.stderr
 
 
 def test_cli_validate_exits_2_without_traceback():
