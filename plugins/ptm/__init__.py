@@ -4,7 +4,7 @@ from __future__ import annotations
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
-from .model import PTMModel, fit_ptm
+from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
 
@@ -21,8 +21,8 @@ POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noi
               choices=("auto", "linear", "srgb")),
         Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
               "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
-        Param("rcond", "float", 1e-3, "singular values of the light design matrix below rcond x the largest are "
-              "clamped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
+        Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
+              "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
     ],
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
@@ -31,8 +31,8 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
     matrix.  The kernel reads an 8-bit capture in place (decoding bytes through a table) and writes straight
     into the result, so memory stays near the stack plus its coefficients.  A light set whose
-    design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by clamping small
-    singular values, with a warning naming the condition number.
+    design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
+    singular values (the minimum-norm solution), with a warning naming the condition number.
 
     Outputs
     -------
@@ -45,7 +45,8 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     ctx.note("space", model.space)
     if solver.clamped:
         ctx.warn(f"light directions are ill-conditioned for a PTM (condition number {solver.condition_number:.3g}); "
-                 f"{solver.clamped} singular value(s) below {rcond:g} x the largest were clamped")
+                 f"{solver.clamped} singular value(s) below {rcond:g} x the largest were clamped to zero weight "
+                 "(the coefficient combination they govern is left at zero)")
     elif solver.condition_number > POOR_CONDITION:
         ctx.warn(f"light directions are poorly conditioned for a PTM (condition number {solver.condition_number:.3g}): "
                  "noise in the samples is amplified up to that factor; lights at more elevations would help")

@@ -61,7 +61,9 @@ __kernel void ptm_fit(__global const SAMPLE_T *samples_all, __constant float *lu
     float scale[4];
     float top = 0.f;
     for (int c = 0; c < n_channel; ++c) {
-        scale[c] = pp > 1e-20f ? cross[c] / pp : 1.0f;
+        // A channel anti-correlated with the luminance polynomial (sparse highlights) would get a negative
+        // colour, which no file format stores: the best non-negative scale is then 0.
+        scale[c] = pp > 1e-20f ? fmax(cross[c] / pp, 0.0f) : 1.0f;
         top = fmax(top, scale[c]);
     }
     // Keep the colour in [0, 1] (as file formats require) by moving any excess into the polynomial.
