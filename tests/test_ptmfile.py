@@ -15,7 +15,7 @@ from btforge.errors import BtforgeInputError
 from btforge.plugins.ptm.ptmfile import (
     PtmFileContent,
     describe_ptm,
-    evaluate_ptm_numpy,
+    relit_display_values,
     read_ptm,
     write_ptm,
 )
@@ -45,8 +45,8 @@ def relit_changes(before: PtmFileContent | tuple, after: PtmFileContent, lights:
     changes = []
     for start in range(0, len(lights), chunk):
         block = lights[start:start + chunk]
-        a = np.clip(evaluate_ptm_numpy(coeffs, albedo, block), 0, 1)
-        b = np.clip(evaluate_ptm_numpy(after.coeffs, after.albedo, block), 0, 1)
+        a = np.clip(relit_display_values(coeffs, albedo, block), 0, 1)
+        b = np.clip(relit_display_values(after.coeffs, after.albedo, block), 0, 1)
         changes.append(np.abs(a - b).max(axis=(1, 2, 3)))
     return np.concatenate(changes)
 
@@ -172,15 +172,15 @@ def test_evaluate_follows_the_documented_polynomial():
     light = np.array([[0.6, 0.0, 0.8], [0.0, 0.0, 2.0]])  # the second is not unit length: normalised
     lu, lv = 0.6, 0.0
     poly = 0.1 * lu * lu - 0.2 * lv * lv + 0.3 * lu * lv + 0.4 * lu - 0.5 * lv + 0.6
-    values = evaluate_ptm_numpy(coeffs, albedo, light)
+    values = relit_display_values(coeffs, albedo, light)
     assert values.shape == (2, 1, 1, 3) and values.dtype == np.float32
     np.testing.assert_allclose(values[0, 0, 0], poly * albedo[0, 0], rtol=1e-6)
     np.testing.assert_allclose(values[1, 0, 0], 0.6 * albedo[0, 0], rtol=1e-6)
     rgb = np.stack([coeffs[0, 0, 0], 2 * coeffs[0, 0, 0], -coeffs[0, 0, 0]]).reshape(1, 1, 3, 6)
-    np.testing.assert_allclose(evaluate_ptm_numpy(rgb, None, light[:1])[0, 0, 0], [poly, 2 * poly, -poly],
+    np.testing.assert_allclose(relit_display_values(rgb, None, light[:1])[0, 0, 0], [poly, 2 * poly, -poly],
                                rtol=1e-6)
     # Not clipped: callers decide.
-    assert evaluate_ptm_numpy(rgb * 10, None, light[:1]).max() > 1
+    assert relit_display_values(rgb * 10, None, light[:1]).max() > 1
 
 
 # ----------------------------------------------------------------------------------------------- round trips
@@ -519,7 +519,7 @@ def test_real_jpeg_lrgb_tablet_decodes_to_a_plausible_image(tmp_path):
     assert content.coeffs.shape == (512, 512, 1, 6)
     assert content.scale == (2.0,) * 6 and content.bias == (160, 160, 160, 127, 127, 0)
     lights = np.array([[0, 0, 1], [0, 0.7, 0.714], [0, -0.7, 0.714], [0.7, 0, 0.714], [-0.7, 0, 0.714]])
-    relit = evaluate_ptm_numpy(content.coeffs, content.albedo, lights).mean(axis=-1)
+    relit = relit_display_values(content.coeffs, content.albedo, lights).mean(axis=-1)
     top = relit[0]
     assert ((top >= 0) & (top <= 1)).mean() > 0.99, "display values in [0, 1], so the unit scale is right"
     # A photograph, not noise: neighbouring pixels are strongly correlated (noise would give ~0).
@@ -576,7 +576,7 @@ def test_real_relight_rgb_ptm_round_trips_as_raw_rgb(tmp_path):
     folder = SHARED_PTM / "openlime_relight_ptm"
     skip_without(folder)
     coeffs, capture_lights = load_openlime_ptm(folder, OPENLIME_CROP)
-    top = evaluate_ptm_numpy(coeffs, None, np.array([[0.0, 0.0, 1.0]]))[0]
+    top = relit_display_values(coeffs, None, np.array([[0.0, 0.0, 1.0]]))[0]
     # Display values: a gold coin, so some highlights saturate a little above 1.
     assert top.min() > -0.05 and np.percentile(top, 99) < 1.1
     out = tmp_path / "coin.ptm"

@@ -245,6 +245,31 @@ def test_crlf_and_bom(tmp_path):
     np.testing.assert_allclose(stack.lights, LIGHTS[:3], atol=1e-6)
 
 
+def test_utf16_light_file(tmp_path):
+    names = make_capture(tmp_path)
+    path = tmp_path / "dirs.lp"
+    path.write_bytes(lp_text(names, newline="\r\n").encode("utf-16"))  # Notepad's "Unicode", with its BOM
+    assert load_stack(path).names == tuple(names)
+
+
+def test_windows_paths(tmp_path):
+    (tmp_path / "sub").mkdir()
+    names = make_capture(tmp_path / "sub")
+    stack = load_stack(write_lp(tmp_path, lp_text([f"sub\\{n}" for n in names])))
+    assert stack.n_light == 3
+    elsewhere = write_lp(tmp_path / "sub", lp_text([f"C:\\capture\\{n}" for n in names]))
+    error = expect_error(elsewhere, 2)
+    assert repr(names[0]) in error.hint  # the image beside the light file is suggested
+
+
+def test_writer_refuses_names_that_read_back_differently(tmp_path):
+    with pytest.raises(BtforgeInputError, match="unchanged") as info:
+        write_light_file(tmp_path / "out.lp", ["a.png", "take 2"], LIGHTS[:2])
+    assert "file name 1" in info.value.what and not (tmp_path / "out.lp").exists()
+    write_light_file(tmp_path / "ok.lp", ["a b.png", "take 2.png"], LIGHTS[:2])
+    assert [e.filename for e in read_light_file(tmp_path / "ok.lp", require_images=False)] == ["a b.png", "take 2.png"]
+
+
 def test_mismatched_image_sizes(tmp_path):
     names = make_capture(tmp_path)
     Image.new("RGB", (7, 5)).save(tmp_path / names[2])

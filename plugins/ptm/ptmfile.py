@@ -62,7 +62,9 @@ from btforge.atomic import atomic_write
 from btforge.buffers import unit_directions
 from btforge.errors import BtforgeInputError
 
-__all__ = ["PtmFileContent", "read_ptm", "write_ptm", "describe_ptm", "evaluate_ptm_numpy"]
+from .model import ptm_terms
+
+__all__ = ["PtmFileContent", "read_ptm", "write_ptm", "describe_ptm", "relit_display_values"]
 
 PTM_VERSION = "PTM_1.2"
 FORMAT_LRGB = "PTM_FORMAT_LRGB"
@@ -144,15 +146,11 @@ class PtmFileContent:
 # ----------------------------------------------------------------------------------------------- evaluation
 
 
-def _light_terms(lights) -> np.ndarray:
-    """The six polynomial terms ``[L, 6]`` (float64) of unit light directions ``[L, 3]``."""
-    unit = unit_directions("lights", lights).astype(np.float64)
-    lu, lv = unit[:, 0], unit[:, 1]
-    return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=1)
+def relit_display_values(coeffs: np.ndarray, albedo: np.ndarray | None, lights) -> np.ndarray:
+    """Relight a PTM file's decoded content as the file defines it: display values ``[L, H, W, 3]`` float32.
 
-
-def evaluate_ptm_numpy(coeffs: np.ndarray, albedo: np.ndarray | None, lights) -> np.ndarray:
-    """Relight a PTM: display values ``[L, H, W, 3]`` float32 at each light.
+    Unlike :meth:`PTMModel.evaluate <btforge.plugins.ptm.model.PTMModel.evaluate>` (linear radiance, clipped),
+    this is the raw polynomial of the file's display values, for comparing files.
 
     Parameters
     ----------
@@ -171,10 +169,10 @@ def evaluate_ptm_numpy(coeffs: np.ndarray, albedo: np.ndarray | None, lights) ->
     if not isinstance(coeffs, np.ndarray) or coeffs.ndim != 4 or coeffs.shape[-1] != N_COEFFS \
             or coeffs.shape[2] not in (1, 3):
         got = f"{coeffs.shape}" if isinstance(coeffs, np.ndarray) else type(coeffs).__name__
-        raise BtforgeInputError("evaluate_ptm_numpy 'coeffs'", f"expected [H, W, K, 6] with K = 1 or 3, found {got}")
+        raise BtforgeInputError("relit_display_values 'coeffs'", f"expected [H, W, K, 6] with K = 1 or 3, found {got}")
     variant = "lrgb" if coeffs.shape[2] == 1 else "rgb"
-    coeffs, albedo = _checked_model("evaluate_ptm_numpy", variant, coeffs, albedo, check_values=False)
-    terms = _light_terms(lights).astype(np.float32)
+    coeffs, albedo = _checked_model("relit_display_values", variant, coeffs, albedo, check_values=False)
+    terms = ptm_terms(unit_directions("lights", lights)).astype(np.float32)
     height, width, channels, _ = coeffs.shape
     # One matrix product over all texels keeps this a single BLAS call instead of a loop over lights.
     poly = coeffs.reshape(-1, N_COEFFS).astype(np.float32, copy=False) @ terms.T  # [H*W*K, L]

@@ -8,14 +8,16 @@ from btforge.buffers import Scores, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
 
-def resolve_lights(value, paths) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Lights from a list of [x, y, z] or a ``.lp`` file: unit ``[L, 3]`` float32 and per-light names."""
+def resolve_lights(value, paths, param: str = "lights", role: str = "light") -> tuple[np.ndarray, tuple[str, ...]]:
+    """Directions from a list of [x, y, z] or a ``.lp`` file: unit ``[L, 3]`` float32 and per-row names.
+
+    ``param`` names the parameter in messages (``"views"`` for view directions, with ``role="view"``).
+    """
     from btforge.plugins.stackio.lightfile import parse_light_list, read_light_file
     if isinstance(value, str):
         entries = read_light_file(paths.input(value), require_images=False)
         return np.array([e.light for e in entries], np.float32), tuple(e.filename for e in entries)
-    lights = parse_light_list(value)
-    return lights, ()
+    return parse_light_list(value, name=f"param '{param}'", role=role), ()
 
 
 @declare_stage(
@@ -51,7 +53,7 @@ def relight(ctx, model, at=None, *, lights, views):
     else:
         directions, names = at.lights, at.names
     if views is not None:
-        view_dirs, _ = resolve_lights(views, ctx.paths)
+        view_dirs, _ = resolve_lights(views, ctx.paths, "views", "view")
     elif at is not None:
         view_dirs = at.views
     else:

@@ -5,8 +5,9 @@ The ``.lp`` layout (relight, RTIBuilder) is a count ``N`` on the first line, the
 rows ``filename lx ly lz vx vy vz``: the light direction, then the direction toward the camera.
 
 Real files are untidy, so the reader accepts decimal commas (``0,5``), file names with spaces (the trailing
-numbers are the direction, everything before them is the name), CRLF line ends, trailing whitespace, blank lines
-and ``#`` comments, and it normalises non-unit vectors.  It does *not* guess when the file disagrees with
+numbers are the direction, everything before them is the name), CRLF line ends, UTF-8 or UTF-16 byte-order
+marks, trailing whitespace, blank lines, whole-line ``#`` comments (a ``#`` after a row's numbers is not a
+comment: names may contain it), Windows paths (``sub\\a.jpg``), and it normalises non-unit vectors.  It does *not* guess when the file disagrees with
 itself: a count that does not match the rows, a malformed row or a missing image stops with a
 :class:`~btforge.errors.BtforgeInputError` naming the file and line, because pairing a light with the wrong
 image silently ruins every fit downstream.
@@ -70,7 +71,12 @@ def image_path(light_file: str | os.PathLike, filename: str) -> Path:
     """Where the image ``filename`` listed in ``light_file`` lives: names are relative to the file's folder
     (or to the capture folder itself, for a BTF folder)."""
     source = Path(light_file)
-    return (source if source.is_dir() else source.parent) / filename
+    folder = source if source.is_dir() else source.parent
+    if "\\" in filename and os.sep == "/" and not (folder / filename).exists():
+        # Written on Windows: 'sub\a.jpg' means the folder 'sub' (a POSIX name may contain a backslash, so
+        # that reading is tried only when the literal one does not exist).
+        filename = filename.replace("\\", "/")
+    return folder / filename
 
 
 # Bonn UBO-style BTF image names carry the angles in degrees: tl<theta light>_pl<phi light>_tv<theta view>_pv<phi view>
@@ -162,7 +168,8 @@ def _checked_direction(vector: Sequence[float], what: str, role: str) -> tuple[f
                 what,
                 f"expected a {role} direction above the horizon (z >= 0), found z = {z:.4f} "
                 f"({degrees_below:.1f} degrees below)",
-                "directions point from the surface toward the light with z up; check the sign convention "
+                f"directions point from the surface toward the {'camera' if role == 'view' else 'light'} with z up; "
+                "check the sign convention "
                 "of the tool that wrote this file, or drop the image")
         warnings.warn(
             f"{what}: {role} direction is {degrees_below:.2f} degrees below the horizon; clamped to z = 0",
@@ -176,8 +183,14 @@ def _checked_direction(vector: Sequence[float], what: str, role: str) -> tuple[f
 
 
 def _decode(raw: bytes) -> str:
-    # Light files come from Windows tools as often as not: accept a BOM, fall back to Latin-1 for names written
-    # in a legacy code page rather than refusing the whole file over one accented file name.
+    # Light files come from Windows tools as often as not: accept a BOM (UTF-8, or UTF-16 as Notepad's "Unicode"
+    # writes), fall back to Latin-1 for names written in a legacy code page rather than refusing the whole file
+    # over one accented file name.
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError:
+            pass
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -314,8 +327,9 @@ def _check_images_exist(path: Path, path_text: str, entries: Iterable[LightFileE
             except OSError:
                 listing = []
         hint = "image names are relative to the light file's folder"
-        same_but_case = [f for f in listing if f.lower() == entry.filename.lower()]
-        close = same_but_case or difflib.get_close_matches(entry.filename, listing, n=1)
+        base_name = re.split(r"[\\/]", entry.filename)[-1]  # a path written on another machine: C:\\cap\\a.jpg
+        same_but_case = [f for f in listing if f.lower() in (entry.filename.lower(), base_name.lower())]
+        close = same_but_case or difflib.get_close_matches(base_name, listing, n=1)
         if close:
             hint = f"did you mean {close[0]!r}? " + hint
         raise BtforgeInputError(f"{path_text}, line {entry.line}",
@@ -323,7 +337,7 @@ def _check_images_exist(path: Path, path_text: str, entries: Iterable[LightFileE
                                 hint)
 
 
-def parse_light_list(value: Any, *, name: str = "lights") -> np.ndarray:
+def parse_light_list(value: Any, *, name: str = "lights", role: str = "light") -> np.ndarray:
     """Light directions given inline (a YAML list of ``[x, y, z]``) as an ``(N, 3)`` float32 array of unit vectors.
 
     The same rules as for a light file apply: non-unit vectors are normalised, a direction within one degree
@@ -354,7 +368,7 @@ def parse_light_list(value: Any, *, name: str = "lights") -> np.ndarray:
             # bool is an int subclass; 'true' in YAML is a typo, not the number 1.
             if isinstance(component, bool) or not isinstance(component, (int, float, np.integer, np.floating)):
                 raise BtforgeInputError(what, f"expected a number, found {component!r}")
-        rows.append(_checked_direction(item, what, "light"))
+        rows.append(_checked_direction(item, what, role))
     return np.asarray(rows, dtype=np.float32)
 
 
@@ -409,7 +423,17 @@ def write_light_file(path: str | os.PathLike, filenames: Sequence[str], lights: 
                                     f"leading '#', found {name!r}", "rename the image")
 
     lines = [str(len(names))]
+    kind = "light-and-view" if is_lvp else "light"
     for index, name in enumerate(names):
         numbers = list(light_rows[index]) + (list(view_rows[index]) if view_rows is not None else [])
-        lines.append(name + " " + " ".join(_format_number(v) for v in numbers))
+        line = name + " " + " ".join(_format_number(v) for v in numbers)
+        try:
+            read_back = _parse_row(line, len(numbers), f"{path_text}, file name {index}", kind)[0]
+        except BtforgeInputError:
+            read_back = None
+        if read_back != name:  # e.g. a name ending in a number ('take 2') would lose it to the directions
+            raise BtforgeInputError(f"{path_text}, file name {index}",
+                                    f"expected a name the reader splits off its numbers unchanged, found {name!r}",
+                                    "rename the image so its name does not end in a number (e.g. 'take 2.png')")
+        lines.append(line)
     atomic_write_text(path, "\n".join(lines) + "\n")
