@@ -12,10 +12,14 @@ from pathlib import Path
 from typing import IO, Iterator
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# Reading the umask means setting it for a moment; done once at import, before any worker threads exist.
+_UMASK = _read_umask()
 
 
 @contextlib.contextmanager
@@ -46,7 +50,7 @@ def atomic_output_path(path: str | os.PathLike) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.part.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes private files; results get the usual permissions
+    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes private files; results get the usual permissions
     try:
         yield Path(tmp)
         with open(tmp, "rb") as handle:

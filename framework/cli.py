@@ -74,6 +74,8 @@ def _jsonable(value):
 def cmd_stages(args) -> int:
     from .registry import default_registry
     reg = default_registry()
+    for name in args.name or ():
+        reg.stage(name)  # an unknown name is an error with a did-you-mean, not an empty listing
     records = [stage_record(reg.stages[n]) for n in sorted(reg.stages) if not args.name or n in args.name]
     if args.json:
         print(json.dumps(records, indent=2, default=str))

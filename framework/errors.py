@@ -32,16 +32,16 @@ class BtforgeInputError(BtforgeError):
         self.hint = hint
         super().__init__(self.render())
 
+    def _statement(self) -> str:
+        return f"{self.what}: {self.problem}" if self.what else self.problem
+
     def render(self) -> str:
-        text = f"{self.what}: {self.problem}" if self.what else self.problem
-        if self.hint:
-            text += f"\n  hint: {self.hint}"
-        return text
+        """The message, with the hint on its own line (what the CLI prints)."""
+        return self._statement() + (f"\n  hint: {self.hint}" if self.hint else "")
 
     def one_line(self) -> str:
         """The message on one line, the hint in parentheses (for lists of problems)."""
-        text = f"{self.what}: {self.problem}" if self.what else self.problem
-        return f"{text} ({self.hint})" if self.hint else text
+        return self._statement() + (f" ({self.hint})" if self.hint else "")
 
     def located(self, prefix: str) -> "BtforgeInputError":
         """The same error with ``prefix`` (e.g. the graph node) put in front of what it names."""

@@ -251,6 +251,10 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
         except BtforgeInputError as exc:
             problems.append(exc.located(spec.where(name, node.line)).one_line())
             continue
+        for port, type_name in ports.items():
+            if port not in st.inputs and type_name not in registry.types:
+                problem(spec.where(name, node.line), f"stage '{st.name}' asks for input port '{port}' of unknown "
+                        f"buffer type '{type_name}'", "a bug in the plugin: its dynamic_inputs must name known types")
         for port, (src, src_port) in node.inputs.items():
             where = spec.where(name, node.input_lines.get(port, node.line)) + f", input '{port}'"
             if port not in ports:

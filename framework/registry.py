@@ -37,10 +37,17 @@ class Registry:
 
     def _collect(self) -> None:
         self.types: dict[str, type[buffers.Buffer]] = {t.type_name: t for t in buffers.CORE_TYPES}
-        for result in self.pm.hook.btforge_buffer_types():
-            for t in result or ():
+        for impl in self.pm.hook.btforge_buffer_types.get_hookimpls():
+            plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
+            for t in impl.function() or ():
                 if not (isinstance(t, type) and issubclass(t, buffers.Buffer)):
-                    raise BtforgeInputError("plugin buffer types", f"expected Buffer subclasses, found {t!r}")
+                    raise BtforgeInputError(f"plugin '{plugin_name}'", f"btforge_buffer_types must return Buffer "
+                                            f"subclasses, found {t!r}", "subclass btforge.buffers.Buffer")
+                known = self.types.get(t.type_name)
+                if known is not None and known is not t:  # a silent replacement would retype every graph
+                    raise BtforgeInputError(f"buffer type '{t.type_name}'",
+                                            f"is defined by both {known.__module__} and {t.__module__}",
+                                            "give the plugin's type another type_name")
                 self.types[t.type_name] = t
         self.stages: dict[str, Stage] = {}
         for impl in self.pm.hook.btforge_stages.get_hookimpls():
@@ -76,11 +83,10 @@ class Registry:
                                     did_you_mean(name, self.stages)) from None
 
     def accepts(self, port_type: str, value_type: str) -> bool:
-        """Whether a port declared as ``port_type`` accepts a buffer of ``value_type``."""
+        """Whether a port declared as ``port_type`` accepts a buffer of ``value_type`` (unknown types: never)."""
+        if port_type not in self.types or value_type not in self.types:
+            return False
         return issubclass(self.types[value_type], self.types[port_type])
-
-    def plugin_names(self) -> list[str]:
-        return sorted(n for n, _ in self.pm.list_name_plugin())
 
 
 def did_you_mean(name: str, options: Iterable[str]) -> str:

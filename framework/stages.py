@@ -1,6 +1,6 @@
 """Declaring stages: typed ports, typed parameters with defaults and docs.
 
-A stage is a plain function ``fn(ctx, **inputs, **params) -> dict[port, Buffer]`` wrapped by :func:`stage`, which
+A stage is a plain function ``fn(ctx, **inputs, **params) -> dict[port, Buffer]`` wrapped by :func:`declare_stage`, which
 records its ports and parameters so a graph can be checked before anything runs.  The function's NumPy-style
 docstring is the documentation ``btforge stages`` prints.
 """
@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from .errors import BtforgeInputError
 
@@ -87,6 +88,8 @@ class Param:
         if kind == "float":
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise bad(repr(value))
+            if math.isnan(value) or (math.isinf(value) and (self.low is not None or self.high is not None)):
+                raise bad(repr(value), "give a finite number")  # NaN compares false with every bound
             self._check_bounds(float(value), where)
             return float(value)
         if kind == "choice":
@@ -122,7 +125,9 @@ class Param:
 
     def _check_bounds(self, value: float, where: str) -> None:
         if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
-            raise BtforgeInputError(where, f"expected {self.type_text()}, found {value}")
+            nearest = self.low if self.low is not None and value < self.low else self.high
+            raise BtforgeInputError(where, f"expected {self.type_text()}, found {value}",
+                                    f"use a value in range, e.g. {nearest} ({self.doc})")
 
 
 class _Required:
@@ -145,7 +150,7 @@ class Stage:
     version: str = "1"
     optional_inputs: frozenset[str] = frozenset()
     side_effects: bool = False
-    precheck: Callable[[Mapping[str, Any], "RunPaths"], None] | None = None
+    precheck: Callable[[Mapping[str, Any], "RunPaths"], Iterable[Path] | None] | None = None
     plugin: str = ""
     dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
 
@@ -219,7 +224,9 @@ def declare_stage(
     ``version`` is part of every cache key: bump it when the stage's results change for the same inputs.
     ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
-    it runs during validation, before any stage does.
+    it runs during validation, before any stage does.  It returns the further files the stage will read (the
+    images a light file lists, a scene's meshes): their contents join the node's cache key, so editing one
+    re-runs the node.  Files named directly by ``path``/``lights`` params are included without it.
     An output typed ``"=port"`` has the type of whatever is wired into input ``port`` (a stage that crops or
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer

@@ -170,6 +170,37 @@ def test_duplicate_stage_names_are_refused():
         Registry(load_entry_points=False, extra_plugins=[toy_plugin, Clash])
 
 
+def test_buffer_type_name_clashes_are_refused():
+    import dataclasses
+    from typing import ClassVar
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class OtherNumbers(btforge.buffers.Buffer):
+        type_name: ClassVar[str] = "Numbers"
+
+    class Clash:
+        @staticmethod
+        @btforge.hookimpl
+        def btforge_buffer_types():
+            return [OtherNumbers]
+    with pytest.raises(BtforgeInputError, match="buffer type 'Numbers'.*defined by both"):
+        Registry(load_entry_points=False, extra_plugins=[toy_plugin, Clash])
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_float_params_are_refused(registry, tmp_path, value):
+    graph = {"nodes": {"m": {"stage": "demo.material", "params": {"min_elevation": value}}}}
+    with pytest.raises(BtforgeInputError, match="param 'min_elevation'.*expected float in"):
+        btforge.run(graph, registry=registry, cache_dir=tmp_path)
+
+
+def test_cli_stages_refuses_an_unknown_name():
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, "-m", "btforge.cli", "stages", "relite"], capture_output=True, text=True)
+    assert proc.returncode == 2 and "did you mean 'relight'" in proc.stderr
+
+
 def test_buffers_are_immutable_and_validated():
     samples = np.zeros((1, 3, 2, 2, 3), np.float32)
     stack = SampleStack(samples, np.eye(3), [[0, 0, 1]])
