@@ -184,11 +184,6 @@ class Buffer:
                                     "install the plugin that defines it")
         return cls.from_payload(header["meta"], arrays)
 
-    def describe(self) -> str:
-        meta, arrays = self.payload()
-        parts = [f"{k} {_shape_text(v.shape)} {v.dtype}" for k, v in arrays.items()]
-        return f"{self.type_name}: " + ", ".join(parts)
-
     @property
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.payload()[1].values()))
@@ -231,9 +226,10 @@ class PerTexel(Buffer):
 
     ``texel_fields`` names the arrays that hold per-texel data, with the texel grid at axes
     ``texel_axis, texel_axis + 1``.  :meth:`remap` gathers those arrays through a coordinate map, so a synthesis
-    result can be replayed on any per-texel buffer without knowing its type.  ``blendable`` says whether a
-    weighted mean of two texels' records is the record of the mean function (true for linear representations
-    such as radiance, PTM and SH coefficients; false for non-linear ones such as Lafortune lobes).
+    result can be replayed on any per-texel buffer without knowing its type.  ``blendable`` says whether two
+    texels' records can be blended into the record of their weighted mean function (true for linear
+    representations such as radiance, linear PTM and SH coefficients; false for non-linear ones such as
+    Lafortune lobes); :meth:`blend_records` does it.
     """
 
     type_name: ClassVar[str] = "PerTexel"
@@ -254,7 +250,7 @@ class PerTexel(Buffer):
         """A buffer of the same type whose texel (i, j) is this buffer's texel (rows[i, j], cols[i, j]).
 
         With a blend record, the result is ``(1 - w) * texel(rows, cols) + w * texel(blend_rows, blend_cols)``
-        for blendable buffers, and the texel with the larger weight otherwise.
+        (mixed by :meth:`blend_records`) for blendable buffers, and the texel with the larger weight otherwise.
         """
         ax = self.texel_axis
         use_blend = blend_weight is not None and bool(np.any(blend_weight > 0))
@@ -269,12 +265,19 @@ class PerTexel(Buffer):
             gathered = array[index + (rows, cols)]
             if use_blend:
                 w = blend_weight.reshape(blend_weight.shape + (1,) * (array.ndim - ax - 2)).astype(np.float32)
-                other = array[index + (blend_rows, blend_cols)]
-                mixed = (1 - w) * gathered + w * other
-                # Integer records (quantized coefficients) round to the nearest code instead of truncating.
-                gathered = (np.rint(mixed) if array.dtype.kind in "iu" else mixed).astype(array.dtype)
+                gathered = self.blend_records(name, gathered, array[index + (blend_rows, blend_cols)], w)
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
+
+    def blend_records(self, name: str, first: np.ndarray, second: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """``(1 - weight) * first + weight * second`` for records of field ``name``, in that field's dtype.
+
+        Override where the stored values are not linear in what they represent (as an 8-bit sRGB stack does).
+        """
+        mixed = (1 - weight) * first + weight * second
+        dtype = getattr(self, name).dtype
+        # Integer records (quantized coefficients) round to the nearest code instead of truncating.
+        return (np.rint(mixed) if dtype.kind in "iu" else mixed).astype(dtype)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -353,6 +356,13 @@ class SampleStack(PerTexel):
         frame = self.samples[view, light]
         return frame if self.encoding == "linear" else SRGB8_TO_LINEAR[frame]
 
+    def blend_records(self, name: str, first: np.ndarray, second: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        if self.encoding == "linear":
+            return super().blend_records(name, first, second, weight)
+        # Light adds up in linear radiance: the mean of two sRGB codes is darker than the code of the mean.
+        mixed = (1 - weight) * SRGB8_TO_LINEAR[first] + weight * SRGB8_TO_LINEAR[second]
+        return linear_to_srgb8(mixed)
+
     def row_bands(self, budget_bytes: int = 128 << 20) -> Iterator[slice]:
         """Bands of rows whose linear float32 samples fit in ``budget_bytes``: the unit of streamed work."""
         row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
@@ -430,13 +440,16 @@ class CoordMap(Buffer):
             c = getattr(self, name)
             if c.size and (c.min() < 0 or c[..., 0].max() >= src_h or c[..., 1].max() >= src_w):
                 raise BtforgeInputError("CoordMap", f"'{name}' must lie inside the {src_h} x {src_w} exemplar, "
-                                        f"found rows {c[..., 0].min()}..{c[..., 0].max()}, columns {c[..., 1].min()}..{c[..., 1].max()}")
+                                        f"found rows {c[..., 0].min()}..{c[..., 0].max()}, columns {c[..., 1].min()}..{c[..., 1].max()}",
+                                        "give 'source_size' as the exemplar's [H, W], or clip the coordinates to it")
         if self.blend_weight.size:
             h, w = self.coords.shape[:2]
             check_array("blend_coords", self.blend_coords, (h, w, 2), np.int32, owner="CoordMap")
             check_array("blend_weight", self.blend_weight, (h, w), np.float32, finite=True, owner="CoordMap")
             if self.blend_weight.min() < 0 or self.blend_weight.max() > 1:
-                raise BtforgeInputError("CoordMap", "'blend_weight' must lie in [0, 1]")
+                raise BtforgeInputError("CoordMap", f"'blend_weight' must lie in [0, 1], found "
+                                        f"{self.blend_weight.min():g}..{self.blend_weight.max():g}",
+                                        "give the blend partner's share of each texel, clipped to [0, 1]")
         object.__setattr__(self, "source_size", (src_h, src_w))
         for name in ("coords", "blend_coords", "blend_weight"):
             object.__setattr__(self, name, frozen(getattr(self, name)))

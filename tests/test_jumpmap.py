@@ -112,6 +112,14 @@ def test_jump_probability_controls_the_jumps(material):
     assert often["jumps_taken"] > never["jumps_taken"] + 200
 
 
+@pytest.mark.parametrize("params,name", [({"jumps": 0}, "'jumps'"), ({"jump_probability": 1.5}, "'jump_probability'")])
+def test_build_jump_map_checks_what_the_stage_params_bound(material, params, name):
+    # Direct callers skip the stage's Param bounds; with no targets the walk would index past the lists.
+    with pytest.raises(BtforgeInputError) as info:
+        build_jump_map(texel_features(material), **params)
+    assert name in str(info.value) and info.value.hint
+
+
 def seam_mismatch(coords, features):
     """Mean squared feature difference of neighbours (interior, seam), both directions pooled."""
     f = features[coords[..., 0], coords[..., 1]].astype(np.float64)

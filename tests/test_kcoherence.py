@@ -255,6 +255,16 @@ def test_check_params_rejects_even_windows_directly():
         kc.check_params("kcoherence", (64, 64), size=(8, 8), neighborhood=6, k=2, levels=1)
 
 
+@pytest.mark.parametrize("params,name", [({"k": 0}, "'k'"), ({"levels": 0}, "'levels'"), ({"size": (0, 8)}, "'size'")])
+def test_synthesize_checks_what_the_stage_params_bound(material, params, name):
+    # Direct callers skip the stage's Param bounds: synthesize runs the same validator, with a hint.
+    features = texel_features(material)
+    args = {"size": (8, 8), "k": 2, "levels": 1, **params}
+    with pytest.raises(BtforgeInputError) as info:
+        kc.synthesize(features, args.pop("size"), engine="numpy", **args)
+    assert name in str(info.value) and info.value.hint
+
+
 def test_benchmark_reports_figures():
     figures = kc.benchmark_kcoherence(exemplar_size=16, size=24, levels=1, repeat=1)
     for key in ("median_s", "analysis_median_s", "synthesis_median_s", "device"):

@@ -384,7 +384,7 @@ def test_stage_on_a_sample_stack():
 @pytest.mark.parametrize("params,named", [
     (dict(block=30), "block"),
     (dict(block=8, overlap=4), "overlap"),
-    (dict(block=8, overlap=4), "overlap"),
+    (dict(block=8, overlap=2, seam="zigzag"), "seam"),
     (dict(block=8, overlap=2, size=[6, 40]), "size"),
     (dict(block=8, overlap=3, size=[16, 40], wrap=True), "size"),
 ])

@@ -80,8 +80,9 @@ class PTMModel(ReflectanceModel):
 
     @property
     def blendable(self) -> bool:
-        # An lrgb texel is colour x polynomial: blending the two separately is not blending the functions.
-        return self.variant == "rgb"
+        # An lrgb texel is colour x polynomial: blending the two separately is not blending the functions.  An
+        # srgb polynomial is decoded per light after evaluation, so its coefficients do not mix like radiance.
+        return self.variant == "rgb" and self.space == "linear"
 
     def with_basis(self, basis: str) -> "PTMModel":
         """The same functions with coefficients in the ``raw`` or ``orthonormal`` (Legendre) basis."""

@@ -1,7 +1,7 @@
 """Texture synthesis of reflectance functions: every synthesizer outputs a coordinate map into the exemplar.
 
 ``materialize`` replays a map on any per-texel buffer (a stack, a PTM, Lafortune or SH model), so one synthesis
-serves every representation, and ``coords.write`` saves a map as an EXR image.
+serves every representation, and ``coords.write`` saves a map (blends included) as an EXR image.
 """
 from __future__ import annotations
 
@@ -17,8 +17,9 @@ def materialize(ctx, coords, source):
     """Apply a coordinate map to any per-texel buffer; the output has the type of ``source``.
 
     Each output texel copies the exemplar texel the map names; where the map blends two texels, linear
-    representations (radiance, PTM, SH) are blended with the map's weight and non-linear ones (Lafortune)
-    take the texel with the larger weight.
+    representations (radiance, linear rgb PTM, SH) are blended with the map's weight (an 8-bit sRGB stack in
+    linear radiance, then re-encoded) and the others (Lafortune, lrgb or sRGB-space PTM) take the texel with the
+    larger weight.
     """
     out = coords.apply(source)
     ctx.note("size", [out.height, out.width])
@@ -43,11 +44,27 @@ def crop(ctx, input, *, origin, size):
                params=[Param("path", "outpath", REQUIRED, "the .exr file to write (relative to --out)")],
                side_effects=True)
 def coords_write(ctx, coords, *, path):
-    """Write a coordinate map as a float32 EXR: R = exemplar row, G = exemplar column, B = blend weight."""
-    from btforge.plugins.stackio.images import write_exr
-    weight = coords.blend_weight if coords.blend_weight.size else np.zeros(coords.coords.shape[:2], np.float32)
-    image = np.dstack([coords.coords.astype(np.float32), weight])
-    write_exr(ctx.paths.output(path), image)
+    """Write a coordinate map, losslessly, as a float32 EXR.
+
+    Channels: R = exemplar row, G = exemplar column, B = blend weight, and the layer ``blend`` (``blend.R``,
+    ``blend.G``) = the row and column of the texel blended in (the texel itself where nothing is blended).  Header
+    attributes ``btforgeSourceSize`` (the exemplar's [H, W]) and ``btforgeWrap`` (1 when the map tiles).  An
+    RGB viewer or reader shows the map and ignores the rest; float32 holds the coordinates exactly.
+    """
+    import OpenEXR
+
+    from btforge.atomic import atomic_output_path
+    h, w = coords.coords.shape[:2]
+    blended = bool(coords.blend_weight.size)
+    weight = coords.blend_weight if blended else np.zeros((h, w), np.float32)
+    partner = coords.blend_coords if blended else coords.coords
+    planes = {"R": coords.coords[..., 0], "G": coords.coords[..., 1], "B": weight,
+              "blend.R": partner[..., 0], "blend.G": partner[..., 1]}
+    channels = {name: np.ascontiguousarray(plane, np.float32) for name, plane in planes.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "btforgeSourceSize": np.array(coords.source_size, np.int32), "btforgeWrap": int(coords.wrap)}
+    with atomic_output_path(ctx.paths.output(path)) as temporary:
+        OpenEXR.File(header, channels).write(str(temporary))
     return {}
 
 

@@ -63,3 +63,18 @@ def pca_reduce(features: np.ndarray, dims: int, seed: int = 0, sample: int = 200
     dims = min(dims, len(pick))  # a tiny exemplar has fewer axes than asked for
     leading = axes[:, ::-1][:, :dims]
     return ((flat - mean) @ leading).astype(np.float32).reshape(h, w, dims)
+
+
+def downsample(image: np.ndarray, mode: str = "mirror") -> np.ndarray:
+    """One Gaussian-pyramid step of ``[H, W, ...]``: a 5-tap binomial blur, then every second texel (half the
+    size, rounded up), float32.
+
+    ``mode`` is how the blur continues past the edges (:func:`scipy.ndimage.convolve1d`): ``mirror`` or
+    ``reflect`` for an exemplar, ``wrap`` for a texture meant to tile.  Summed in float64, so the result does not
+    depend on the order of the two passes' rounding.
+    """
+    from scipy.ndimage import convolve1d
+    kernel = np.array([1, 4, 6, 4, 1], np.float64) / 16.0
+    blurred = convolve1d(np.asarray(image, np.float64), kernel, axis=0, mode=mode)
+    blurred = convolve1d(blurred, kernel, axis=1, mode=mode)
+    return np.ascontiguousarray(blurred[::2, ::2], dtype=np.float32)

@@ -20,8 +20,8 @@ from btforge.errors import BtforgeInputError
 
 from .features import texel_features
 from .kcoherence import (DEFAULT_TEXTONS, LOCAL, MAX_NEIGHBORHOOD, Textons, _round_up, check_params,
-                         coherent_fraction, neighbourhood_search, normalise_features, pad_textons, texton_analysis,
-                         wavefront_rows)
+                         coherent_fraction, neighbourhood_search, normalise_features, output_neighbours, pad_textons,
+                         texton_analysis, wavefronts)
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")
 
@@ -64,6 +64,14 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
     ``jump_probability`` scaled by the texel's total weight over the mean total (clipped to 1): a texel with
     good jumps jumps more often, one without never.
     """
+    # The stage's params are bounded already; these guard direct callers (no targets would break the walk).
+    if not 1 <= jumps <= MAX_JUMPS:
+        raise BtforgeInputError("jumpmap param 'jumps'", f"expected an int in [1, {MAX_JUMPS}], found {jumps}",
+                                "use e.g. 3 jump targets per texel")
+    if not 0.0 <= jump_probability <= 1.0:
+        raise BtforgeInputError("jumpmap param 'jump_probability'",
+                                f"expected a value in [0, 1], found {jump_probability}",
+                                "use e.g. 0.1: the walk jumps at about one step in ten")
     h, w, _ = features.shape
     tx = texton_analysis(normalise_features(features), min(textons, h * w), engine=engine)
     allowed = np.zeros((h, w), bool)
@@ -136,10 +144,7 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, 
     kernel.set_args(src_dev, flags_dev, np.int32(ho), np.int32(wo), np.int32(wrap), np.int32(0), np.int32(0),
                     np.int32(0), uniform_dev, fallback_dev, targets_dev, cumulative_dev, probability_dev, tex_dev,
                     tex_pad_dev, np.int32(jm.height), np.int32(jm.width), table_dev, np.int32(jm.textons.count))
-    for t in range((wo - 1) + 2 * (ho - 1) + 1):
-        y0, ny = wavefront_rows(t, 2, ho, wo)
-        if ny <= 0:
-            continue
+    for t, y0, ny in wavefronts(2, ho, wo):
         kernel.set_arg(5, np.int32(t))
         kernel.set_arg(6, np.int32(y0))
         kernel.set_arg(7, np.int32(ny))
@@ -151,12 +156,9 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, 
 
 
 def _output_neighbour(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bool):
-    """Flat index of output pixels (qy, qx) and whether they exist: wrapped around a tiling output, clipped (and
-    marked outside) otherwise."""
-    if wrap:
-        return (qy % ho) * wo + qx % wo, np.ones(qy.shape, bool)
-    inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
-    return np.clip(qy, 0, ho - 1) * wo + np.clip(qx, 0, wo - 1), inside
+    """Flat index of output pixels (qy, qx) and whether they exist (see :func:`~.kcoherence.output_neighbours`)."""
+    qy, qx, inside = output_neighbours(qy, qx, ho, wo, wrap)
+    return qy * wo + qx, inside
 
 
 def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
@@ -169,10 +171,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
     src = np.zeros(ho * wo, np.int64)
     flags = np.zeros(ho * wo, np.uint8)
     done = np.zeros(ho * wo, bool)
-    for t in range((wo - 1) + 2 * (ho - 1) + 1):
-        y0, ny = wavefront_rows(t, 2, ho, wo)
-        if ny <= 0:
-            continue
+    for t, y0, ny in wavefronts(2, ho, wo):
         ys = np.arange(y0, y0 + ny)
         xs = t - 2 * ys
         p = ys * wo + xs
@@ -270,11 +269,6 @@ def jumpmap(ctx, exemplar, *, size, seed, wrap, jumps, jump_probability, neighbo
         raise BtforgeInputError("jumpmap 'exemplar'", f"expected at least {neighborhood} x {neighborhood} texels "
                                 f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",
                                 "use a larger exemplar or a smaller neighborhood")
-    if not 1 <= jumps <= MAX_JUMPS:
-        raise BtforgeInputError("jumpmap param 'jumps'", f"expected an int in [1, {MAX_JUMPS}], found {jumps}")
-    if not 0.0 <= jump_probability <= 1.0:
-        raise BtforgeInputError("jumpmap param 'jump_probability'",
-                                f"expected a value in [0, 1], found {jump_probability}")
     start = time.perf_counter()
     jm = build_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons)

@@ -32,7 +32,7 @@ from btforge.backend import get_backend
 from btforge.buffers import CoordMap, PerTexel
 from btforge.errors import BtforgeInputError
 
-from .features import texel_features
+from .features import downsample, texel_features
 
 KERNELS = Path(__file__).with_name("kcoherence.cl")
 CAUSAL_ORDER = "single"      # "single": a causal pass is one work-group looping over wavefronts; "launch": one each
@@ -335,15 +335,6 @@ class ExemplarLevel:
         return self.textons.table
 
 
-def downsample(features: np.ndarray) -> np.ndarray:
-    """Half resolution (rounded up): a 5-tap binomial blur with mirrored edges, then every second texel."""
-    from scipy.ndimage import convolve1d
-    kernel = np.array([1, 4, 6, 4, 1], np.float64) / 16.0
-    f = convolve1d(features.astype(np.float64), kernel, axis=0, mode="mirror")
-    f = convolve1d(f, kernel, axis=1, mode="mirror")
-    return np.ascontiguousarray(f[::2, ::2], dtype=np.float32)
-
-
 def level_sizes(height: int, width: int, levels: int) -> list[tuple[int, int]]:
     """Sizes of a pyramid, finest first: each level half the previous, rounded up."""
     return [(-(-height // 2 ** l), -(-width // 2 ** l)) for l in range(levels)]
@@ -389,16 +380,26 @@ def wavefront_rows(t: int, step: int, ho: int, wo: int) -> tuple[int, int]:
     return y_lo, y_hi - y_lo + 1
 
 
-def _neighbours(ys, xs, offs, ho, wo, wrap):
-    qy = ys[:, None] + offs[None, :, 0]
-    qx = xs[:, None] + offs[None, :, 1]
+def wavefronts(step: int, ho: int, wo: int):
+    """``(t, first row, row count)`` of every non-empty wavefront ``x + step * y == t`` of an ``ho x wo`` output,
+    in the order they must be synthesized."""
+    for t in range((wo - 1) + step * (ho - 1) + 1):
+        y0, ny = wavefront_rows(t, step, ho, wo)
+        if ny > 0:
+            yield t, y0, ny
+
+
+def output_neighbours(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bool):
+    """Output pixels ``(qy, qx)`` moved onto the ``ho x wo`` grid, and whether they exist: wrapped around a tiling
+    output, clipped (and marked outside) otherwise.  The twins' one copy of the kernels' neighbour rule."""
     if wrap:
-        inside = np.ones(qy.shape, bool)
-        qy, qx = qy % ho, qx % wo
-    else:
-        inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
-        qy, qx = np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1)
-    return qy, qx, inside
+        return qy % ho, qx % wo, np.ones(qy.shape, bool)
+    inside = (qy >= 0) & (qy < ho) & (qx >= 0) & (qx < wo)
+    return np.clip(qy, 0, ho - 1), np.clip(qx, 0, wo - 1), inside
+
+
+def _neighbours(ys, xs, offs, ho, wo, wrap):
+    return output_neighbours(ys[:, None] + offs[None, :, 0], xs[:, None] + offs[None, :, 1], ho, wo, wrap)
 
 
 def best_candidates_numpy(level: ExemplarLevel, nsrc: np.ndarray, used: np.ndarray, offs: np.ndarray,
@@ -436,10 +437,7 @@ def causal_pass_numpy(level, cur, fixed, ho, wo, wrap, offs, k, use_prev=False):
     """Twin of the wavefront-ordered causal pass (``kc_causal``); updates ``cur`` (flat) in place."""
     step = int(np.abs(offs).max()) + 1
     prev = cur.copy()
-    for t in range((wo - 1) + step * (ho - 1) + 1):
-        y0, ny = wavefront_rows(t, step, ho, wo)
-        if ny <= 0:
-            continue
+    for t, y0, ny in wavefronts(step, ho, wo):
         ys = np.arange(y0, y0 + ny)
         xs = t - step * ys
         keep = ~fixed[ys * wo + xs]
@@ -526,10 +524,7 @@ class _DeviceLevel:
             return
         kernel = self.causal
         kernel.set_args(np.int32(0), np.int32(0), np.int32(0), *args)
-        for t in range((wo - 1) + step * (ho - 1) + 1):
-            y0, ny = wavefront_rows(t, step, ho, wo)
-            if ny <= 0:
-                continue
+        for t, y0, ny in wavefronts(step, ho, wo):
             kernel.set_arg(0, np.int32(t))
             kernel.set_arg(1, np.int32(y0))
             kernel.set_arg(2, np.int32(ny))
@@ -564,7 +559,10 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
                analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
     """Hierarchical k-coherence synthesis on ``[H, W, D]`` features; see :func:`kcoherence` for the method."""
     if engine not in ENGINES:
-        raise BtforgeInputError("kcoherence 'engine'", f"expected one of {ENGINES}, found {engine!r}")
+        raise BtforgeInputError("kcoherence 'engine'", f"expected one of {ENGINES}, found {engine!r}",
+                                "use 'opencl', or 'numpy' for the reference twins")
+    # The stage checked its params before any work; direct callers reach the bounds its Params enforce only here.
+    check_params("kcoherence", features.shape[:2], size=size, neighborhood=neighborhood, k=k, levels=levels)
     start = time.perf_counter()
     pyramid = analysis if analysis is not None else analyse_exemplar(
         features, k=k, neighborhood=neighborhood, levels=levels, textons=textons, engine=engine)
@@ -644,13 +642,16 @@ def check_params(stage: str, exemplar_size: tuple[int, int], *, size, neighborho
                                 f"expected an odd window size in [3, {MAX_NEIGHBORHOOD}], found {neighborhood}",
                                 "use 3, 5, 7 or 9")
     if k is not None and not 1 <= k <= MAX_K:
-        raise BtforgeInputError(f"{stage} param 'k'", f"expected an int in [1, {MAX_K}], found {k}")
+        raise BtforgeInputError(f"{stage} param 'k'", f"expected an int in [1, {MAX_K}], found {k}",
+                                "use e.g. 6: the coherent source and 5 similar texels")
     if len(size) != 2 or min(size) < 1:
-        raise BtforgeInputError(f"{stage} param 'size'", f"expected [H, W] with both at least 1, found {list(size)}")
+        raise BtforgeInputError(f"{stage} param 'size'", f"expected [H, W] with both at least 1, found {list(size)}",
+                                "give the output size as two positive ints, e.g. [256, 256]")
     if levels is None:
         return
     if levels < 1:
-        raise BtforgeInputError(f"{stage} param 'levels'", f"expected at least 1, found {levels}")
+        raise BtforgeInputError(f"{stage} param 'levels'", f"expected at least 1, found {levels}",
+                                "use 1 for a single-resolution synthesis, 3 for the usual pyramid")
     coarsest = level_sizes(*exemplar_size, levels)[-1]
     if min(coarsest) < neighborhood:
         raise BtforgeInputError(

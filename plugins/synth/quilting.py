@@ -98,7 +98,8 @@ def validate(exemplar_size: tuple[int, int], size, block: int, overlap: int, wra
     """Raise :class:`BtforgeInputError` naming the parameter when the quilting parameters cannot work."""
     ex_h, ex_w = exemplar_size
     if block < 3:
-        raise BtforgeInputError("quilt 'block'", f"expected at least 3 texels, found {block}")
+        raise BtforgeInputError("quilt 'block'", f"expected at least 3 texels, found {block}",
+                                "use a block of about the size of the exemplar's features, e.g. 32")
     if block > min(ex_h, ex_w):
         raise BtforgeInputError("quilt 'block'",
                                 f"expected a block that fits in the {ex_h} x {ex_w} exemplar, found {block}",
@@ -109,9 +110,11 @@ def validate(exemplar_size: tuple[int, int], size, block: int, overlap: int, wra
                                 f"use e.g. overlap {max(1, block // 6)} (block // 6)")
     if len(size) != 2 or min(size) < block:
         raise BtforgeInputError("quilt 'size'",
-                                f"expected an [H, W] of at least the block ({block}) each, found {list(size)}")
+                                f"expected an [H, W] of at least the block ({block}) each, found {list(size)}",
+                                f"use a size of at least [{block}, {block}] or a smaller block")
     if tolerance < 0 or not math.isfinite(tolerance):
-        raise BtforgeInputError("quilt 'tolerance'", f"expected a finite value >= 0, found {tolerance}")
+        raise BtforgeInputError("quilt 'tolerance'", f"expected a finite value >= 0, found {tolerance}",
+                                "use e.g. 0.1: blocks within 10% of the best overlap error are eligible")
     if wrap:
         step = block - overlap
         for axis, n in zip(("height", "width"), size):
@@ -167,13 +170,12 @@ class HaarSet:
     dims: np.ndarray     # [K] int32
     boxes: np.ndarray    # [K, 4, 4] int32
     coefs: np.ndarray    # [K, 4] float64
-    levels: np.ndarray   # [K] int32: coarseness (sum of the 1D levels)
 
     def __len__(self) -> int:
         return len(self.dims)
 
     def take(self, order) -> "HaarSet":
-        return HaarSet(self.dims[order], self.boxes[order], self.coefs[order], self.levels[order])
+        return HaarSet(self.dims[order], self.boxes[order], self.coefs[order])
 
     def padded(self, multiple: int = 8) -> "HaarSet":
         """The same functions followed by zero functions up to a multiple of ``multiple`` (their projections are 0,
@@ -183,8 +185,7 @@ class HaarSet:
             return self
         return HaarSet(np.concatenate([self.dims, np.zeros(extra, np.int32)]),
                        np.concatenate([self.boxes, np.zeros((extra, 4, 4), np.int32)]),
-                       np.concatenate([self.coefs, np.zeros((extra, 4))]),
-                       np.concatenate([self.levels, np.zeros(extra, np.int32)]))
+                       np.concatenate([self.coefs, np.zeros((extra, 4))]))
 
     @property
     def coef_abs(self) -> np.ndarray:
@@ -215,18 +216,17 @@ def haar_functions(block: int, key: tuple[int, int, int, int], n_dims: int, limi
     dims = np.empty(k, np.int32)
     boxes = np.zeros((k, 4, 4), np.int32)
     coefs = np.zeros((k, 4))
-    levels = np.empty(k, np.int32)
     j = 0
-    for level, _, fboxes in entries:
+    for _, _, fboxes in entries:
         for d in range(n_dims):
             if j == k:
                 break
-            dims[j], levels[j] = d, level
+            dims[j] = d
             for b, (y0, x0, y1, x1, w) in enumerate(fboxes):
                 boxes[j, b] = (y0, x0, y1, x1)
                 coefs[j, b] = w
             j += 1
-    return HaarSet(dims, boxes, coefs, levels)
+    return HaarSet(dims, boxes, coefs)
 
 
 def summed_area(values: np.ndarray) -> np.ndarray:
@@ -781,13 +781,17 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
     start_time = time.perf_counter()
     feats = np.ascontiguousarray(feats, np.float32)
     if feats.ndim != 3:
-        raise BtforgeInputError("quilt 'exemplar'", f"expected [H, W, D] appearance vectors, found shape {feats.shape}")
+        raise BtforgeInputError("quilt 'exemplar'", f"expected [H, W, D] appearance vectors, found shape {feats.shape}",
+                                "pass texel_features(buffer), which gives every per-texel buffer that shape")
     if not np.isfinite(feats).all():
-        raise BtforgeInputError("quilt 'exemplar'", "expected finite texel values, found NaN/Inf")
+        raise BtforgeInputError("quilt 'exemplar'", f"expected finite texel values, found "
+                                f"{int((~np.isfinite(feats)).sum())} NaN/Inf", "repair the exemplar before synthesis")
     if search not in SEARCHES:
-        raise BtforgeInputError("quilt 'search'", f"expected one of {SEARCHES}, found {search!r}")
+        raise BtforgeInputError("quilt 'search'", f"expected one of {SEARCHES}, found {search!r}",
+                                "use 'rejection' (fast, exact) or 'brute' (the reference)")
     if seam not in SEAMS:
-        raise BtforgeInputError("quilt 'seam'", f"expected one of {SEAMS}, found {seam!r}")
+        raise BtforgeInputError("quilt 'seam'", f"expected one of {SEAMS}, found {seam!r}",
+                                "use 'cut' (minimum-error boundary) or 'blend' (linear blending)")
     height, width = (int(v) for v in size)
     validate(feats.shape[:2], (height, width), block, overlap, wrap, tolerance)
 

@@ -11,6 +11,8 @@ tree queries, which BLAS and SciPy already do well on a CPU.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
@@ -18,6 +20,8 @@ from btforge import Param, declare_stage
 from btforge.buffers import (SRGB8_TO_LINEAR, CoordMap, PerTexel, ReflectanceModel, SampleStack, Scores,
                              unit_directions)
 from btforge.errors import BtforgeInputError
+
+from .features import downsample
 
 #: Patches per image that enter one sliced-Wasserstein comparison (all of them when there are fewer).
 SWD_PATCH_CAP = 16384
@@ -46,6 +50,14 @@ MAX_VERBATIM_OFFSETS = 64
 
 def _zenith_view(stack: SampleStack) -> int:
     return int(np.argmax(stack.views[:, 2]))
+
+
+def _relit_view(buffer: PerTexel) -> PerTexel:
+    """A stack cut to the one view :func:`_relight` uses, so a multi-view capture is not replayed view by view."""
+    if isinstance(buffer, SampleStack) and buffer.n_view > 1:
+        v = _zenith_view(buffer)
+        return dataclasses.replace(buffer, samples=buffer.samples[v:v + 1], views=buffer.views[v:v + 1])
+    return buffer
 
 
 def _relight(buffer: PerTexel, lights: np.ndarray, role: str) -> np.ndarray:
@@ -138,15 +150,6 @@ def _pick(rng: np.random.Generator, n: int, cap: int) -> np.ndarray:
     if n <= cap:
         return np.arange(n)
     return np.sort(rng.choice(n, cap, replace=False))
-
-
-def _downsample(image: np.ndarray, wrap: bool) -> np.ndarray:
-    """One Gaussian-pyramid step: a 5-tap binomial blur, then every second texel."""
-    from scipy.ndimage import correlate1d
-    kernel = np.array([1, 4, 6, 4, 1], np.float32) / 16
-    mode = "wrap" if wrap else "reflect"
-    blurred = correlate1d(correlate1d(image, kernel, axis=0, mode=mode), kernel, axis=1, mode=mode)
-    return np.ascontiguousarray(blurred[::2, ::2])
 
 
 def _sorted_quantiles(sorted_values: np.ndarray, n: int) -> np.ndarray:
@@ -353,10 +356,12 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
         Param("patch", "int", 7, "patch size in texels for every patch metric", low=1, high=63),
         Param("scales", "int", 3, "levels of the Gaussian pyramid for the sliced Wasserstein distance", low=1, high=10),
         Param("seed", "int", 0, "seed of the random projections and patch samples", low=0),
-        Param("block", "int", 0, "the synthesizer's block/tile size, where seams are measured; 0 = unknown: seams "
-              "are where the coordinate map jumps when one is wired to 'coords'", low=0),
-        Param("wrap", "bool", False, "the output is meant to tile: its wrap-around boundary counts as a seam and its "
-              "patches wrap around"),
+        Param("block", "int", 0, "the synthesizer's block step in texels: seams are measured between texels j - 1 "
+              "and j for every multiple j of it (for quilt: block - overlap, where each block's overlap begins; cut "
+              "seams wander inside the overlap, so this is approximate).  0 = unknown: seams are where the map "
+              "wired to 'coords' jumps, which is the accurate option", low=0),
+        Param("wrap", "bool", None, "the output is meant to tile: its wrap-around boundary counts as a seam and its "
+              "patches wrap around; left out: the wrap of the map wired to 'coords' (false without one)"),
         Param("domain", "choice", "srgb", "where images are compared after exposure normalisation: sRGB-encoded or "
               "log2 radiance (both about [0, 1])", choices=("srgb", "log")),
         Param("projections", "int", 64, "random projections of the sliced Wasserstein distance", low=1, high=4096),
@@ -418,12 +423,14 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
         ``seam_ratio``
             Mean gradient magnitude (forward difference, colour norm) across boundaries divided by the mean
             gradient between all other neighbouring texels, both averaged over lights; 1 means invisible
-            seams.  Boundaries are the ``block`` grid, else where ``coords`` is discontinuous, plus the
-            last-to-first row and column when ``wrap``; empty (no value) when none of these is known.
+            seams.  Boundaries are every ``block`` texels (the block step: ``block - overlap`` for ``quilt``),
+            else where ``coords`` is discontinuous (the seams exactly), plus the last-to-first row and column
+            when ``wrap`` (by default the map's own); empty (no value) when none of these is known.
         ``consistency`` and ``consistent``
             Whether each output texel comes from the same exemplar place under every light.  With ``coords``:
             the share of texels equal (within ``tolerance``, under every light) to what the map names, i.e. to
-            the relit exemplar replayed through the map (blends included).  Without: for sampled output texels
+            the exemplar replayed through the map as ``materialize`` replays it (blends included), then relit.
+            Without: for sampled output texels
             (``samples / 4``), under each light separately, up to 16 of the ``consistency_patch``-sized patches
             covering the texel are matched to their nearest exemplar patch and the best-matching one names the
             exemplar texel under it; a texel is consistent when the places named under all lights lie within
@@ -434,7 +441,8 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
             (they score low even when consistent): lower ``consistency_patch`` for such synthesizers, or wire
             the map.  ``consistent`` is ``consistency >= consistency_threshold`` (0.8 by default);
             ``consistency_matched`` always holds the map-free estimate.
-        ``swd_0`` ..., ``scales_used``, ``lights``, ``lights_source``, ``domain``, ``*_method``, ``seam_source``
+        ``swd_0`` ..., ``scales_used``, ``lights``, ``lights_source``, ``domain``, ``wrap``, ``*_method``,
+        ``seam_source``
             How the figures were found.
 
     Costs: a 256 x 256 output against a 128 x 128 exemplar at 8 lights scores in about 3 s (measured with one
@@ -442,6 +450,8 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
 
     Everything is also noted in the run report, with the lights, the domain and how each figure was found.
     """
+    if wrap is None:
+        wrap = bool(coords.wrap) if coords is not None else False
     n_channel, out_channel = len(_channels(exemplar)), len(_channels(output))
     if out_channel != n_channel:
         raise BtforgeInputError("score", f"expected output and exemplar with the same channels, found {out_channel} "
@@ -461,10 +471,12 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
     if coords is not None:
         if coords.source_size != (eh, ew):
             raise BtforgeInputError("score 'coords'", f"expected a map into the {eh} x {ew} exemplar, found one into "
-                                    f"{coords.source_size[0]} x {coords.source_size[1]}")
+                                    f"{coords.source_size[0]} x {coords.source_size[1]}",
+                                    "wire the exemplar the map was synthesized from (the synthesizer's input)")
         if (coords.height, coords.width) != (h, w):
             raise BtforgeInputError("score 'coords'", f"expected a map of the output's size {h} x {w}, found "
-                                    f"{coords.height} x {coords.width}")
+                                    f"{coords.height} x {coords.width}",
+                                    "wire the map whose materialized result is 'output'")
 
     whites = _white_points(ex_lin)
     ex_enc = _encode(ex_lin, whites, domain)
@@ -476,8 +488,8 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
     ex_level, out_level = list(ex_enc), list(out_enc)
     for level in range(scales):
         if level:
-            ex_level = [_downsample(im, False) for im in ex_level]
-            out_level = [_downsample(im, wrap) for im in out_level]
+            ex_level = [downsample(im, "reflect") for im in ex_level]
+            out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
         if min(ex_level[0].shape[:2]) < patch or min(out_level[0].shape[:2]) < patch:
             break
         rng = np.random.default_rng([seed, 1, level])
@@ -542,16 +554,9 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
     # ---- consistency
     consistency_matched = cross.agreement(ex_enc, out_enc, tolerance)
     if coords is not None:
-        src = coords.coords
-        replay = ex_lin[:, src[..., 0], src[..., 1]]
-        if coords.blend_weight.size:
-            wgt = coords.blend_weight[None, ..., None]
-            other = ex_lin[:, coords.blend_coords[..., 0], coords.blend_coords[..., 1]]
-            if exemplar.blendable:
-                replay = (1 - wgt) * replay + wgt * other
-            else:
-                replay = np.where(wgt > 0.5, other, replay)
-        replay_enc = _encode(replay.astype(np.float32), whites, domain)
+        # Replayed exactly as materialize does (records blended, then relit): blending relit radiance instead
+        # differs wherever evaluation is not linear in the records (clamps, sRGB codes, sRGB-space PTMs).
+        replay_enc = _encode(_relight(coords.apply(_relit_view(exemplar)), lights_used, "exemplar"), whites, domain)
         consistency = float((np.abs(out_enc - replay_enc).max(axis=(0, 3)) <= tolerance).mean())
         consistency_method = "coords"
     else:
@@ -615,6 +620,7 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
         "lights": n_light,
         "lights_source": lights_source,
         "domain": domain,
+        "wrap": bool(wrap),
         "scales_used": len(swd_per_level),
         "sampled_patches": int(len(out_query)),
     }
