@@ -11,7 +11,7 @@ import btforge
 from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack
 from btforge.context import StageContext
-from btforge.plugins.sh.model import (ENERGY_SLACK, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
+from btforge.plugins.sh.model import (ENERGY_SLACK, RCOND, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
                                       energy_root, evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
                                       evaluate_sh_scattered_opencl, fit_sh, quantize_coeffs, real_sh, sh_solver)
 
@@ -335,6 +335,39 @@ def test_fewer_samples_than_coefficients_warns_and_stays_bounded():
     assert np.isfinite(model.coeffs).all()
     assert (energy(model) <= energy_bound(s) * 1.001).all()
     assert "fewer samples" in ctx.notes["warnings"][0]
+
+
+def test_plain_least_squares_on_clustered_lights_and_views_stays_bounded():
+    rng = np.random.default_rng(1)
+    lights = lights_at(60 + rng.uniform(-1.5, 1.5, 20), 120 + rng.uniform(-1.5, 1.5, 20))
+    views = lights_at(70 + rng.uniform(-1.5, 1.5, 10), 30 + rng.uniform(-1.5, 1.5, 10))
+    samples = rng.uniform(0, 1, (10, 20, 3, 4, 3))
+    s = stack_of(samples, lights, views)
+    gpu, stats = quiet_fit(s, 4, 3, energy_factor=np.inf)
+    ref, _ = quiet_fit(s, 4, 3, energy_factor=np.inf, engine="numpy")
+    solver = sh_solver(lights, views, 4, 3)
+    assert stats["rank"] == solver.rank < 16 * 9 and stats["lambda_max"] == 0.0
+    # Minimum-norm least squares on the directions kept (s_i >= RCOND s_max): ||c|| <= ||y|| / (RCOND s_max).
+    norm_y = np.sqrt((samples.astype(np.float64) ** 2).sum(axis=(0, 1)))           # [H, W, C]
+    limit = norm_y / (RCOND * solver.s.max())
+    for model in (gpu, ref):
+        assert np.isfinite(model.coeffs).all()
+        assert (np.sqrt(energy(model)) <= limit * 1.001).all()
+        rms = np.sqrt(((model.evaluate(lights, views, engine="numpy") - samples) ** 2).mean())
+        assert rms < np.sqrt((samples ** 2).mean())                                 # better than the zero function
+    np.testing.assert_allclose(gpu.coeffs, ref.coeffs, atol=2e-4 * np.abs(ref.coeffs).max())
+
+
+@pytest.mark.parametrize("n_light,n_view,light_order,view_order", [(6, 1, 3, 1), (30, 3, 3, 2)])
+def test_plain_least_squares_needs_enough_lights_and_views(n_light, n_view, light_order, view_order):
+    views = hemisphere(n_view, 0.3) if n_view > 1 else [[0, 0, 1]]
+    s = stack_of(np.ones((n_view, n_light, 2, 2, 3)), hemisphere(n_light, 0.1), views)
+    with pytest.raises(BtforgeInputError, match=f"light_order {light_order}.*{n_light} light.*view_order {view_order}"
+                                                 f".*{n_view} view") as err:
+        fit_sh(s, light_order, view_order, energy_factor=np.inf)
+    assert "lower the orders" in err.value.hint and "energy" in err.value.hint
+    model, _ = quiet_fit(s, light_order, view_order)                               # the bounded fit still runs
+    assert np.isfinite(model.coeffs).all()
 
 
 # ----------------------------------------------------------------------------------------------- multi-view

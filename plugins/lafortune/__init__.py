@@ -15,10 +15,10 @@ NOT_CONVERGED_WARN = 0.05  # warn when more than this fraction of texels ran out
     inputs={"stack": "SampleStack"},
     outputs={"model": "LafortuneModel"},
     params=[
-        Param("lobes", "int", 1, f"luminance lobes (variant lum); variant rgb always fits 2 per channel and accepts "
-              f"only 1 or 2 here", low=1, high=MAX_LOBES),
+        Param("lobes", "int", 0, "lobes per fitted signal: on the luminance (variant lum, 1 to 7) or on each "
+              "channel (variant rgb, 1 or 2); 0: 1 for lum, 2 per channel for rgb", low=0, high=MAX_LOBES),
         Param("variant", "choice", "lum", "lum: lobes on the channel mean times a per-texel colour; rgb: each channel "
-              "its own diffuse term and 2 lobes", choices=("lum", "rgb")),
+              "its own diffuse term and lobes", choices=("lum", "rgb")),
         Param("iterations", "int", DEFAULT_ITERATIONS, "Levenberg-Marquardt steps allowed per added lobe and start",
               low=1, high=10000),
     ],
@@ -27,7 +27,8 @@ def lafortune_fit(ctx, stack, *, lobes, variant, iterations):
     """Fit per-texel Lafortune lobes to a stack (top view or multi-view BTF) by Levenberg-Marquardt, on OpenCL.
 
     Each texel gets its own frame: a normal from robust photometric stereo on its samples (the darkest and the
-    brightest 30 % dropped; ``(0, 0, 1)`` for black texels or normals within 3 degrees of the surface plane)
+    brightest 30 % dropped, with any samples tied to them, so the order of the lights does not matter;
+    ``(0, 0, 1)`` for black or constant texels or normals within 3 degrees of the surface plane)
     and the surface x-axis made orthogonal to it as tangent.  In that frame the model is::
 
         radiance = max(uz, 0) * (rho_d + sum_i max(Cx_i ux vx + Cy_i uy vy + Cz_i uz vz, 0) ^ n_i)
@@ -42,26 +43,28 @@ def lafortune_fit(ctx, stack, *, lobes, variant, iterations):
     kept only if it lowers the texel's error, so more lobes never fit worse.  Exponents stay in [1, 1000], a
     negative lobe base counts as 0 (no negative number is raised to a fractional power), and no lobe may peak
     above 10x the texel's brightest sample in any direction, which keeps relighting between the measured
-    lights bounded.  The stack is streamed in bands of rows.
+    lights bounded.  Each texel is fitted scaled to a peak near 1 (by a power of two) and scaled back, so
+    the fit does not depend on the data's overall brightness.  The stack is streamed in bands of rows.
 
     Inputs
     ------
     stack : SampleStack
-        Any light (and view) set with at least 1 + 4 x lobes samples per texel (9 for rgb); 8-bit stacks are
-        fitted in linear radiance.
+        Any light (and view) set with at least 1 + 4 x lobes samples per texel; 8-bit stacks are fitted in
+        linear radiance.
 
     Outputs
     -------
     model : LafortuneModel
         ``normals [H, W, 3]``, ``diffuse [H, W, 1 or C]``, ``lobes [H, W, K, 3]`` (Cx, Cy, Cz; for rgb ``K = 2C``,
-        channel-major), ``exponents [H, W, K]``, ``colour [H, W, C]`` (lum).  Relight it with ``relight``.
+        channel-major, the second of each channel switched off, ``C = 0``, for ``lobes`` 1), ``exponents [H, W, K]``,
+        ``colour [H, W, C]`` (lum).  Relight it with ``relight``.
 
     Notes
     -----
     ``not_converged``: texels whose kept fit used up ``iterations`` (they keep their best iterate); ``rms``:
     root-mean-square error over all samples and channels, linear radiance; ``iterations``: mean steps per texel.
     """
-    model, info = fit_lafortune(stack, lobes, variant, iterations=iterations)
+    model, info = fit_lafortune(stack, lobes or None, variant, iterations=iterations)
     ctx.note("not_converged", info["not_converged"])
     ctx.note("rms", float(f"{info['rms']:.6g}"))
     ctx.note("iterations", round(info["iterations"], 2))

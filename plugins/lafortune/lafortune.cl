@@ -4,37 +4,19 @@
 // Model of one signal in a texel frame F (rows t, b, n):  value = max(uz, 0) * (rho + sum_i max(C_i . x, 0)^n_i),
 // x = (ux vx, uy vy, uz vz), u and v the light and view in the frame.  Parameters q: q[0] = rho, lobe i at
 // q[1 + 4i .. 3 + 4i] = (Cx, Cy, Cz) and q[4 + 4i] = ln n_i.
-// Build options: -DNLOBE=k (lobes per fitted signal, 1..7) ; -DMAXC=4 (largest channel count).
+// Build options: -DNLOBE=k (lobes per fitted signal, 1..7) and model.BUILD_OPTIONS (every constant).
 
 #pragma OPENCL FP_CONTRACT OFF
 
 #ifndef NLOBE
 #define NLOBE 1
 #endif
-#ifndef MAXC
-#define MAXC 4
-#endif
 #define NP (1 + 4 * NLOBE)
 
-#define P_MAX 6.907755278982137f     // ln 1000
-#define LOBE_CAP 10.0f
-#define T_CAP 20.0f
-#define B_MIN 1e-30f
-#define LAM0 1e-3f
-#define LAM_DOWN 0.1f
-#define LAM_UP 10.0f
-#define LAM_MIN 1e-7f
-#define LAM_MAX 1e7f
-#define FTOL 1e-4f
-#define ETOL 1e-9f
-#define ATOL 1e-12f
-#define D_FLOOR 1e-9f
-#define W_FLOOR 1e-3f
-#ifndef N_DIRS
-#define N_DIRS 3          // start shapes: N_DIRS directions (kernel argument cand_dirs) x N_EXPS exponents
-#endif
-#ifndef N_EXPS
-#define N_EXPS 16
+// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, LAM_DOWN, LAM_UP, LAM_MIN, LAM_MAX, FTOL, ETOL, ATOL,
+// D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
+#if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC)
+#error "build lafortune.cl with model.BUILD_OPTIONS"
 #endif
 #define N_CAND (N_DIRS * N_EXPS)
 

@@ -30,8 +30,9 @@ Guards and bounds
 
 Fit (per texel, and per channel for ``rgb``)
 --------------------------------------------
-Normals come first, from robust photometric stereo (:func:`estimate_normals`).  Lobes are then added one at a
-time.  Stage 0 is the closed-form ``rho_d``.  Stage ``k`` keeps the ``k - 1`` lobes of the best fit so far and
+Normals come first, from robust photometric stereo (:func:`estimate_normals`).  Each texel is then scaled to a
+peak in (0.5, 1] and the result scaled back (:func:`fit_band`), so nothing below depends on the data's brightness.
+Lobes are then added one at a time.  Stage 0 is the closed-form ``rho_d``.  Stage ``k`` keeps the ``k - 1`` lobes of the best fit so far and
 scores a grid of start shapes for the new lobe against their residual - mirror ``(-1, -1, 1)``, retro
 ``(1, 1, 1)`` and normal ``(0, 0, 1)`` directions at 16 exponents from 1 to 1000 (steps of x1.58; coarser grids
 leave LM stranded between them), each with its non-negative amplitude and ``rho_d`` solved in closed form.  Each
@@ -96,6 +97,19 @@ DEFAULT_ITERATIONS = 50
 N_STARTS = 2            # each new lobe is fitted from this many start shapes (the best, then the best broader one)
 
 
+def _cl_float(value: float) -> str:
+    return f"{float(value)!r}f"
+
+
+# lafortune.cl takes every constant above from these build options (it defines none itself), so the kernels and
+# their NumPy twins cannot drift apart.
+BUILD_OPTIONS = tuple(f"-D{name}={_cl_float(value)}" for name, value in (
+    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0),
+    ("LAM_DOWN", LAM_DOWN), ("LAM_UP", LAM_UP), ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL),
+    ("ETOL", ETOL), ("ATOL", ATOL), ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
+    f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}")
+
+
 def _candidates() -> list[tuple[np.ndarray, float]]:
     return [(d, float(n)) for n in CANDIDATE_EXPONENTS for d in CANDIDATE_DIRS]
 
@@ -105,7 +119,8 @@ def _candidates() -> list[tuple[np.ndarray, float]]:
 
 def texel_frames(normals: np.ndarray) -> np.ndarray:
     """Per-texel frames ``[N, 3, 3]`` float32, rows ``(t, b, n)``: the tangent is the surface x-axis made
-    orthogonal to ``n`` (Gram-Schmidt; the y-axis when ``n`` is within ~0.1 degree of x), ``b = n x t``."""
+    orthogonal to ``n`` (Gram-Schmidt; the y-axis when ``n`` is within ~0.057 degree of x, where
+    ``|t|^2 = 1 - nx^2 < 1e-6``), ``b = n x t``."""
     n = np.asarray(normals, np.float32).reshape(-1, 3)
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
     tx, ty, tz = np.float32(1) - nx * nx, -nx * ny, -nx * nz
@@ -281,7 +296,7 @@ def _lobe32(base: np.ndarray, n: np.ndarray) -> np.ndarray:
 def evaluate_lafortune_opencl(frames, diffuse, lobes, exponents, colour, lights, views, variant, n_channel,
                               budget_bytes: int = 256 << 20) -> np.ndarray:
     backend = get_backend()
-    kernel = backend.kernel(KERNELS, "lafortune_eval")
+    kernel = backend.kernel(KERNELS, "lafortune_eval", BUILD_OPTIONS)
     n_texel, k_total = exponents.shape
     n_light, n_view = len(lights), len(views)
     out = np.empty((n_view, n_light, n_texel, n_channel), np.float32)
@@ -328,7 +343,7 @@ def evaluate_lafortune_scattered_opencl(diffuse, lobes, exponents, colour, texel
                                        n_channel) -> np.ndarray:
     """Scattered evaluation on OpenCL (kernel ``lafortune_eval_scattered``); the model is read in place."""
     backend = get_backend()
-    kernel = backend.kernel(KERNELS, "lafortune_eval_scattered")
+    kernel = backend.kernel(KERNELS, "lafortune_eval_scattered", BUILD_OPTIONS)
     n = len(texels)
     out = np.empty((n, n_channel), np.float32)
     if n == 0:
@@ -349,6 +364,7 @@ DARK_FRACTION = 0.3     # photometric stereo drops this fraction of each texel's
 BRIGHT_FRACTION = 0.3   # ... and this fraction of its brightest (highlights)
 NORMAL_MIN_Z = 0.05
 PS_RIDGE = 1e-4         # tangential components of b are damped by this x trace(L'L): clustered lights -> up
+PS_Z_RIDGE = 1e-12      # ... and the normal component by this x trace: L'L stays invertible for coplanar lights
 
 
 def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
@@ -359,21 +375,28 @@ def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     n_bright = int(BRIGHT_FRACTION * s)
     if s - n_dark - n_bright < 3:
         n_dark = n_bright = 0
-    rank = np.empty((n_texel, s), np.int64)
-    order = np.argsort(lum, axis=1, kind="stable")
-    np.put_along_axis(rank, order, np.arange(s)[None, :].repeat(n_texel, 0), axis=1)
-    keep = ((rank >= n_dark) & (rank < s - n_bright)).astype(np.float64)
+    # Trim by value, not by position: every sample tied with the last dropped one is dropped too, so clipped
+    # (0 or saturated) runs go as a whole and the normal does not depend on the order of the lights.
+    ordered = np.sort(lum, axis=1)
+    low = ordered[:, n_dark - 1:n_dark] if n_dark else np.full((n_texel, 1), -np.inf)
+    high = ordered[:, s - n_bright:s - n_bright + 1] if n_bright else np.full((n_texel, 1), np.inf)
+    keep = (lum > low) & (lum < high)
+    keep[keep.sum(axis=1) < 3] = True            # ties left too few samples: use them all
+    kept_lo = np.where(keep, lum, np.inf).min(axis=1)
+    kept_hi = np.where(keep, lum, -np.inf).max(axis=1)
+    spread = kept_hi > kept_lo                   # no spread (a constant texel) says nothing about the normal
+    weight = keep.astype(np.float64)
     ld = sample_lights.astype(np.float64)
-    a = np.einsum("ns,si,sj->nij", keep, ld, ld)
-    rhs = np.einsum("ns,ns,si->ni", keep, lum, ld)
-    ridge = PS_RIDGE * np.trace(a, axis1=1, axis2=2)
-    a[:, 0, 0] += ridge
-    a[:, 1, 1] += ridge
-    a[:, 2, 2] += 1e-30
+    a = np.einsum("ns,si,sj->nij", weight, ld, ld)
+    rhs = np.einsum("ns,ns,si->ni", weight, lum, ld)
+    trace = np.trace(a, axis1=1, axis2=2)        # >= 1: every texel keeps at least one unit light
+    a[:, 0, 0] += PS_RIDGE * trace
+    a[:, 1, 1] += PS_RIDGE * trace
+    a[:, 2, 2] += PS_Z_RIDGE * trace
     b = np.linalg.solve(a, rhs[..., None])[..., 0]
     norm = np.linalg.norm(b, axis=1)
     bright = np.abs(lum).max(axis=1)
-    good = (norm > 1e-12 * np.maximum(bright, 1e-30)) & (bright > 0) & np.isfinite(norm)
+    good = (norm > 1e-12 * np.maximum(bright, 1e-30)) & (bright > 0) & np.isfinite(norm) & spread
     normals = np.where(good[:, None], b / np.where(good, norm, 1.0)[:, None], [0.0, 0.0, 1.0])
     normals[normals[:, 2] <= NORMAL_MIN_Z] = (0.0, 0.0, 1.0)
     return normals.astype(np.float32)
@@ -390,9 +413,11 @@ def estimate_normals(stack: SampleStack, budget_bytes: int = 64 << 20) -> np.nda
     """Per-texel normals ``[H, W, 3]`` float32 by robust photometric stereo on the luminance.
 
     Least squares ``I ~ b . l`` over every (view, light) sample of a texel, after dropping its darkest 30 % (cast
-    and attached shadows) and brightest 30 % (highlights); the tangential part of ``b`` is slightly damped so
-    clustered lights give a near-vertical normal rather than noise.  ``n = b / |b|``, or ``(0, 0, 1)`` for a
-    black texel or one whose ``n_z <= 0.05``.
+    and attached shadows) and brightest 30 % (highlights), together with every sample equal to the last one
+    dropped (so ties - clipped or saturated runs - never depend on the order of the lights; all samples are used
+    when fewer than 3 would remain); the tangential part of ``b`` is slightly damped so clustered lights give a
+    near-vertical normal rather than noise.  ``n = b / |b|``, or ``(0, 0, 1)`` for a black or constant texel
+    (kept samples without spread) or one whose ``n_z <= 0.05``.
     """
     sample_lights, _ = _sample_directions(stack)
     out = np.empty((stack.height, stack.width, 3), np.float32)
@@ -684,44 +709,44 @@ def _colour_fit(f: np.ndarray, values: np.ndarray):
     return colour, sse
 
 
-def fit_band_numpy(values, frames, sample_lights, sample_views, n_lobes, variant, iterations):
-    """Reference fit of one band ``values [S, n, C]`` (float32) in ``frames [n, 3, 3]``.
+def fit_band_numpy(values, frames, sample_lights, sample_views, per_fit, variant, iterations):
+    """Reference fit of one band ``values [S, n, C]`` (float32) in ``frames [n, 3, 3]``, ``per_fit`` lobes per
+    fitted signal (the luminance, or each channel for rgb).
 
-    Returns ``(diffuse, lobes, exponents, colour, sse [n], not_converged [n], iterations [n])``.
+    Returns ``(diffuse [n, G], lobes [n, G * per_fit, 3], exponents [n, G * per_fit], colour, sse [n, G],
+    not_converged [n, G], iterations [n, G])`` for the ``G`` fitted signals.
     """
     s, n, n_channel = values.shape
     vals = np.transpose(values.astype(np.float64), (1, 0, 2))      # [n, S, C]
     x, c = _geometry64(frames, sample_lights, sample_views)
     if variant == "lum":
         y = vals.mean(axis=2)
-        z, crit, flag, its = _fit_signals_numpy(y, x, c, lambda f: _colour_fit(f, vals)[1], n_lobes, iterations)
-        colour, _ = _colour_fit(_model64(z, n_lobes, x, c), vals)
-        rho, C, n_exp = _external(z, n_lobes)
+        z, crit, flag, its = _fit_signals_numpy(y, x, c, lambda f: _colour_fit(f, vals)[1], per_fit, iterations)
+        colour, _ = _colour_fit(_model64(z, per_fit, x, c), vals)
+        rho, C, n_exp = _external(z, per_fit)
         return (rho[:, None].astype(np.float32), C.astype(np.float32), n_exp.astype(np.float32),
-                colour.astype(np.float32), crit, flag, its)
+                colour.astype(np.float32), crit[:, None], flag[:, None], its[:, None])
     # rgb: one independent fit per (texel, channel)
     y = np.transpose(vals, (0, 2, 1)).reshape(n * n_channel, s)
     xr = np.repeat(x, n_channel, axis=0)
     cr = np.repeat(c, n_channel, axis=0)
-    z, crit, flag, its = _fit_signals_numpy(y, xr, cr, lambda f: ((y - f) ** 2).sum(axis=1), RGB_LOBES, iterations)
-    rho, C, n_exp = _external(z, RGB_LOBES)
-    return (rho.reshape(n, n_channel).astype(np.float32), C.reshape(n, n_channel * RGB_LOBES, 3).astype(np.float32),
-            n_exp.reshape(n, n_channel * RGB_LOBES).astype(np.float32), np.zeros((n, 0), np.float32),
-            crit.reshape(n, n_channel).sum(axis=1), flag.reshape(n, n_channel).any(axis=1),
-            its.reshape(n, n_channel).sum(axis=1))
+    z, crit, flag, its = _fit_signals_numpy(y, xr, cr, lambda f: ((y - f) ** 2).sum(axis=1), per_fit, iterations)
+    rho, C, n_exp = _external(z, per_fit)
+    return (rho.reshape(n, n_channel).astype(np.float32), C.reshape(n, n_channel * per_fit, 3).astype(np.float32),
+            n_exp.reshape(n, n_channel * per_fit).astype(np.float32), np.zeros((n, 0), np.float32),
+            crit.reshape(n, n_channel), flag.reshape(n, n_channel), its.reshape(n, n_channel))
 
 
 # ----------------------------------------------------------------------------------------------- OpenCL fit
 
 
-def fit_band_opencl(values, frames, sample_lights, sample_views, n_lobes, variant, iterations, lights, views):
-    """OpenCL fit of one band; same results as :func:`fit_band_numpy` (float32 arithmetic)."""
+def fit_band_opencl(values, frames, lights, views, per_fit, variant, iterations):
+    """OpenCL fit of one band; same results as :func:`fit_band_numpy` (float32 arithmetic).  ``lights [L, 3]``
+    and ``views [V, 3]`` are the stack's (sample ``s = view * L + light``)."""
     backend = get_backend()
     s, n, n_channel = values.shape
-    per_fit = n_lobes if variant == "lum" else RGB_LOBES
     n_signal = 1 if variant == "lum" else n_channel
-    kernel = backend.kernel(KERNELS, "lafortune_fit", (f"-DNLOBE={per_fit}", f"-DMAXC={MAX_CHANNELS}",
-                                                       f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}", "-cl-unsafe-math-optimizations"))
+    kernel = backend.kernel(KERNELS, "lafortune_fit", (f"-DNLOBE={per_fit}",) + BUILD_OPTIONS)
     dirs_dev = backend.to_device(CANDIDATE_DIRS.astype(np.float32).ravel())
     exps_dev = backend.to_device(CANDIDATE_EXPONENTS.astype(np.float32))
     k_total = per_fit * n_signal
@@ -743,13 +768,60 @@ def fit_band_opencl(values, frames, sample_lights, sample_views, n_lobes, varian
     lobes = backend.from_device(c_dev, (n, k_total, 3), np.float32)
     exponents = backend.from_device(e_dev, (n, k_total), np.float32)
     colour = backend.from_device(col_dev, (n, n_channel), np.float32) if variant == "lum" else np.zeros((n, 0), np.float32)
-    sse = backend.from_device(sse_dev, (n, n_signal), np.float32).astype(np.float64).sum(axis=1)
-    its = backend.from_device(it_dev, (n, n_signal), np.int32).sum(axis=1)
-    flag = backend.from_device(fl_dev, (n, n_signal), np.int32).any(axis=1)
+    sse = backend.from_device(sse_dev, (n, n_signal), np.float32).astype(np.float64)
+    its = backend.from_device(it_dev, (n, n_signal), np.int32)
+    flag = backend.from_device(fl_dev, (n, n_signal), np.int32).astype(bool)
     return diffuse, lobes, exponents, colour, sse, flag, its
 
 
 # ----------------------------------------------------------------------------------------------- driver
+
+
+def _signal_scale(values: np.ndarray, variant: str) -> np.ndarray:
+    """Each texel's scale, repeated for its ``G`` fitted signals ``[n, G]`` float64: the power of two at or above
+    its largest sample magnitude (all channels), 0 for a black texel.  A power of two divides the samples
+    exactly, so the scaled fit sees the very same digits (texels already peaking in (0.5, 1] are not touched);
+    one scale per texel keeps the rgb channels' relative brightness, as the lum colour does."""
+    peak = np.abs(values.astype(np.float64)).max(axis=(0, 2))[:, None]        # [n, 1]
+    mantissa, exponent = np.frexp(peak)                                     # peak = mantissa 2^exponent, in [0.5, 1)
+    scale = np.where(peak > 0, np.ldexp(1.0, exponent - (mantissa == 0.5)), 0.0)
+    return np.repeat(scale, 1 if variant == "lum" else values.shape[2], axis=1)
+
+
+def fit_band(values, frames, sample_lights, sample_views, lights, views, per_fit, variant, iterations, engine):
+    """Fit one band on either engine, each texel scaled to a peak in (0.5, 1] first and the result scaled back.
+
+    LM's damping floor (``D_FLOOR`` x the largest diagonal entry) and the tolerances are relative, but the
+    rho column of ``J'J`` does not scale with the data while the lobe columns go as ``y^2``: without this, dark
+    texels were over-damped (1-lobe data x1e-6 recovered to 5e-3 only) and bright ones met ``T_CAP``.  Scaling a
+    texel by ``m`` scales ``rho`` by ``m`` and each lobe's ``C`` by ``m^(1/n)`` (``alpha`` by ``ln m``); the
+    lum colour is unchanged.  Black texels (``m = 0``) are fitted as they are and stay black.
+
+    Returns ``(diffuse, lobes, exponents, colour, sse [n], not_converged [n], iterations [n])`` with the rgb
+    lobes padded to ``RGB_LOBES`` per channel (unused ones switched off).
+    """
+    n = values.shape[1]
+    scale = _signal_scale(values, variant)
+    scale = np.where(scale > 0, scale, 1.0)
+    normed = (values.astype(np.float64) / scale[None]).astype(np.float32)
+    if engine == "numpy":
+        res = fit_band_numpy(normed, frames, sample_lights, sample_views, per_fit, variant, iterations)
+    else:
+        res = fit_band_opencl(normed, frames, lights, views, per_fit, variant, iterations)
+    diffuse, lob, expo, colour, sse, flag, its = res
+    n_signal = diffuse.shape[1]
+    stored = per_fit if variant == "lum" else RGB_LOBES
+    if stored > per_fit:                     # rgb with 1 lobe per channel: the second is switched off
+        lob = np.concatenate([lob.reshape(n, n_signal, per_fit, 3),
+                              np.zeros((n, n_signal, stored - per_fit, 3), np.float32)], axis=2).reshape(n, -1, 3)
+        expo = np.concatenate([expo.reshape(n, n_signal, per_fit),
+                               np.full((n, n_signal, stored - per_fit), EXPONENT_MIN, np.float32)], axis=2).reshape(n, -1)
+    expo = np.clip(expo, EXPONENT_MIN, EXPONENT_MAX)   # exp(ln n) may round a hair outside the bounds
+    lobe_scale = np.exp(np.log(np.repeat(scale, stored, axis=1)) / expo.astype(np.float64))
+    lob = (lob.astype(np.float64) * lobe_scale[..., None]).astype(np.float32)
+    diffuse = (diffuse.astype(np.float64) * scale).astype(np.float32)
+    sse = (np.asarray(sse, np.float64) * scale * scale).sum(axis=1)
+    return diffuse, lob, expo.astype(np.float32), colour, sse, np.asarray(flag).any(axis=1), np.asarray(its).sum(axis=1)
 
 
 def _check_fit_args(stack, lobes, variant, engine, iterations, normals):
@@ -761,15 +833,15 @@ def _check_fit_args(stack, lobes, variant, engine, iterations, normals):
     if isinstance(lobes, bool) or not isinstance(lobes, (int, np.integer)) or not 1 <= lobes <= MAX_LOBES:
         raise BtforgeInputError(f"{where} 'lobes'", f"expected an int in [1, {MAX_LOBES}], found {lobes!r}")
     if variant == "rgb" and lobes > RGB_LOBES:
-        raise BtforgeInputError(f"{where} 'lobes'", f"the rgb variant fits {RGB_LOBES} lobes per channel, found lobes={lobes}",
-                                "use variant 'lum' for more lobes (up to 7 on the luminance)")
+        raise BtforgeInputError(f"{where} 'lobes'", f"the rgb variant fits 1 or {RGB_LOBES} lobes per channel, "
+                                f"found lobes={lobes}", "use variant 'lum' for more lobes (up to 7 on the luminance)")
     if engine not in ("opencl", "numpy"):
         raise BtforgeInputError(f"{where} 'engine'", f"expected 'opencl' or 'numpy', found {engine!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
         raise BtforgeInputError(f"{where} 'iterations'", f"expected an int >= 1, found {iterations!r}")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError(f"{where} 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
-    per_fit = lobes if variant == "lum" else RGB_LOBES
+    per_fit = int(lobes)
     unknowns = 1 + 4 * per_fit
     samples = stack.n_view * stack.n_light
     if samples < unknowns:
@@ -777,18 +849,33 @@ def _check_fit_args(stack, lobes, variant, engine, iterations, normals):
         raise BtforgeInputError(
             f"{where} 'stack'", f"expected at least {unknowns} samples per texel for {what} ({unknowns} unknowns), "
             f"found {samples} ({stack.n_view} view(s) x {stack.n_light} light(s))",
-            "capture more lights, or fit fewer lobes")
+            "capture more lights, or fit lobes=1 (5 unknowns, in either variant)" if per_fit > 1 else
+            "capture more lights or views: a diffuse term and one lobe have 5 unknowns in either variant")
     if normals is not None:
         normals = check_array("normals", np.asarray(normals, np.float32), (stack.height, stack.width, 3), np.float32,
                               finite=True, owner=where)
         norms = np.linalg.norm(normals, axis=-1)
         if normals.size and norms.min() < 1e-6:
-            raise BtforgeInputError(f"{where} 'normals'", "expected non-zero normals")
+            row, col = np.argwhere(norms < 1e-6)[0]
+            raise BtforgeInputError(f"{where} 'normals'", f"expected non-zero normals, found length {norms[row, col]:.3g} "
+                                    f"at row {row}, column {col}", "give a unit normal for every texel, or leave "
+                                    "'normals' unset to estimate them from the stack")
         normals = (normals / norms[..., None]).astype(np.float32)
+        down = normals[..., 2] <= NORMAL_MIN_Z
+        if down.any():
+            # A normal at or below the surface plane puts every light and view (upper hemisphere) behind or
+            # nearly behind the texel: the fit would return a black or meaningless texel.
+            row, col = np.argwhere(down)[0]
+            raise BtforgeInputError(
+                f"{where} 'normals'", f"expected normals pointing up (n_z > {NORMAL_MIN_Z:g}, i.e. within "
+                f"{math.degrees(math.acos(NORMAL_MIN_Z)):.1f} degrees of the surface normal), found "
+                f"({', '.join(f'{v:.3g}' for v in normals[row, col])}) at row {row}, column {col} "
+                f"({int(down.sum())} texel(s) in all)",
+                "negate normals given in the opposite convention, or leave 'normals' unset to estimate them")
     return per_fit, normals
 
 
-def fit_lafortune(stack: SampleStack, lobes: int = 1, variant: str = "lum", *, engine: str = "opencl",
+def fit_lafortune(stack: SampleStack, lobes: int | None = None, variant: str = "lum", *, engine: str = "opencl",
                   iterations: int = DEFAULT_ITERATIONS, budget_bytes: int = 64 << 20,
                   normals: np.ndarray | None = None) -> tuple[LafortuneModel, dict]:
     """Fit per-texel Lafortune lobes to a stack (single- or multi-view), streamed over bands of rows.
@@ -798,7 +885,9 @@ def fit_lafortune(stack: SampleStack, lobes: int = 1, variant: str = "lum", *, e
     stack
         Any :class:`SampleStack`; 8-bit stacks are fitted in linear radiance.
     lobes
-        Luminance lobes (1-7) for ``lum``; ``rgb`` always fits 2 lobes per channel (``lobes`` must be 1 or 2).
+        Lobes per fitted signal: on the luminance (1-7) for ``lum``, on each channel (1 or 2) for ``rgb``; the
+        rgb model always stores 2 per channel, the second switched off (``C = 0``) for 1.  None: the variant's
+        usual count, 1 for ``lum`` and 2 per channel for ``rgb`` (McAllister's RGB model).
     variant
         ``lum``: lobes on the channel mean times a per-texel colour; ``rgb``: each channel its own lobes.
     engine
@@ -808,7 +897,8 @@ def fit_lafortune(stack: SampleStack, lobes: int = 1, variant: str = "lum", *, e
     budget_bytes
         Linear samples held per band of rows.
     normals
-        ``[H, W, 3]`` texel normals to use instead of the photometric-stereo estimate.
+        ``[H, W, 3]`` texel normals to use instead of the photometric-stereo estimate; each must point up
+        (``n_z > NORMAL_MIN_Z`` once normalised).
 
     Returns
     -------
@@ -817,10 +907,12 @@ def fit_lafortune(stack: SampleStack, lobes: int = 1, variant: str = "lum", *, e
         steps per texel, all stages and channels), ``iteration_limit``, ``rms`` (linear radiance over every
         sample and channel), ``texels``.
     """
+    if lobes is None:
+        lobes = RGB_LOBES if variant == "rgb" else 1
     per_fit, normals = _check_fit_args(stack, lobes, variant, engine, iterations, normals)
     h, w, n_channel = stack.height, stack.width, stack.n_channel
     n_signal = 1 if variant == "lum" else n_channel
-    k_total = per_fit * n_signal
+    k_total = (per_fit if variant == "lum" else RGB_LOBES) * n_signal
     n_texel = h * w
     sample_lights, sample_views = _sample_directions(stack)
     out_n = np.empty((n_texel, 3), np.float32)
@@ -836,18 +928,13 @@ def fit_lafortune(stack: SampleStack, lobes: int = 1, variant: str = "lum", *, e
         band_normals = (normals[rows].reshape(-1, 3) if normals is not None
                         else _normals_band(values, sample_lights))
         frames = texel_frames(band_normals)
-        if engine == "numpy":
-            res = fit_band_numpy(values, frames, sample_lights, sample_views, per_fit, variant, iterations)
-        else:
-            res = fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, variant, iterations,
-                                  stack.lights, stack.views)
-        diffuse, lob, expo, colour, sse, flag, its = res
+        diffuse, lob, expo, colour, sse, flag, its = fit_band(values, frames, sample_lights, sample_views, stack.lights,
+                                                              stack.views, per_fit, variant, iterations, engine)
         out_n[texels] = frames[:, 2]
         out_d[texels], out_c[texels], out_e[texels], out_col[texels] = diffuse, lob, expo, colour
         sse_total += float(np.sum(sse))
         not_converged += int(np.count_nonzero(flag))
         its_total += int(np.sum(its))
-    out_e = np.clip(out_e, EXPONENT_MIN, EXPONENT_MAX)  # exp(ln n) may round a hair outside the bounds
     model = LafortuneModel(out_n.reshape(h, w, 3), out_d.reshape(h, w, n_signal), out_c.reshape(h, w, k_total, 3),
                            out_e.reshape(h, w, k_total), out_col.reshape(h, w, out_col.shape[1]), variant, stack.channels)
     count = n_texel * stack.n_view * stack.n_light * n_channel

@@ -31,8 +31,10 @@ A constant function meets the bound with equality, so the bound carries a relati
 small SVDs computed once on the host.  With ``p = U^T y`` the solution for any ``lambda`` is
 ``c = V diag(s / (s^2 + lambda)) p`` and its energy ``sum (s_i p_i / (s_i^2 + lambda))^2`` decreases with
 ``lambda``, so the per-texel bisection (OpenCL kernel ``sh_lambda``, NumPy twin :func:`cls_weights_numpy`) is
-cheap.  Singular values below ``RCOND`` x the largest of each factor are treated as exact zeros (the minimum-norm
-solution ignores those directions).
+cheap.  Singular values ``s_v[i] s_l[j]`` of the product below ``RCOND`` x the largest are treated as exact zeros
+(their weights are 0: the minimum-norm solution ignores those directions).  Applying the cut to each factor alone
+would keep products down to ``RCOND^2`` of the largest, which with clustered lights and views lets plain least
+squares blow float32 rounding up into huge coefficients.
 
 **Quantization** (optional) stores each coefficient as ``uint8``: per coefficient index ``(a, b)`` over all
 texels and channels, ``bias`` is the minimum and ``scale`` the range / 255, values are rounded, so dequantized
@@ -55,9 +57,11 @@ KERNELS = Path(__file__).with_name("sh.cl")
 MAX_ORDER = 10
 DEFAULT_ENERGY_FACTOR = 1.0
 ENERGY_SLACK = 1e-4   # relative slack on the bound: a constant texel meets it exactly and must not be clamped by rounding
-RCOND = 1e-6          # singular values of a factor below this x its largest count as zero
-LAMBDA_SPAN = 40.0    # bisection over log2(lambda) in [log2(hi) - SPAN, log2(hi)]; mirrors sh.cl
+RCOND = 1e-6          # singular values of the design matrix below this x its largest count as zero
+LAMBDA_SPAN = 40.0    # bisection over log2(lambda) in [log2(hi) - SPAN, log2(hi)]
 LAMBDA_ITERS = 32
+# sh.cl defines none of these itself: every build of it gets them from here, so the kernel and its twin agree.
+BUILD_OPTIONS = (f"-DLAMBDA_SPAN={LAMBDA_SPAN!r}f", f"-DLAMBDA_ITERS={LAMBDA_ITERS}")
 FOUR_PI = 4.0 * math.pi
 
 
@@ -234,7 +238,7 @@ def evaluate_sh_opencl(coeffs: np.ndarray, scale: np.ndarray, bias: np.ndarray, 
     backend = get_backend()
     n_texel, n_channel, k_v, k_l = coeffs.shape
     n_view, n_light = yv.shape[0], yl.shape[0]
-    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ())
+    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ()) + BUILD_OPTIONS
     kernel = backend.kernel(KERNELS, "sh_eval", options)
     out = np.empty((n_view, n_light, n_texel, n_channel), dtype=np.float32)
     scale_dev = backend.to_device(np.ascontiguousarray(scale, np.float32))
@@ -267,7 +271,7 @@ def evaluate_sh_scattered_opencl(coeffs: np.ndarray, scale: np.ndarray, bias: np
     """Scattered evaluation on OpenCL (kernel ``sh_eval_scattered``); the coefficients are read in place."""
     backend = get_backend()
     n_channel, k_v, k_l = coeffs.shape[1:]
-    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ())
+    options = (f"-DMAX_KV={k_v}",) + (("-DQUANTIZED",) if quantized else ()) + BUILD_OPTIONS
     kernel = backend.kernel(KERNELS, "sh_eval_scattered", options)
     n = len(texels)
     out = np.empty((n, n_channel), np.float32)
@@ -291,7 +295,8 @@ class SHSolver:
     """The shared SVD of the design matrix ``kron(Y_view, Y_light)``, kept as its two factors.
 
     ``u_*`` ``[n, r]``, ``s_*`` ``[r]``, ``v_*`` ``[k, r]`` for view and light; ``s`` is the flattened Kronecker
-    product ``s_v[i] * s_l[j]`` at index ``i * r_l + j``.
+    product ``s_v[i] * s_l[j]`` at index ``i * r_l + j``, with 0 where it is below ``RCOND`` x the largest (a
+    direction both solvers leave out).
     """
 
     u_v: np.ndarray
@@ -303,11 +308,12 @@ class SHSolver:
 
     @property
     def s(self) -> np.ndarray:
-        return np.outer(self.s_v, self.s_l).ravel()
+        s = np.outer(self.s_v, self.s_l).ravel()
+        return np.where(s > RCOND * s.max(), s, 0.0) if s.size else s
 
     @property
     def rank(self) -> int:
-        return len(self.s_v) * len(self.s_l)
+        return int(np.count_nonzero(self.s))
 
     def project(self, y: np.ndarray) -> np.ndarray:
         """``U^T y`` for samples ``y [V, L, N]`` -> ``[N, r_v * r_l]`` float32 (BLAS on the host)."""
@@ -319,6 +325,8 @@ class SHSolver:
 
 
 def _factor_svd(basis: np.ndarray):
+    # A factor's singular value below RCOND x its largest gives products below RCOND x the largest product
+    # (those are cut in SHSolver.s anyway): dropping it here only saves work.
     u, s, vt = np.linalg.svd(basis, full_matrices=False)
     keep = s > s[0] * RCOND if s.size and s[0] > 0 else np.zeros(s.shape, bool)
     return u[:, keep], s[keep], vt[keep].T
@@ -345,6 +353,9 @@ def cls_weights_numpy(proj: np.ndarray, s: np.ndarray, root_target: np.ndarray) 
     within ``root_target^2``, by bisection over ``log2(lambda)``.  Returns ``(lambda [N], weights [N, r])``."""
     p = proj.astype(np.float64)
     s = s.astype(np.float64)
+    kept = s > 0                                  # s = 0: a direction below RCOND, weight 0 (kernel: the same)
+    p = np.where(kept, p, 0.0)
+    s_safe = np.where(kept, s, 1.0)
     root = root_target.astype(np.float64)
     n = p.shape[0]
     live = root > np.finfo(np.float32).tiny
@@ -352,7 +363,7 @@ def cls_weights_numpy(proj: np.ndarray, s: np.ndarray, root_target: np.ndarray) 
     q = p * inv_root[:, None]
 
     def energy(rows, lam):
-        w = s * q[rows] / (s * s + lam[:, None])
+        w = s * q[rows] / (s_safe * s_safe + lam[:, None])
         return (w * w).sum(axis=1)
 
     lam = np.zeros(n)
@@ -370,7 +381,7 @@ def cls_weights_numpy(proj: np.ndarray, s: np.ndarray, root_target: np.ndarray) 
             lo = np.where(ok, lo, mid)
         hi = np.where(tiny, floor, hi)
         lam[idx] = np.exp2(hi)
-    weights = s * p / (s * s + lam[:, None])
+    weights = np.where(kept, s * p / (s_safe * s_safe + lam[:, None]), 0.0)
     weights[~live] = 0.0
     return lam.astype(np.float32), weights
 
@@ -388,8 +399,8 @@ def cls_coeffs_opencl(proj: np.ndarray, root_target: np.ndarray, solver: SHSolve
     n, r = proj.shape
     r_v, r_l = len(solver.s_v), len(solver.s_l)
     k_v, k_l = solver.v_v.shape[0], solver.v_l.shape[0]
-    lambda_kernel = backend.kernel(KERNELS, "sh_lambda")
-    solve_kernel = backend.kernel(KERNELS, "sh_solve", (f"-DMAX_RV={max(r_v, 1)}",))
+    lambda_kernel = backend.kernel(KERNELS, "sh_lambda", BUILD_OPTIONS)
+    solve_kernel = backend.kernel(KERNELS, "sh_solve", (f"-DMAX_RV={max(r_v, 1)}",) + BUILD_OPTIONS)
     p_dev = backend.to_device(np.ascontiguousarray(proj, np.float32))
     s_dev = backend.to_device(solver.s.astype(np.float32))
     root_dev = backend.to_device(np.ascontiguousarray(root_target, np.float32))
@@ -432,6 +443,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     ``lambda`` (``[H, W, C]`` float32), ``lambda_median``, ``lambda_max``, ``clamped`` (texel-channels whose
     constraint was active, ``lambda > 0``), ``clamped_fraction``, ``compression_rate_percent``,
     ``n_coefficients``, ``n_samples``, ``rank``, ``underdetermined``, ``view_order``, ``energy_factor``.
+    ``energy_factor=inf`` (plain least squares) refuses fewer lights than ``light_order^2`` or fewer views than
+    ``view_order^2``: nothing would then choose among the exact fits.
     """
     for name, value in (("light_order", light_order), ("view_order", view_order)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
@@ -443,6 +456,14 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     if stack.n_view == 1:
         view_order = 1
     k_l, k_v = light_order ** 2, view_order ** 2
+    if math.isinf(energy_factor) and (stack.n_light < k_l or stack.n_view < k_v):
+        # Without the energy bound nothing picks among the exact fits: the minimum-norm one is arbitrary.
+        raise BtforgeInputError(
+            "sh.fit 'energy_factor'", f"plain least squares (energy_factor=inf) needs at least as many lights as "
+            f"light coefficients and views as view coefficients, found light_order {light_order} ({k_l} "
+            f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
+            f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
+            "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
     solver = sh_solver(stack.lights, stack.views, light_order, view_order)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel

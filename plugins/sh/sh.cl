@@ -8,7 +8,8 @@
 //   sh_solve:  rotate back, c[a, b] = sum_i sum_j Vv[a, i] w[i, j] Vl[b, j].
 //   sh_eval:   f(v, l) = sum_a Yv[v, a] sum_b c[a, b] Yl[l, b], clipped at 0 (coefficients optionally 8-bit).
 //
-// Build options: -DMAX_RV=<r_v> (sh_solve) ; -DMAX_KV=<k_v> (sh_eval) ; -DQUANTIZED (sh_eval, uchar coefficients).
+// Build options: -DMAX_RV=<r_v> (sh_solve) ; -DMAX_KV=<k_v> (sh_eval) ; -DQUANTIZED (sh_eval, uchar coefficients) ;
+// model.BUILD_OPTIONS (every build).
 
 #ifndef MAX_RV
 #define MAX_RV 1
@@ -16,11 +17,10 @@
 #ifndef MAX_KV
 #define MAX_KV 1
 #endif
-#ifndef LAMBDA_SPAN
-#define LAMBDA_SPAN 40.0f   // the bisection searches log2(lambda) in [log2(hi) - SPAN, log2(hi)]
-#endif
-#ifndef LAMBDA_ITERS
-#define LAMBDA_ITERS 32
+// LAMBDA_SPAN (the bisection searches log2(lambda) in [log2(hi) - SPAN, log2(hi)]) and LAMBDA_ITERS come from
+// model.BUILD_OPTIONS only, shared with the NumPy twin.
+#if !defined(LAMBDA_SPAN) || !defined(LAMBDA_ITERS)
+#error "build sh.cl with model.BUILD_OPTIONS"
 #endif
 
 // Energy of the solution at lambda, in units of the target (p_scaled = p / sqrt(E)).
@@ -29,13 +29,14 @@ inline float cls_energy(__global const float *p, __global const float *s, const 
 {
     float g = 0.f;
     for (int i = 0; i < r; ++i) {
+        if (!(s[i] > 0.f)) continue;    // a direction below RCOND: weight 0
         const float w = s[i] * (p[i] * inv_root) / (s[i] * s[i] + lambda);
         g += w * w;
     }
     return g;
 }
 
-// proj: [n, r] ; s: [r] (all > 0) ; root_target: [n] = sqrt(allowed energy) (0: black texel, +inf: no bound)
+// proj: [n, r] ; s: [r] (0 marks a direction below RCOND, whose weight is 0) ; root_target: [n] = sqrt(allowed energy) (0: black texel, +inf: no bound)
 // lambda out: [n] ; weights out: [n, r]
 __kernel void sh_lambda(__global const float *proj, __global const float *s, __global const float *root_target,
                         const int r, const int n, __global float *lambda_out, __global float *weights)
@@ -56,7 +57,7 @@ __kernel void sh_lambda(__global const float *proj, __global const float *s, __g
         // g(lambda) <= sum_i (s_i p_i)^2 / lambda^2, so this upper end satisfies the bound.
         float sp = 0.f;
         for (int i = 0; i < r; ++i) {
-            const float q = s[i] * p[i] * inv_root;
+            const float q = s[i] > 0.f ? s[i] * p[i] * inv_root : 0.f;
             sp += q * q;
         }
         float hi = 0.5f * log2(sp);
@@ -72,7 +73,7 @@ __kernel void sh_lambda(__global const float *proj, __global const float *s, __g
         lambda = exp2(hi);
     }
     lambda_out[t] = lambda;
-    for (int i = 0; i < r; ++i) w[i] = s[i] * p[i] / (s[i] * s[i] + lambda);
+    for (int i = 0; i < r; ++i) w[i] = s[i] > 0.f ? s[i] * p[i] / (s[i] * s[i] + lambda) : 0.f;
 }
 
 // weights: [n, r_v * r_l] ; vv: [k_v, r_v] ; vl: [k_l, r_l] ; coeffs out: [n, k_v, k_l].  Global size (n, k_l).
