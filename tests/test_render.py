@@ -281,11 +281,12 @@ def test_environment_off_removes_its_pass_and_only_adds_light(method):
     on, c_on = draw(env_scene(["environment", "shadows"], method), {"stone": model})
     off, c_off = draw(env_scene(["shadows"], method), {"stone": model})
     without, _ = draw(env_scene(["shadows"], env=False), {"stone": model})
-    assert c_on.passes["environment"]["method"] == method
+    entry = c_on.passes["environment"]["lights[1]"]          # reported under the light's place in the scene
+    assert entry["method"] == method
     if method == "importance":
-        assert c_on.passes["environment"]["evaluations"] > 0 and c_on.passes["environment"]["shadow_rays"] > 0
+        assert entry["evaluations"] > 0 and entry["shadow_rays"] > 0
     else:
-        assert c_on.passes["environment"]["sh_rotations"] > 0
+        assert entry["sh_rotations"] > 0
     assert "environment" not in c_off.passes
     np.testing.assert_array_equal(off, without)          # an environment light with the effect off does nothing
     assert np.all(on >= off) and (on > off).mean() > 0.9
@@ -315,9 +316,19 @@ def test_view_dependence_only_for_view_dependent_models():
     on, c_on = draw({**scene, "effects": ["view_dependence"]}, {"stone": toy})
     off, c_off = draw({**scene, "effects": []}, {"stone": toy})
     assert c_on.passes["view_dependence"]["views"] > 0 and "view_dependence" not in c_off.passes
-    hit = off.sum(-1) > 0
-    assert np.all(on[hit] < off[hit])                 # away from the canonical view the lobe is dimmer
-    assert np.array_equal(on[~hit], off[~hit])
+    # where each pixel's ray meets the plane (z = 0; u along +x, v along +y, so the texel frame is the world's)
+    from btforge.plugins.render.renderer import camera_rays
+    origins, dirs = camera_rays(load_scene(scene, paths()).spec.camera, 1)
+    points = origins - (origins[:, 2] / dirs[:, 2])[:, None] * dirs
+    margin = np.maximum(np.abs(points[:, 0]) - 1.5, np.abs(points[:, 1]) - 1.0).reshape(16, 24)
+    inside, outside = margin < -1e-3, margin > 1e-3
+    lit = 0.8 * 0.93 / np.linalg.norm([0.3, 0.2, 0.93])             # albedo x the light's local z
+    lobe = (0.3 + 0.7 * np.clip(-dirs[:, 2], 0, 1) ** 8).reshape(16, 24)   # at the true view (V.N = -d_z)
+    assert inside.sum() > 100 and outside.sum() > 20
+    np.testing.assert_allclose(off[inside], lit, rtol=1e-5)         # off: every texel at its canonical view
+    np.testing.assert_allclose(on[inside], np.repeat(lit * lobe[inside][:, None], 3, 1), rtol=1e-5)
+    assert lobe[inside].max() - lobe[inside].min() > 0.05           # the views really differ across the plane
+    assert np.all(on[outside] == 0) and np.all(off[outside] == 0)   # the background has no view to depend on
     ptm = random_ptm(8, 8, seed=6)                    # a PTM depends on the light only: no view pass, same image
     p_on, cp_on = draw({**scene, "effects": ["view_dependence"]}, {"stone": ptm})
     p_off, _ = draw({**scene, "effects": []}, {"stone": ptm})
@@ -375,6 +386,37 @@ def test_point_light_falls_off_with_the_square_of_distance():
         image, _ = draw(scene, {"stone": model})
         d2 = height ** 2 + 2 * 0.125 ** 2              # the four central pixels sit at (+-0.125, +-0.125, 0)
         np.testing.assert_allclose(image[3:5, 3:5], 0.5 * 4.0 / d2, rtol=1e-5)
+
+
+def test_point_light_shadow_darkens_exactly_the_occluded_region():
+    """A square occluder between a point light and the ground: shadows black out exactly the ground points whose
+    segment to the light crosses the square; a plane beyond the light (on the same lines) shadows nothing."""
+    from btforge.plugins.render.renderer import camera_rays
+    light = np.array([1.5, 0.0, 2.0])
+    scene = {
+        "camera": {"type": "orthographic", "width": 64, "height": 64, "position": [0, 0, 5], "look_at": [0, 0, 0],
+                   "extent": 4.0},
+        "meshes": {"ground": {"primitive": "plane", "size": 4.0, "material": "stone"},
+                   "square": {"primitive": "plane", "size": 0.4, "position": [0, 0, 0.5]},
+                   # out of view, above and beyond the light: only a ray running past the light could reach it
+                   "beyond": {"primitive": "plane", "size": [1.0, 4.0], "position": [2.6, 0, 3.0]}},
+        "lights": [{"type": "point", "position": light.tolist(), "intensity": 4.0}],
+    }
+    model = constant_ptm(0.5)
+    on, c_on = draw({**scene, "effects": ["shadows"]}, {"stone": model})
+    off, c_off = draw({**scene, "effects": []}, {"stone": model})
+    assert c_on.passes["shadows"]["rays"] > 0 and "shadows" not in c_off.passes
+    origins, _ = camera_rays(load_scene(scene, paths()).spec.camera, 1)
+    ground = origins[:, :2].reshape(64, 64, 2)                      # straight down: the ground point under each pixel
+    crossing = ground + 0.25 * (light[:2] - ground)                 # where the segment to the light is at z = 0.5
+    edge = np.abs(crossing).max(-1) - 0.2                           # < 0: through the square
+    seen_square = np.abs(ground).max(-1) < 0.2 + 1e-3              # the camera sees the square there, not the ground
+    shadowed = (edge < -1e-3) & ~seen_square
+    unshadowed = (edge > 1e-3) & ~seen_square
+    assert shadowed.sum() > 50
+    assert np.all(on[shadowed] == 0) and np.all(off[shadowed] > 0)
+    np.testing.assert_array_equal(on[unshadowed], off[unshadowed])  # no shadow from the plane beyond the light
+    np.testing.assert_array_equal(on[seen_square], off[seen_square])
 
 
 def test_sh_and_importance_agree_on_a_band_limited_environment(tmp_path):

@@ -73,6 +73,20 @@ BAD = {
              lights=[{"type": "point", "position": [0.1, 0, 1.1], "intensity": 1.0}]),
         "point light at \\[0.1, 0.*, 1.1\\] is inside the closed mesh 'ball'"),
     "unknown primitive": (dict(meshes__ground__primitive="plain"), "expected one of plane.*did you mean 'plane'"),
+    "point light key on a directional light": (
+        dict(lights__0__position=[0, 0, 1]),
+        "lights\\[0\\].position: unknown key for a directional light \\('position' belongs to a point light; "
+        "a directional light takes type, direction, intensity\\)"),
+    "misspelt light key": (dict(lights__0__directon=[0, 0, 1]),
+                           "did you mean 'direction'\\? a directional light takes type, direction, intensity"),
+    "segments on a cube": (dict(meshes__ground={"primitive": "cube", "segments": 4, "material": "stone"}),
+                           "meshes.ground.segments: does not apply to a cube"),
+    "too few sphere segments": (dict(meshes__ground={"primitive": "sphere", "segments": [8, 1], "material": "stone"}),
+                                "meshes.ground.segments: expected at least \\[3, 2\\] for a sphere, found \\[8, 1\\]"),
+    "too few torus segments": (dict(meshes__ground={"primitive": "torus", "segments": 2, "material": "stone"}),
+                               "expected at least \\[3, 3\\] for a torus, found \\[2, 2\\]"),
+    "environment forward along up": (dict(lights=[{"type": "environment", "sky": {}, "forward": [0, 0, 2]}]),
+                                     "lights\\[0\\].forward: is parallel to 'up'.*left edge \\(column 0\\)"),
 }
 
 
@@ -82,6 +96,24 @@ def test_bad_scene_is_refused_at_validation(tmp_path, case):
     with pytest.raises(BtforgeInputError, match=pattern) as info:
         validate(graph_with(tmp_path, with_changes(**changes)))
     assert "node 'img'" in str(info.value)       # located at the render node of the graph
+
+
+def test_missing_file_hint_says_what_relative_paths_resolve_against(tmp_path):
+    """A scene file's paths resolve against its own folder; an inline scene's against the graph's."""
+    from btforge.plugins.render.scene import load_scene
+    from btforge.stages import RunPaths
+    (tmp_path / "scenes").mkdir()
+    scene = with_changes(meshes={"ground": {"file": "quad.obj", "material": "stone"}})
+    (tmp_path / "scenes" / "s.yaml").write_text(yaml.safe_dump(scene))
+    paths = RunPaths(tmp_path, tmp_path)
+    with pytest.raises(BtforgeInputError, match=r"scenes/quad.obj\n  hint: paths in a scene file are relative to "
+                                                r"the scene file's folder"):
+        load_scene("scenes/s.yaml", paths)
+    with pytest.raises(BtforgeInputError, match=r"scene <inline>.*not found: .*\n  hint: paths in an inline scene "
+                                                r"are relative to the graph file's folder"):
+        load_scene(scene, paths)
+    (tmp_path / "quad.obj").write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n")
+    assert load_scene(scene, paths).spec.meshes[0].file == str(tmp_path / "quad.obj")   # inline: from the graph
 
 
 def test_mesh_without_uvs_where_a_texture_is_bound(tmp_path):

@@ -3,8 +3,10 @@ spherical-harmonic projection with per-texel rotation.
 
 Lat-long layout: row ``i`` of an ``h x w`` map is at polar angle ``theta = pi (i + 0.5) / h`` from the light's
 ``up`` axis (row 0 is the zenith), column ``j`` at azimuth ``phi = 2 pi (j + 0.5) / w + rotate`` measured from
-``forward`` toward ``up x forward``.  With the defaults (up +z, forward +x) the map's left edge looks along +x and
-azimuth grows toward +y.
+``forward`` toward ``forward x up``: clockwise seen from above, so from inside the sphere, facing ``forward`` with
+``up`` overhead, the panorama reads left to right as in any equirectangular viewer (Blender's convention, up to
+where the seam sits).  With the defaults (up +z, forward +x) the map's left edge looks along +x and azimuth grows
+toward -y; a positive ``rotate`` turns the map clockwise seen from above.
 """
 from __future__ import annotations
 
@@ -66,9 +68,10 @@ def environment_pixels(light: LightSpec, scene) -> np.ndarray:
 
 
 def _axes(up: np.ndarray, forward: np.ndarray):
+    """``(forward, side, up)``: azimuth 0 along ``forward``, 90 degrees along ``side = forward x up``."""
     up = np.asarray(up, np.float64)
     forward = np.asarray(forward, np.float64)
-    return forward, np.cross(up, forward), up
+    return forward, np.cross(forward, up), up
 
 
 def pixel_directions(h: int, w: int, up, forward, rotate_deg: float) -> np.ndarray:
@@ -193,21 +196,19 @@ def project_sh(pixels: np.ndarray, light: LightSpec, order: int) -> np.ndarray:
     return coeffs * np.asarray(light.intensity)
 
 
-def hemisphere_quadrature(q: int) -> tuple[np.ndarray, float]:
-    """``q`` Fibonacci directions on the upper hemisphere (z > 0), each with weight ``2 pi / q`` (equal areas)."""
-    i = np.arange(q) + 0.5
-    z = 1 - i / q
-    r = np.sqrt(1 - z * z)
-    phi = i * math.pi * (3 - math.sqrt(5))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1), 2 * math.pi / q
-
-
-def sphere_points(k: int) -> np.ndarray:
+def fibonacci_directions(k: int, lowest_z: float = -1.0) -> np.ndarray:
+    """``k`` unit directions ``[k, 3]`` of a Fibonacci spiral over the cap ``z >= lowest_z``, at the centres of ``k``
+    equal-area bands (so each stands for the same solid angle) and golden-angle steps in azimuth."""
     i = np.arange(k) + 0.5
-    z = 1 - 2 * i / k
+    z = 1 - (1 - lowest_z) * i / k
     r = np.sqrt(1 - z * z)
     phi = i * math.pi * (3 - math.sqrt(5))
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def hemisphere_quadrature(q: int) -> tuple[np.ndarray, float]:
+    """``q`` directions on the upper hemisphere (z > 0), each with weight ``2 pi / q`` (equal areas)."""
+    return fibonacci_directions(q, 0.0), 2 * math.pi / q
 
 
 class SHRotator:
@@ -221,7 +222,7 @@ class SHRotator:
 
     def __init__(self, order: int):
         self.order = order
-        self.points = sphere_points(2 * order * order + 8)
+        self.points = fibonacci_directions(2 * order * order + 8)
         self.solve = np.linalg.pinv(real_sh(order, self.points))           # [n^2, K]
 
     def local_values(self, frames_t, frames_b, frames_n, coeffs: np.ndarray) -> np.ndarray:

@@ -27,7 +27,8 @@ from btforge.errors import BtforgeInputError
 
 from .scene import MeshSpec, Scene
 
-DEFAULT_SEGMENTS = {"plane": (1, 1), "sphere": (128, 64), "torus": (96, 48), "cube": (1, 1)}
+DEFAULT_SEGMENTS = {"plane": (1, 1), "sphere": (128, 64), "torus": (96, 48)}
+WELD_TOLERANCE = 1e-6  # positions closer than this fraction of the mesh's bounding-box diagonal are one vertex
 
 
 @dataclasses.dataclass
@@ -41,7 +42,7 @@ class BuiltMesh:
     corner_n: np.ndarray    # [F, 3, 3] float32 unit shading normals
     corner_t: np.ndarray    # [F, 3, 3] float32 unit tangents (dP/du)
     corner_b: np.ndarray    # [F, 3, 3] float32 unit bitangents (toward dP/dv, perpendicular to T and N)
-    has_uv: bool
+    welded: np.ndarray      # [F, 3] int32 triangles with coincident positions merged (see :func:`weld`)
     closed: bool
     convex: bool
 
@@ -75,7 +76,8 @@ def _quads(nu: int, nv: int, drop_first_row_lower: bool = False, drop_last_row_u
 
 def make_primitive(spec: MeshSpec):
     """``(positions [V, 3], triangles [F, 3], uv [V, 2], normals [V, 3])`` of a primitive, in its local frame."""
-    nu, nv = spec.segments or DEFAULT_SEGMENTS[spec.primitive]
+    if spec.primitive != "cube":  # a cube is six flat quads: the scene refuses segments for it
+        nu, nv = spec.segments or DEFAULT_SEGMENTS[spec.primitive]
     if spec.primitive == "plane":
         u, v = _grid(nu, nv)
         sx, sy = spec.size
@@ -83,14 +85,12 @@ def make_primitive(spec: MeshSpec):
         normals = np.tile([0.0, 0.0, 1.0], (len(u), 1))
         return pos, _quads(nu, nv), np.stack([u, v], 1), normals
     if spec.primitive == "sphere":
-        nu, nv = max(nu, 3), max(nv, 2)
         u, v = _grid(nu, nv)
         lon = 2 * np.pi * (u - 0.5)
         lat = np.pi * (v - 0.5)
         n = np.stack([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)], 1)
         return n * spec.radius, _quads(nu, nv, True, True), np.stack([u, v], 1), n
     if spec.primitive == "torus":
-        nu, nv = max(nu, 3), max(nv, 3)
         u, v = _grid(nu, nv)
         a, b = 2 * np.pi * u, 2 * np.pi * v
         big, small = spec.major_radius, spec.minor_radius
@@ -242,15 +242,20 @@ def tangent_frames(positions: np.ndarray, triangles: np.ndarray, corner_uv: np.n
     np.add.at(acc_t, inverse, np.repeat(t, 3, axis=0))
     np.add.at(acc_b, inverse, np.repeat(b, 3, axis=0))
     n = corner_normals.reshape(-1, 3).astype(np.float64)
-    ct, cb = acc_t[inverse], acc_b[inverse]
-    ct = ct - n * np.sum(n * ct, axis=1, keepdims=True)
-    ct = _normalize(ct)
-    missing = np.linalg.norm(ct, axis=1) < 0.5
-    if missing.any():
-        ct[missing] = _any_perpendicular(n[missing])
-    sign = np.where(np.sum(np.cross(n, ct) * cb, axis=1) < 0, -1.0, 1.0)[:, None]
-    cb = sign * np.cross(n, ct)
+    ct, cb = complete_frame(n, acc_t[inverse], acc_b[inverse])
     return ct.reshape(-1, 3, 3), cb.reshape(-1, 3, 3)
+
+
+def complete_frame(n: np.ndarray, t: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tangents and bitangents ``[N, 3]`` about the unit normals ``n``: ``t`` Gram-Schmidt-orthogonalised
+    against ``n``, the bitangent ``+-n x t`` with the sign of ``b``'s side, so a mirrored parameterization keeps its
+    mirrored (left-handed) frame while the frame stays exactly orthonormal."""
+    t = _normalize(t - n * np.sum(n * t, axis=-1, keepdims=True))
+    missing = np.linalg.norm(t, axis=-1) < 0.5
+    if missing.any():  # no UV gradient there (or one along the normal): any frame about n lights it consistently
+        t[missing] = _any_perpendicular(n[missing])
+    sign = np.where(np.sum(np.cross(n, t) * b, axis=-1) < 0, -1.0, 1.0)[..., None]
+    return t, sign * np.cross(n, t)
 
 
 def _rotation(degrees) -> np.ndarray:
@@ -266,17 +271,19 @@ def build_mesh(spec: MeshSpec, scene: Scene | None = None) -> BuiltMesh:
     """The world-space mesh of ``spec`` (primitive, or a file whose contents ``scene`` holds)."""
     if spec.primitive:
         pos, tris, uv, normals = make_primitive(spec)
+        welded = weld(pos, tris)
         corner_uv = uv[tris]
         corner_n = normals[tris]
-        has_uv, closed = True, spec.closed
+        closed = spec.closed
     else:
         content = scene.file_arrays(spec.file)
         pos = content["positions"].astype(np.float64)
         tris = content["triangles"].astype(np.int64)
+        welded = weld(pos, tris)
         has_uv = content["corner_uv"].shape[0] == len(tris)
         corner_uv = content["corner_uv"].astype(np.float64) if has_uv else np.zeros((len(tris), 3, 2))
-        corner_n = vertex_normals(pos, tris)[tris]
-        closed = is_closed(tris)
+        corner_n = vertex_normals(pos, welded)[welded]   # smooth across UV seams, as the surface is
+        closed = is_closed(welded)
     corner_t, corner_b = tangent_frames(pos, tris, corner_uv, corner_n)
 
     linear = _rotation(spec.rotate) @ np.diag(spec.scale)
@@ -287,32 +294,52 @@ def build_mesh(spec: MeshSpec, scene: Scene | None = None) -> BuiltMesh:
     corner_b = _normalize(corner_b @ linear.T)
     if np.linalg.det(linear) < 0:  # a mirroring transform flips the winding; keep faces pointing outward
         order = [0, 2, 1]
-        tris, corner_uv, corner_n = tris[:, order], corner_uv[:, order], corner_n[:, order]
+        tris, welded, corner_uv, corner_n = tris[:, order], welded[:, order], corner_uv[:, order], corner_n[:, order]
         corner_t, corner_b = corner_t[:, order], corner_b[:, order]
     return BuiltMesh(spec, pos.astype(np.float32), tris.astype(np.int32), corner_uv.astype(np.float32),
                      corner_n.astype(np.float32), corner_t.astype(np.float32), corner_b.astype(np.float32),
-                     has_uv, closed, spec.convex)
+                     welded.astype(np.int32), closed, spec.convex)
+
+
+def weld(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``triangles`` re-indexed so that vertices at one position share one index (the first of them).
+
+    A mesh file's vertices are split wherever texture coordinates differ (open3d splits every vertex of a textured
+    OBJ/PLY by position and UV on reading), which cuts the surface open along its UV seams; closedness, inside
+    tests and smooth normals need the surface's own connectivity.  Positions within :data:`WELD_TOLERANCE` of the
+    mesh's size are one vertex, so float noise from an exporter does not reopen a seam.
+    """
+    pos = np.asarray(positions, np.float64)
+    low = pos.min(0)
+    step = max(float(np.linalg.norm(pos.max(0) - low)), 1e-30) * WELD_TOLERANCE
+    keys = np.round((pos - low) / step).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return first[inverse.ravel()][triangles]
 
 
 def is_closed(triangles: np.ndarray) -> bool:
-    """Whether every edge is shared by exactly two triangles (a watertight surface)."""
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    """Whether every edge of the (welded) ``triangles`` is shared by exactly two triangles (a watertight surface).
+
+    Triangles that welding collapsed (two corners at one position, e.g. at a pole) enclose nothing and are left out.
+    """
+    t = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                  & (triangles[:, 2] != triangles[:, 0])]
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     return bool(len(counts) and np.all(counts == 2))
 
 
 def point_inside(mesh: BuiltMesh, point: np.ndarray) -> bool:
-    """Whether ``point`` lies inside the closed ``mesh`` (odd crossings along most of three rays)."""
+    """Whether ``point`` lies inside the closed ``mesh`` (odd crossings along most of three rays).
+
+    The welded triangles are cast so a ray through a UV seam meets the surface once, not zero or two times.
+    """
     import open3d as o3d
 
-    welded_pos, welded_tris = _welded(mesh)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(welded_pos), o3d.core.Tensor(welded_tris))
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.positions, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(mesh.welded, np.uint32)))
     dirs = np.array([[0.5773, 0.5774, 0.5773], [-0.2673, 0.5345, -0.8018], [0.8729, -0.2182, 0.4364]])
     rays = np.concatenate([np.tile(point, (3, 1)), dirs], 1).astype(np.float32)
     counts = scene.count_intersections(o3d.core.Tensor(rays)).numpy()
     return int(np.sum(counts % 2 == 1)) >= 2
-
-
-def _welded(mesh: BuiltMesh) -> tuple[np.ndarray, np.ndarray]:
-    return np.ascontiguousarray(mesh.positions, np.float32), np.ascontiguousarray(mesh.triangles, np.uint32)

@@ -4,12 +4,18 @@ Passes (each runs only when the scene calls for it, and reports its counts):
 
 * ``primary``: camera rays, one per pixel, or ``camera.samples`` per pixel with ``antialias``;
 * ``direct``: directional and point lights, model evaluations at each visible sample's light in its texel frame;
-* ``shadows``: shadow rays toward each direct light, only with ``shadows`` and geometry that can occlude (more
-  than one mesh, or a mesh that can shadow itself: not a plane, sphere or cube alone);
+* ``shadows``: shadow rays toward each direct light, only with ``shadows``, geometry that can occlude (more
+  than one mesh, or a mesh that can shadow itself: not a plane, sphere or cube alone) and a light that takes
+  shadow rays (a direct light or an importance-sampled environment; the SH method takes none);
 * ``environment``: with ``environment`` and an environment light: importance-sampled directional lights (with
-  their own shadow rays when shadows run), or SH projection rotated into each texel's frame;
+  their own shadow rays when shadows run), or SH projection rotated into each texel's frame (no shadows, canonical
+  view); reported per light, under ``lights[i]`` (its place in the scene's ``lights``);
 * ``view_dependence``: per-sample view directions in the texel frame, only for view-dependent models with the
-  ``view_dependence`` effect (otherwise models are evaluated at their canonical view).
+  ``view_dependence`` effect and a light shaded one direction at a time (otherwise models are evaluated at their
+  canonical view).
+
+An effect the scene asks for that does no work (or none for some lights) gets its reason in ``skipped``.  With the
+``environment`` effect off, environment lights are not read at all, and a ``background: environment`` is black.
 
 Shading of one sample under a directional light of intensity ``E`` toward ``l``: ``E * f(l_local, v_local)``
 where ``f`` is the model (radiance under unit light, as relighting gives it) and ``l_local = (l.T, l.B, l.N)`` in
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import functools
 from typing import Any, Mapping
 
 import numpy as np
@@ -29,7 +36,7 @@ from btforge.errors import BtforgeInputError
 
 from .envmap import (DirectionalSet, SHRotator, environment_pixels, hemisphere_quadrature, importance_sample,
                      lookup, project_sh, real_sh)
-from .geometry import BuiltMesh, build_mesh
+from .geometry import BuiltMesh, build_mesh, complete_frame
 from .scene import LightSpec, Scene, SceneSpec
 
 SNAP = 1e-3            # texel-coordinate fractions this close to a texel centre are snapped onto it
@@ -71,18 +78,27 @@ def sample_offsets(spp: int) -> np.ndarray:
 
 
 class Counters:
-    """Work done per pass; only passes that did something are reported."""
+    """Work done per pass; only passes that did something are reported.
+
+    An entry is named by a pass (``"direct"``) or a path into one (``("environment", "lights[2]")``).
+    """
 
     def __init__(self):
         self.passes: dict[str, dict[str, Any]] = {}
         self.skipped: dict[str, str] = {}
 
-    def add(self, name: str, key: str, n: int | float) -> None:
-        self.passes.setdefault(name, {}).setdefault(key, 0)
-        self.passes[name][key] += n
+    def _entry(self, path: str | tuple[str, ...]) -> dict[str, Any]:
+        entry = self.passes
+        for part in (path,) if isinstance(path, str) else path:
+            entry = entry.setdefault(part, {})
+        return entry
 
-    def set(self, name: str, key: str, value: Any) -> None:
-        self.passes.setdefault(name, {})[key] = value
+    def add(self, path: str | tuple[str, ...], key: str, n: int | float) -> None:
+        entry = self._entry(path)
+        entry[key] = entry.get(key, 0) + n
+
+    def set(self, path: str | tuple[str, ...], key: str, value: Any) -> None:
+        self._entry(path)[key] = value
 
 
 # ----------------------------------------------------------------------------------------------- planning
@@ -95,23 +111,57 @@ class Plan:
     shadows: bool
     environment: list[LightSpec]
     view: bool
-    occluders: bool
+    background: LightSpec | None   # the environment light drawn where camera rays miss, if any
 
 
-def make_plan(spec: SceneSpec, meshes: list[BuiltMesh], counters: Counters) -> Plan:
+def make_plan(spec: SceneSpec, meshes: list[BuiltMesh], materials: Mapping[str, Any], counters: Counters) -> Plan:
     eff = spec.effects
+    skipped = counters.skipped
     occluders = len(meshes) > 1 or any(not m.convex for m in meshes)
     direct = [l for l in spec.lights if l.kind in ("directional", "point")]
     env = [l for l in spec.lights if l.kind == "environment"]
-    if "shadows" in eff and not occluders:
-        counters.skipped["shadows"] = "nothing can occlude: a single convex mesh casts no shadow on itself"
+    environment = env if "environment" in eff else []
     if "environment" in eff and not env:
-        counters.skipped["environment"] = "the scene has no environment light"
+        skipped["environment"] = "the scene has no environment light"
     if env and "environment" not in eff:
-        counters.skipped["environment"] = "effect off: environment lights are ignored"
+        skipped["environment"] = "effect off: environment lights are ignored" + (
+            ", and the background is black" if spec.background == "environment" else "")
+    # Only lights shaded one direction at a time cast shadow rays and see the view; the SH method integrates a
+    # whole environment against a transfer table taken at the canonical view, with no visibility.
+    sampled = direct + [l for l in environment if l.method == "importance"]
+    sh_lights = ", ".join(f"lights[{l.index}]" for l in environment if l.method == "sh")
+    unlit = ("the scene has no direct light, and its environment lights are off without the environment effect"
+             if env and not environment else "the scene has no light")
+
+    shadows = False
+    if "shadows" in eff:
+        if not occluders:
+            skipped["shadows"] = "nothing can occlude: a single convex mesh casts no shadow on itself"
+        elif not sampled:
+            skipped["shadows"] = (f"no light casts shadow rays: the sh method ({sh_lights}) ignores shadows"
+                                  if sh_lights else unlit)
+        else:
+            shadows = True
+            if sh_lights:
+                skipped["shadows"] = f"not for {sh_lights}: the sh environment method ignores shadows"
+
+    view = False
+    if "view_dependence" in eff:
+        if not any(getattr(materials.get(name), "view_dependent", False) for name in spec.materials):
+            skipped["view_dependence"] = "no material's model depends on the view (a PTM depends on the light only)"
+        elif not sampled:
+            skipped["view_dependence"] = (f"the sh method ({sh_lights}) evaluates models at their canonical view"
+                                          if sh_lights else unlit)
+        else:
+            view = True
+            if sh_lights:
+                skipped["view_dependence"] = f"not for {sh_lights}: the sh method uses the canonical view"
+
+    background = None
+    if spec.background == "environment" and environment:
+        background = env[0]
     spp = spec.camera.samples if "antialias" in eff else 1
-    return Plan(spp=spp, direct=direct, shadows="shadows" in eff and occluders,
-                environment=env if "environment" in eff else [], view="view_dependence" in eff, occluders=occluders)
+    return Plan(spp=spp, direct=direct, shadows=shadows, environment=environment, view=view, background=background)
 
 
 # ----------------------------------------------------------------------------------------------- texel lookups
@@ -160,9 +210,13 @@ class ColourShader:
     def evaluate(self, sel, lights, views):
         return np.maximum(lights[:, 2:3], 0.0) * self.colour.astype(lights.dtype)
 
-    def transfer(self, order: int, sel) -> np.ndarray:
-        dirs, wq = hemisphere_quadrature(SH_QUADRATURE)
-        t = (dirs[:, 2:3] * real_sh(order, dirs)).sum(0) * wq           # [n^2]
+    def transfer(self, order: int, sel: np.ndarray, cache: dict) -> np.ndarray:
+        """The SH transfer vectors ``[n, 3, order^2]`` of the Lambertian lobe at the samples ``sel``."""
+        key = ("cosine", order)
+        if key not in cache:
+            dirs, wq = hemisphere_quadrature(SH_QUADRATURE)
+            cache[key] = (dirs[:, 2:3] * real_sh(order, dirs)).sum(0) * wq           # [n^2]
+        t = cache[key]
         return np.broadcast_to(self.colour[None, :, None] * t[None, None, :], (len(sel), 3, order * order))
 
 
@@ -210,11 +264,14 @@ class ModelShader:
                 rows, cols = coords[..., 0], coords[..., 1]
         self.rows, self.cols, self.weights = rows, cols, weights
         self.view_dependent = bool(getattr(model, "view_dependent", False))
-        self.flat = None
-        self.kernel_items = 0
-        if hasattr(model, "evaluate_texels") and model.blendable and all(
-                getattr(model, f).dtype.kind == "f" for f in model.texel_fields):
-            self.flat = self._gather_model()
+        self.interpolates_records = hasattr(model, "evaluate_texels") and model.blendable and all(
+            getattr(model, f).dtype.kind == "f" for f in model.texel_fields)
+
+    @functools.cached_property
+    def flat(self) -> ReflectanceModel:
+        """One interpolated record per sample, gathered on first evaluation: the SH environment path reads the
+        per-texel transfer table instead and never needs it."""
+        return self._gather_model()
 
     def _gather_model(self):
         model = self.model
@@ -242,8 +299,7 @@ class ModelShader:
     def evaluate(self, sel: np.ndarray, lights: np.ndarray, views: np.ndarray | None) -> np.ndarray:
         lights32 = np.ascontiguousarray(lights, np.float32)
         views32 = None if views is None else np.ascontiguousarray(views, np.float32)
-        if self.flat is not None:
-            self.kernel_items += len(sel)
+        if self.interpolates_records:
             values = self.flat.evaluate_texels(sel, np.zeros_like(sel), lights32, views32)
             return _to_rgb(np.asarray(values), self.model)
         total = np.zeros((len(sel), 3))
@@ -252,7 +308,6 @@ class ModelShader:
             use = wk > 0
             if not use.any():
                 continue
-            self.kernel_items += int(use.sum())
             values = self.model.evaluate_texels(self.rows[k][sel][use], self.cols[k][sel][use], lights32[use],
                                                 None if views32 is None else views32[use])
             total[use] += wk[use, None] * _to_rgb(np.asarray(values), self.model)
@@ -289,12 +344,12 @@ def model_transfer(model: ReflectanceModel, order: int) -> np.ndarray:
 
 
 class BuiltScene:
-    """Meshes in world space with an open3d ray-casting scene, and the environment maps."""
+    """Meshes in world space with an open3d ray-casting scene, and the environment maps the plan uses."""
 
     def __init__(self, scene: Scene, spec: SceneSpec):
         import open3d as o3d
 
-        self.spec = spec
+        self.scene, self.spec = scene, spec
         self.meshes = [build_mesh(m, scene) for m in spec.meshes]
         self.rc = o3d.t.geometry.RaycastingScene()
         self.geometry_to_mesh = {}
@@ -304,7 +359,14 @@ class BuiltScene:
             self.geometry_to_mesh[gid] = i
         allpos = np.concatenate([m.positions for m in self.meshes])
         self.diagonal = float(np.linalg.norm(allpos.max(0) - allpos.min(0))) or 1.0
-        self.env_pixels = {l.index: environment_pixels(l, scene) for l in spec.lights if l.kind == "environment"}
+        self._env_pixels: dict[int, np.ndarray] = {}
+
+    def env_pixels(self, light: LightSpec) -> np.ndarray:
+        """The lat-long map of an environment light, made (sky) or taken from the scene the first time a pass asks,
+        so an environment the plan leaves out costs nothing."""
+        if light.index not in self._env_pixels:
+            self._env_pixels[light.index] = environment_pixels(light, self.scene)
+        return self._env_pixels[light.index]
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
         import open3d as o3d
@@ -398,9 +460,7 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
     Ng[back] *= -1
     N[back] *= -1
     N = _unit(N)
-    T = _unit(T - N * _dot(N, T)[:, None])
-    sign = np.where(_dot(np.cross(N, T), B) < 0, -1.0, 1.0)[:, None]
-    B = sign * np.cross(N, T)
+    T, B = complete_frame(N, T, B)   # interpolated frames drift from orthonormal between corners
 
     shader_groups = []
     for mi, sel in groups:
@@ -434,10 +494,11 @@ def _local(surface: Surface, omega: np.ndarray) -> np.ndarray:
 
 def _views(surface: Surface, plan: Plan, counters: Counters) -> dict[int, np.ndarray | None]:
     """Per shader group: view directions in the texel frame, or None (canonical view) when not needed."""
-    out = {}
+    out, local = {}, None
     for gi, (sel, shader) in enumerate(surface.groups):
         if plan.view and shader.view_dependent:
-            out[gi] = _local(surface, surface.V)[sel]
+            local = _local(surface, surface.V) if local is None else local
+            out[gi] = local[sel]
             counters.add("view_dependence", "views", len(sel))
         else:
             out[gi] = None
@@ -445,8 +506,10 @@ def _views(surface: Surface, plan: Plan, counters: Counters) -> dict[int, np.nda
 
 
 def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
-                 shadows: bool, views: dict, counters: Counters, pass_name: str, radiance: np.ndarray) -> None:
-    """Add the contribution of ``lights`` = [(direction or None, intensity RGB, position or None)] to ``radiance``.
+                 shadows: bool, views: dict, counters: Counters, report: str | tuple[str, ...],
+                 radiance: np.ndarray) -> None:
+    """Add the contribution of ``lights`` = [(direction or None, intensity RGB, position or None)] to ``radiance``,
+    counting the work under ``report`` (shadow rays of the ``direct`` pass under ``shadows``).
 
     Lights are shaded in batches: the (sample, light) pairs above both horizons are found for the whole batch at
     once, shadow rays for them are cast in one call, and each shader group is evaluated once per batch.
@@ -504,10 +567,10 @@ def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndar
                 keep = ~built.occluded_rays(rays, 1.0 - 1e-4)
                 s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
         if n_rays:
-            if pass_name == "direct":
+            if report == "direct":
                 counters.add("shadows", "rays", n_rays)
             else:
-                counters.add(pass_name, "shadow_rays", n_rays)
+                counters.add(report, "shadow_rays", n_rays)
         groups = group_of[s_idx]
         for gi, (sel, shader) in enumerate(surface.groups):
             mine = np.nonzero(groups == gi)[0]
@@ -516,7 +579,7 @@ def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndar
             items = position_in_group[s_idx[mine]]
             view = views[gi]
             values = shader.evaluate(items, local[mine], None if view is None else view[items])
-            counters.add(pass_name, "evaluations", len(items))
+            counters.add(report, "evaluations", len(items))
             contrib = values.astype(np.float32, copy=False) * scale[mine]
             targets = s_idx[mine]
             for c in range(3):
@@ -524,24 +587,20 @@ def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndar
 
 
 def shade_environment_sh(surface: Surface, built: BuiltScene, light: LightSpec, counters: Counters,
-                         radiance: np.ndarray, cache: dict) -> None:
+                         report: tuple[str, ...], radiance: np.ndarray, cache: dict) -> None:
     order = light.order
     key = ("sh", light.index)
     if key not in cache:
-        cache[key] = project_sh(built.env_pixels[light.index], light, order)
+        cache[key] = project_sh(built.env_pixels(light), light, order)
     coeffs = cache[key]
     rotator = cache.setdefault(("rotator", order), SHRotator(order))
     for sel, shader in surface.groups:
         for start in range(0, len(sel), 1 << 15):
             part = sel[start:start + (1 << 15)]
             local = rotator.local_values(surface.T[part], surface.B[part], surface.N[part], coeffs)   # [m, n^2, 3]
-            within = np.arange(start, start + len(part))
-            if isinstance(shader, ColourShader):
-                transfer = shader.transfer(order, within)
-            else:
-                transfer = shader.transfer(order, within, cache)
+            transfer = shader.transfer(order, np.arange(start, start + len(part)), cache)
             radiance[part] += np.einsum("mcj,mjc->mc", transfer, local)
-        counters.add("environment", "sh_rotations", len(sel))
+        counters.add(report, "sh_rotations", len(sel))
 
 
 def shade_frame(surface: Surface, built: BuiltScene, plan: Plan, counters: Counters, cache: dict,
@@ -559,27 +618,26 @@ def shade_frame(surface: Surface, built: BuiltScene, plan: Plan, counters: Count
         counters.set("direct", "lights", len(direct))
     shade_lights(surface, built, direct, plan.shadows, views, counters, "direct", radiance)
     for light in plan.environment:
-        counters.set("environment", "method", light.method)
+        report = ("environment", f"lights[{light.index}]")
+        counters.set(report, "method", light.method)
         if light.method == "sh":
-            counters.set("environment", "order", light.order)
-            shade_environment_sh(surface, built, light, counters, radiance, cache)
+            counters.set(report, "order", light.order)
+            shade_environment_sh(surface, built, light, counters, report, radiance, cache)
             continue
         key = ("samples", light.index)
         if key not in cache:
-            cache[key] = importance_sample(built.env_pixels[light.index], light, light.samples)
+            cache[key] = importance_sample(built.env_pixels(light), light, light.samples)
         dset: DirectionalSet = cache[key]
-        counters.set("environment", "lights", len(dset.directions))
+        counters.set(report, "lights", len(dset.directions))
         env_lights = [(d, i, None) for d, i in zip(dset.directions, dset.intensities)]
-        shade_lights(surface, built, env_lights, plan.shadows, views, counters, "environment", radiance)
+        shade_lights(surface, built, env_lights, plan.shadows, views, counters, report, radiance)
 
     out = np.zeros((surface.n_samples, 3))
     out[surface.hit] = radiance
-    spec = built.spec
-    if spec.background == "environment":
-        env_light = next(l for l in spec.lights if l.kind == "environment")
-        out[~surface.hit] = lookup(built.env_pixels[env_light.index], surface.miss_dirs, env_light)
-    else:
-        out[~surface.hit] = spec.background
+    if plan.background is not None:
+        out[~surface.hit] = lookup(built.env_pixels(plan.background), surface.miss_dirs, plan.background)
+    elif built.spec.background != "environment":   # 'environment' with the effect off stays black
+        out[~surface.hit] = built.spec.background
     return out
 
 
@@ -612,7 +670,7 @@ def render(scene: Scene, materials: Mapping[str, Any], counters: Counters | None
     counters = counters or Counters()
     spec = scene.spec
     built = BuiltScene(scene, spec)
-    plan = make_plan(spec, built.meshes, counters)
+    plan = make_plan(spec, built.meshes, materials, counters)
     check_materials(spec, materials, plan)
     cam = spec.camera
     cache: dict = {}

@@ -40,6 +40,7 @@ LIGHT_KEYS = {
     "point": ("type", "position", "intensity"),
     "environment": ("type", "file", "sky", "intensity", "method", "samples", "order", "rotate", "up", "forward"),
 }
+MIN_SEGMENTS = {"plane": (1, 1), "sphere": (3, 2), "torus": (3, 3)}  # fewer cannot enclose (or span) the shape
 SKY_KEYS = ("zenith", "horizon", "ground", "sun", "sun_intensity", "sun_size", "width")
 ANIMATION_KEYS = ("type", "frames", "degrees", "light", "axis", "fps")
 ANIMATIONS = ("light_sweep", "turntable")
@@ -103,8 +104,8 @@ class LightSpec:
     samples: int = 64
     order: int = 3
     rotate: float = 0.0
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    forward: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)        # environment: the map's top row (zenith)
+    forward: tuple[float, float, float] = (1.0, 0.0, 0.0)   # environment: where the map's left edge faces
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,6 +157,9 @@ class SceneSpec:
 # ----------------------------------------------------------------------------------------------- value checks
 
 
+INLINE = "<inline>"   # the source name of a scene given as a mapping in the graph
+
+
 class _Where:
     """Builds messages that name the scene and the key path at fault."""
 
@@ -172,6 +176,27 @@ class _Where:
             if k not in allowed:
                 raise self.error(f"{key}.{k}" if key else str(k), "unknown key", did_you_mean(str(k), allowed))
         return value
+
+    def file(self, value: Any, key: str, base_dir: Path, check_files: bool, suffixes: tuple[str, ...],
+             expected: str, noun: str) -> str:
+        """A file the scene names: its absolute path, resolved and checked to exist when ``check_files``.
+
+        Relative paths resolve against ``base_dir``: the scene file's folder, or the graph's for an inline scene.
+        """
+        if not isinstance(value, str) or not value:
+            raise self.error(key, f"expected a file path, found {value!r}")
+        path = Path(os.path.expanduser(value))
+        path = path if path.is_absolute() else base_dir / path
+        if path.suffix.lower() not in suffixes:
+            raise self.error(key, f"expected {expected}, found '{path.name}'")
+        if not check_files:
+            return str(path)
+        if not path.is_file():
+            raise self.error(key, f"{noun} not found: {path}",
+                             "paths in an inline scene are relative to the graph file's folder"
+                             if self.source == INLINE else
+                             "paths in a scene file are relative to the scene file's folder")
+        return str(path.resolve())
 
     def number(self, value: Any, key: str, *, low: float | None = None, high: float | None = None,
                low_open: bool = False) -> float:
@@ -246,7 +271,7 @@ class _Where:
 def read_scene_source(value: Any, paths) -> tuple[Mapping[str, Any], str, Path]:
     """The raw scene mapping, a name for messages, and the folder its relative paths resolve against."""
     if isinstance(value, Mapping):
-        return value, "<inline>", Path(paths.graph_dir)
+        return value, INLINE, Path(paths.graph_dir)
     if not isinstance(value, (str, os.PathLike)) or str(value) == "":
         raise BtforgeInputError("render 'scene'", f"expected a scene file path or a mapping, found {value!r}")
     path = paths.input(str(value))
@@ -338,16 +363,8 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if "primitive" in m:
         primitive = w.choice(m["primitive"], f"{key}.primitive", PRIMITIVES)
     else:
-        if not isinstance(m["file"], str) or not m["file"]:
-            raise w.error(f"{key}.file", f"expected a file path, found {m['file']!r}")
-        path = Path(os.path.expanduser(m["file"]))
-        path = path if path.is_absolute() else base_dir / path
-        if path.suffix.lower() not in MESH_EXTENSIONS:
-            raise w.error(f"{key}.file", f"expected a .ply or .obj mesh, found '{path.name}'")
-        if check_files and not path.is_file():
-            raise w.error(f"{key}.file", f"mesh file not found: {path}",
-                          "paths in a scene file are relative to the scene file's folder")
-        file = str(path.resolve() if check_files else path)
+        file = w.file(m["file"], f"{key}.file", base_dir, check_files, MESH_EXTENSIONS, "a .ply or .obj mesh",
+                      "mesh file")
     if primitive is None:
         for k in ("size", "radius", "major_radius", "minor_radius", "segments"):
             if k in m:
@@ -363,11 +380,18 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
                       "a self-intersecting torus has no consistent inside")
     segments = None
     if "segments" in m:
+        if primitive == "cube":
+            raise w.error(f"{key}.segments", "does not apply to a cube",
+                          "a cube is six flat faces of one quad each; remove 'segments'")
         seg = m["segments"]
         seg = [seg, seg] if isinstance(seg, int) and not isinstance(seg, bool) else seg
         if not (isinstance(seg, list) and len(seg) == 2):
             raise w.error(f"{key}.segments", f"expected [n_u, n_v], found {m['segments']!r}")
         segments = (w.integer(seg[0], f"{key}.segments", high=4096), w.integer(seg[1], f"{key}.segments", high=4096))
+        least = MIN_SEGMENTS[primitive]
+        if segments[0] < least[0] or segments[1] < least[1]:
+            raise w.error(f"{key}.segments", f"expected at least {list(least)} for a {primitive}, found "
+                          f"{list(segments)}", f"fewer segments cannot make a closed {primitive}")
     position = w.vector(m.get("position", [0, 0, 0]), f"{key}.position")
     rotate = w.vector(m.get("rotate", [0, 0, 0]), f"{key}.rotate")
     scale_raw = m.get("scale", 1.0)
@@ -401,12 +425,24 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
                     uv_scale, uv_offset, wrap, coord_map, color)
 
 
+def _a(noun: str) -> str:
+    return f"{'an' if noun[0] in 'aeiou' else 'a'} {noun}"
+
+
 def _parse_light(w: _Where, index: int, raw: Any, base_dir: Path, check_files: bool = True) -> LightSpec:
     key = f"lights[{index}]"
     if not isinstance(raw, Mapping):
         raise w.error(key, f"expected a mapping, found {type(raw).__name__}")
     kind = w.choice(raw.get("type"), f"{key}.type", tuple(LIGHT_KEYS))
-    w.mapping(raw, key, LIGHT_KEYS[kind])
+    allowed = LIGHT_KEYS[kind]
+    for k in raw:
+        if k not in allowed:  # often a key of another light type: say so, and list what this type takes
+            owners = [_a(f"{t} light") for t, keys in LIGHT_KEYS.items() if k in keys]
+            near = did_you_mean(str(k), allowed)
+            lead = (f"'{k}' belongs to {' or '.join(owners)}; " if owners
+                    else f"{near} " if near.startswith("did you mean") else "")
+            raise w.error(f"{key}.{k}", f"unknown key for {_a(kind + ' light')}",
+                          f"{lead}{_a(kind + ' light')} takes {', '.join(allowed)}")
     intensity = w.colour(raw.get("intensity", 1.0), f"{key}.intensity")
     if kind == "directional":
         if "direction" not in raw:
@@ -420,16 +456,8 @@ def _parse_light(w: _Where, index: int, raw: Any, base_dir: Path, check_files: b
         raise w.error(key, "an environment light needs exactly one of 'file' (a lat-long EXR) or 'sky'")
     file, sky = None, None
     if "file" in raw:
-        if not isinstance(raw["file"], str) or not raw["file"]:
-            raise w.error(f"{key}.file", f"expected a file path, found {raw['file']!r}")
-        path = Path(os.path.expanduser(raw["file"]))
-        path = path if path.is_absolute() else base_dir / path
-        if path.suffix.lower() != ".exr":
-            raise w.error(f"{key}.file", f"expected a lat-long OpenEXR map (.exr), found '{path.name}'")
-        if check_files and not path.is_file():
-            raise w.error(f"{key}.file", f"environment map not found: {path}",
-                          "paths in a scene file are relative to the scene file's folder")
-        file = str(path.resolve() if check_files else path)
+        file = w.file(raw["file"], f"{key}.file", base_dir, check_files, (".exr",),
+                      "a lat-long OpenEXR map (.exr)", "environment map")
     else:
         s = w.mapping(raw["sky"] or {}, f"{key}.sky", SKY_KEYS)
         sky = {
@@ -449,7 +477,8 @@ def _parse_light(w: _Where, index: int, raw: Any, base_dir: Path, check_files: b
     forward = np.array(w.vector(raw.get("forward", [1, 0, 0]), f"{key}.forward"))
     forward = forward - np.dot(forward, up) * np.asarray(up)
     if np.linalg.norm(forward) < 1e-6:
-        raise w.error(f"{key}.forward", "is parallel to 'up' (or zero)", "give the direction of the map's centre column")
+        raise w.error(f"{key}.forward", f"is parallel to 'up' (or zero): {list(raw.get('forward', [1, 0, 0]))!r}",
+                      "give the horizontal direction the map's left edge (column 0) faces, across 'up'")
     forward = tuple(float(x) for x in forward / np.linalg.norm(forward))
     return LightSpec(index, kind, intensity, file=file, sky=sky, method=method, samples=samples, order=order,
                      rotate=rotate, up=up, forward=forward)
@@ -482,27 +511,19 @@ def scene_ports(value: Any, paths) -> dict[str, str]:
 # ----------------------------------------------------------------------------------------------- the Scene buffer
 
 
-def _absolute(data: Mapping[str, Any], base_dir: Path) -> dict[str, Any]:
-    """A JSON-able copy of the raw scene with file paths made absolute (so it can move between folders)."""
+def _absolute(data: Mapping[str, Any], spec: SceneSpec) -> dict[str, Any]:
+    """A copy of the raw scene with the file paths ``spec`` resolved (absolute), so it can move between folders."""
     out = dict(data)
-    if isinstance(out.get("meshes"), Mapping):
-        meshes = {}
-        for name, body in out["meshes"].items():
-            body = dict(body)
-            if isinstance(body.get("file"), str):
-                p = Path(os.path.expanduser(body["file"]))
-                body["file"] = str((p if p.is_absolute() else base_dir / p).resolve())
-            meshes[str(name)] = body
-        out["meshes"] = meshes
-    if isinstance(out.get("lights"), list):
-        lights = []
-        for body in out["lights"]:
-            body = dict(body)
-            if isinstance(body.get("file"), str):
-                p = Path(os.path.expanduser(body["file"]))
-                body["file"] = str((p if p.is_absolute() else base_dir / p).resolve())
-            lights.append(body)
-        out["lights"] = lights
+    if any(m.file for m in spec.meshes):
+        out["meshes"] = {str(name): dict(body) for name, body in data["meshes"].items()}
+        for mesh in spec.meshes:
+            if mesh.file:
+                out["meshes"][mesh.name]["file"] = mesh.file
+    if any(l.file for l in spec.lights):
+        out["lights"] = [dict(body) for body in data["lights"]]
+        for light in spec.lights:
+            if light.file:
+                out["lights"][light.index]["file"] = light.file
     return out
 
 
@@ -548,7 +569,7 @@ def load_scene(value: Any, paths) -> Scene:
 
     data, source, base = read_scene_source(value, paths)
     spec = parse_scene(data, source, base)
-    raw = _absolute(data, base)
+    raw = _absolute(data, spec)
     arrays: dict[str, np.ndarray] = {}
     for mesh in spec.meshes:
         if mesh.file and f"{mesh.file}|positions" not in arrays:
