@@ -2,6 +2,14 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# A red CI does not land, so by default every run draws the same examples (fixed per test) and CI cannot fail on
+# one nobody has seen yet.  `HYPOTHESIS_PROFILE=explore python3 -m pytest` draws new ones; a failure it finds
+# becomes an @example of its test.
+settings.register_profile("ci", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False, max_examples=200)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

@@ -145,17 +145,27 @@ def test_projection_and_solve_agree_on_hard_rows():
         assert (c_gpu[row].astype(np.float64) ** 2).sum() <= root[row] ** 2 * 1.001
 
 
+EVALUATION_CASES = given(seed=st.integers(0, 2 ** 16), quantized=st.booleans(),
+                         magnitude=st.sampled_from([1e-3, 1.0, 50.0]), light_order=st.integers(1, 6),
+                         view_order=st.integers(1, 3))
+
+
+def random_coefficients(rng, k_v, k_l, magnitude, quantized, n_texel=37):
+    """Random SH coefficients ``[n, 3, k_v, k_l]`` (texel 0 black), optionally 8-bit, with scale and bias."""
+    coeffs = (rng.normal(0, 1, (n_texel, 3, k_v, k_l)) * magnitude).astype(np.float32)
+    coeffs[0] = 0.0
+    scale, bias = np.ones((k_v, k_l), np.float32), np.zeros((k_v, k_l), np.float32)
+    if quantized:
+        coeffs, scale, bias = quantize_coeffs(coeffs)
+    return coeffs, scale, bias
+
+
 @FAST
-@given(seed=st.integers(0, 2 ** 16), quantized=st.booleans(), magnitude=st.sampled_from([1e-3, 1.0, 50.0]),
-       light_order=st.integers(1, 6), view_order=st.integers(1, 3))
+@EVALUATION_CASES
 def test_opencl_evaluation_matches_numpy(seed, quantized, magnitude, light_order, view_order):
     rng = np.random.default_rng(seed)
     k_v, k_l = view_order ** 2, light_order ** 2
-    coeffs = (rng.normal(0, 1, (37, 3, k_v, k_l)) * magnitude).astype(np.float32)
-    scale = np.ones((k_v, k_l), np.float32)
-    bias = np.zeros((k_v, k_l), np.float32)
-    if quantized:
-        coeffs, scale, bias = quantize_coeffs(coeffs)
+    coeffs, scale, bias = random_coefficients(rng, k_v, k_l, magnitude, quantized)
     dirs = rng.normal(size=(7, 3))  # includes directions below the horizon
     dirs = np.vstack([dirs / np.linalg.norm(dirs, axis=1, keepdims=True), [[0, 0, 1], [1, 0, 0]]])
     yl = real_sh(light_order, dirs).astype(np.float32)
@@ -167,16 +177,11 @@ def test_opencl_evaluation_matches_numpy(seed, quantized, magnitude, light_order
 
 
 @FAST
-@given(seed=st.integers(0, 2 ** 16), quantized=st.booleans(), magnitude=st.sampled_from([1e-3, 1.0, 50.0]),
-       light_order=st.integers(1, 6), view_order=st.integers(1, 3))
+@EVALUATION_CASES
 def test_opencl_scattered_evaluation_matches_numpy(seed, quantized, magnitude, light_order, view_order):
     rng = np.random.default_rng(seed)
     k_v, k_l = view_order ** 2, light_order ** 2
-    coeffs = (rng.normal(0, 1, (37, 3, k_v, k_l)) * magnitude).astype(np.float32)
-    coeffs[0] = 0.0                                                  # a black texel
-    scale, bias = np.ones((k_v, k_l), np.float32), np.zeros((k_v, k_l), np.float32)
-    if quantized:
-        coeffs, scale, bias = quantize_coeffs(coeffs)
+    coeffs, scale, bias = random_coefficients(rng, k_v, k_l, magnitude, quantized)
     n = 150
     texels = rng.integers(0, 37, n).astype(np.int32)
     dirs = rng.normal(size=(2 * n, 3))                               # each item its own light and view, any side

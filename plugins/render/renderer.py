@@ -133,29 +133,29 @@ def make_plan(spec: SceneSpec, meshes: list[BuiltMesh], materials: Mapping[str, 
     unlit = ("the scene has no direct light, and its environment lights are off without the environment effect"
              if env and not environment else "the scene has no light")
 
-    shadows = False
-    if "shadows" in eff:
-        if not occluders:
-            skipped["shadows"] = "nothing can occlude: a single convex mesh casts no shadow on itself"
+    def through_sampled_lights(effect: str, unavailable: str | None, sh_method: str) -> bool:
+        """Plan an effect that acts per light direction (direct lights, importance-sampled environments): off,
+        with the reason, when it cannot apply or no such light exists; the sh method never gets it."""
+        if effect not in eff:
+            return False
+        if unavailable:
+            skipped[effect] = unavailable
         elif not sampled:
-            skipped["shadows"] = (f"no light casts shadow rays: the sh method ({sh_lights}) ignores shadows"
-                                  if sh_lights else unlit)
+            skipped[effect] = f"the sh method ({sh_lights}) {sh_method}" if sh_lights else unlit
         else:
-            shadows = True
             if sh_lights:
-                skipped["shadows"] = f"not for {sh_lights}: the sh environment method ignores shadows"
+                skipped[effect] = f"not for {sh_lights}: the sh method {sh_method}"
+            return True
+        return False
 
-    view = False
-    if "view_dependence" in eff:
-        if not any(getattr(materials.get(name), "view_dependent", False) for name in spec.materials):
-            skipped["view_dependence"] = "no material's model depends on the view (a PTM depends on the light only)"
-        elif not sampled:
-            skipped["view_dependence"] = (f"the sh method ({sh_lights}) evaluates models at their canonical view"
-                                          if sh_lights else unlit)
-        else:
-            view = True
-            if sh_lights:
-                skipped["view_dependence"] = f"not for {sh_lights}: the sh method uses the canonical view"
+    shadows = through_sampled_lights(
+        "shadows", None if occluders else "nothing can occlude: a single convex mesh casts no shadow on itself",
+        "ignores shadows")
+    view = through_sampled_lights(
+        "view_dependence",
+        None if any(getattr(materials.get(name), "view_dependent", False) for name in spec.materials)
+        else "no material's model depends on the view (a PTM depends on the light only)",
+        "evaluates models at their canonical view")
 
     background = None
     if spec.background == "environment" and environment:
