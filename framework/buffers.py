@@ -70,15 +70,31 @@ def check_array(
 def frozen(array: np.ndarray) -> np.ndarray:
     """``array`` as a C-contiguous array nobody can write, copied only when that cannot be had otherwise.
 
-    An array that owns its memory is frozen in place (no copy; the caller's reference turns read-only too), so a
-    large stack is never held twice.  A view is copied unless every array it looks into is read-only already:
-    its base could still be written through another reference.
+    An array that owns its memory is frozen in place (no copy; the caller's reference turns read-only too), and
+    so is the owner of a view that spans all of it (a reshape, ``a[None]``), so a large stack or model is never
+    held twice.  A view of part of an array is copied unless every array it looks into is read-only already: the
+    rest of its base could still be written through another reference.
     """
     out = np.ascontiguousarray(array)
     if out is array and _written_elsewhere(array):
-        out = array.copy()
+        chain = _view_chain(array)
+        if chain and chain[-1].base is None and chain[-1].nbytes == array.nbytes \
+                and chain[-1].ctypes.data == array.ctypes.data:
+            for view in chain:
+                view.flags.writeable = False
+        else:
+            out = array.copy()
     out.flags.writeable = False
     return out
+
+
+def _view_chain(array: np.ndarray) -> list[np.ndarray]:
+    """The arrays ``array`` looks into, nearest first (empty for an array that owns its memory)."""
+    chain, base = [], array.base
+    while isinstance(base, np.ndarray):
+        chain.append(base)
+        base = base.base
+    return chain
 
 
 def _written_elsewhere(array: np.ndarray) -> bool:

@@ -213,6 +213,9 @@ def test_buffers_are_immutable_and_validated():
     from_view = SampleStack(base[1:], np.eye(3), [[0, 0, 1]])
     base[1] = 7.0  # a view's base stays the caller's: the buffer holds a copy
     assert not from_view.samples.any() and from_view.content_key == key
+    whole = np.zeros((3, 2, 2, 3), np.float32)
+    reshaped = SampleStack(whole[None], np.eye(3), [[0, 0, 1]])  # a view of all of it: frozen, not copied
+    assert np.shares_memory(reshaped.samples, whole) and not whole.flags.writeable
     with pytest.raises(BtforgeInputError, match=r"'samples' must be \(V, L, H, W, C\) float32, got \(2, 2, 9\) float64"):
         SampleStack(np.zeros((2, 2, 9)), np.eye(3), [[0, 0, 1]])
     bad = np.zeros((1, 3, 2, 2, 3), np.float32)
