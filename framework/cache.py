@@ -1,10 +1,11 @@
 """Content-addressed cache of node outputs on disk.
 
-A node's key is a BLAKE2 hash of its stage name and version, its parameters, the contents of the files it reads
-and the content keys of its inputs - so a changed parameter, input or file invalidates exactly the nodes
-downstream of it.  An entry is a folder ``<root>/<key[:2]>/<key>/`` holding one ``.npz`` per output port and a
-``manifest.json`` written last: an entry without its manifest (a crash mid-write) is simply a miss, and so is
-one whose outputs cannot be read back.
+A node's key is a BLAKE2 hash of its stage name and version, the digest of the code that computes it (the
+source and ``.cl`` files of the stage's plugin, see :func:`code_digest`), its parameters, the contents of the
+files it reads and the content keys of its inputs - so a changed parameter, input, file or plugin invalidates
+exactly the nodes downstream of it.  An entry is a folder ``<root>/<key[:2]>/<key>/`` holding one ``.npz`` per
+output port and a ``manifest.json`` written last, which records each output's size and BLAKE2 checksum: an
+entry without its manifest (a crash mid-write) is simply a miss, and so is one whose outputs do not match it.
 
 Hashing a large capture on every run would cost as much as reading it, so a file's digest is remembered under
 ``<root>/files/`` keyed by its path, size, inode and both its modification and status-change times: restoring
@@ -17,6 +18,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Iterable, Mapping
 
 from .atomic import atomic_write_bytes, atomic_write_text
@@ -24,6 +26,10 @@ from .buffers import Buffer
 
 
 HASH_BLOCK = 1 << 20
+
+
+class DamagedEntry(Exception):
+    """A cache entry whose manifest is intact but whose output files do not match it."""
 
 
 def _hash(text: str) -> str:
@@ -58,12 +64,38 @@ def file_digest(path: Path, memo: Path | None = None) -> str | None:
     return value
 
 
+CODE_SUFFIXES = (".py", ".cl")
+
+
+def code_files(module: ModuleType) -> list[Path]:
+    """The files whose contents decide what ``module``'s stages compute: every ``.py`` and ``.cl`` file of its
+    package (recursively), or of a plain module its file and the ``.cl`` files beside it."""
+    origin = getattr(module, "__file__", None)
+    if not origin:
+        return []
+    origin = Path(origin).resolve()
+    if hasattr(module, "__path__"):  # a package: all of it
+        found = [p for folder in module.__path__ for p in Path(folder).rglob("*")
+                 if p.suffix in CODE_SUFFIXES and "__pycache__" not in p.parts]
+    else:
+        found = [origin] + sorted(origin.parent.glob("*.cl"))
+    return sorted({p.resolve() for p in found if p.is_file()})
+
+
+def code_digest(files: Iterable[Path], memo: Path | None = None) -> str:
+    """One digest over the contents (and names) of ``files``: changes when any of them is edited."""
+    paths = sorted({Path(p).resolve() for p in files})
+    return _hash(json.dumps([[p.name, file_digest(p, memo)] for p in paths]))
+
+
 def node_key(stage: str, version: str, params: Mapping[str, Any], input_keys: Mapping[str, str],
-             files: Iterable[Path], memo: Path | None = None) -> str:
-    """The cache key of one node evaluation (``memo``: where file digests are remembered)."""
+             files: Iterable[Path], memo: Path | None = None, code: str = "") -> str:
+    """The cache key of one node evaluation (``memo``: where file digests are remembered; ``code``: the
+    :func:`code_digest` of the stage's plugin)."""
     paths = sorted({Path(p).resolve() for p in files})
     blob = json.dumps(
-        {"stage": stage, "version": version, "params": params, "inputs": dict(sorted(input_keys.items())),
+        {"stage": stage, "version": version, "code": code, "params": params,
+         "inputs": dict(sorted(input_keys.items())),
          "files": [[str(p), file_digest(p, memo)] for p in paths]},
         sort_keys=True, default=str,
     )
@@ -83,12 +115,15 @@ class NodeCache:
         return self.root / "files"
 
     def key(self, stage: str, version: str, params: Mapping[str, Any], input_keys: Mapping[str, str],
-            files: Iterable[Path]) -> str:
-        return node_key(stage, version, params, input_keys, files, self.file_memo)
+            files: Iterable[Path], code: str = "") -> str:
+        return node_key(stage, version, params, input_keys, files, self.file_memo, code)
 
     def manifest(self, key: str, ports: Iterable[str] | None = None) -> dict[str, Any] | None:
-        """The entry's manifest, or None for a miss: no entry, a damaged manifest, other ports than ``ports``, or
-        an output file that is missing or not the size that was written."""
+        """The entry's manifest, or None for a miss: no entry, a damaged manifest, other ports than ``ports``.
+
+        Raises :class:`DamagedEntry` when an output file is missing or does not match the size and checksum
+        the manifest recorded (the caller recomputes, and says so).
+        """
         entry = self._entry(key)
         try:
             manifest = json.loads((entry / "manifest.json").read_text())
@@ -96,24 +131,34 @@ class NodeCache:
             if ports is not None and set(outputs) != set(ports):
                 return None
             for port, info in outputs.items():
-                if (entry / f"{port}.npz").stat().st_size != info["bytes"]:
-                    return None
+                self._verify(entry / f"{port}.npz", info)
         except (OSError, ValueError, KeyError, TypeError):
             return None
         return manifest
+
+    def _verify(self, path: Path, info: Mapping[str, Any]) -> None:
+        try:
+            size = path.stat().st_size
+        except FileNotFoundError:
+            raise DamagedEntry(f"{path.name} is missing") from None
+        if size != info["bytes"]:
+            raise DamagedEntry(f"{path.name} has {size} bytes, the manifest says {info['bytes']}")
+        # Digests are remembered by (size, inode, mtime, ctime), so an untouched entry is not re-read on a hit.
+        if file_digest(path, self.file_memo) != info["blake2b"]:
+            raise DamagedEntry(f"{path.name} does not match its checksum")
 
     def load(self, key: str, port: str, types: Mapping[str, type[Buffer]]) -> Buffer:
         return Buffer.from_file(self._entry(key) / f"{port}.npz", types)
 
     def store(self, key: str, outputs: Mapping[str, Buffer], notes: Mapping[str, Any]) -> None:
         entry = self._entry(key)
-        sizes = {}
+        written = {}
         for port, buf in outputs.items():
             data = buf.to_bytes()
             atomic_write_bytes(entry / f"{port}.npz", data)
-            sizes[port] = len(data)
+            written[port] = {"bytes": len(data), "blake2b": hashlib.blake2b(data, digest_size=20).hexdigest()}
         manifest = {
-            "outputs": {port: {"type": buf.type_name, "content_key": buf.content_key, "bytes": sizes[port]}
+            "outputs": {port: {"type": buf.type_name, "content_key": buf.content_key, **written[port]}
                         for port, buf in outputs.items()},
             "notes": notes,
         }

@@ -6,6 +6,10 @@ tracebacks are only shown behind ``--debug``.
 """
 from __future__ import annotations
 
+import contextlib
+import warnings
+from typing import Iterator
+
 
 class BtforgeError(Exception):
     """Base of every error btforge raises on purpose."""
@@ -51,3 +55,18 @@ class BtforgeInputError(BtforgeError):
 
 class BtforgeWarning(UserWarning):
     """A result was produced but the user should know something about it (clamped light, ill-conditioned fit)."""
+
+
+@contextlib.contextmanager
+def collect_warnings() -> Iterator[list[str]]:
+    """Collect the text of every :class:`BtforgeWarning` raised in the block (for the run report), and pass
+    every warning on afterwards, so the CLI still shows it."""
+    texts: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", BtforgeWarning)
+        try:
+            yield texts
+        finally:
+            texts.extend(str(w.message) for w in caught if issubclass(w.category, BtforgeWarning))
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

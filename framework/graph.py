@@ -15,7 +15,7 @@ from typing import Any, Mapping
 import networkx as nx
 import yaml
 
-from .errors import BtforgeInputError
+from .errors import BtforgeInputError, collect_warnings
 from .registry import Registry, did_you_mean
 from .stages import RunPaths, Stage
 
@@ -164,6 +164,7 @@ class CheckedGraph:
     params: Mapping[str, Mapping[str, Any]]
     dag: nx.DiGraph
     files: Mapping[str, tuple[Path, ...]] = dataclasses.field(default_factory=dict)  # what each node reads
+    warnings: Mapping[str, list[str]] = dataclasses.field(default_factory=dict)  # raised while its files were read
 
     def needed_for(self, targets: list[str] | None) -> list[str]:
         """Nodes to evaluate, in dependency order, to produce ``targets`` (default: every sink node)."""
@@ -213,8 +214,10 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
             problem(spec.where(name, node.line), f"unknown stage '{node.stage}'", did_you_mean(node.stage, registry.stages))
 
     params: dict[str, dict[str, Any]] = {}
+    params_ok: set[str] = set()  # nodes whose own params and files passed: their prechecks can run
     for name, st in stages.items():
         node = spec.nodes[name]
+        before = len(problems)
         values: dict[str, Any] = {}
         for key, raw in node.params.items():
             param = st.param(key)
@@ -239,6 +242,8 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 problem(node.param_where(spec, p.name), f"{what} not found: {paths.input(value)}",
                         "paths are relative to the graph file's folder")
         params[name] = values
+        if len(problems) == before:
+            params_ok.add(name)
 
     dag = nx.DiGraph()
     dag.add_nodes_from(spec.nodes)
@@ -293,22 +298,27 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
                 problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
                         "wire an output of the expected type")
 
+    # Every node whose own params are sound is prechecked, whatever else failed: all problems in one message.
     files: dict[str, tuple[Path, ...]] = {}
-    if not problems:
-        for name, st in stages.items():
-            read = [paths.input(value) for p, value in _file_params(st, params[name])]
-            if st.precheck is not None:
+    read_warnings: dict[str, list[str]] = {}
+    for name in (n for n in stages if n in params_ok):
+        st = stages[name]
+        read = [paths.input(value) for p, value in _file_params(st, params[name])]
+        if st.precheck is not None:
+            with collect_warnings() as caught:
                 try:
                     read += list(st.precheck(params[name], paths) or ())
                 except BtforgeInputError as exc:
                     problems.append(exc.located(spec.where(name, spec.nodes[name].line)).one_line())
-            files[name] = tuple(read)
+            if caught:
+                read_warnings[name] = caught
+        files[name] = tuple(read)
 
     if problems:
         if len(problems) == 1:
             raise BtforgeInputError("", problems[0])
         raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
-    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files)
+    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files, warnings=read_warnings)
 
 
 def _file_params(st: Stage, values: Mapping[str, Any]):

@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import difflib
 import importlib.metadata
+import sys
+from pathlib import Path
+from types import ModuleType
 from typing import Any, Iterable
 
 import pluggy
 
 from . import buffers, hookspecs
+from .cache import code_digest, code_files
 from .errors import BtforgeInputError
 from .stages import Stage
 
@@ -50,6 +54,8 @@ class Registry:
                                             "give the plugin's type another type_name")
                 self.types[t.type_name] = t
         self.stages: dict[str, Stage] = {}
+        self._stage_sources: dict[str, Any] = {}  # stage name -> the plugin object that provided it
+        self._code_digests: dict[str, str] = {}
         for impl in self.pm.hook.btforge_stages.get_hookimpls():
             plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
             for st in impl.function() or ():
@@ -71,6 +77,7 @@ class Registry:
                         raise BtforgeInputError(f"stage '{st.name}', port '{port}'", f"names unknown buffer type '{tname}'",
                                                 f"known types: {', '.join(sorted(self.types))}")
                 self.stages[st.name] = st
+                self._stage_sources[st.name] = impl.plugin
         self.info_readers: dict[str, Any] = {}
         for result in self.pm.hook.btforge_info_readers():
             self.info_readers.update(result or {})
@@ -82,11 +89,31 @@ class Registry:
             raise BtforgeInputError(f"stage '{name}'", "is not provided by any installed plugin",
                                     did_you_mean(name, self.stages)) from None
 
+    def code_digest(self, name: str, memo: Path | None = None) -> str:
+        """Digest of the code behind stage ``name``: the source and ``.cl`` files of the plugin package that
+        provides it (and of the module defining its function, if that lies elsewhere).  Part of every node's
+        cache key, so editing or upgrading a plugin re-runs exactly its nodes and what depends on them."""
+        digest = self._code_digests.get(name)
+        if digest is None:
+            files = set(code_files(_module_of(self._stage_sources[name])))
+            defining = sys.modules.get(self.stages[name].fn.__module__)
+            if defining is not None:
+                files.update(code_files(defining))
+            digest = self._code_digests[name] = code_digest(files, memo)
+        return digest
+
     def accepts(self, port_type: str, value_type: str) -> bool:
         """Whether a port declared as ``port_type`` accepts a buffer of ``value_type`` (unknown types: never)."""
         if port_type not in self.types or value_type not in self.types:
             return False
         return issubclass(self.types[value_type], self.types[port_type])
+
+
+def _module_of(plugin: Any) -> ModuleType | None:
+    """The module a plugin object comes from (a module plugin is its own)."""
+    if isinstance(plugin, ModuleType):
+        return plugin
+    return sys.modules.get(getattr(plugin, "__module__", None) or type(plugin).__module__)
 
 
 def did_you_mean(name: str, options: Iterable[str]) -> str:

@@ -7,15 +7,16 @@ import os
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
 from .atomic import atomic_write_text
 from .backend import default_cache_root
 from .buffers import Buffer
-from .cache import NodeCache
+from .cache import DamagedEntry, NodeCache
 from .context import StageContext
-from .errors import BtforgeError, BtforgeInputError
+from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_warnings
 from .graph import CheckedGraph, check_graph, load_graph
 from .registry import Registry, default_registry
 from .stages import RunPaths
@@ -103,36 +104,23 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         params = graph.params[name]
         wired = graph.spec.nodes[name].inputs
         input_keys = {port: _key_of(values[src][src_port]) for port, (src, src_port) in wired.items()}
-        key = cache.key(st.name, st.version, params, input_keys, graph.files.get(name, ()))
+        key = cache.key(st.name, st.version, params, input_keys, graph.files.get(name, ()),
+                        registry.code_digest(st.name, cache.file_memo))
         report = reports[name]
         if not quiet:
             print(f"[{index}/{len(order)}] {name} ({st.name}) ...", file=sys.stderr, flush=True)
-        manifest = cache.manifest(key, st.outputs) if use_cache and not st.side_effects else None
+        with collect_warnings() as cache_warnings:
+            manifest = _cached_manifest(cache, key, name, st) if use_cache and not st.side_effects else None
         if manifest is not None:
             values[name] = {port: _Lazy(cache, key, port, info["content_key"], registry)
                             for port, info in manifest["outputs"].items()}
             report.status, report.notes = "cached", manifest.get("notes", {})
         else:
             inputs = {port: _materialize(values[src], src_port) for port, (src, src_port) in wired.items()}
-            ctx = StageContext(node=name, paths=paths, quiet=quiet)
-            start = time.perf_counter()
-            with _PeakMemory() as mem:
-                try:
-                    outputs = st.fn(ctx, **inputs, **params)
-                except BtforgeInputError as exc:
-                    raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
-                except BtforgeError:
-                    raise
-                except Exception as exc:  # a bug in the stage: say where it happened (traceback behind --debug)
-                    raise BtforgeError(f"node '{name}' ({st.name}, plugin {st.plugin}) failed: "
-                                       f"{type(exc).__name__}: {exc} (a bug in the stage; the CLI shows the traceback with --debug)") from exc
-            report.seconds = time.perf_counter() - start
-            report.peak_rss_mb = round(mem.peak / 2**20, 1)
-            report.status, report.notes = "ran", ctx.notes
-            _check_outputs(name, st, outputs or {}, inputs, registry)
-            values[name] = dict(outputs or {})
+            values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet)
             if use_cache and not st.side_effects:
-                cache.store(key, values[name], ctx.notes)
+                cache.store(key, values[name], report.notes)
+        _add_warnings(report.notes, name, [*graph.warnings.get(name, ()), *cache_warnings])
         if not quiet:
             print(f"      {report.status} in {report.seconds:.2f} s", file=sys.stderr, flush=True)
         for src in {src for src, _ in wired.values()}:  # free what no remaining node needs
@@ -146,6 +134,52 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             result[name] = {port: _materialize(values[name], port) for port in values[name]}
     result.report = [reports[n] for n in graph.spec.nodes]
     return result
+
+
+def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], paths: RunPaths, report: NodeReport,
+              registry: Registry, quiet: bool) -> dict[str, Buffer]:
+    """Run one node's stage; fill its report (time, peak memory, notes and every warning raised meanwhile)."""
+    st = graph.stages[name]
+    ctx = StageContext(node=name, paths=paths, quiet=quiet)
+    start = time.perf_counter()
+    with _PeakMemory() as mem, collect_warnings() as raised:
+        try:
+            outputs = st.fn(ctx, **inputs, **graph.params[name])
+        except BtforgeInputError as exc:
+            raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
+        except BtforgeError:
+            raise
+        except Exception as exc:  # a bug in the stage: say where it happened (traceback behind --debug)
+            raise BtforgeError(f"node '{name}' ({st.name}, plugin {st.plugin}) failed: "
+                               f"{type(exc).__name__}: {exc} (a bug in the stage; the CLI shows the traceback with --debug)") from exc
+    report.seconds = time.perf_counter() - start
+    report.peak_rss_mb = round(mem.peak / 2**20, 1)
+    report.status, report.notes = "ran", ctx.notes
+    _add_warnings(report.notes, name, raised)
+    _check_outputs(name, st, outputs or {}, inputs, registry)
+    return dict(outputs or {})
+
+
+def _add_warnings(notes: dict[str, Any], node: str, raised) -> None:
+    """Put warnings into a node's notes once each (``ctx.warn`` has already noted its own, without the prefix)."""
+    prefix = f"node '{node}': "
+    kept = notes.setdefault("warnings", [])
+    for text in raised:
+        text = text[len(prefix):] if text.startswith(prefix) else text
+        if text not in kept:
+            kept.append(text)
+    if not kept:
+        del notes["warnings"]
+
+
+def _cached_manifest(cache: NodeCache, key: str, name: str, st) -> dict[str, Any] | None:
+    """The node's cache entry, or None to compute it; a damaged entry is recomputed with a warning."""
+    try:
+        return cache.manifest(key, st.outputs)
+    except DamagedEntry as exc:
+        warnings.warn(f"node '{name}': its cache entry is damaged ({exc}); computing it again", BtforgeWarning,
+                      stacklevel=2)
+        return None
 
 
 def _key_of(value: Any) -> str:

@@ -1,0 +1,93 @@
+"""Cache keys follow the code: editing a plugin's source or kernel re-runs its nodes; damaged entries are misses."""
+import importlib
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+import btforge
+from btforge import BtforgeWarning
+from btforge.registry import Registry
+
+from conftest import REPO
+from fixtures import toy_plugin
+
+SMALL_DEMO = {"nodes": {"m": {"stage": "demo.material", "params": {"size": [6, 5], "lights": 3, "bumps": 2}}}}
+
+
+@pytest.fixture
+def demo_copy(tmp_path, monkeypatch):
+    """A copy of the demo plugin as a package of its own (as a user's fork of a plugin would be)."""
+    shutil.copytree(REPO / "plugins" / "demo", tmp_path / "pkgs" / "democopy",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.syspath_prepend(str(tmp_path / "pkgs"))
+    module = importlib.import_module("democopy")
+    yield tmp_path / "pkgs" / "democopy", module
+    for name in [n for n in sys.modules if n == "democopy" or n.startswith("democopy.")]:
+        del sys.modules[name]
+
+
+def _statuses(result):
+    return {r.node: r.status for r in result.report}
+
+
+def test_editing_a_kernel_of_a_plugin_reruns_its_nodes(demo_copy, tmp_path):
+    folder, module = demo_copy
+    cache = tmp_path / "cache"
+    first = btforge.run(SMALL_DEMO, registry=Registry(load_entry_points=False, extra_plugins=[module]),
+                        cache_dir=cache)
+    again = btforge.run(SMALL_DEMO, registry=Registry(load_entry_points=False, extra_plugins=[module]),
+                        cache_dir=cache)
+    assert _statuses(first) == {"m": "ran"} and _statuses(again) == {"m": "cached"}
+    kernel = folder / "procedural.cl"
+    kernel.write_text(kernel.read_text() + "\n// an edit that changes nothing computed still re-runs\n")
+    edited = btforge.run(SMALL_DEMO, registry=Registry(load_entry_points=False, extra_plugins=[module]),
+                         cache_dir=cache)
+    assert _statuses(edited) == {"m": "ran"}
+    np.testing.assert_array_equal(edited["m"]["stack"].samples, first["m"]["stack"].samples)
+
+
+def test_editing_a_plugin_source_changes_only_its_stages_digest(demo_copy):
+    folder, module = demo_copy
+    def digests():
+        registry = Registry(load_entry_points=False, extra_plugins=[module, toy_plugin])
+        return {name: registry.code_digest(name) for name in ("demo.material", "demo.btf", "toy.source")}
+    before = digests()
+    (folder / "procedural.py").write_text((folder / "procedural.py").read_text() + "\n# edited\n")
+    after = digests()
+    assert before["demo.material"] != after["demo.material"] and before["demo.btf"] != after["demo.btf"]
+    assert before["toy.source"] == after["toy.source"]
+
+
+GRAPH = {"nodes": {"src": {"stage": "toy.source", "params": {"n": 6}},
+                   "twice": {"stage": "toy.scale", "inputs": {"numbers": "src.numbers"}}}}
+
+
+def test_a_flipped_byte_in_a_cached_output_is_recomputed_with_a_warning(tmp_path):
+    registry = Registry(load_entry_points=False, extra_plugins=[toy_plugin])
+    btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    entry = sorted(tmp_path.rglob("numbers.npz"))[0]
+    data = bytearray(entry.read_bytes())
+    data[len(data) // 2] ^= 0x01  # same size, different content: only a checksum can tell
+    entry.write_bytes(bytes(data))
+    toy_plugin.CALLS.clear()
+    with pytest.warns(BtforgeWarning, match="cache entry is damaged.*checksum"):
+        result = btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert sum(toy_plugin.CALLS.values()) == 1  # only the damaged node, not the healthy one
+    np.testing.assert_array_equal(result["twice"]["numbers"].values, np.arange(6) * 2.0)
+    damaged = [r for r in result.report if r.status == "ran"]
+    assert len(damaged) == 1 and "damaged" in damaged[0].notes["warnings"][0]
+    toy_plugin.CALLS.clear()
+    btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert toy_plugin.CALLS == {}  # the entry was rewritten whole
+
+
+def test_version_still_overrides(tmp_path):
+    import dataclasses
+    registry = Registry(load_entry_points=False, extra_plugins=[toy_plugin])
+    btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    registry.stages["toy.source"] = dataclasses.replace(registry.stages["toy.source"], version="2")
+    toy_plugin.CALLS.clear()
+    btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert toy_plugin.CALLS == {"toy.source": 1}  # same numbers again: what depends on them stays cached
