@@ -5,9 +5,15 @@ group (built-in families register the same way, see ``pyproject.toml``).  Implem
 ``@btforge.hookimpl``; all hooks are optional and are called once, when the registry loads, so a plugin can be
 listed and validated (``btforge stages``, ``btforge validate``) without running any of its stages.
 
+Every plugin states the plugin API it was written for, as a module (or object) attribute
+``BTFORGE_PLUGIN_API = 1``; a plugin written for another version, or one that states none, is refused with a
+message naming it.  A hook implementation whose name is not one of the hooks below (a typo) is refused too.
+
 Example::
 
     from btforge import hookimpl, declare_stage, Param
+
+    BTFORGE_PLUGIN_API = 1
 
     @declare_stage("mine.scale", inputs={"stack": "SampleStack"}, outputs={"stack": "SampleStack"},
            params=[Param("factor", "float", 2.0, "multiplier")])
@@ -25,6 +31,8 @@ import pluggy
 
 hookspec = pluggy.HookspecMarker("btforge")
 hookimpl = pluggy.HookimplMarker("btforge")
+
+PLUGIN_API_VERSION = 1  # bump when a hook's signature or a buffer contract changes incompatibly
 
 
 @hookspec
@@ -60,4 +68,17 @@ def btforge_info_readers():
     dict of str to callable
         Maps a lower-case file extension (``".ptm"``) to a function ``path -> dict`` that reads only what it
         needs to describe the file (header, counts, sizes) and raises ``BtforgeInputError`` on bad files.
+    """
+
+
+@hookspec
+def btforge_bench_commands():
+    """Return the benchmarks this plugin contributes to ``btforge bench``.
+
+    Returns
+    -------
+    dict of str to callable
+        Maps a bench name to ``bench(args: list[str]) -> int``: it parses its own arguments with argparse
+        (``prog="btforge bench NAME"``), prints its figures, and returns an exit code.  The first line of its
+        docstring is the one-line help ``btforge bench`` lists.  Names must be unique across plugins.
     """

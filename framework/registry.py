@@ -39,7 +39,38 @@ class Registry:
         self.pm.register(plugin, name=name)
         self._collect()
 
+    def _plugin_name(self, plugin: Any) -> str:
+        return self.pm.get_name(plugin) or repr(plugin)
+
+    def _check_plugins(self) -> None:
+        """Every plugin states the API it was written for and implements only hooks that exist."""
+        problems = []
+        for plugin in self.pm.get_plugins():
+            name = self._plugin_name(plugin)
+            api = getattr(plugin, "BTFORGE_PLUGIN_API", None)
+            if api is None:
+                problems.append(f"plugin '{name}': states no plugin API version (add "
+                                f"'BTFORGE_PLUGIN_API = {hookspecs.PLUGIN_API_VERSION}' to it once it works with "
+                                f"this btforge)")
+            elif api != hookspecs.PLUGIN_API_VERSION:
+                problems.append(f"plugin '{name}': was written for plugin API {api!r}, this btforge "
+                                f"{importlib.metadata.version('btforge')} has API {hookspecs.PLUGIN_API_VERSION} "
+                                f"(install a release of the plugin made for API {hookspecs.PLUGIN_API_VERSION})")
+        known = [h for h in dir(hookspecs) if h.startswith("btforge_")]
+        for hook_name, caller in sorted(vars(self.pm.hook).items()):
+            if caller.has_spec():
+                continue
+            for impl in caller.get_hookimpls():  # pluggy's check_pending, but reporting every one
+                problems.append(f"plugin '{impl.plugin_name}': implements unknown hook '{hook_name}' "
+                                f"({did_you_mean(hook_name, known)})")
+        if problems:
+            if len(problems) == 1:
+                raise BtforgeInputError("", problems[0])
+            raise BtforgeInputError("plugins", f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
+        self.pm.check_pending()  # nothing is left for it to find; kept so pluggy's own rules still apply
+
     def _collect(self) -> None:
+        self._check_plugins()
         self.types: dict[str, type[buffers.Buffer]] = {t.type_name: t for t in buffers.CORE_TYPES}
         for impl in self.pm.hook.btforge_buffer_types.get_hookimpls():
             plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
@@ -81,6 +112,19 @@ class Registry:
         self.info_readers: dict[str, Any] = {}
         for result in self.pm.hook.btforge_info_readers():
             self.info_readers.update(result or {})
+        self.bench_commands: dict[str, Any] = {}
+        bench_owner: dict[str, str] = {}
+        for impl in self.pm.hook.btforge_bench_commands.get_hookimpls():
+            plugin_name = self._plugin_name(impl.plugin)
+            for bench_name, fn in (impl.function() or {}).items():
+                if bench_name in self.bench_commands:
+                    raise BtforgeInputError(f"bench '{bench_name}'", f"is contributed by both plugin "
+                                            f"'{bench_owner[bench_name]}' and plugin '{plugin_name}'",
+                                            "rename one of the benches")
+                if not callable(fn):
+                    raise BtforgeInputError(f"plugin '{plugin_name}', bench '{bench_name}'",
+                                            f"expected a function bench(args) -> int, found {fn!r}")
+                self.bench_commands[bench_name], bench_owner[bench_name] = fn, plugin_name
 
     def stage(self, name: str) -> Stage:
         try:
@@ -101,6 +145,10 @@ class Registry:
                 files.update(code_files(defining))
             digest = self._code_digests[name] = code_digest(files, memo)
         return digest
+
+    def stages_with_role(self, role: str) -> list[Stage]:
+        """The stages that declare ``role`` (e.g. ``"fit"``), by name."""
+        return [self.stages[n] for n in sorted(self.stages) if self.stages[n].role == role]
 
     def accepts(self, port_type: str, value_type: str) -> bool:
         """Whether a port declared as ``port_type`` accepts a buffer of ``value_type`` (unknown types: never)."""

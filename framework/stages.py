@@ -153,6 +153,8 @@ class Stage:
     precheck: Callable[[Mapping[str, Any], "RunPaths"], Iterable[Path] | None] | None = None
     plugin: str = ""
     dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
+    role: str = ""
+    sweep: tuple[Mapping[str, Any], ...] = ()
 
     @property
     def doc(self) -> str:
@@ -218,10 +220,17 @@ def declare_stage(
     side_effects: bool = False,
     precheck: Callable | None = None,
     dynamic_inputs: Callable | None = None,
+    role: str = "",
+    sweep: Sequence[Mapping[str, Any]] = (),
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
-    ``version`` is part of every cache key: bump it when the stage's results change for the same inputs.
+    ``version`` is part of every cache key, beside the digest of the plugin's code (which changes by itself when
+    a source or ``.cl`` file does): bump it to invalidate old results when nothing in the plugin changed.
+    ``role`` says what the stage is for, so benches and tools find stages by what they do rather than by name:
+    ``"fit"`` for representation fits (``stack: SampleStack -> model: ReflectanceModel``), ``"synthesizer"``
+    for synthesizers that output a ``CoordMap``.  ``sweep`` lists the parameter settings a bench compares
+    (e.g. ``[{"lobes": 1}, {"lobes": 2}]``); without it a bench measures the defaults.
     ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
     it runs during validation, before any stage does.  It returns the further files the stage will read (the
@@ -245,7 +254,8 @@ def declare_stage(
         return Stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
-            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs,
+            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
+            sweep=tuple(dict(entry) for entry in sweep),
         )
 
     return wrap

@@ -162,6 +162,8 @@ def test_unknown_stage_has_did_you_mean():
 
 def test_duplicate_stage_names_are_refused():
     class Clash:
+        BTFORGE_PLUGIN_API = 1
+
         @staticmethod
         @btforge.hookimpl
         def btforge_stages():
@@ -179,6 +181,8 @@ def test_buffer_type_name_clashes_are_refused():
         type_name: ClassVar[str] = "Numbers"
 
     class Clash:
+        BTFORGE_PLUGIN_API = 1
+
         @staticmethod
         @btforge.hookimpl
         def btforge_buffer_types():

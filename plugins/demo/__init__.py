@@ -7,6 +7,8 @@ import numpy as np
 
 from btforge import Param, SampleStack, declare_stage, hookimpl
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 
 @declare_stage(
     "demo.material",

@@ -5,6 +5,8 @@ from btforge import Param, declare_stage, hookimpl
 
 from .model import DEFAULT_ITERATIONS, MAX_LOBES, LafortuneModel, estimate_normals, fit_lafortune
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 __all__ = ["LafortuneModel", "estimate_normals", "fit_lafortune"]
 
 NOT_CONVERGED_WARN = 0.05  # warn when more than this fraction of texels ran out of iterations
@@ -12,6 +14,8 @@ NOT_CONVERGED_WARN = 0.05  # warn when more than this fraction of texels ran out
 
 @declare_stage(
     "lafortune.fit",
+    role="fit",
+    sweep=[{"lobes": k} for k in (1, 2, 3, 4)],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LafortuneModel"},
     params=[

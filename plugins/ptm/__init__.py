@@ -6,11 +6,15 @@ from btforge.errors import BtforgeInputError
 
 from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
 
 
 @declare_stage(
     "ptm.fit",
+    role="fit",
+    sweep=[{"variant": v} for v in ("lrgb", "rgb")],
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
     params=[
@@ -135,3 +139,9 @@ def btforge_buffer_types():
 @hookimpl
 def btforge_info_readers():
     return {".ptm": _describe_ptm}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_ptm
+    return {"ptm": bench_ptm}

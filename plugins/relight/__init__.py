@@ -7,6 +7,8 @@ from btforge import Param, SampleStack, declare_stage, hookimpl
 from btforge.buffers import Scores, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 
 def resolve_lights(value, paths, param: str = "lights", role: str = "light") -> tuple[np.ndarray, tuple[str, ...]]:
     """Directions from a list of [x, y, z] or a ``.lp`` file: unit ``[L, 3]`` float32 and per-row names.
@@ -117,3 +119,9 @@ def stack_compare(ctx, stack, reference, *, peak):
 @hookimpl
 def btforge_stages():
     return [relight, stack_compare]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_representations_command
+    return {"representations": bench_representations_command}

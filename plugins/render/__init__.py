@@ -12,6 +12,8 @@ from btforge.errors import BtforgeInputError
 from .image import FORMATS, Image, check_writable, format_of
 from .scene import RESERVED_PORTS, PORT_NAME, Scene
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 
 def _render_ports(params, paths) -> dict[str, str]:
     """One ``ReflectanceModel`` port per material the scene names (plus ``NAME_map`` CoordMap ports)."""
@@ -158,3 +160,9 @@ def btforge_stages():
 @hookimpl
 def btforge_buffer_types():
     return [Image, Scene]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_render
+    return {"render": bench_render}

@@ -67,5 +67,19 @@ def benchmark_render(repeat: int = 5) -> dict:
     return figures
 
 
+
+def bench_render(argv: list[str]) -> int:
+    """One 640 x 480 frame: PTM sphere, directional light + shadows; 64-light environment."""
+    import argparse
+
+    from btforge.bench import positive_count, print_figures
+    p = argparse.ArgumentParser(prog="btforge bench render", description=bench_render.__doc__)
+    p.add_argument("--repeat", type=positive_count, default=5)
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    print_figures(benchmark_render(repeat=args.repeat), args.json)
+    return 0
+
+
 if __name__ == "__main__":
     print(json.dumps(benchmark_render(), indent=2))

@@ -5,11 +5,15 @@ from btforge import Param, declare_stage, hookimpl
 
 from .model import DEFAULT_ENERGY_FACTOR, MAX_ORDER, SHModel, compression_rate, fit_sh, real_sh
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
 
 
 @declare_stage(
     "sh.fit",
+    role="fit",
+    sweep=[{"light_order": n} for n in (2, 3, 4, 5, 6)],
     inputs={"stack": "SampleStack"},
     outputs={"model": "SHModel"},
     params=[

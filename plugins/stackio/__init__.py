@@ -8,6 +8,8 @@ from btforge.atomic import atomic_write
 from btforge.buffers import linear_to_srgb8
 from btforge.errors import BtforgeInputError
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 
 def _light_file_precheck(params, paths):
     from .lightfile import image_path, read_capture_index

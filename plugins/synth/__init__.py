@@ -11,6 +11,8 @@ from btforge import REQUIRED, Param, declare_stage, hookimpl
 
 from . import jumpmap, kcoherence, quilting, scoring
 
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
 
 @declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "=source"})
 def materialize(ctx, coords, source):
@@ -71,3 +73,9 @@ def coords_write(ctx, coords, *, path):
 @hookimpl
 def btforge_stages():
     return [materialize, crop, coords_write, *quilting.STAGES, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench_commands import COMMANDS
+    return COMMANDS

@@ -1,0 +1,59 @@
+"""The synthesis benches as ``btforge bench`` commands (each parses its own options)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from btforge.bench import positive_count, print_figures
+
+
+def _parser(name: str, fn) -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(prog=f"btforge bench {name}", description=fn.__doc__)
+
+
+def bench_quilt(argv: list[str]) -> int:
+    """Quilting 512 x 512 from a 128 x 128 9-D PTM exemplar: rejection vs brute force."""
+    from .quilting import benchmark_quilt
+    p = _parser("quilt", bench_quilt)
+    p.add_argument("--ptm", help="take the exemplar from the centre of this .ptm file (default: random smooth fields)")
+    p.add_argument("--repeat", type=positive_count, default=5)
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    exemplar = None
+    if args.ptm:
+        from btforge import stage
+        exemplar = stage("ptm.read")(path=args.ptm)["model"]
+    print_figures(benchmark_quilt(repeat=args.repeat, exemplar=exemplar), args.json)
+    return 0
+
+
+def bench_kcoherence(argv: list[str]) -> int:
+    """K-coherence 256 x 256, 3 levels, k = 6, 5 x 5 neighbourhood."""
+    from .kcoherence import benchmark_kcoherence
+    p = _parser("kcoherence", bench_kcoherence)
+    p.add_argument("--exemplar-size", type=int, default=64, help="exemplar side in texels (default 64)")
+    p.add_argument("--repeat", type=positive_count, default=5)
+    p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    print_figures(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat), args.json)
+    return 0
+
+
+def bench_synthesis_command(argv: list[str]) -> int:
+    """Synthesis quality (scores) against time over the synthesizers' knobs."""
+    from .bench import bench_synthesis
+    p = _parser("synthesis", bench_synthesis_command)
+    p.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crop is the exemplar")
+    p.add_argument("--out", required=True, help="folder for synthesis.csv and synthesis.png")
+    p.add_argument("--crop", type=int, default=64, help="exemplar size in texels (default 64)")
+    p.add_argument("--size", type=int, default=256, help="output size in texels (default 256)")
+    p.add_argument("--repeat", type=positive_count, default=1, help="runs per configuration; the median time is reported")
+    p.add_argument("--only", action="append", help="only these synthesizers (quilt, kcoherence, jumpmap)")
+    args = p.parse_args(argv)
+    rows = bench_synthesis(args.exemplar, args.out, crop=args.crop, size=args.size, repeat=args.repeat,
+                           only=args.only)
+    print(f"wrote {Path(args.out) / 'synthesis.csv'} and synthesis.png ({len(rows)} configurations)")
+    return 0
+
+
+COMMANDS = {"quilt": bench_quilt, "kcoherence": bench_kcoherence, "synthesis": bench_synthesis_command}
