@@ -4,8 +4,8 @@ Python entry points::
 
     import btforge
     result = btforge.run("graphs/demo.yaml", only=["fit"])      # {node: {port: Buffer}}, plus .report
-    fit = btforge.stage("ptm.fit")                               # call a stage directly
-    model = fit(stack=my_stack, variant="rgb")["model"]
+    fit = btforge.stage(name)                                    # call an installed stage directly
+    model = fit(stack=my_stack, **params)["model"]
 """
 from __future__ import annotations
 

@@ -152,9 +152,3 @@ def select_device(hint: str | None) -> Backend:
         _backend = Backend(hint)
         return _backend
 
-
-def texel_chunks(n_texels: int, bytes_per_texel: int, budget_bytes: int = 256 << 20):
-    """Split ``range(n_texels)`` into slices whose working set stays under ``budget_bytes``."""
-    step = max(1, min(n_texels, budget_bytes // max(1, bytes_per_texel)))
-    for start in range(0, n_texels, step):
-        yield slice(start, min(n_texels, start + step))

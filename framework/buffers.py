@@ -204,6 +204,14 @@ class Buffer:
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in self.payload()[1].values()))
 
+    # -- capabilities: a class declares one by defining the method; the base says clearly that it has none ----
+    def appearance_features(self) -> np.ndarray:
+        """``(H, W, D)`` float32 vectors whose Euclidean distances approximate L2 distances between the texels'
+        reflectance functions: what synthesizers compare.  Per-texel buffers have them."""
+        raise BtforgeInputError(f"buffer type '{self.type_name}'", "has no appearance features: it is not a "
+                                "per-texel buffer", "synthesize from a per-texel buffer (a stack or a fitted model), "
+                                "or define appearance_features on the class")
+
 
 # ----------------------------------------------------------------------------------------------- samples
 
@@ -285,11 +293,25 @@ class PerTexel(Buffer):
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
 
+    def appearance_features(self) -> np.ndarray:
+        """The texel fields concatenated per texel (override where distances between the raw records are not
+        distances between reflectance functions)."""
+        if not self.texel_fields:
+            raise BtforgeInputError(f"buffer type '{self.type_name}'", "declares no texel_fields, so it has no "
+                                    "appearance features", "list the per-texel arrays in texel_fields or define "
+                                    "appearance_features on the class")
+        arrays = [np.asarray(getattr(self, f), np.float32) for f in self.texel_fields]
+        return np.concatenate([a.reshape(self.height, self.width, -1) for a in arrays], axis=2)
+
     def blend_records(self, name: str, first: np.ndarray, second: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """``(1 - weight) * first + weight * second`` for records of field ``name``, in that field's dtype.
 
         Override where the stored values are not linear in what they represent (as an 8-bit sRGB stack does).
         """
+        if not self.blendable:
+            raise BtforgeInputError(f"buffer type '{self.type_name}'", "is not blendable: the mean of two of its "
+                                    "records is not the record of their mean function",
+                                    "pick the heavier texel instead (as remap does), or blend a linear representation")
         mixed = (1 - weight) * first + weight * second
         dtype = getattr(self, name).dtype
         # Integer records (quantized coefficients) round to the nearest code instead of truncating.
@@ -379,6 +401,10 @@ class SampleStack(PerTexel):
         mixed = (1 - weight) * SRGB8_TO_LINEAR[first] + weight * SRGB8_TO_LINEAR[second]
         return linear_to_srgb8(mixed)
 
+    def appearance_features(self) -> np.ndarray:
+        """Linear radiance under every light and view, per texel."""
+        return np.moveaxis(self.linear(), (2, 3), (0, 1)).reshape(self.height, self.width, -1)
+
     def row_bands(self, budget_bytes: int = 128 << 20) -> Iterator[slice]:
         """Bands of rows whose linear float32 samples fit in ``budget_bytes``: the unit of streamed work."""
         row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
@@ -394,13 +420,19 @@ class SampleStack(PerTexel):
 class ReflectanceModel(PerTexel, abc.ABC):
     """A fitted per-texel reflectance function that can be evaluated at any light (and view).
 
-    Every representation (PTM, Lafortune, spherical harmonics, ...) implements :meth:`evaluate`, so a renderer
-    relights any of them without knowing which it is.  ``view_dependent`` is False for models of light only
-    (a PTM), which lets a renderer skip per-pixel view directions.
+    Every representation implements :meth:`evaluate`, so a renderer relights any of them without knowing which
+    it is.  ``view_dependent`` is False for models of light only, which lets a renderer skip per-pixel view
+    directions.
     """
 
     type_name: ClassVar[str] = "ReflectanceModel"
     view_dependent: ClassVar[bool] = False
+    evaluates_texels: ClassVar[bool] = False  # true for a class that defines evaluate_texels (or says so itself)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "evaluates_texels" not in cls.__dict__:
+            cls.evaluates_texels = cls.evaluate_texels is not ReflectanceModel.evaluate_texels
 
     @property
     @abc.abstractmethod
@@ -410,6 +442,33 @@ class ReflectanceModel(PerTexel, abc.ABC):
     @abc.abstractmethod
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None) -> np.ndarray:
         """Linear radiance ``[V, L, H, W, C]`` float32 at unit ``lights [L, 3]`` (and ``views [V, 3]``)."""
+
+    def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
+                        views_local: np.ndarray | None = None) -> np.ndarray:
+        """Linear radiance ``[N, C]`` of texels ``(rows[i], cols[i])`` at one light (and view) each, ``[N, 3]`` in
+        the surface frame: what a renderer needs at every shaded point.  ``evaluates_texels`` tells whether a
+        class has it."""
+        raise BtforgeInputError(f"model type '{self.type_name}'", "cannot be evaluated per texel: the class defines "
+                                "no evaluate_texels(rows, cols, lights_local, views_local)",
+                                "add evaluate_texels to the model class")
+
+    def evaluation_form(self) -> "ReflectanceModel":
+        """The same model in the form that is fastest to evaluate many times (a renderer converts once)."""
+        return self
+
+    def appearance_features(self) -> np.ndarray:
+        """The texel's radiance at :data:`APPEARANCE_PROBE_LIGHTS` lights spread over the hemisphere."""
+        relit = self.evaluate(appearance_probe_lights())
+        return np.moveaxis(relit, (2, 3), (0, 1)).reshape(self.height, self.width, -1)
+
+
+APPEARANCE_PROBE_LIGHTS = 25  # lights at which models without features of their own are sampled
+
+
+def appearance_probe_lights(n: int = APPEARANCE_PROBE_LIGHTS) -> np.ndarray:
+    """``n`` unit directions over the upper hemisphere: a Fibonacci spiral above 10 degrees, float32."""
+    from .numerics import fibonacci_directions
+    return unit_directions("probe lights", fibonacci_directions(n, float(np.sin(np.radians(10))), rising=True))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in README)")
     p.set_defaults(func=cmd_stages)
 
-    p = sub.add_parser("info", help="describe a .ptm, .lp/.lvp or .exr file")
+    p = sub.add_parser("info", help="describe a file (plugins provide the readers, by extension)")
     p.add_argument("file")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)

@@ -66,7 +66,7 @@ def btforge_info_readers():
     Returns
     -------
     dict of str to callable
-        Maps a lower-case file extension (``".ptm"``) to a function ``path -> dict`` that reads only what it
+        Maps a lower-case file extension (``".exr"``) to a function ``path -> dict`` that reads only what it
         needs to describe the file (header, counts, sizes) and raises ``BtforgeInputError`` on bad files.
     """
 

@@ -212,11 +212,7 @@ class ToyViewModel(ReflectanceModel):
 @dataclasses.dataclass(frozen=True, eq=False)
 class NoTexelsModel(ToyViewModel):
     type_name: ClassVar[str] = "NoTexelsModel"
-
-    def __getattribute__(self, name):
-        if name == "evaluate_texels":
-            raise AttributeError(name)
-        return super().__getattribute__(name)
+    evaluates_texels: ClassVar[bool] = False  # declares that it has no per-texel evaluation
 
 
 def test_model_without_scattered_evaluation_fails_naming_its_type():

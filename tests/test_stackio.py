@@ -258,8 +258,10 @@ def test_windows_paths(tmp_path):
     stack = load_stack(write_lp(tmp_path, lp_text([f"sub\\{n}" for n in names])))
     assert stack.n_light == 3
     elsewhere = write_lp(tmp_path / "sub", lp_text([f"C:\\capture\\{n}" for n in names]))
-    error = expect_error(elsewhere, 2)
-    assert repr(names[0]) in error.hint  # the image beside the light file is suggested
+    with pytest.raises(BtforgeInputError) as info:  # every row names a missing image: all in one message
+        load_stack(elsewhere)
+    assert f"{elsewhere}, line 2: expected the image" in str(info.value)
+    assert f"did you mean {names[0]!r}" in str(info.value)  # the image beside the light file is suggested
 
 
 def test_writer_refuses_names_that_read_back_differently(tmp_path):
@@ -477,3 +479,30 @@ def test_16bit_colour_tiff_without_imageio_is_a_clear_error(tmp_path, monkeypatc
     with pytest.raises(BtforgeInputError, match="without losing precision") as info:
         read_image(tmp_path / "c.tif")
     assert "install imageio" in info.value.hint
+
+
+def test_a_light_file_reports_every_problem_at_once(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"")
+    path = write_lp(tmp_path, "4\na.png 0 0 1\nb.png 0.1 zero 0.9\nc.png 0 0.2 0.98\n")
+    with pytest.raises(BtforgeInputError) as info:
+        read_light_file(path)
+    text = str(info.value)
+    assert "3 problems" in text
+    assert "line 1: the count says 4 images, but 3 rows follow" in text
+    assert "line 3: expected a number, found 'zero'" in text
+    assert "line 4: expected the image 'c.png'" in text
+
+
+def test_info_of_a_light_file_checks_images_and_counts_lights_and_views(tmp_path):
+    from btforge.plugins.stackio import _describe_light_file
+    rows = [f"img_{v}_{l}.png {lx} 0 {lz} {vx} 0 {vz}" for v, (vx, vz) in enumerate([(0, 1), (0.6, 0.8)])
+            for l, (lx, lz) in enumerate([(0, 1), (0.6, 0.8), (-0.6, 0.8)])]
+    for row in rows:
+        (tmp_path / row.split()[0]).write_bytes(b"")
+    lvp = tmp_path / "cap.lvp"
+    lvp.write_text(f"{len(rows)}\n" + "\n".join(rows) + "\n")
+    info = _describe_light_file(lvp)
+    assert (info["images"], info["lights"], info["views"]) == (6, 3, 2)
+    (tmp_path / "img_1_2.png").unlink()
+    with pytest.raises(BtforgeInputError, match="line 7: expected the image 'img_1_2.png'"):
+        _describe_light_file(lvp)

@@ -23,6 +23,7 @@ import numpy as np
 from btforge.backend import get_backend
 from btforge.buffers import check_array, frozen, unit_directions
 from btforge.errors import BtforgeInputError
+from btforge.numerics import fibonacci_directions
 
 __all__ = [
     "ProceduralMaterial",
@@ -241,16 +242,8 @@ def hemisphere_lights(n: int, *, min_elevation_deg: float = 15.0, seed: int | No
     if not (0.0 <= min_elevation_deg < 90.0):
         raise BtforgeInputError("hemisphere_lights 'min_elevation_deg'",
                                 f"expected degrees in [0, 90), got {min_elevation_deg}")
-    n = int(n)
-    z_min = math.sin(math.radians(min_elevation_deg))
-    index = np.arange(n, dtype=np.float64)
-    # Equal steps in z are equal steps in area on a sphere; the half-step offset keeps every z strictly inside.
-    z = 1.0 - (index + 0.5) / max(n, 1) * (1.0 - z_min)
-    golden_angle = np.pi * (3.0 - math.sqrt(5.0))
-    azimuth_offset = 0.0 if seed is None else np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi)
-    azimuth = index * golden_angle + azimuth_offset
-    radius = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    dirs = np.stack([radius * np.cos(azimuth), radius * np.sin(azimuth), z], axis=-1)
+    azimuth = 0.0 if seed is None else np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi)
+    dirs = fibonacci_directions(int(n), math.sin(math.radians(min_elevation_deg)), turn=0.0, azimuth=azimuth)
     return dirs.astype(np.float32)
 
 

@@ -66,7 +66,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from btforge.backend import get_backend, texel_chunks
+from btforge.backend import get_backend
+from btforge.numerics import texel_chunks
 from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
 from btforge.errors import BtforgeInputError
 

@@ -18,6 +18,7 @@ from btforge.backend import get_backend
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen,
                              linear_to_srgb, scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
+from btforge.numerics import texel_chunks
 
 from .legendre import to_orthonormal, to_raw
 
@@ -103,6 +104,18 @@ class PTMModel(ReflectanceModel):
         return flat.reshape(1, len(lights), self.height, self.width, len(self.channel_names))
 
 
+    def appearance_features(self) -> np.ndarray:
+        """Coefficients in the orthonormal Legendre basis (Hel-Or et al. 2003), where their distances are the
+        polynomials' L2 distances, with the colour of an ``lrgb`` model appended."""
+        ortho = self.with_basis("orthonormal")
+        parts = [ortho.coeffs.reshape(self.height, self.width, -1)]
+        if ortho.albedo.size:
+            parts.append(ortho.albedo)
+        return np.concatenate(parts, axis=2)
+
+    def evaluation_form(self) -> "PTMModel":
+        return self.with_basis("raw")  # the raw terms evaluate without a change of basis
+
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
                         views_local: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[N, C]`` float32 of texel ``(rows[i], cols[i])`` at its own light ``lights_local[i]``.
@@ -151,7 +164,7 @@ def evaluate_ptm_opencl(coeffs: np.ndarray, albedo: np.ndarray, lights: np.ndarr
     # Chunk over texels so device buffers stay bounded whatever the image size.
     per_texel = 4 * (k * N_TERMS + max(albedo.shape[1], 1) + n_light * n_channel)
     albedo_src = albedo if albedo.shape[1] else np.zeros((n_texel, 1), np.float32)
-    for chunk in _chunks(n_texel, per_texel, budget_bytes):
+    for chunk in texel_chunks(n_texel, per_texel, budget_bytes):
         n = chunk.stop - chunk.start
         c_dev = backend.to_device(coeffs[chunk])
         a_dev = backend.to_device(albedo_src[chunk])
@@ -192,12 +205,6 @@ def evaluate_ptm_scattered_opencl(coeffs: np.ndarray, albedo: np.ndarray, texels
                 backend.to_device(SRGB_TABLE), o_dev)
     backend.finish_output(o_dev, out)
     return out
-
-
-def _chunks(n: int, bytes_per_item: int, budget: int):
-    step = max(1, min(n, budget // max(bytes_per_item, 1)))
-    for start in range(0, n, step):
-        yield slice(start, min(n, start + step))
 
 
 # ----------------------------------------------------------------------------------------------- fitting
@@ -329,7 +336,7 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
         fit_ptm_opencl(samples, lut, solver, variant, coeffs, albedo)
     else:
         per_texel = stack.n_light * c * 8  # the reference works in float64
-        for texels in _chunks(h * w, per_texel, budget_bytes):
+        for texels in texel_chunks(h * w, per_texel, budget_bytes):
             band = samples[:, texels]
             band = convert(band) if convert else band
             if engine == "numpy":

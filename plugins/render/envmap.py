@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from btforge.errors import BtforgeInputError
+from btforge.numerics import fibonacci_directions, real_sh
 
 from .scene import LightSpec
 
@@ -154,39 +155,6 @@ def importance_sample(pixels: np.ndarray, light: LightSpec, n: int) -> Direction
 # ----------------------------------------------------------------------------------------------- spherical harmonics
 
 
-def real_sh(order: int, dirs: np.ndarray) -> np.ndarray:
-    """Orthonormal real spherical harmonics of bands ``0 .. order-1`` at unit ``dirs [..., 3]`` -> ``[..., order^2]``.
-
-    Index ``l^2 + l + m``; ``m > 0`` uses ``cos(m phi)``, ``m < 0`` ``sin(|m| phi)``, no Condon-Shortley phase.
-    Associated Legendre functions by the standard recurrences, from Cartesian coordinates.
-    """
-    d = np.asarray(dirs, np.float64)
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    out = np.zeros(d.shape[:-1] + (order * order,))
-    rxy = np.sqrt(np.maximum(x * x + y * y, 0.0))
-    phi = np.arctan2(y, x)
-    # P_l^m(z) with the (1 - z^2)^(m/2) factor written as rxy^m
-    p = {}
-    for m in range(order):
-        pmm = np.ones_like(z) if m == 0 else p[(m - 1, m - 1)] * (-(2 * m - 1)) * rxy * -1.0
-        p[(m, m)] = pmm
-        if m + 1 < order:
-            p[(m + 1, m)] = z * (2 * m + 1) * pmm
-        for l in range(m + 2, order):
-            p[(l, m)] = ((2 * l - 1) * z * p[(l - 1, m)] - (l + m - 1) * p[(l - 2, m)]) / (l - m)
-    for l in range(order):
-        for m in range(-l, l + 1):
-            am = abs(m)
-            k = math.sqrt((2 * l + 1) / (4 * math.pi) * math.factorial(l - am) / math.factorial(l + am))
-            if m == 0:
-                out[..., l * l + l] = k * p[(l, 0)]
-            elif m > 0:
-                out[..., l * l + l + m] = math.sqrt(2) * k * p[(l, am)] * np.cos(am * phi)
-            else:
-                out[..., l * l + l + m] = math.sqrt(2) * k * p[(l, am)] * np.sin(am * phi)
-    return out
-
-
 def project_sh(pixels: np.ndarray, light: LightSpec, order: int) -> np.ndarray:
     """SH coefficients ``[order^2, 3]`` of the map in world coordinates (times the light's intensity)."""
     h, w = pixels.shape[:2]
@@ -194,16 +162,6 @@ def project_sh(pixels: np.ndarray, light: LightSpec, order: int) -> np.ndarray:
     weights = pixel_solid_angles(h, w)[:, None, None] * pixels.astype(np.float64)      # [h, w, 3]
     coeffs = np.einsum("hwk,hwc->kc", real_sh(order, dirs), weights)
     return coeffs * np.asarray(light.intensity)
-
-
-def fibonacci_directions(k: int, lowest_z: float = -1.0) -> np.ndarray:
-    """``k`` unit directions ``[k, 3]`` of a Fibonacci spiral over the cap ``z >= lowest_z``, at the centres of ``k``
-    equal-area bands (so each stands for the same solid angle) and golden-angle steps in azimuth."""
-    i = np.arange(k) + 0.5
-    z = 1 - (1 - lowest_z) * i / k
-    r = np.sqrt(1 - z * z)
-    phi = i * math.pi * (3 - math.sqrt(5))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
 
 
 def hemisphere_quadrature(q: int) -> tuple[np.ndarray, float]:

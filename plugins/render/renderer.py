@@ -264,7 +264,7 @@ class ModelShader:
                 rows, cols = coords[..., 0], coords[..., 1]
         self.rows, self.cols, self.weights = rows, cols, weights
         self.view_dependent = bool(getattr(model, "view_dependent", False))
-        self.interpolates_records = hasattr(model, "evaluate_texels") and model.blendable and all(
+        self.interpolates_records = model.evaluates_texels and model.blendable and all(
             getattr(model, f).dtype.kind == "f" for f in model.texel_fields)
 
     @functools.cached_property
@@ -291,10 +291,7 @@ class ModelShader:
             if acc is None:
                 acc = np.zeros(array.shape[:ax] + (self.rows.shape[1],) + array.shape[ax + 2:], array.dtype)
             changes[field] = np.expand_dims(acc.astype(array.dtype), ax + 1)
-        flat = dataclasses.replace(model, **changes)
-        if hasattr(flat, "with_basis"):  # convert once rather than on every evaluation
-            flat = flat.with_basis("raw")
-        return flat
+        return dataclasses.replace(model, **changes).evaluation_form()  # converted once, evaluated many times
 
     def evaluate(self, sel: np.ndarray, lights: np.ndarray, views: np.ndarray | None) -> np.ndarray:
         lights32 = np.ascontiguousarray(lights, np.float32)
@@ -652,7 +649,7 @@ def check_materials(spec: SceneSpec, materials: Mapping[str, Any], plan: Plan) -
             raise BtforgeInputError(f"render, material '{name}'", f"expected a ReflectanceModel, found "
                                     f"{type(model).__name__}")
         needs_texels = bool(plan.direct) or any(l.method == "importance" for l in plan.environment)
-        if needs_texels and not hasattr(model, "evaluate_texels"):
+        if needs_texels and not model.evaluates_texels:
             raise BtforgeInputError(f"render, material '{name}'", f"model {type(model).__name__} cannot be rendered "
                                     "yet: it has no evaluate_texels(rows, cols, lights_local, views_local) method",
                                     "light the scene only with an environment light of method 'sh' (which needs "

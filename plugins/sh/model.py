@@ -49,7 +49,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from btforge.backend import get_backend, texel_chunks
+from btforge.backend import get_backend
+from btforge.numerics import real_sh, texel_chunks
 from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
 from btforge.errors import BtforgeInputError
 
@@ -66,43 +67,6 @@ FOUR_PI = 4.0 * math.pi
 
 
 # ----------------------------------------------------------------------------------------------- basis
-
-
-def real_sh(order: int, dirs) -> np.ndarray:
-    """Orthonormal real spherical harmonics of bands ``0 .. order-1`` at unit ``dirs [N, 3]`` -> ``[N, order^2]`` float64.
-
-    Index ``l^2 + l + m`` holds ``Y_l^m``, ``-l <= m <= l``; no Condon-Shortley phase, so band 1 is
-    ``sqrt(3 / 4 pi) * (y, z, x)`` and ``Y_0 = 1 / sqrt(4 pi)``.  ``m > 0`` uses ``cos(m phi)``, ``m < 0``
-    ``sin(|m| phi)``.  Computed from Cartesian coordinates (no angles), so it is exact at the poles.
-    """
-    if not isinstance(order, (int, np.integer)) or order < 0:
-        raise BtforgeInputError("real_sh 'order'", f"must be an int >= 0, got {order!r}")
-    d = np.asarray(dirs, dtype=np.float64)
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise BtforgeInputError("real_sh 'dirs'", f"must be (N, 3), got {d.shape}")
-    norms = np.linalg.norm(d, axis=1, keepdims=True)
-    d = d / np.where(norms > 0, norms, 1.0)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    out = np.zeros((d.shape[0], order * order), dtype=np.float64)
-    cos_m, sin_m = np.ones_like(x), np.zeros_like(x)   # Re, Im of (x + i y)^m = sin^m(theta) e^{i m phi}
-    p_mm = 1.0                                         # (2m - 1)!!: P_m^m(z) / sin^m(theta)
-    for m in range(order):
-        if m > 0:
-            cos_m, sin_m = x * cos_m - y * sin_m, x * sin_m + y * cos_m
-            p_mm *= 2 * m - 1
-        p_prev, p_cur = None, np.full_like(z, p_mm)
-        for l in range(m, order):
-            if l == m + 1:
-                p_prev, p_cur = p_cur, (2 * m + 1) * z * p_cur
-            elif l > m + 1:
-                p_prev, p_cur = p_cur, ((2 * l - 1) * z * p_cur - (l + m - 1) * p_prev) / (l - m)
-            norm = math.sqrt((2 * l + 1) / FOUR_PI * math.factorial(l - m) / math.factorial(l + m))
-            if m == 0:
-                out[:, l * l + l] = norm * p_cur
-            else:
-                out[:, l * l + l + m] = math.sqrt(2.0) * norm * p_cur * cos_m
-                out[:, l * l + l - m] = math.sqrt(2.0) * norm * p_cur * sin_m
-    return out
 
 
 def compression_rate(k_l: int, k_v: int, n_light: int, n_view: int) -> float:

@@ -130,10 +130,11 @@ def stack_split(ctx, stack, *, every):
 
 def _describe_light_file(path):
     from .lightfile import read_light_file
-    entries = read_light_file(path, require_images=False)
+    entries = read_light_file(path, require_images=True)  # a missing image is reported here, not at run time
     lights = np.array([e.light for e in entries])
     elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1, 1)))
-    return {"kind": "light file", "lights": len(entries), "views": len({e.view for e in entries}),
+    return {"kind": "light file", "images": len(entries), "lights": len({e.light for e in entries}),
+            "views": len({e.view for e in entries}),
             "elevation_deg": [round(float(elevation.min()), 2), round(float(elevation.max()), 2)],
             "first": entries[0].filename if entries else None}
 

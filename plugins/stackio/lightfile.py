@@ -278,6 +278,7 @@ def read_light_file(path: str | os.PathLike, *, require_images: bool = True) -> 
     count: int | None = None
     count_line = 0
     entries: list[LightFileEntry] = []
+    problems: list[BtforgeInputError] = []  # every bad row, the count and missing images: reported together
     for number, text in enumerate(_decode(raw).splitlines(), start=1):
         text = text.strip()
         if not text or text.startswith("#"):
@@ -289,9 +290,14 @@ def read_light_file(path: str | os.PathLike, *, require_images: bool = True) -> 
                                         f"the first line of a {kind} file is the image count, e.g. '72'")
             count, count_line = int(text), number
             continue
-        name, numbers = _parse_row(text, n_numbers, what, kind)
-        light = _checked_direction(numbers[:3], what, "light")
-        view = _checked_direction(numbers[3:], what, "view") if is_lvp else None
+        try:
+            name, numbers = _parse_row(text, n_numbers, what, kind)
+            light = _checked_direction(numbers[:3], what, "light")
+            view = _checked_direction(numbers[3:], what, "view") if is_lvp else None
+        except BtforgeInputError as exc:
+            problems.append(exc)
+            entries.append(LightFileEntry(number, "", (0.0, 0.0, 1.0), None))  # a row all the same, for the count
+            continue
         entries.append(LightFileEntry(number, name, light, view))
 
     if count is None:
@@ -299,25 +305,32 @@ def read_light_file(path: str | os.PathLike, *, require_images: bool = True) -> 
                                 f"a {kind} file is a count, then one row per image")
     count_what = f"{path_text}, line {count_line}"
     if count == 0:
-        raise BtforgeInputError(count_what, "expected at least one image, found a count of 0")
-    if count != len(entries):
+        problems.insert(0, BtforgeInputError(count_what, "expected at least one image, found a count of 0"))
+    elif count != len(entries):
         if count > len(entries):
             problem = f"the count says {count} images, but {len(entries)} rows follow"
         else:
             problem = (f"the count says {count} images, but {len(entries)} rows follow "
                        f"(the first extra row is line {entries[count].line})")
-        raise BtforgeInputError(count_what, problem,
-                                "fix the count or the rows; btforge never guesses which light belongs to which "
-                                "image")
-
+        problems.insert(0, BtforgeInputError(count_what, problem, "fix the count or the rows; btforge never "
+                                             "guesses which light belongs to which image"))
+    bad_rows = {p.what for p in problems}
+    entries = [e for e in entries if f"{path_text}, line {e.line}" not in bad_rows]
     if require_images:
-        _check_images_exist(path, path_text, entries)
+        problems += _missing_images(path, path_text, entries)
+    if len(problems) == 1:
+        raise problems[0]
+    if problems:
+        raise BtforgeInputError(path_text, f"{len(problems)} problems:\n  - " + "\n  - ".join(
+            p.one_line() for p in problems))
     return entries
 
 
-def _check_images_exist(path: Path, path_text: str, entries: Iterable[LightFileEntry]) -> None:
+def _missing_images(path: Path, path_text: str, entries: Iterable[LightFileEntry]) -> list[BtforgeInputError]:
+    """One error per listed image that does not exist, each naming its line (with a did-you-mean)."""
     folder = path.parent
     listing: list[str] | None = None
+    missing = []
     for entry in entries:
         if image_path(path, entry.filename).is_file():
             continue
@@ -332,9 +345,9 @@ def _check_images_exist(path: Path, path_text: str, entries: Iterable[LightFileE
         close = same_but_case or difflib.get_close_matches(base_name, listing, n=1)
         if close:
             hint = f"did you mean {close[0]!r}? " + hint
-        raise BtforgeInputError(f"{path_text}, line {entry.line}",
-                                f"expected the image {entry.filename!r} in {str(folder) or '.'}, found no such file",
-                                hint)
+        missing.append(BtforgeInputError(f"{path_text}, line {entry.line}", f"expected the image {entry.filename!r} "
+                                         f"in {str(folder) or '.'}, found no such file", hint))
+    return missing
 
 
 def parse_light_list(value: Any, *, name: str = "lights", role: str = "light") -> np.ndarray:

@@ -1,11 +1,9 @@
-"""Per-texel appearance vectors that synthesizers compare: one definition shared by every synthesizer.
+"""Per-texel appearance vectors that synthesizers compare: one entry point shared by every synthesizer.
 
-Distances between these vectors should approximate L2 distances between the texels' reflectance functions:
-
-- a PTM is expressed in the orthonormal Legendre basis (Hel-Or et al. 2003), where that holds exactly for the
-  luminance/colour polynomials, with the colour of an ``lrgb`` model appended;
-- a stack uses its radiance under every light and view;
-- any other reflectance model is evaluated at a fixed set of lights spread over the hemisphere.
+Each buffer class says what its appearance vectors are (``appearance_features``), so that distances between
+them approximate L2 distances between the texels' reflectance functions: a PTM gives its orthonormal Legendre
+coefficients (Hel-Or et al. 2003), a stack its radiance under every light and view, any other reflectance model
+its values at a fixed set of lights spread over the hemisphere, and other per-texel buffers their records.
 
 Long vectors are reduced by PCA (an orthogonal projection, so distances shrink only by the discarded energy).
 """
@@ -13,38 +11,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from btforge.buffers import PerTexel, ReflectanceModel, SampleStack, unit_directions
+from btforge.buffers import APPEARANCE_PROBE_LIGHTS, Buffer, appearance_probe_lights
 
-FEATURE_LIGHTS = 25  # lights at which models of unknown form are sampled
+FEATURE_LIGHTS = APPEARANCE_PROBE_LIGHTS  # lights at which models of unknown form are sampled
 
 
 def probe_lights(n: int = FEATURE_LIGHTS) -> np.ndarray:
     """``n`` unit directions spread over the upper hemisphere (a Fibonacci spiral above 10 degrees)."""
-    i = np.arange(n) + 0.5
-    z = np.sin(np.radians(10)) + (1 - np.sin(np.radians(10))) * i / n
-    phi = i * np.pi * (3 - np.sqrt(5))
-    r = np.sqrt(1 - z * z)
-    return unit_directions("probe lights", np.column_stack([r * np.cos(phi), r * np.sin(phi), z]))
+    return appearance_probe_lights(n)
 
 
-def texel_features(buffer: PerTexel, max_dims: int | None = 32, seed: int = 0) -> np.ndarray:
-    """Appearance vectors ``[H, W, D]`` float32 for any per-texel buffer (see the module docstring)."""
-    from btforge.plugins.ptm.model import PTMModel
-    if isinstance(buffer, PTMModel):
-        ortho = buffer.with_basis("orthonormal")
-        parts = [ortho.coeffs.reshape(buffer.height, buffer.width, -1)]
-        if ortho.albedo.size:
-            parts.append(ortho.albedo)
-        features = np.concatenate(parts, axis=2)
-    elif isinstance(buffer, SampleStack):
-        features = np.moveaxis(buffer.linear(), (2, 3), (0, 1)).reshape(buffer.height, buffer.width, -1)
-    elif isinstance(buffer, ReflectanceModel):
-        relit = buffer.evaluate(probe_lights())
-        features = np.moveaxis(relit, (2, 3), (0, 1)).reshape(buffer.height, buffer.width, -1)
-    else:
-        arrays = [np.asarray(getattr(buffer, f), np.float32) for f in buffer.texel_fields]
-        features = np.concatenate([a.reshape(buffer.height, buffer.width, -1) for a in arrays], axis=2)
-    features = np.ascontiguousarray(features, dtype=np.float32)
+def texel_features(buffer: Buffer, max_dims: int | None = 32, seed: int = 0) -> np.ndarray:
+    """Appearance vectors ``[H, W, D]`` float32 of any per-texel buffer (see the module docstring)."""
+    features = np.ascontiguousarray(buffer.appearance_features(), dtype=np.float32)
     if max_dims is not None and features.shape[2] > max_dims:
         features = pca_reduce(features, max_dims, seed)
     return features
