@@ -23,9 +23,13 @@ _UMASK = _read_umask()
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
-    """Open a temporary sibling of ``path`` for writing; it replaces ``path`` only if the block succeeds."""
-    with atomic_output_path(path) as tmp:
+def atomic_write(path: str | os.PathLike, mode: str = "wb", durable: bool = True) -> Iterator[IO]:
+    """Open a temporary sibling of ``path`` for writing; it replaces ``path`` only if the block succeeds.
+
+    ``durable=False`` skips the fsync: still atomic for every reader, but after a power cut the file may be
+    torn - fine only where a checksum catches that (cache entries).
+    """
+    with atomic_output_path(path, durable) as tmp:
         with open(tmp, mode) as handle:
             yield handle
 
@@ -41,7 +45,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_output_path(path: str | os.PathLike, durable: bool = True) -> Iterator[Path]:
     """A temporary path for libraries that insist on writing by file name (OpenEXR); renamed on success.
 
     The temporary name keeps the final extension so format-sniffing writers pick the right encoder.
@@ -53,8 +57,9 @@ def atomic_output_path(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes private files; results get the usual permissions
     try:
         yield Path(tmp)
-        with open(tmp, "rb") as handle:
-            os.fsync(handle.fileno())
+        if durable:
+            with open(tmp, "rb") as handle:
+                os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -11,13 +11,18 @@ The device is chosen by ``BTFORGE_DEVICE`` (a substring of the platform or devic
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 
+from . import profile
+from .atomic import atomic_write_bytes
 from .errors import BtforgeInputError
+from .numerics import texel_chunks  # noqa: F401  (its former home; plugins import it from btforge.numerics)
 
 _lock = threading.RLock()
 _backend: "Backend | None" = None
@@ -39,6 +44,7 @@ class Backend:
     """An OpenCL context with its queue and a memo of built programs."""
 
     def __init__(self, device_hint: str | None = None):
+        start = time.perf_counter()
         _prepare_pocl_environment()
         import pyopencl as cl
 
@@ -48,7 +54,12 @@ class Backend:
         self.queue = cl.CommandQueue(self.context)
         self._programs: dict[tuple[str, str], "cl.Program"] = {}
         self._kernels: dict[tuple[str, str, str], "cl.Kernel"] = {}
-        self.builds = 0  # how many compilations this context did (tests check memoisation)
+        self.builds = 0  # how many programs this context built, from source or binary (tests check memoisation)
+        self.binaries = default_cache_root() / "opencl"
+        d = self.device
+        self._build_identity = json.dumps([d.platform.name, d.platform.version, d.name, d.version, d.driver_version,
+                                           cl.VERSION_TEXT])
+        profile.record_phase("device_start_s", time.perf_counter() - start)
 
     @property
     def description(self) -> str:
@@ -61,10 +72,36 @@ class Backend:
         with _lock:
             prog = self._programs.get(key)
             if prog is None:
-                prog = self.cl.Program(self.context, source).build(options=list(options))
+                start = time.perf_counter()
+                prog, how = self._build(source, list(options))
+                profile.record_build(Path(cl_file).name, " ".join(options), time.perf_counter() - start, how)
                 self._programs[key] = prog
                 self.builds += 1
             return prog
+
+    def _build(self, source: str, options: list[str]) -> tuple["cl.Program", str]:
+        """Build from the on-disk binary of an earlier process if there is one, else from source (and keep its
+        binary).  Keyed like pyopencl's cache: platform, device, driver, pyopencl version, source and options;
+        PoCL's own source cache still re-parses the source and costs tens of milliseconds per program."""
+        digest = hashlib.blake2b(json.dumps([self._build_identity, source, options]).encode(), digest_size=20)
+        path = self.binaries / f"{digest.hexdigest()}.bin"
+        try:
+            binary = path.read_bytes()
+        except OSError:
+            binary = None
+        if binary:
+            try:
+                return self.cl.Program(self.context, [self.device], [binary]).build(options=options), "binary cache"
+            except self.cl.Error:  # a binary the driver no longer accepts: build from source and replace it
+                pass
+        prog = self.cl.Program(self.context, source).build(options=options)
+        try:
+            (built,) = prog.get_info(self.cl.program_info.BINARIES)
+            if built:
+                atomic_write_bytes(path, bytes(built))
+        except (OSError, ValueError, self.cl.Error):  # a read-only cache or a driver without binaries: still fine
+            pass
+        return prog, "source"
 
     def kernel(self, cl_file: str | os.PathLike, name: str, options: tuple[str, ...] = ()) -> "cl.Kernel":
         """The kernel ``name`` of ``cl_file``, built and retrieved once per context (kernel objects are reused)."""

@@ -183,11 +183,15 @@ class Buffer:
 
     # -- serialisation (cache entries, `btforge info`) ---------------------------------------------------
     def to_bytes(self) -> bytes:
-        meta, arrays = self.payload()
         bio = io.BytesIO()
-        header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
-        np.savez(bio, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
+        self.write_npz(bio)
         return bio.getvalue()
+
+    def write_npz(self, handle) -> None:
+        """Write the buffer as ``.npz`` to a binary file object (which need not be seekable)."""
+        meta, arrays = self.payload()
+        header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
+        np.savez(handle, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
 
     @staticmethod
     def from_file(path, types: Mapping[str, type["Buffer"]]) -> "Buffer":

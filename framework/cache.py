@@ -15,13 +15,14 @@ can set, so an edited file is always hashed again.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Iterable, Mapping
 
-from .atomic import atomic_write_bytes, atomic_write_text
+from .atomic import atomic_write, atomic_write_text
 from .buffers import Buffer
 
 
@@ -34,6 +35,31 @@ class DamagedEntry(Exception):
 
 def _hash(text: str) -> str:
     return hashlib.blake2b(text.encode(), digest_size=20).hexdigest()
+
+
+class _HashingWriter(io.RawIOBase):
+    """A write-only, non-seekable stream that hashes what passes through (zip writers then stream too)."""
+
+    def __init__(self, handle):
+        self.handle, self.size, self.digest = handle, 0, hashlib.blake2b(digest_size=20)
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        self.digest.update(data)
+        self.size += len(data)
+        self.handle.write(data)
+        return len(data)
+
+
+def _memo_file(path: Path, st: os.stat_result, memo: Path) -> Path:
+    return memo / _hash(json.dumps([str(path), st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]))
+
+
+def remember_digest(path: Path, digest: str, memo: Path) -> None:
+    """Remember the digest of a file just written, so the next look at it need not read it."""
+    atomic_write_text(_memo_file(path, path.stat(), memo), digest)
 
 
 def file_digest(path: Path, memo: Path | None = None) -> str | None:
@@ -49,7 +75,7 @@ def file_digest(path: Path, memo: Path | None = None) -> str | None:
         return _hash("\n".join(sorted(os.listdir(path))))
     memo_file = None
     if memo is not None:
-        memo_file = memo / _hash(json.dumps([str(path), st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]))
+        memo_file = _memo_file(path, st, memo)
         try:
             return memo_file.read_text()
         except FileNotFoundError:
@@ -100,6 +126,11 @@ def node_key(stage: str, version: str, params: Mapping[str, Any], input_keys: Ma
         sort_keys=True, default=str,
     )
     return _hash(blob)
+
+
+def node_key_of_output(key: str, port: str) -> str:
+    """The key standing for an output that is not stored, from its node's key."""
+    return _hash(f"output {port} of {key}")
 
 
 class NodeCache:
@@ -154,9 +185,13 @@ class NodeCache:
         entry = self._entry(key)
         written = {}
         for port, buf in outputs.items():
-            data = buf.to_bytes()
-            atomic_write_bytes(entry / f"{port}.npz", data)
-            written[port] = {"bytes": len(data), "blake2b": hashlib.blake2b(data, digest_size=20).hexdigest()}
+            path = entry / f"{port}.npz"
+            # Streamed, hashed on the way, not fsynced: the checksum catches a file torn by a power cut.
+            with atomic_write(path, durable=False) as handle:
+                stream = _HashingWriter(handle)
+                buf.write_npz(stream)
+            written[port] = {"bytes": stream.size, "blake2b": stream.digest.hexdigest()}
+            remember_digest(path, written[port]["blake2b"], self.file_memo)
         manifest = {
             "outputs": {port: {"type": buf.type_name, "content_key": buf.content_key, **written[port]}
                         for port, buf in outputs.items()},

@@ -45,6 +45,9 @@ def cmd_run(args) -> int:
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
                  use_cache=not args.no_cache, quiet=False, report_path=args.report)
     _print_report(result, sys.stderr)
+    if args.profile:
+        from .profile import format_profile
+        print(format_profile(result.report_dict()), file=sys.stderr)
     return 0
 
 
@@ -168,6 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="FILE.json", help="write the per-node report as JSON")
     p.add_argument("--cache", help="cache folder (default: $BTFORGE_CACHE_DIR/nodes or ~/.cache/btforge/nodes)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the node cache")
+    p.add_argument("--profile", action="store_true", help="print where the process spent its time: interpreter and "
+                   "imports, plugins, device start, kernel builds (cached or not), each node")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("validate", help="check a graph without running it")
@@ -193,6 +198,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .profile import record_phase, seconds_since_process_start
+    started = seconds_since_process_start()
+    if started is not None:
+        record_phase("interpreter_and_imports_s", started)
     parser = build_parser()
     args = parser.parse_args(argv)
 

@@ -9,13 +9,14 @@ from __future__ import annotations
 import difflib
 import importlib.metadata
 import sys
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Iterable
 
 import pluggy
 
-from . import buffers, hookspecs
+from . import buffers, hookspecs, profile
 from .cache import code_digest, code_files
 from .errors import BtforgeInputError
 from .stages import Stage
@@ -178,5 +179,7 @@ _default: Registry | None = None
 def default_registry() -> Registry:
     global _default
     if _default is None:
+        start = time.perf_counter()
         _default = Registry()
+        profile.record_phase("plugins_s", time.perf_counter() - start)
     return _default

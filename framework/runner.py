@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -11,10 +12,11 @@ import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
+from . import profile
 from .atomic import atomic_write_text
 from .backend import default_cache_root
 from .buffers import Buffer
-from .cache import DamagedEntry, NodeCache
+from .cache import DamagedEntry, NodeCache, node_key_of_output
 from .context import StageContext
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_warnings
 from .graph import CheckedGraph, check_graph, load_graph
@@ -72,9 +74,11 @@ class RunResult(dict):
     """``{node: {port: Buffer}}`` for the requested nodes, plus the run ``report`` (one entry per graph node)."""
 
     report: list[NodeReport]
+    startup: dict[str, Any]
 
     def report_dict(self) -> dict[str, Any]:
-        return {"nodes": [dataclasses.asdict(r) for r in self.report]}
+        """The run report: one entry per node, and under ``startup`` where the process spent its time besides."""
+        return {"nodes": [dataclasses.asdict(r) for r in self.report], "startup": getattr(self, "startup", {})}
 
 
 class _Lazy:
@@ -85,6 +89,18 @@ class _Lazy:
 
     def load(self) -> Buffer:
         return self.cache.load(self.key, self.port, self.registry.types)
+
+
+class _Deferred:
+    """An output of a node that is not stored: keyed by the node's own key (a function of its code, params, files
+    and inputs), so its consumers find their cache entries without it; it runs the first time one needs data."""
+
+    def __init__(self, run_node, node_key: str, port: str):
+        self.run_node, self.port = run_node, port
+        self.content_key = node_key_of_output(node_key, port)
+
+    def load(self) -> Buffer:
+        return self.run_node()[self.port]
 
 
 def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry: Registry | None = None,
@@ -101,28 +117,36 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     reports = {n: NodeReport(n, graph.stages[n].name, "not needed") for n in graph.spec.nodes}
     for index, name in enumerate(order, 1):
         st = graph.stages[name]
-        params = graph.params[name]
         wired = graph.spec.nodes[name].inputs
-        input_keys = {port: _key_of(values[src][src_port]) for port, (src, src_port) in wired.items()}
-        key = cache.key(st.name, st.version, params, input_keys, graph.files.get(name, ()),
-                        registry.code_digest(st.name, cache.file_memo))
         report = reports[name]
         if not quiet:
             print(f"[{index}/{len(order)}] {name} ({st.name}) ...", file=sys.stderr, flush=True)
+        cacheable = use_cache and not st.side_effects
+        key = _node_key(graph, name, values, cache, registry) if cacheable else ""
         with collect_warnings() as cache_warnings:
-            manifest = _cached_manifest(cache, key, name, st) if use_cache and not st.side_effects else None
+            manifest = _cached_manifest(cache, key, name, st) if cacheable and st.cache_outputs else None
         if manifest is not None:
             values[name] = {port: _Lazy(cache, key, port, info["content_key"], registry)
                             for port, info in manifest["outputs"].items()}
             report.status, report.notes = "cached", manifest.get("notes", {})
+        elif cacheable and not st.cache_outputs:  # cheaper to recompute than to store: run only if data is needed
+            sources = {port: values[src][src_port] for port, (src, src_port) in wired.items()}
+            run_node = functools.cache(lambda name=name, sources=sources: _evaluate(
+                graph, name, {p: _materialize(sources, p) for p in sources}, paths, reports[name], registry, quiet))
+            values[name] = {port: _Deferred(run_node, key, port) for port in st.outputs}
+            report.status = "deferred"
         else:
             inputs = {port: _materialize(values[src], src_port) for port, (src, src_port) in wired.items()}
             values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet)
-            if use_cache and not st.side_effects:
+            if cacheable:
+                started = time.perf_counter()
                 cache.store(key, values[name], report.notes)
+                profile.record_phase("cache_store_s", time.perf_counter() - started)
         _add_warnings(report.notes, name, [*graph.warnings.get(name, ()), *cache_warnings])
         if not quiet:
-            print(f"      {report.status} in {report.seconds:.2f} s", file=sys.stderr, flush=True)
+            print(f"      {report.status} in {report.seconds:.2f} s" if report.status != "deferred" else
+                  "      deferred: its outputs are not stored; it runs if a node that reads them does",
+                  file=sys.stderr, flush=True)
         for src in {src for src, _ in wired.values()}:  # free what no remaining node needs
             consumers[src] -= 1
             if consumers[src] == 0 and src not in targets:
@@ -132,8 +156,22 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     for name in order:
         if name in targets:
             result[name] = {port: _materialize(values[name], port) for port in values[name]}
+    for report in reports.values():
+        if report.status == "deferred":  # no node needed its data: every consumer came from the cache
+            report.status = "not needed"
     result.report = [reports[n] for n in graph.spec.nodes]
     return result
+
+
+def _node_key(graph: CheckedGraph, name: str, values: Mapping[str, Mapping[str, Any]], cache: NodeCache,
+              registry: Registry) -> str:
+    started = time.perf_counter()
+    st = graph.stages[name]
+    input_keys = {port: _key_of(values[src][src_port]) for port, (src, src_port) in graph.spec.nodes[name].inputs.items()}
+    key = cache.key(st.name, st.version, graph.params[name], input_keys, graph.files.get(name, ()),
+                    registry.code_digest(st.name, cache.file_memo))
+    profile.record_phase("cache_keys_s", time.perf_counter() - started)
+    return key
 
 
 def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], paths: RunPaths, report: NodeReport,
@@ -154,8 +192,9 @@ def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], path
                                f"{type(exc).__name__}: {exc} (a bug in the stage; the CLI shows the traceback with --debug)") from exc
     report.seconds = time.perf_counter() - start
     report.peak_rss_mb = round(mem.peak / 2**20, 1)
+    earlier = report.notes.get("warnings", [])  # a deferred node's: noted before it ran
     report.status, report.notes = "ran", ctx.notes
-    _add_warnings(report.notes, name, raised)
+    _add_warnings(report.notes, name, [*earlier, *raised])
     _check_outputs(name, st, outputs or {}, inputs, registry)
     return dict(outputs or {})
 
@@ -188,7 +227,7 @@ def _key_of(value: Any) -> str:
 
 def _materialize(outputs: Mapping[str, Any], port: str) -> Buffer:
     value = outputs[port]
-    return value.load() if isinstance(value, _Lazy) else value
+    return value.load() if isinstance(value, (_Lazy, _Deferred)) else value
 
 
 def _check_outputs(name: str, st, outputs: Mapping[str, Any], inputs: Mapping[str, Any], registry: Registry) -> None:
@@ -221,11 +260,17 @@ def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = No
         Where output paths resolve (default: ``out`` in the current folder) and where node outputs are cached.
     """
     registry = registry or default_registry()
+    start = time.perf_counter()
     spec = load_graph(graph, set)
     out = Path(out_dir) if out_dir else DEFAULT_OUT
     checked = check_graph(spec, registry, out)
+    profile.record_phase("graph_check_s", time.perf_counter() - start)
     result = run_checked(checked, only=list(only) if only else None, registry=registry, out_dir=out,
                          cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet)
+    result.startup = profile.startup()
+    process_s = profile.seconds_since_process_start()
+    if process_s is not None:
+        result.startup["process_s"] = round(process_s, 3)
     if report_path:
         atomic_write_text(report_path, json.dumps(result.report_dict(), indent=2, default=str))
     return result

@@ -155,6 +155,7 @@ class Stage:
     dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
     role: str = ""
     sweep: tuple[Mapping[str, Any], ...] = ()
+    cache_outputs: bool = True
 
     @property
     def doc(self) -> str:
@@ -222,6 +223,7 @@ def declare_stage(
     dynamic_inputs: Callable | None = None,
     role: str = "",
     sweep: Sequence[Mapping[str, Any]] = (),
+    cache_outputs: bool = True,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -232,6 +234,9 @@ def declare_stage(
     for synthesizers that output a ``CoordMap``.  ``sweep`` lists the parameter settings a bench compares
     (e.g. ``[{"lobes": 1}, {"lobes": 2}]``); without it a bench measures the defaults.
     ``side_effects`` marks stages that write files; they run whenever they are needed, never from the cache.
+    ``cache_outputs=False`` marks stages whose outputs cost more to store than to recompute (reading a capture:
+    storing it would copy it, uncompressed, into the cache): they are keyed but not stored, and run only when a
+    node reading their outputs is not in the cache itself.
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
     it runs during validation, before any stage does.  It returns the further files the stage will read (the
     images a light file lists, a scene's meshes): their contents join the node's cache key, so editing one
@@ -255,7 +260,7 @@ def declare_stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
-            sweep=tuple(dict(entry) for entry in sweep),
+            sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs,
         )
 
     return wrap

@@ -91,3 +91,20 @@ def test_version_still_overrides(tmp_path):
     toy_plugin.CALLS.clear()
     btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
     assert toy_plugin.CALLS == {"toy.source": 1}  # same numbers again: what depends on them stays cached
+
+
+def test_outputs_not_worth_storing_run_only_when_a_consumer_misses(tmp_path):
+    import dataclasses
+    registry = Registry(load_entry_points=False, extra_plugins=[toy_plugin])
+    registry.stages["toy.source"] = dataclasses.replace(registry.stages["toy.source"], cache_outputs=False)
+    first = btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert _statuses(first) == {"src": "ran", "twice": "ran"}
+    assert len(list(tmp_path.rglob("manifest.json"))) == 1  # only the consumer was stored
+    toy_plugin.CALLS.clear()
+    again = btforge.run(GRAPH, registry=registry, cache_dir=tmp_path)
+    assert _statuses(again) == {"src": "not needed", "twice": "cached"} and toy_plugin.CALLS == {}
+    changed = btforge.run(GRAPH, set={"src.n": 3}, registry=registry, cache_dir=tmp_path)
+    assert _statuses(changed) == {"src": "ran", "twice": "ran"}
+    np.testing.assert_array_equal(changed["twice"]["numbers"].values, [0, 2, 4])
+    only_src = btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
+    assert _statuses(only_src)["src"] == "ran"  # a requested output is always produced

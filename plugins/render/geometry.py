@@ -25,6 +25,7 @@ import numpy as np
 
 from btforge.errors import BtforgeInputError
 
+from .o3d import open3d
 from .scene import MeshSpec, Scene
 
 DEFAULT_SEGMENTS = {"plane": (1, 1), "sphere": (128, 64), "torus": (96, 48)}
@@ -162,7 +163,7 @@ def _ply_vertex_uv(path: Path) -> np.ndarray | None:
 def read_mesh_file(path: str, where: str = "") -> dict[str, np.ndarray]:
     """Read a PLY/OBJ triangle mesh with open3d: ``positions [V, 3]``, ``triangles [F, 3]``, ``corner_uv [F, 3, 2]``
     (``[0, 3, 2]`` when the file has no texture coordinates)."""
-    import open3d as o3d
+    o3d = open3d()
 
     where = where or str(path)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
@@ -334,7 +335,7 @@ def point_inside(mesh: BuiltMesh, point: np.ndarray) -> bool:
 
     The welded triangles are cast so a ray through a UV seam meets the surface once, not zero or two times.
     """
-    import open3d as o3d
+    o3d = open3d()
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.positions, np.float32)),

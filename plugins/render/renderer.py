@@ -37,6 +37,7 @@ from btforge.errors import BtforgeInputError
 from .envmap import (DirectionalSet, SHRotator, environment_pixels, hemisphere_quadrature, importance_sample,
                      lookup, project_sh, real_sh)
 from .geometry import BuiltMesh, build_mesh, complete_frame
+from .o3d import open3d
 from .scene import LightSpec, Scene, SceneSpec
 
 SNAP = 1e-3            # texel-coordinate fractions this close to a texel centre are snapped onto it
@@ -344,7 +345,7 @@ class BuiltScene:
     """Meshes in world space with an open3d ray-casting scene, and the environment maps the plan uses."""
 
     def __init__(self, scene: Scene, spec: SceneSpec):
-        import open3d as o3d
+        o3d = open3d()
 
         self.scene, self.spec = scene, spec
         self.meshes = [build_mesh(m, scene) for m in spec.meshes]
@@ -366,13 +367,13 @@ class BuiltScene:
         return self._env_pixels[light.index]
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
-        import open3d as o3d
+        o3d = open3d()
         rays = np.concatenate([origins, dirs], 1).astype(np.float32)
         return {k: v.numpy() for k, v in self.rc.cast_rays(o3d.core.Tensor(rays)).items()}
 
     def occluded_rays(self, rays: np.ndarray, tfar: float) -> np.ndarray:
         """Whether each ray ``[N, 6]`` float32 (origin, direction) hits anything with ``0 <= t < tfar``."""
-        import open3d as o3d
+        o3d = open3d()
         return self.rc.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=0.0, tfar=tfar).numpy().astype(bool)
 
 

@@ -29,6 +29,7 @@ def _light_file_precheck(params, paths):
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
     precheck=_light_file_precheck,
+    cache_outputs=False,
 )
 def stack_read(ctx, *, path, transfer):
     """Read a multi-light (and multi-view) capture: a light file and the images it lists, or a BTF folder.
