@@ -54,8 +54,9 @@ class Registry:
                                 f"'BTFORGE_PLUGIN_API = {hookspecs.PLUGIN_API_VERSION}' to it once it works with "
                                 f"this btforge)")
             elif api != hookspecs.PLUGIN_API_VERSION:
+                from . import __version__
                 problems.append(f"plugin '{name}': was written for plugin API {api!r}, this btforge "
-                                f"{importlib.metadata.version('btforge')} has API {hookspecs.PLUGIN_API_VERSION} "
+                                f"{__version__} has API {hookspecs.PLUGIN_API_VERSION} "
                                 f"(install a release of the plugin made for API {hookspecs.PLUGIN_API_VERSION})")
         known = [h for h in dir(hookspecs) if h.startswith("btforge_")]
         for hook_name, caller in sorted(vars(self.pm.hook).items()):
@@ -113,6 +114,9 @@ class Registry:
         self.info_readers: dict[str, Any] = {}
         for result in self.pm.hook.btforge_info_readers():
             self.info_readers.update(result or {})
+        self._collect_benches()
+
+    def _collect_benches(self) -> None:
         self.bench_commands: dict[str, Any] = {}
         bench_owner: dict[str, str] = {}
         for impl in self.pm.hook.btforge_bench_commands.get_hookimpls():

@@ -1,0 +1,43 @@
+"""Cold start: `btforge run --profile` and the report's startup; kernel binaries reused by the next process."""
+import json
+import subprocess
+import sys
+
+GRAPH = """nodes:
+  material: {stage: demo.material, params: {size: [8, 8], lights: 9, bumps: 2}}
+  fit: {stage: ptm.fit, inputs: {stack: material.stack}}
+"""
+
+
+def _run(tmp_path, *extra):
+    return subprocess.run([sys.executable, "-m", "btforge.cli", "run", str(tmp_path / "g.yaml"), "--out",
+                           str(tmp_path / "out"), "--report", str(tmp_path / "report.json"), *extra],
+                          capture_output=True, text=True)
+
+
+def test_profile_and_report_show_where_a_fresh_process_spends_its_time(tmp_path, monkeypatch):
+    monkeypatch.setenv("BTFORGE_CACHE_DIR", str(tmp_path / "cache"))  # no binaries yet: this process builds
+    (tmp_path / "g.yaml").write_text(GRAPH)
+    first = _run(tmp_path, "--profile", "--no-cache")
+    assert first.returncode == 0, first.stderr
+    for label in ("interpreter and imports", "plugins loaded", "OpenCL device started", "kernel builds",
+                  "material (demo.material)", "fit (ptm.fit)", "whole process so far"):
+        assert label in first.stderr
+    startup = json.loads((tmp_path / "report.json").read_text())["startup"]
+    assert 0 < startup["interpreter_and_imports_s"] < startup["process_s"]
+    assert startup["device_start_s"] > 0
+    built = {(b["file"], b["options"]): b["from"] for b in startup["kernel_builds"]}
+    assert ("ptm.cl", "-DSAMPLE_T=float") in built and ("procedural.cl", "") in built
+    second = _run(tmp_path, "--no-cache")  # a new process: every program comes from the binaries on disk
+    assert second.returncode == 0, second.stderr
+    again = json.loads((tmp_path / "report.json").read_text())["startup"]
+    assert {(b["file"], b["options"]): b["from"] for b in again["kernel_builds"]} == {
+        key: "binary cache" for key in built}
+
+
+def test_rendering_code_does_not_load_the_plotting_stack():
+    code = ("import sys; from btforge.plugins.render.o3d import open3d; o3d = open3d(); "
+            "o3d.t.geometry.RaycastingScene(); print(sorted(m for m in ('dash', 'plotly', 'IPython') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
