@@ -12,6 +12,7 @@ import collections
 import contextlib
 import inspect
 import json
+import re
 import sys
 import warnings
 from typing import Iterator
@@ -93,9 +94,11 @@ def peak_rss_mb() -> float:
 
 @contextlib.contextmanager
 def counted_warnings(stream=sys.stderr, show: int = 3) -> Iterator[collections.Counter]:
-    """Count the warnings raised in the block instead of printing each; print the first ``show`` distinct ones
-    and a summary at the end.  A bench runs many fits: their warnings would otherwise flood the screen."""
+    """Count the warnings raised in the block instead of printing each, and print a summary at the end: the
+    ``show`` most frequent kinds (warnings that differ only in their numbers are one kind), with an example
+    each.  A bench runs many fits, whose warnings would otherwise flood the screen."""
     counts: collections.Counter = collections.Counter()
+    examples: dict[str, str] = {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -104,10 +107,12 @@ def counted_warnings(stream=sys.stderr, show: int = 3) -> Iterator[collections.C
             for w in caught:
                 text = str(w.message) if issubclass(w.category, BtforgeWarning) else \
                     f"{w.category.__name__}: {w.message}"
-                counts[text] += 1
+                kind = re.sub(r"\d+(\.\d+)?", "N", text)
+                counts[kind] += 1
+                examples.setdefault(kind, text)
     if counts:
         total = sum(counts.values())
-        print(f"{total} warning{'s' * (total != 1)} during the bench ({len(counts)} distinct); the most frequent:",
-              file=stream)
-        for text, n in counts.most_common(show):
-            print(f"  {n} x {text[:200]}", file=stream)
+        print(f"{total} warning{'s' * (total != 1)} during the bench, {len(counts)} kind{'s' * (len(counts) != 1)}; "
+              f"the most frequent, with an example:", file=stream)
+        for kind, n in counts.most_common(show):
+            print(f"  {n} x {examples[kind][:200]}", file=stream)

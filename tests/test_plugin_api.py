@@ -104,3 +104,19 @@ def test_capabilities_a_class_lacks_are_clear_errors():
     with pytest.raises(BtforgeInputError, match="'LambertModel': cannot be evaluated per texel"):
         model.evaluate_texels([0], [0], [[0, 0, 1]])
     assert model.appearance_features().shape == (2, 2, 25 * 3)  # a model of unknown form: sampled at probe lights
+
+
+def test_bench_warnings_are_counted_not_flooded():
+    import io
+    import warnings
+
+    from btforge import BtforgeWarning
+    from btforge.bench import counted_warnings
+    screen = io.StringIO()
+    with counted_warnings(screen):
+        for n in range(40):
+            warnings.warn(f"node 'fit': {n} of 64 texels did not converge", BtforgeWarning)
+        warnings.warn("ill-conditioned", BtforgeWarning)
+    lines = screen.getvalue().splitlines()
+    assert lines[0].startswith("41 warnings during the bench, 2 kinds")
+    assert lines[1] == "  40 x node 'fit': 0 of 64 texels did not converge" and len(lines) == 3
