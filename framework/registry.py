@@ -140,11 +140,13 @@ class Registry:
 
     def code_digest(self, name: str, memo: Path | None = None) -> str:
         """Digest of the code behind stage ``name``: the source and ``.cl`` files of the plugin package that
-        provides it (and of the module defining its function, if that lies elsewhere).  Part of every node's
-        cache key, so editing or upgrading a plugin re-runs exactly its nodes and what depends on them."""
+        provides it (and of the module defining its function, if that lies elsewhere), and the engine's own (its
+        buffers remap, blend and validate data too).  Part of every node's cache key, so editing or upgrading a
+        plugin re-runs exactly its nodes and what depends on them; upgrading btforge re-runs everything."""
         digest = self._code_digests.get(name)
         if digest is None:
-            files = set(code_files(_module_of(self._stage_sources[name])))
+            files = set(code_files(sys.modules[__package__]))
+            files.update(code_files(_module_of(self._stage_sources[name])))
             defining = sys.modules.get(self.stages[name].fn.__module__)
             if defining is not None:
                 files.update(code_files(defining))
