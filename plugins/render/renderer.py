@@ -264,7 +264,7 @@ class ModelShader:
             else:
                 rows, cols = coords[..., 0], coords[..., 1]
         self.rows, self.cols, self.weights = rows, cols, weights
-        self.view_dependent = bool(getattr(model, "view_dependent", False))
+        self.view_dependent = bool(model.view_dependent)
         self.interpolates_records = model.evaluates_texels and model.blendable and all(
             getattr(model, f).dtype.kind == "f" for f in model.texel_fields)
 
