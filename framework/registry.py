@@ -7,6 +7,7 @@ register a module or object directly with :meth:`Registry.register`.
 from __future__ import annotations
 
 import difflib
+import hashlib
 import importlib.metadata
 import sys
 import time
@@ -145,12 +146,15 @@ class Registry:
         plugin re-runs exactly its nodes and what depends on them; upgrading btforge re-runs everything."""
         digest = self._code_digests.get(name)
         if digest is None:
-            files = set(code_files(sys.modules[__package__]))
-            files.update(code_files(_module_of(self._stage_sources[name])))
+            plugin = _module_of(self._stage_sources[name])
             defining = sys.modules.get(self.stages[name].fn.__module__)
-            if defining is not None:
-                files.update(code_files(defining))
-            digest = self._code_digests[name] = code_digest(files, memo)
+            own = set(code_files(plugin)) | (set(code_files(defining)) if defining is not None else set())
+            files = own | set(code_files(sys.modules[__package__]))
+            digest = code_digest(files, memo)
+            if not own:  # no readable source (a zipped install): the distribution's version and RECORD instead
+                fingerprint = digest + _distribution_fingerprint(plugin or defining)
+                digest = hashlib.blake2b(fingerprint.encode(), digest_size=20).hexdigest()
+            self._code_digests[name] = digest
         return digest
 
     def stages_with_role(self, role: str) -> list[Stage]:
@@ -169,6 +173,16 @@ def _module_of(plugin: Any) -> ModuleType | None:
     if isinstance(plugin, ModuleType):
         return plugin
     return sys.modules.get(getattr(plugin, "__module__", None) or type(plugin).__module__)
+
+
+def _distribution_fingerprint(module: ModuleType | None) -> str:
+    """Version and RECORD (the hashes of every installed file) of the distribution that installed ``module``."""
+    top = (getattr(module, "__name__", "") or "").split(".")[0]
+    parts = []
+    for dist_name in sorted(importlib.metadata.packages_distributions().get(top, [])):
+        dist = importlib.metadata.distribution(dist_name)
+        parts.append(f"{dist_name} {dist.version}\n{dist.read_text('RECORD') or ''}")
+    return "\n".join(parts)
 
 
 def did_you_mean(name: str, options: Iterable[str]) -> str:

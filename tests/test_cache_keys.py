@@ -108,3 +108,28 @@ def test_outputs_not_worth_storing_run_only_when_a_consumer_misses(tmp_path):
     np.testing.assert_array_equal(changed["twice"]["numbers"].values, [0, 2, 4])
     only_src = btforge.run(GRAPH, only=["src"], registry=registry, cache_dir=tmp_path)
     assert _statuses(only_src)["src"] == "ran"  # a requested output is always produced
+
+
+def test_a_plugin_without_readable_source_is_keyed_by_its_distribution(monkeypatch):
+    import importlib.metadata
+    import types
+
+    import btforge.registry as registry_module
+
+    plugin = types.ModuleType("zipped_plugin")  # what a zipped install looks like: no files to hash
+    plugin.BTFORGE_PLUGIN_API = 1
+
+    @btforge.declare_stage("zipped.make", outputs={"numbers": "Numbers"})
+    def make(ctx):
+        """Make nothing."""
+    make.fn.__module__ = "zipped_plugin"
+    plugin.btforge_stages = btforge.hookimpl(lambda: [make])
+    releases = {"1.0": "zipped_plugin/__init__.py,sha256=aaa,10\n", "1.1": "zipped_plugin/__init__.py,sha256=bbb,12\n"}
+
+    def digest(version):
+        dist = types.SimpleNamespace(version=version, read_text=lambda name: releases[version])
+        monkeypatch.setattr(importlib.metadata, "packages_distributions", lambda: {"zipped_plugin": ["zipped"]})
+        monkeypatch.setattr(importlib.metadata, "distribution", lambda name: dist)
+        return Registry(load_entry_points=False, extra_plugins=[toy_plugin, plugin]).code_digest("zipped.make")
+    assert digest("1.0") != digest("1.1")
+    assert registry_module._distribution_fingerprint(types.ModuleType("nothing_installed")) == ""
