@@ -62,7 +62,8 @@ def cmd_validate(args) -> int:
 
 def stage_record(st) -> dict:
     return {
-        "name": st.name, "plugin": st.plugin, "version": st.version, "summary": st.summary, "doc": st.doc,
+        "name": st.name, "plugin": st.plugin, "version": st.version, "role": st.role, "summary": st.summary,
+        "doc": st.doc,
         "inputs": {p: {"type": t, "optional": p in st.optional_inputs} for p, t in st.inputs.items()},
         "outputs": dict(st.outputs),
         "params": [{"name": p.name, "type": p.type_text(), "default": None if p.required else _jsonable(p.default),
@@ -87,7 +88,8 @@ def cmd_stages(args) -> int:
         print(stages_markdown(records))
         return 0
     for rec in records:
-        print(f"{rec['name']}  ({rec['plugin']}, v{rec['version']})")
+        role = f", role {rec['role']}" if rec["role"] else ""
+        print(f"{rec['name']}  ({rec['plugin']}, v{rec['version']}{role})")
         for line in rec["doc"].splitlines():
             print(f"    {line}")
         for port, info in rec["inputs"].items():
