@@ -287,10 +287,8 @@ def quadrant_ties(q: int, vertex: tuple[int, int]) -> tuple[np.ndarray, np.ndarr
 
 
 def straight_split(q: int, vertex: tuple[int, int]) -> np.ndarray:
-    """The straight-cut baseline: the quadrant's diagonal from the vertex, vertical strip on the column side."""
-    vr, vc = (q - 1) * vertex[0], (q - 1) * vertex[1]
-    r, c = np.mgrid[0:q, 0:q]
-    return np.abs(c - vc) < np.abs(r - vr)
+    """The straight-cut baseline: horizontal strips run through the vertex square, vertical ones stop at them."""
+    return np.zeros((q, q), bool)
 
 
 class Corners:

@@ -22,6 +22,7 @@ from btforge.errors import BtforgeInputError
 N, E, S, W = range(4)
 HORIZONTAL_SIDES = (N, S)
 TILING_ATTEMPTS = 64
+NEAREST_UV = 0.02  # UV distance within which a grid corner outside every triangle takes the nearest corner
 CONSISTENT = {(E, W), (W, E), (S, N), (N, S)}
 
 
@@ -184,6 +185,15 @@ def _uv_to_position(points: np.ndarray, corner_uv: np.ndarray, corner_pos: np.nd
     w1, w2 = l1[m, f], l2[m, f]
     out[m] = ((1 - w1 - w2)[:, None] * corner_pos[f, 0] + w1[:, None] * corner_pos[f, 1]
               + w2[:, None] * corner_pos[f, 2])
+    # A point no triangle holds (a sphere's pole corner, whose triangle degenerates and is dropped) takes the
+    # nearest triangle corner when that is close in UV.
+    lost = np.nonzero(~found)[0]
+    if len(lost):
+        flat_uv, flat_pos = corner_uv.reshape(-1, 2), corner_pos.reshape(-1, 3)
+        gap = np.linalg.norm(points[lost, None, :] - flat_uv[None], axis=-1)
+        nearest = np.argmin(gap, axis=1)
+        close = gap[np.arange(len(lost)), nearest] <= NEAREST_UV
+        out[lost[close]] = flat_pos[nearest[close]]
     return out
 
 
