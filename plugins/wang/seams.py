@@ -118,3 +118,34 @@ def cut_distances(tile_coords: np.ndarray, feats: np.ndarray) -> dict:
         cut += int(seam.sum())
     out["cut_share"] = cut / max(total, 1)
     return out
+
+
+def _border(tile_coords: np.ndarray, tile: int, side: int) -> np.ndarray:
+    """The texels of a tile along one side, in the side's direction (N, S left to right; E, W top to bottom)."""
+    t = tile_coords[tile]
+    return (t[0], t[:, -1], t[-1], t[:, 0])[side]
+
+
+def mesh_seams(tiling, tile_coords: np.ndarray, feats: np.ndarray) -> dict:
+    """Distances across every glued edge of a mesh tiling between different charts (a cube's face edges), split
+    into glues that keep the orientation and glues that turn it, as ratios to the exemplar's mean
+    neighbouring-texel distance."""
+    ids = np.concatenate([g.ravel() for g in tiling.grids])
+    cells_per_chart = tiling.grids[0].size
+    reference = float(np.mean(neighbour_distances(feats)))
+    parts: dict = {"consistent": [], "rotated": []}
+    for g in tiling.glues:
+        if g.a[0] // cells_per_chart == g.b[0] // cells_per_chart:
+            continue
+        a = _border(tile_coords, ids[g.a[0]], g.a[1])
+        b = _border(tile_coords, ids[g.b[0]], g.b[1])
+        parts["consistent" if g.consistent else "rotated"].append(_distances(feats, a, b[::-1] if g.reversed else b))
+    out = {}
+    for kind, values in parts.items():
+        if values:
+            v = np.concatenate(values)
+            out[f"{kind}_edges"] = len(values)
+            out[f"{kind}_mean_ratio"] = float(v.mean()) / max(reference, 1e-30)
+            out[f"{kind}_p99_ratio"] = float(np.percentile(v, 99)) / max(float(np.percentile(
+                neighbour_distances(feats), 99)), 1e-30)
+    return out

@@ -33,6 +33,7 @@ class Glue:
     a: tuple[int, int]
     b: tuple[int, int]
     consistent: bool
+    reversed: bool = False   # the two slots run along the edge in opposite directions
 
 
 def _find(parent: np.ndarray, i: int) -> int:
@@ -237,7 +238,7 @@ def mesh_tiling(positions: np.ndarray, triangles: np.ndarray, corner_uv: np.ndar
                         other, other_side, forward = slots.pop(key)
                         same_direction = forward == (k0 <= k1)
                         glues.append(Glue((other, other_side), (cell, side),
-                                          (other_side, side) in CONSISTENT and same_direction))
+                                          (other_side, side) in CONSISTENT and same_direction, not same_direction))
                     else:
                         slots[key] = (cell, side, k0 <= k1)
     rng = np.random.default_rng(seed)
