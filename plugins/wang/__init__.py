@@ -199,9 +199,39 @@ def tiles_read(ctx, *, path):
     return {"tiles": tiles}
 
 
+@declare_stage("tiles.sheet", inputs={"tiles": "TileSet", "exemplar": "PerTexel"},
+               params=[Param("path", "outpath", REQUIRED, "the .png file to write (relative to --out)"),
+                       Param("light", "lights", ((0.0, 0.0, 1.0),), "the one light [[x, y, z]] the tiles are shown at"),
+                       Param("columns", "int", 0, "tiles per row (0: a square layout)", low=0, high=4096)],
+               side_effects=True)
+def tiles_sheet(ctx, tiles, exemplar, *, path, light, columns):
+    """Write a picture of a tile set: each tile relit at one light, framed by bars in its edge colours.
+
+    N and S bars show the horizontal-edge colours, E and W bars the vertical-edge ones (a palette shared by no
+    two colours), so matching edges can be checked by eye.  Exposed so that the exemplar's 99.5th percentile is
+    white, sRGB-encoded.
+    """
+    from PIL import Image as PILImage
+
+    from btforge.atomic import atomic_output_path
+
+    from .sheet import tile_sheet
+    if isinstance(light, str) or len(light) != 1:
+        raise BtforgeInputError("tiles.sheet 'light'", f"expected one light [[x, y, z]], found {light!r}")
+    if (exemplar.height, exemplar.width) != tiles.source_size:
+        raise BtforgeInputError("tiles.sheet 'exemplar'", f"expected the {tiles.source_size[0]} x "
+                                f"{tiles.source_size[1]} exemplar of the tile set, found {exemplar.height} x "
+                                f"{exemplar.width}", "wire the buffer the tile set was synthesized from")
+    pixels = tile_sheet(tiles, exemplar, np.asarray(light[0], np.float64), columns)
+    with atomic_output_path(ctx.paths.output(path)) as temporary:
+        PILImage.fromarray(pixels).save(temporary, format="PNG")
+    ctx.note("size", list(pixels.shape[:2]))
+    return {}
+
+
 @hookimpl
 def btforge_stages():
-    return [wang_tiles, wang_tiling, wang_score, tiles_write, tiles_read]
+    return [wang_tiles, wang_tiling, wang_score, tiles_write, tiles_read, tiles_sheet]
 
 
 @hookimpl
