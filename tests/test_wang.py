@@ -272,3 +272,30 @@ def test_cube_face_edges_match_and_their_seams_are_reported(procedural):
     assert report["consistent_edges"] == 6 * 2 and report["rotated_edges"] == 6 * 2
     assert report["consistent_mean_ratio"] <= 1.2, report
     print("cube face-edge seams", report)
+
+
+def test_graph_runs_write_read_sheet_and_info(tmp_path):
+    import yaml
+
+    import btforge
+    from btforge.cli import main
+    graph = {"nodes": {
+        "material": {"stage": "demo.material", "params": {"size": [40, 40], "lights": 8, "seed": 2}},
+        "tiles": {"stage": "wang.tiles", "params": {"tile": 16, "edge": 4, "seed": 1},
+                  "inputs": {"exemplar": "material.stack"}},
+        "save": {"stage": "tiles.write", "params": {"path": "set.wang"}, "inputs": {"tiles": "tiles.tiles"}},
+        "picture": {"stage": "tiles.sheet", "params": {"path": "set.png", "light": [[0.2, 0.1, 0.97]]},
+                    "inputs": {"tiles": "tiles.tiles", "exemplar": "material.stack"}},
+        "tiling": {"stage": "wang.tiling", "params": {"rows": 3, "cols": 5}, "inputs": {"tiles": "tiles.tiles"}},
+        "texture": {"stage": "materialize", "inputs": {"coords": "tiling.coords", "source": "material.stack"}},
+    }}
+    (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
+    result = btforge.run(tmp_path / "g.yaml", out_dir=tmp_path, cache_dir=tmp_path / "cache")
+    assert result["texture"]["output"].samples.shape[2:4] == (48, 80)
+    notes = next(r for r in result.report if r.node == "tiles").notes
+    assert set(notes["seconds"]) == {"corners", "edges", "frames", "interiors"}
+    back = read_tile_set(tmp_path / "set.wang")
+    assert back.n_tiles == 16 and back.tile == 16 and notes["btfels"]["btfels"] == len(back.table)
+    from PIL import Image
+    assert Image.open(tmp_path / "set.png").size[0] > 4 * 16
+    assert main(["info", str(tmp_path / "set.wang")]) == 0

@@ -70,6 +70,9 @@ def bench_wang(args: list[str]) -> int:
     print(f"  BTFels: {stats['btfels']} = {100 * stats['referenced_share']:.2f}% of the exemplar; table "
           f"{stats['table_bytes'] / 1e6:.3f} MB + indices {stats['index_bytes'] / 1e6:.3f} MB = "
           f"{stats['total_bytes'] / 1e6:.3f} MB (tiles as copies: {stats['texels_as_copies_bytes'] / 1e6:.3f} MB)")
+    print("  filling time by activity (edges + interiors): " + ", ".join(
+        f"{k} {v:.2f} s" for k, v in synthesis.counts["filling_seconds"].items()))
+    print("  seam ratios: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items()))
     print(f"  seams: worst mean ratio {ratios['worst_mean_ratio']:.3f}, worst p99 ratio "
           f"{ratios['worst_p99_ratio']:.3f}; pixels over threshold {synthesis.unresolved}")
     print(f"  peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")

@@ -6,7 +6,8 @@ other across the border, and for every valid 2 x 2 configuration (four tiles aro
 edges match) the pairs across both borders within ``edge / 2`` texels of the vertex.  Distances are Euclidean in
 the appearance features (:mod:`features`), the compressed-domain L2 distance of the reflectance functions.  The
 reference is the distance between horizontally (for vertical borders) and vertically (for horizontal borders)
-neighbouring texels inside the exemplar; a ratio of 1 means a border is as smooth as the exemplar itself.
+neighbouring texels inside the exemplar - at the same texels (:func:`seam_ratios`) and over the whole exemplar -
+so a ratio of 1 means a border is as smooth as the exemplar itself.
 """
 from __future__ import annotations
 
@@ -20,6 +21,16 @@ def _distances(feats: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     fa = feats[a[..., 0], a[..., 1]].astype(np.float64)
     fb = feats[b[..., 0], b[..., 1]].astype(np.float64)
     return np.linalg.norm(fa - fb, axis=-1).ravel()
+
+
+def _local_reference(feats: np.ndarray, a: np.ndarray, b: np.ndarray, step) -> np.ndarray:
+    """For texel pairs ``a`` | ``b`` (``b`` one ``step`` after ``a`` in the tiling), the distance from each to its
+    own neighbour in the exemplar in that direction, averaged over the two sides."""
+    limit = np.array(feats.shape[:2]) - 1
+    step = np.asarray(step)
+    ahead = np.clip(a + step, 0, limit)
+    behind = np.clip(b - step, 0, limit)
+    return 0.5 * (_distances(feats, a, ahead) + _distances(feats, behind, b))
 
 
 def exemplar_reference(feats: np.ndarray) -> dict:
@@ -54,10 +65,13 @@ def tile_set_seams(tile_coords: np.ndarray, colors: np.ndarray, feats: np.ndarra
     per tile edge mean (``edges [T, 4]``, N E S W, over every valid neighbour on that side)."""
     t, w = tile_coords.shape[:2]
     horizontal, vertical = adjacency_distances(tile_coords, colors)
-    d_h = np.stack([_distances(feats, tile_coords[a, :, -1], tile_coords[b, :, 0]) for a, b in horizontal]) \
-        if len(horizontal) else np.zeros((0, w))
-    d_v = np.stack([_distances(feats, tile_coords[a, -1, :], tile_coords[b, 0, :]) for a, b in vertical]) \
-        if len(vertical) else np.zeros((0, w))
+    pairs_h = [(tile_coords[a, :, -1], tile_coords[b, :, 0]) for a, b in horizontal]
+    pairs_v = [(tile_coords[a, -1, :], tile_coords[b, 0, :]) for a, b in vertical]
+    d_h = np.stack([_distances(feats, x, y) for x, y in pairs_h]) if pairs_h else np.zeros((0, w))
+    d_v = np.stack([_distances(feats, x, y) for x, y in pairs_v]) if pairs_v else np.zeros((0, w))
+    local = {"h": [_local_reference(feats, x, y, (0, 1)) for x, y in pairs_h],
+             "v": [_local_reference(feats, x, y, (1, 0)) for x, y in pairs_v],
+             "corner_h": [], "corner_v": []}
     edges = np.zeros((t, 4))
     for side, (pairs, dist, column) in enumerate([(vertical, d_v, 1), (horizontal, d_h, 0),
                                                    (vertical, d_v, 0), (horizontal, d_h, 1)]):
@@ -68,28 +82,40 @@ def tile_set_seams(tile_coords: np.ndarray, colors: np.ndarray, feats: np.ndarra
     quads = corner_configurations(colors)
     corner_h, corner_v = [], []
     for tl, tr, bl, br in quads:
-        corner_h.append(_distances(feats, tile_coords[tl, w - q:, -1], tile_coords[tr, w - q:, 0]))
-        corner_h.append(_distances(feats, tile_coords[bl, :q, -1], tile_coords[br, :q, 0]))
-        corner_v.append(_distances(feats, tile_coords[tl, -1, w - q:], tile_coords[bl, 0, w - q:]))
-        corner_v.append(_distances(feats, tile_coords[tr, -1, :q], tile_coords[br, 0, :q]))
-    return {"h": d_h.ravel(), "v": d_v.ravel(), "corner_h": np.concatenate(corner_h) if corner_h else np.zeros(0),
-            "corner_v": np.concatenate(corner_v) if corner_v else np.zeros(0), "edges": edges,
+        for name, out, step, x, y in (
+                ("corner_h", corner_h, (0, 1), tile_coords[tl, w - q:, -1], tile_coords[tr, w - q:, 0]),
+                ("corner_h", corner_h, (0, 1), tile_coords[bl, :q, -1], tile_coords[br, :q, 0]),
+                ("corner_v", corner_v, (1, 0), tile_coords[tl, -1, w - q:], tile_coords[bl, 0, w - q:]),
+                ("corner_v", corner_v, (1, 0), tile_coords[tr, -1, :q], tile_coords[br, 0, :q])):
+            out.append(_distances(feats, x, y))
+            local[name].append(_local_reference(feats, x, y, step))
+    flat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)
+    return {"h": d_h.ravel(), "v": d_v.ravel(), "corner_h": flat(corner_h), "corner_v": flat(corner_v),
+            "local": {k: flat(v) for k, v in local.items()}, "edges": edges,
             "configurations": len(quads), "adjacencies": len(horizontal) + len(vertical)}
 
 
 def seam_ratios(seams: dict, reference: dict) -> dict:
-    """Mean and 99th-percentile ratios of seam distances to the exemplar's neighbouring-texel distances."""
+    """Mean and 99th-percentile ratios of seam distances to neighbouring-texel distances inside the exemplar.
+
+    ``*_ratio`` (the ones tests bound): against the distances from the same texels to their own exemplar
+    neighbours in the border's direction, so a border that continues the exemplar scores exactly 1 whatever
+    content it crosses.  ``global_*``: against all of the exemplar's neighbouring texels in that direction, which
+    also reflects whether tile borders cross busier or flatter content than the exemplar on average.
+    """
     out = {}
     ref_mean = {k: float(np.mean(reference[k])) for k in ("h", "v")}
     ref_p99 = {k: float(np.percentile(reference[k], 99)) for k in ("h", "v")}
     for name, kind in (("h", "h"), ("v", "v"), ("corner_h", "h"), ("corner_v", "v")):
-        values = seams[name]
+        values, local = seams[name], seams["local"][name]
         if not len(values):
             continue
-        out[f"{name}_mean_ratio"] = float(np.mean(values)) / max(ref_mean[kind], 1e-30)
-        out[f"{name}_p99_ratio"] = float(np.percentile(values, 99)) / max(ref_p99[kind], 1e-30)
-    out["worst_mean_ratio"] = max(v for k, v in out.items() if k.endswith("_mean_ratio"))
-    out["worst_p99_ratio"] = max(v for k, v in out.items() if k.endswith("_p99_ratio"))
+        out[f"{name}_mean_ratio"] = float(np.mean(values)) / max(float(np.mean(local)), 1e-30)
+        out[f"{name}_p99_ratio"] = float(np.percentile(values, 99)) / max(float(np.percentile(local, 99)), 1e-30)
+        out[f"global_{name}_mean_ratio"] = float(np.mean(values)) / max(ref_mean[kind], 1e-30)
+        out[f"global_{name}_p99_ratio"] = float(np.percentile(values, 99)) / max(ref_p99[kind], 1e-30)
+    out["worst_mean_ratio"] = max(v for k, v in out.items() if k.endswith("_mean_ratio") and not k.startswith("global"))
+    out["worst_p99_ratio"] = max(v for k, v in out.items() if k.endswith("_p99_ratio") and not k.startswith("global"))
     return out
 
 

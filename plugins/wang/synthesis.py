@@ -9,9 +9,10 @@ one above its bottom corner ``B``.  Each quadrant of the square is covered by on
 corner half and is split between them by a cut.
 
 1. **Corner sampling**: one ``h x h`` exemplar patch per corner sample, chosen among the patches nearest a random
-   reference patch (candidate search by :func:`features.knn`) so that every pair meeting in a quadrant differs
+   reference patch of typical contrast (candidate search by :func:`features.knn`) so that every pair meeting in a quadrant differs
    little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
-   cached.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
+   cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
+   kept.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
    and vertical-strip pixels along the other border, so both borders see one continuous strip right up to the
    vertex; the two pieces meet only inside the quadrant.
 2. **Edge synthesis**: each strip's middle, between its two corner samples, by graph-cut patch filling.
@@ -49,6 +50,8 @@ STRIDE_FROM = 96       # ... in exemplars at least this large
 REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
+CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
+TYPICAL = (30, 70)     # percentiles of window contrast corner samples are drawn between
 CENTRE = 2             # the central CENTRE x CENTRE texels of corner patches ...
 CENTRE_WEIGHT = 4.0    # ... weigh this much more in their search and choice
 NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
@@ -125,6 +128,7 @@ class Filler:
                  threshold: float):
         self.feats, self.search, self.rng, self.cut, self.threshold = feats, search, rng, cut, threshold
         self.placed = self.kept = 0
+        self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
 
     def _target(self, coords, region, err):
         unfilled = region & (coords[..., 0] < 0)
@@ -200,8 +204,11 @@ class Filler:
             ty, tx = self._target(coords, region, err)
             y0 = int(np.clip(ty - ph // 2, 0, coords.shape[0] - ph))
             x0 = int(np.clip(tx - pw // 2, 0, coords.shape[1] - pw))
+            clock = time.perf_counter()
             py, px = self._placement(coords, y0, x0, (ph, pw))
             self.placed += 1
+            self.seconds["search"] += time.perf_counter() - clock
+            clock = time.perf_counter()
             dy, dx = np.mgrid[0:ph, 0:pw]
             new = np.stack([py + dy, px + dx], -1).astype(np.int32)
             old = coords[y0:y0 + ph, x0:x0 + pw]
@@ -213,9 +220,12 @@ class Filler:
                 mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
             else:
                 mask = take if take.any() else inside & ~rim
+            self.seconds["cut"] += time.perf_counter() - clock
+            clock = time.perf_counter()
             trial = coords.copy()
             trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
             trial_err = pixel_errors(trial, self.feats)
+            self.seconds["bookkeeping"] += time.perf_counter() - clock
             after = _region_cost(trial_err, region)
             if after[0] < n_unfilled or (after[0] == n_unfilled and after[1] < total - 1e-9):
                 coords[...] = trial
@@ -248,6 +258,22 @@ def _patch_descriptors(feats: np.ndarray, size: int) -> np.ndarray:
         for b in range(CENTRE):
             parts.append(CENTRE_WEIGHT * f[c0 + a:c0 + a + n_rows, c0 + b:c0 + b + n_cols])
     return np.concatenate(parts, axis=-1).reshape(n_rows * n_cols, -1).astype(np.float32)
+
+
+def _typical_windows(feats: np.ndarray, size: int) -> np.ndarray:
+    """Whether each ``size x size`` window (by flat index of its origin) has typical contrast: its summed distance
+    between neighbouring texels lies between the TYPICAL percentiles over all windows.  Corner samples are drawn
+    among these only: every vertex shows one, so neither the busiest nor the flattest places of the exemplar (which
+    the search for mutually similar samples would otherwise favour) should set the tile borders."""
+    f = feats.astype(np.float64)
+    grad = np.zeros(f.shape[:2])
+    grad[:, :-1] += np.linalg.norm(f[:, 1:] - f[:, :-1], axis=-1)
+    grad[:-1, :] += np.linalg.norm(f[1:] - f[:-1], axis=-1)
+    sat = np.zeros((grad.shape[0] + 1, grad.shape[1] + 1))
+    sat[1:, 1:] = grad.cumsum(0).cumsum(1)
+    box = sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
+    low, high = np.percentile(box, TYPICAL)
+    return ((box >= low) & (box <= high)).ravel()
 
 
 def _diverse(order: np.ndarray, n_cols: int, spacing: int, limit: int) -> list[tuple[int, int]]:
@@ -283,7 +309,11 @@ def quadrant_ties(q: int, vertex: tuple[int, int]) -> tuple[np.ndarray, np.ndarr
     vertical[:, vc] = True
     vertical[q - 1 - vr, :] = True
     both = horizontal & vertical
-    return horizontal & ~both, vertical & ~both
+    # The vertex texel goes to the vertical strip in all four quadrants, so along the vertical border it continues
+    # one strip; the inner corner is left to the cut.
+    horizontal[vr, vc] = False
+    vertical[q - 1 - vr, q - 1 - vc] = False
+    return horizontal & ~vertical, vertical & ~horizontal
 
 
 def straight_split(q: int, vertex: tuple[int, int]) -> np.ndarray:
@@ -301,9 +331,11 @@ class Corners:
                 [f"T{c}" for c in range(n_v)] + [f"B{c}" for c in range(n_v)]
         n_cols = feats.shape[1] - h + 1
         desc = _patch_descriptors(feats, h)
-        reference = int(rng.integers(len(desc)))
-        k = min(len(desc), 64 * len(slots))
-        order, _ = knn(desc, desc[reference:reference + 1], k)
+        typical = np.flatnonzero(_typical_windows(feats, h))
+        reference = int(typical[rng.integers(len(typical))])
+        k = min(len(typical), 64 * len(slots))
+        order, _ = knn(desc[typical], desc[reference:reference + 1], k)
+        order = typical[order]
         pool = _diverse(order[0], n_cols, max(1, self.q), max(CORNER_CANDIDATES, len(slots)))
         if len(pool) < len(slots):
             pool = _diverse(order[0], n_cols, 1, len(slots))
@@ -320,6 +352,37 @@ class Corners:
                 for c in range(n_v):
                     mask, cost = self._quadrant_cut(name, f"{hs}{a}", f"{vs}{c}", vertex)
                     self.masks[name, a, c], self.costs[f"{name} {a} {c}"] = mask, cost
+
+    def vertex_square(self, a: int, b: int, c: int, d: int) -> np.ndarray:
+        """Exemplar coordinates ``[h, h, 2]`` of the vertex square with horizontal colours ``a`` (left), ``b``
+        (right) and vertical ones ``c`` (above), ``d`` (below), as the frames will assemble it."""
+        q = self.q
+        square = np.zeros((self.h, self.h, 2), np.int32)
+        for name, h_colour, v_colour in (("UL", a, c), ("UR", b, c), ("LL", a, d), ("LR", b, d)):
+            h_slot, v_slot, qr, qc, _ = QUADRANTS[name]
+            hp, vp = self._pieces(name, f"{h_slot}{h_colour}", f"{v_slot}{v_colour}")
+            square[qr * q:(qr + 1) * q, qc * q:(qc + 1) * q] = np.where(self.masks[name, h_colour, v_colour][..., None],
+                                                                        vp, hp)
+        return square
+
+    def seam_score(self) -> float:
+        """The worst of mean and 99th-percentile distance across the two centre lines of every vertex square,
+        over the same of the distances from those texels to their own exemplar neighbours."""
+        q, f, parts, local = self.q, self.feats, [], []
+        limit = np.array(f.shape[:2]) - 1
+        for a in range(self.n_h):
+            for b in range(self.n_h):
+                for c in range(self.n_v):
+                    for d in range(self.n_v):
+                        sq = self.vertex_square(a, b, c, d)
+                        for x, y, step in ((sq[:, q - 1], sq[:, q], (0, 1)), (sq[q - 1], sq[q], (1, 0))):
+                            parts.append(np.linalg.norm(f[x[:, 0], x[:, 1]] - f[y[:, 0], y[:, 1]], axis=-1))
+                            ahead, behind = np.clip(x + step, 0, limit), np.clip(y - np.array(step), 0, limit)
+                            local.append(0.5 * (np.linalg.norm(f[x[:, 0], x[:, 1]] - f[ahead[:, 0], ahead[:, 1]], axis=-1)
+                                                + np.linalg.norm(f[behind[:, 0], behind[:, 1]] - f[y[:, 0], y[:, 1]], axis=-1)))
+        values, local = np.concatenate(parts), np.concatenate(local)
+        return max(values.mean() / max(local.mean(), 1e-30),
+                   np.percentile(values, 99) / max(np.percentile(local, 99), 1e-30))
 
     def patch(self, slot: str) -> np.ndarray:
         """Exemplar coordinates ``[h, h, 2]`` of a slot's patch, as laid in its vertex square."""
@@ -465,7 +528,9 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     timings, counts = {}, {}
 
     start = time.perf_counter()
-    corners = Corners(feats, h, n_h, n_v, rng, cut)
+    drawn = [Corners(feats, h, n_h, n_v, rng, cut) for _ in range(CORNER_TRIALS)]
+    corner_scores = [c.seam_score() for c in drawn]
+    corners = drawn[int(np.argmin(corner_scores))]
     timings["corners"] = time.perf_counter() - start
 
     def run(step, jobs):
@@ -509,4 +574,5 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
         return job
 
     unresolved += sum(run("interiors", [interior_job(c, v) for c in combos for v in range(variants)]))
+    counts["filling_seconds"] = {k: round(v, 3) for k, v in filler.seconds.items()}
     return Synthesis(tiles, colors_out, dict(corners.positions), dict(corners.costs), timings, counts, unresolved)
