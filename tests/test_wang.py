@@ -299,3 +299,29 @@ def test_graph_runs_write_read_sheet_and_info(tmp_path):
     from PIL import Image
     assert Image.open(tmp_path / "set.png").size[0] > 4 * 16
     assert main(["info", str(tmp_path / "set.wang")]) == 0
+
+
+def test_sh_gram_features_give_the_hemisphere_l2_distance_and_drive_a_tile_set():
+    from btforge.plugins.sh.model import SHModel, real_sh
+    from btforge.plugins.wang.features import appearance_features
+    rng = np.random.default_rng(5)
+    coeffs = rng.normal(size=(24, 24, 1, 4, 9)).astype(np.float32)          # view order 2, light order 3
+    model = SHModel(coeffs, np.ones((4, 9), np.float32), np.zeros((4, 9), np.float32), light_order=3,
+                    view_order=2, channel_names=("Y",))
+    feats = appearance_features(model)
+    # L2 over (upper hemisphere of views) x (upper hemisphere of lights): a latitude-longitude midpoint rule,
+    # independent of the features' own quadrature
+    theta, phi = np.meshgrid((np.arange(60) + 0.5) * (np.pi / 2) / 60, (np.arange(120) + 0.5) * 2 * np.pi / 120,
+                             indexing="ij")
+    dirs = np.column_stack([(np.sin(theta) * np.cos(phi)).ravel(), (np.sin(theta) * np.sin(phi)).ravel(),
+                            np.cos(theta).ravel()])
+    weight = (np.sin(theta) * (np.pi / 2 / 60) * (2 * np.pi / 120)).ravel()
+    yl, yv = real_sh(3, dirs), real_sh(2, dirs)
+    diff = coeffs[3, 4, 0].astype(np.float64) - coeffs[17, 9, 0]
+    values = yv @ diff @ yl.T                                               # [views, lights]
+    l2 = np.sqrt(weight @ (values ** 2) @ weight)
+    assert np.linalg.norm(feats[3, 4] - feats[17, 9]) == pytest.approx(l2, rel=2e-2)
+    # and not the full-sphere distance of the coefficients
+    assert abs(np.linalg.norm(diff) - l2) > 0.1 * l2
+    tiles, _, _ = build_tile_set(model, tile=12, edge=4, seed=0)
+    assert tiles.n_tiles == 16 and tiles.texel_bytes == 4 * 9 * 4

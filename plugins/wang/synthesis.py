@@ -412,7 +412,7 @@ class Corners:
         c = self.q - CENTRE // 2
         mine = self.feats[y:y + self.h, x:x + self.h]
         total = 0.0
-        for other in self.positions_of_all(positions):
+        for other in positions:
             if other == slot:
                 continue
             py, px = positions[other]
@@ -427,10 +427,6 @@ class Corners:
             elif kind == vs:
                 total += sum(self._difference(name, f"{hs}{a}", slot, positions).sum() for a in range(self.n_h))
         return total
-
-    @staticmethod
-    def positions_of_all(positions: dict):
-        return list(positions)
 
     def _descend(self, positions: dict, slots: list[str], sweeps: int = 2) -> dict:
         """Coordinate descent on the summed quadrant differences, each slot on a distinct pool patch."""
