@@ -30,7 +30,8 @@ def _render_ports(params, paths) -> dict[str, str]:
     bad = [n for n in names if n in RESERVED_PORTS]
     if bad:
         raise BtforgeInputError("render 'materials'", f"'{bad[0]}' cannot name a material")
-    return {n: ("CoordMap" if n.endswith("_map") else "ReflectanceModel") for n in names}
+    return {n: ("CoordMap" if n.endswith("_map") else "TileSet" if n.endswith("_tiles") else "ReflectanceModel")
+            for n in names}
 
 
 def _render_precheck(params, paths):
@@ -72,7 +73,8 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
     scene_data : Scene, optional
         A scene from ``scene.read`` instead of the ``scene`` param (then list the material ports in ``materials``).
     <material> : ReflectanceModel
-        One port per material named in the scene; ``<material>_map`` (CoordMap) where a mesh sets ``coord_map``.
+        One port per material named in the scene; ``<material>_map`` (CoordMap) where a mesh sets ``coord_map``,
+        ``<material>_tiles`` (TileSet) where it sets ``tiles``.
 
     Outputs
     -------

@@ -239,10 +239,12 @@ class ModelShader:
     evaluated with nearest lookups; other models are evaluated at each corner texel and the values weighted.
     """
 
-    def __init__(self, name: str, model: ReflectanceModel, coord_map: CoordMap | None, uv: np.ndarray, wrap: str):
+    def __init__(self, name: str, model: ReflectanceModel, coord_map: CoordMap | None, uv: np.ndarray, wrap: str,
+                 texels: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
         self.name, self.model = name, model
         grid = (coord_map.height, coord_map.width) if coord_map is not None else (model.height, model.width)
-        rows, cols, weights = texel_corners(uv, grid[0], grid[1], wrap)
+        # ``texels``: the model's (rows, cols, weights) around each sample, found by the caller (a tile set)
+        rows, cols, weights = texels if texels is not None else texel_corners(uv, grid[0], grid[1], wrap)
         if coord_map is not None:
             if coord_map.source_size != (model.height, model.width):
                 raise BtforgeInputError(f"render, material '{name}'", f"the coordinate map indexes a "
@@ -358,6 +360,7 @@ class BuiltScene:
         allpos = np.concatenate([m.positions for m in self.meshes])
         self.diagonal = float(np.linalg.norm(allpos.max(0) - allpos.min(0))) or 1.0
         self._env_pixels: dict[int, np.ndarray] = {}
+        self.tilings: dict = {}  # Wang tilings of meshes dressed with tile sets, made on first use
 
     def env_pixels(self, light: LightSpec) -> np.ndarray:
         """The lat-long map of an environment light, made (sky) or taken from the scene the first time a pass asks,
@@ -468,6 +471,11 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
             shader_groups.append((sel, ColourShader(spec.color)))
             continue
         model = materials[spec.material]
+        if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
+            from btforge.plugins.wang.surface import tiled_texels
+            texels = tiled_texels(built, mi, materials[f"{spec.material}_tiles"], prim[sel], uv[sel])
+            shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
+            continue
         coord_map = materials.get(f"{spec.material}_map") if spec.coord_map else None
         su, sv = spec.uv_scale
         ou, ov = spec.uv_offset
@@ -655,6 +663,10 @@ def check_materials(spec: SceneSpec, materials: Mapping[str, Any], plan: Plan) -
                                     "yet: it has no evaluate_texels(rows, cols, lights_local, views_local) method",
                                     "light the scene only with an environment light of method 'sh' (which needs "
                                     "just evaluate), or add evaluate_texels to the model class")
+    if spec.tiled:
+        from btforge.plugins.wang.surface import check_tiles
+        for name in spec.tiled:
+            check_tiles(name, materials[name], materials.get(f"{name}_tiles"))
     for name in spec.coord_mapped:
         cmap = materials.get(f"{name}_map")
         if not isinstance(cmap, CoordMap):

@@ -34,7 +34,7 @@ PORT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 TOP_KEYS = ("description", "camera", "meshes", "lights", "effects", "exposure", "background", "animation")
 CAMERA_KEYS = ("type", "width", "height", "position", "look_at", "up", "fov", "extent", "samples")
 MESH_KEYS = ("primitive", "file", "size", "radius", "major_radius", "minor_radius", "segments", "position", "rotate",
-             "scale", "material", "uv_scale", "uv_offset", "wrap", "coord_map", "color")
+             "scale", "material", "uv_scale", "uv_offset", "wrap", "coord_map", "color", "tiles")
 LIGHT_KEYS = {
     "directional": ("type", "direction", "intensity"),
     "point": ("type", "position", "intensity"),
@@ -81,6 +81,7 @@ class MeshSpec:
     wrap: str
     coord_map: bool
     color: tuple[float, float, float]
+    tiles: bool = False       # the material is looked up through a Wang TileSet (port NAME_tiles)
 
     @property
     def closed(self) -> bool:
@@ -142,10 +143,16 @@ class SceneSpec:
     def coord_mapped(self) -> list[str]:
         return [name for name in self.materials if any(m.material == name and m.coord_map for m in self.meshes)]
 
+    @property
+    def tiled(self) -> list[str]:
+        return [name for name in self.materials if any(m.material == name and m.tiles for m in self.meshes)]
+
     def ports(self) -> dict[str, str]:
-        """Input ports of a ``render`` node for this scene: one per material, plus ``NAME_map`` for coordinate maps."""
+        """Input ports of a ``render`` node for this scene: one per material, plus ``NAME_map`` for coordinate maps
+        and ``NAME_tiles`` for Wang tile sets."""
         ports = {name: "ReflectanceModel" for name in self.materials}
         ports.update({f"{name}_map": "CoordMap" for name in self.coord_mapped})
+        ports.update({f"{name}_tiles": "TileSet" for name in self.tiled})
         return ports
 
     def files(self) -> list[Path]:
@@ -404,10 +411,10 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
         if not isinstance(material, str) or not PORT_NAME.match(material):
             raise w.error(f"{key}.material", f"expected a material name (letters, digits, _), found {material!r}",
                           "the name becomes an input port of the render node")
-        if material in RESERVED_PORTS or material.endswith("_map"):
+        if material in RESERVED_PORTS or material.endswith(("_map", "_tiles")):
             raise w.error(f"{key}.material", f"'{material}' cannot name a material",
-                          f"{', '.join(RESERVED_PORTS)} and names ending in _map are taken by the render node")
-    for k in ("uv_scale", "uv_offset", "wrap", "coord_map"):
+                          f"{', '.join(RESERVED_PORTS)} and names ending in _map or _tiles are taken by the render node")
+    for k in ("uv_scale", "uv_offset", "wrap", "coord_map", "tiles"):
         if k in m and material is None:
             raise w.error(f"{key}.{k}", "applies to a bound material, but the mesh has none", "add 'material: NAME'")
     uv_scale = w.pair(m.get("uv_scale"), f"{key}.uv_scale", default=(1.0, 1.0))
@@ -421,8 +428,22 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if "color" in m and material is not None:
         raise w.error(f"{key}.color", "a mesh has either a material or a plain colour, not both")
     color = w.colour(m.get("color", [0.6, 0.6, 0.6]), f"{key}.color")
+    tiles = _parse_tiles(w, key, m, uv_scale, coord_map)
     return MeshSpec(name, primitive, file, size, radius, major, minor, segments, position, rotate, scale, material,
-                    uv_scale, uv_offset, wrap, coord_map, color)
+                    uv_scale, uv_offset, wrap, coord_map, color, tiles)
+
+
+def _parse_tiles(w: _Where, key: str, m: Mapping[str, Any], uv_scale: tuple[float, float], coord_map: bool) -> bool:
+    """``tiles: true``: whole tiles per unit of UV (``uv_scale`` a pair of integers), no offset, no coordinate map."""
+    tiles = m.get("tiles", False)
+    if not isinstance(tiles, bool):
+        raise w.error(f"{key}.tiles", f"expected true or false, found {tiles!r}")
+    if tiles and coord_map:
+        raise w.error(f"{key}.tiles", "a mesh takes either a coordinate map or a tile set, not both")
+    if tiles and (any(s < 1 or s != int(s) for s in uv_scale) or "uv_offset" in m):
+        raise w.error(f"{key}.uv_scale", f"with tiles, expected whole tiles per unit of UV (integers >= 1) and no "
+                      f"uv_offset, found uv_scale {list(uv_scale)}", "e.g. uv_scale: [4, 4] for 4 x 4 tiles per face")
+    return tiles
 
 
 def _a(noun: str) -> str:

@@ -1,0 +1,253 @@
+"""Tileable BTFs after Leung et al. 2007: Wang-tile sets by graph cuts in the compressed domain, BTFel tables,
+stochastic tilings of planes and of meshes' UV grids.
+
+Stages: ``wang.tiles`` (exemplar -> ``TileSet``), ``wang.tiling`` (``TileSet`` -> ``CoordMap`` of a plane tiling,
+replayed by ``materialize`` and ``render``'s ``coord_map``), ``wang.score`` (seam ratios over every valid
+adjacency and 2 x 2 configuration, colour mismatches and tile use of a tiling), ``tiles.write`` / ``tiles.read``
+(the ``.wang`` archive, see :mod:`.tileset`).  The renderer dresses meshes with a ``TileSet`` directly (scene key
+``tiles: true``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge import REQUIRED, Param, declare_stage, hookimpl
+from btforge.buffers import CoordMap, Scores
+from btforge.errors import BtforgeInputError
+
+from .tileset import TileSet
+
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
+SEARCH_DIMS = 16  # principal components of the appearance features the placement search compares
+
+
+def texel_bytes(buffer) -> int:
+    """Bytes of one texel's record in a per-texel buffer (all its texel fields)."""
+    n = buffer.height * buffer.width
+    return int(sum(getattr(buffer, f).nbytes for f in buffer.texel_fields) // max(n, 1))
+
+
+def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed=0, cut="graph",
+                   engine="opencl"):
+    """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles``."""
+    from . import seams
+    from .features import appearance_features, search_features
+    from .synthesis import synthesize_tiles
+    full = appearance_features(exemplar)
+    feats = search_features(full, SEARCH_DIMS, seed)
+    h = tile // 4 if edge == 0 else edge
+    synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine)
+    measured = seams.tile_set_seams(synthesis.tile_coords, synthesis.tile_colors, full, h)
+    reference = seams.exemplar_reference(full)
+    ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
+    edge_seams = (measured["edges"] / np.maximum(ref_mean, 1e-30)).astype(np.float32)
+    tiles = TileSet.from_coords(synthesis.tile_coords, synthesis.tile_colors, edge_seams, colors_h=colors[0],
+                                colors_v=colors[1], source_size=(exemplar.height, exemplar.width), edge=h,
+                                variants=variants, texel_bytes=texel_bytes(exemplar))
+    return tiles, synthesis, seams.seam_ratios(measured, reference)
+
+
+@declare_stage(
+    "wang.tiles",
+    inputs={"exemplar": "PerTexel"},
+    outputs={"tiles": "TileSet"},
+    params=[
+        Param("tile", "int", 64, "tile size w in texels", low=4, high=1024),
+        Param("edge", "int", 0, "edge-strip thickness h in texels, even (0: tile / 4)", low=0, high=512),
+        Param("colors", "ints", (2, 2), "edge colours [horizontal, vertical]", length=2, low=1, high=8),
+        Param("variants", "int", 1, "tiles (interiors) per colour combination", low=1, high=16),
+        Param("seed", "int", 0, "random seed"),
+    ],
+)
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed):
+    """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
+
+    The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
+    filled between their corners by graph-cut patch filling with per-pixel error bookkeeping (Kwatra et al.
+    2003), frames from the strips' halves, interiors filled with the frame held.  Distances are Euclidean in the
+    exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
+    PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
+    ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
+    statistics (referenced share, bytes of table and indices) and the seam ratios.
+
+    Outputs
+    -------
+    tiles : TileSet
+        Edge colours per tile and the tiles as index maps into a BTFel table of exemplar texels.
+    """
+    from .synthesis import check_sizes
+    h = tile // 4 if edge == 0 else edge
+    check_sizes((exemplar.height, exemplar.width), tile, h, colors)
+    tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
+                                              seed=seed)
+    ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
+    ctx.note("patches", synthesis.counts)
+    ctx.note("btfels", tiles.statistics())
+    ctx.note("seams", {k: round(v, 4) for k, v in ratios.items()})
+    ctx.note("pixels_over_threshold", synthesis.unresolved)
+    return {"tiles": tiles}
+
+
+@declare_stage(
+    "wang.tiling",
+    inputs={"tiles": "TileSet"},
+    outputs={"coords": "CoordMap"},
+    params=[
+        Param("rows", "int", 8, "tiles down", low=1, high=4096),
+        Param("cols", "int", 8, "tiles across", low=1, high=4096),
+        Param("periodic", "bool", False, "match colours across the wrap too, so the result tiles"),
+        Param("seed", "int", 0, "random seed"),
+    ],
+)
+def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
+    """Lay a valid stochastic Wang tiling of rows x cols tiles and output its coordinate map into the exemplar.
+
+    Tile (i, j) covers rows ``i*w .. (i+1)*w - 1`` and columns ``j*w .. (j+1)*w - 1``.  Edge colours are drawn at
+    random, so the tiling is not periodic; among draws, one that uses every tile is kept where there is room.
+    ``materialize`` and ``render``'s ``coord_map`` replay the map on the exemplar (or any buffer of it).
+    """
+    from .seams import tiling_report
+    from .tiling import plane_tiling, tiling_coords
+    ids = plane_tiling(tiles, rows, cols, periodic, seed)
+    ctx.note("tiling", tiling_report(ids, tiles.tile_colors, tiles.n_tiles, periodic))
+    return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic)}
+
+
+def tiling_ids(tiles: TileSet, coords: CoordMap) -> np.ndarray:
+    """The tile index of every ``w x w`` block of a tiling's map (refuses blocks that are no tile)."""
+    w = tiles.tile
+    if coords.height % w or coords.width % w or coords.source_size != tiles.source_size:
+        raise BtforgeInputError("wang.score 'coords'", f"expected a map of whole {w} x {w} tiles into the "
+                                f"{tiles.source_size[0]} x {tiles.source_size[1]} exemplar, found "
+                                f"{coords.height} x {coords.width} into {coords.source_size}",
+                                "wire the coords of a wang.tiling of this tile set")
+    known = {tiles.tile_coords[t].tobytes(): t for t in range(tiles.n_tiles)}
+    rows, cols = coords.height // w, coords.width // w
+    ids = np.empty((rows, cols), np.int64)
+    for i in range(rows):
+        for j in range(cols):
+            block = np.ascontiguousarray(coords.coords[i * w:(i + 1) * w, j * w:(j + 1) * w]).tobytes()
+            if block not in known:
+                raise BtforgeInputError("wang.score 'coords'", f"block ({i}, {j}) is not a tile of the set",
+                                        "wire the coords of a wang.tiling of this tile set")
+            ids[i, j] = known[block]
+    return ids
+
+
+@declare_stage(
+    "wang.score",
+    inputs={"tiles": "TileSet", "exemplar": "PerTexel", "coords": "CoordMap"},
+    optional_inputs=("coords",),
+    outputs={"scores": "Scores"},
+)
+def wang_score(ctx, tiles, exemplar, coords=None):
+    """Seam scores of a tile set (and of a tiling of it): the tile-set mode of ``score``.
+
+    Over every valid adjacency (horizontal and vertical) and every valid 2 x 2 configuration, the distances
+    between texels facing each other across tile borders, as mean and 99th-percentile ratios to the distances
+    between neighbouring texels inside the exemplar (in its appearance features).  With ``coords`` (a
+    ``wang.tiling``), also the colour mismatches on its shared edges, tile use and whether its tile IDs repeat
+    periodically.  Plus the BTFel statistics.
+    """
+    from . import seams
+    from .features import appearance_features
+    from .tiling import is_periodic
+    if (exemplar.height, exemplar.width) != tiles.source_size:
+        raise BtforgeInputError("wang.score 'exemplar'", f"expected the {tiles.source_size[0]} x "
+                                f"{tiles.source_size[1]} exemplar of the tile set, found {exemplar.height} x "
+                                f"{exemplar.width}", "wire the buffer the tile set was synthesized from")
+    full = appearance_features(exemplar)
+    ratios = seams.seam_ratios(seams.tile_set_seams(tiles.tile_coords, tiles.tile_colors, full, tiles.edge),
+                               seams.exemplar_reference(full))
+    values = {f"seam_{k}": v for k, v in ratios.items()}
+    stats = tiles.statistics()
+    values.update({"btfel_share": stats["referenced_share"], "btfel_bytes": stats["total_bytes"],
+                   "tiles": stats["tiles"]})
+    if coords is not None:
+        ids = tiling_ids(tiles, coords)
+        report = seams.tiling_report(ids, tiles.tile_colors, tiles.n_tiles, coords.wrap)
+        values.update({f"tiling_{k}": v for k, v in report.items()})
+        values["tiling_periodic"] = bool(is_periodic(ids))
+    return {"scores": Scores(values)}
+
+
+@declare_stage("tiles.write", inputs={"tiles": "TileSet"},
+               params=[Param("path", "outpath", REQUIRED, "the .wang archive to write (relative to --out)")],
+               side_effects=True)
+def tiles_write(ctx, tiles, *, path):
+    """Write a tile set losslessly: a ZIP of manifest.json and .npy arrays (format in README, Wang tiles)."""
+    if not str(path).endswith(".wang"):
+        raise BtforgeInputError("tiles.write 'path'", f"expected a .wang file, found {path!r}", "name it NAME.wang")
+    tiles.write(ctx.paths.output(path))
+    return {}
+
+
+def _read_precheck(params, paths):
+    from .tileset import read_manifest
+    _, archive = read_manifest(paths.input(params["path"]))
+    archive.close()
+    return []
+
+
+@declare_stage("tiles.read", outputs={"tiles": "TileSet"},
+               params=[Param("path", "path", REQUIRED, "a .wang archive written by tiles.write")],
+               precheck=_read_precheck)
+def tiles_read(ctx, *, path):
+    """Read a tile set written by ``tiles.write``."""
+    from .tileset import read_tile_set
+    tiles = read_tile_set(ctx.paths.input(path))
+    ctx.note("btfels", tiles.statistics())
+    return {"tiles": tiles}
+
+
+@declare_stage("tiles.sheet", inputs={"tiles": "TileSet", "exemplar": "PerTexel"},
+               params=[Param("path", "outpath", REQUIRED, "the .png file to write (relative to --out)"),
+                       Param("light", "lights", ((0.0, 0.0, 1.0),), "the one light [[x, y, z]] the tiles are shown at"),
+                       Param("columns", "int", 0, "tiles per row (0: a square layout)", low=0, high=4096)],
+               side_effects=True)
+def tiles_sheet(ctx, tiles, exemplar, *, path, light, columns):
+    """Write a picture of a tile set: each tile relit at one light, framed by bars in its edge colours.
+
+    N and S bars show the horizontal-edge colours, E and W bars the vertical-edge ones (a palette shared by no
+    two colours), so matching edges can be checked by eye.  Exposed so that the exemplar's 99.5th percentile is
+    white, sRGB-encoded.
+    """
+    from PIL import Image as PILImage
+
+    from btforge.atomic import atomic_output_path
+
+    from .sheet import tile_sheet
+    if isinstance(light, str) or len(light) != 1:
+        raise BtforgeInputError("tiles.sheet 'light'", f"expected one light [[x, y, z]], found {light!r}")
+    if (exemplar.height, exemplar.width) != tiles.source_size:
+        raise BtforgeInputError("tiles.sheet 'exemplar'", f"expected the {tiles.source_size[0]} x "
+                                f"{tiles.source_size[1]} exemplar of the tile set, found {exemplar.height} x "
+                                f"{exemplar.width}", "wire the buffer the tile set was synthesized from")
+    pixels = tile_sheet(tiles, exemplar, np.asarray(light[0], np.float64), columns)
+    with atomic_output_path(ctx.paths.output(path)) as temporary:
+        PILImage.fromarray(pixels).save(temporary, format="PNG")
+    ctx.note("size", list(pixels.shape[:2]))
+    return {}
+
+
+@hookimpl
+def btforge_stages():
+    return [wang_tiles, wang_tiling, wang_score, tiles_write, tiles_read, tiles_sheet]
+
+
+@hookimpl
+def btforge_buffer_types():
+    return [TileSet]
+
+
+@hookimpl
+def btforge_info_readers():
+    from .tileset import describe
+    return {".wang": describe}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_wang
+    return {"wang": bench_wang}

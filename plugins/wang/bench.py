@@ -1,0 +1,79 @@
+"""``btforge bench wang``: time per synthesis step and per tile, BTFel share and memory of a complete tile set."""
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import numpy as np
+
+
+def procedural_exemplar(size: int, lights: int = 24, seed: int = 1):
+    """The built-in procedural material (``demo.material``) as a stack of ``size x size``."""
+    from btforge.buffers import SampleStack
+    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+    material = make_material(size, size, seed=seed)
+    directions = hemisphere_lights(lights)
+    return SampleStack(render_lights(material, directions)[None], directions, np.array([[0.0, 0.0, 1.0]]))
+
+
+def capture_exemplar(path: str, size: int, origin=(150, 100)):
+    """A ``size x size`` crop of a real capture's light file, fitted as an orthonormal RGB PTM."""
+    from btforge.context import StageContext
+    from btforge.registry import default_registry
+    registry = default_registry()
+    stack = registry.stage("stack.read")(ctx=StageContext(node="read"), path=path)["stack"]
+    rows, cols = np.meshgrid(np.arange(origin[0], origin[0] + size), np.arange(origin[1], origin[1] + size),
+                             indexing="ij")
+    crop = stack.remap(rows, cols)
+    return registry.stage("ptm.fit")(ctx=StageContext(node="fit"), stack=crop, variant="rgb",
+                                     basis="orthonormal")["model"]
+
+
+def bench_wang(args: list[str]) -> int:
+    """Time a complete Wang-tile set per step and per tile, with its BTFel share and memory."""
+    from . import build_tile_set
+    parser = argparse.ArgumentParser(prog="btforge bench wang", description=bench_wang.__doc__)
+    parser.add_argument("--exemplar", type=int, default=192, help="exemplar size (square), default 192")
+    parser.add_argument("--tile", type=int, default=64, help="tile size w, default 64")
+    parser.add_argument("--edge", type=int, default=0, help="edge thickness h (0: w / 4)")
+    parser.add_argument("--colors", type=int, nargs=2, default=[2, 2], help="horizontal and vertical colours")
+    parser.add_argument("--capture", default=None, help="a .lp light file: crop and fit it instead of the "
+                        "procedural material")
+    parser.add_argument("--repeat", type=int, default=1, help="runs (median reported), default 1")
+    parser.add_argument("--seed", type=int, default=0)
+    opts = parser.parse_args(args)
+    if opts.repeat < 1:
+        parser.error("--repeat must be at least 1")
+    start = time.perf_counter()
+    exemplar = (capture_exemplar(opts.capture, opts.exemplar) if opts.capture
+                else procedural_exemplar(opts.exemplar))
+    prepare = time.perf_counter() - start
+    runs = []
+    for r in range(opts.repeat):
+        begin = time.perf_counter()
+        tiles, synthesis, ratios = build_tile_set(exemplar, tile=opts.tile, edge=opts.edge, colors=opts.colors,
+                                                  seed=opts.seed + r)
+        runs.append((time.perf_counter() - begin, tiles, synthesis, ratios))
+    runs.sort(key=lambda run: run[0])
+    total, tiles, synthesis, ratios = runs[len(runs) // 2]
+    stats = tiles.statistics()
+    kind = f"capture {opts.capture} (rgb PTM)" if opts.capture else "procedural stack"
+    print(f"wang tiles: {kind}, exemplar {opts.exemplar}^2, tiles {opts.tile}^2, edge {tiles.edge}, colours "
+          f"{opts.colors[0]}+{opts.colors[1]} -> {stats['tiles']} tiles; median of {opts.repeat}")
+    print(f"  {'step':<12}{'seconds':>10}{'patches':>10}{'kept':>8}")
+    for step, seconds in synthesis.timings.items():
+        count = synthesis.counts.get(step, {})
+        print(f"  {step:<12}{seconds:>10.2f}{count.get('placed', ''):>10}{count.get('kept', ''):>8}")
+    print(f"  {'total':<12}{total:>10.2f}   ({total / stats['tiles']:.2f} s per tile; exemplar prepared in "
+          f"{prepare:.2f} s)")
+    print(f"  BTFels: {stats['btfels']} = {100 * stats['referenced_share']:.2f}% of the exemplar; table "
+          f"{stats['table_bytes'] / 1e6:.3f} MB + indices {stats['index_bytes'] / 1e6:.3f} MB = "
+          f"{stats['total_bytes'] / 1e6:.3f} MB (tiles as copies: {stats['texels_as_copies_bytes'] / 1e6:.3f} MB)")
+    print("  filling time by activity (edges + interiors): " + ", ".join(
+        f"{k} {v:.2f} s" for k, v in synthesis.counts["filling_seconds"].items()))
+    print("  seam ratios: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items()))
+    print(f"  seams: worst mean ratio {ratios['worst_mean_ratio']:.3f}, worst p99 ratio "
+          f"{ratios['worst_p99_ratio']:.3f}; pixels over threshold {synthesis.unresolved}")
+    print(f"  peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    return 0

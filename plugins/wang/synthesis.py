@@ -1,0 +1,574 @@
+"""Wang-tile synthesis after Leung et al. 2007, "Tileable BTF", section 3.2: four steps per tile set.
+
+Geometry (``w`` tile size, ``h`` edge thickness, ``q = h / 2``).  Every tile edge is the centre line of an
+*edge strip*: a horizontal colour's strip is ``h x w`` (its upper half lies in the tile above, its lower half in
+the tile below), a vertical colour's ``w x h``.  Every tile corner is the centre of an ``h x h`` *vertex square*
+made of four corner samples, one per incident strip: the strip right of the vertex brings its left corner ``L``
+(the square's right half), the one left of it its right corner ``R``, the one below its top corner ``T``, the
+one above its bottom corner ``B``.  Each quadrant of the square is covered by one horizontal and one vertical
+corner half and is split between them by a cut.
+
+1. **Corner sampling**: one ``h x h`` exemplar patch per corner sample, chosen among the patches nearest a random
+   reference patch of typical contrast (candidate search by :func:`features.knn`) so that every pair meeting in a quadrant differs
+   little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
+   cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
+   kept.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
+   and vertical-strip pixels along the other border, so both borders see one continuous strip right up to the
+   vertex; the two pieces meet only inside the quadrant.
+2. **Edge synthesis**: each strip's middle, between its two corner samples, by graph-cut patch filling.
+3. **Frame**: each tile's border ring from the halves of its four strips and the cached corner cuts.
+4. **Interior**: the same filling with the frame held fixed.
+
+**Graph-cut patch filling** (Kwatra et al. 2003, with the paper's per-pixel bookkeeping): every pixel to fill
+starts with error infinity.  Each step centres a window on the pixel to improve (an unfilled pixel next to filled
+ones first, then the pixel with the largest error), finds the exemplar placement with the least error over the
+window's known pixels (OpenCL, :mod:`placement`), picks among the ``PICK_BEST`` best by the seed, cuts the window
+between old and new content with a minimum cut (:mod:`cuts`; known pixels outside the fill region and on the
+window's rim stay old, unfilled ones take the new patch) and keeps the patch only if it fills pixels or lowers
+the summed per-pixel error of the region.  A pixel's error is its worst seam: for each 4-neighbour copied from
+elsewhere, the mean distance between each side and the other side's own continuation.  Filling stops when every
+pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
+the patch budget runs out.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from btforge.errors import BtforgeInputError
+
+from .cuts import grid_edges, min_cut, min_cut_edges
+from .features import knn
+from .placement import PlacementSearch
+
+PICK_BEST = 4          # a placement is drawn among this many best ones
+THRESHOLD = 0.5        # per-pixel error threshold, times the exemplar's median neighbouring-texel distance
+SEARCH_STRIDE = 2      # placements are searched on every second texel, then refined among their neighbours ...
+STRIDE_FROM = 96       # ... in exemplars at least this large
+REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it
+CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
+DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
+CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
+TYPICAL = (30, 70)     # percentiles of window contrast corner samples are drawn between
+CENTRE = 2             # the central CENTRE x CENTRE texels of corner patches ...
+CENTRE_WEIGHT = 4.0    # ... weigh this much more in their search and choice
+NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
+
+
+@dataclasses.dataclass
+class Synthesis:
+    """What :func:`synthesize_tiles` built: the tiles' coordinates and how they were made."""
+
+    tile_coords: np.ndarray      # [T, w, w, 2] int32
+    tile_colors: np.ndarray      # [T, 4] int32 N, E, S, W
+    corner_positions: dict       # slot name -> exemplar (row, col) of its h x h patch
+    corner_cut_costs: dict       # "quadrant h v" -> cut cost
+    timings: dict                # step -> seconds
+    counts: dict                 # step -> patches placed / kept
+    unresolved: int              # filled pixels left above the threshold
+
+
+# ----------------------------------------------------------------------------------------------- bookkeeping
+
+
+def pixel_errors(coords: np.ndarray, feats: np.ndarray) -> np.ndarray:
+    """Per canvas pixel, its worst seam error (module docstring); ``inf`` where unfilled, 0 where continuous."""
+    h, w = coords.shape[:2]
+    hf, wf = feats.shape[:2]
+    filled = coords[..., 0] >= 0
+    err = np.zeros((h, w), np.float64)
+    for dy, dx in NEIGHBOURS:
+        ys = slice(max(0, -dy), h - max(0, dy))
+        xs = slice(max(0, -dx), w - max(0, dx))
+        yq = slice(max(0, dy), h - max(0, -dy))
+        xq = slice(max(0, dx), w - max(0, -dx))
+        cp, cq = coords[ys, xs], coords[yq, xq]
+        both = filled[ys, xs] & filled[yq, xq]
+        step = np.array([dy, dx])
+        seam = both & np.any(cq != cp + step, axis=-1)
+        if not seam.any():
+            continue
+        p, q = cp[seam], cq[seam]
+        ahead = np.clip(p + step, 0, [hf - 1, wf - 1])
+        behind = np.clip(q - step, 0, [hf - 1, wf - 1])
+        cost = 0.5 * (np.linalg.norm(feats[ahead[:, 0], ahead[:, 1]] - feats[q[:, 0], q[:, 1]], axis=1)
+                      + np.linalg.norm(feats[p[:, 0], p[:, 1]] - feats[behind[:, 0], behind[:, 1]], axis=1))
+        view = err[ys, xs]
+        idx = np.nonzero(seam)
+        view[idx] = np.maximum(view[idx], cost)
+    err[~filled] = np.inf
+    return err
+
+
+def neighbour_distances(feats: np.ndarray) -> np.ndarray:
+    """Distances between every horizontally and vertically adjacent pair of exemplar texels."""
+    f = feats.astype(np.float64)
+    return np.concatenate([np.linalg.norm(f[:, 1:] - f[:, :-1], axis=-1).ravel(),
+                           np.linalg.norm(f[1:] - f[:-1], axis=-1).ravel()])
+
+
+def _rim(shape) -> np.ndarray:
+    rim = np.zeros(shape, bool)
+    rim[0, :] = rim[-1, :] = rim[:, 0] = rim[:, -1] = True
+    return rim
+
+
+def _region_cost(err: np.ndarray, region: np.ndarray) -> tuple[int, float]:
+    values = err[region]
+    finite = np.isfinite(values)
+    return int((~finite).sum()), float(values[finite].sum())
+
+
+class Filler:
+    """Graph-cut patch filling of canvases over one exemplar (see the module docstring)."""
+
+    def __init__(self, feats: np.ndarray, search: PlacementSearch, rng: np.random.Generator, cut: str,
+                 threshold: float):
+        self.feats, self.search, self.rng, self.cut, self.threshold = feats, search, rng, cut, threshold
+        self.placed = self.kept = 0
+        self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
+
+    def _target(self, coords, region, err):
+        unfilled = region & (coords[..., 0] < 0)
+        if unfilled.any():
+            filled = coords[..., 0] >= 0
+            grown = filled.copy()
+            grown[1:] |= filled[:-1]
+            grown[:-1] |= filled[1:]
+            grown[:, 1:] |= filled[:, :-1]
+            grown[:, :-1] |= filled[:, 1:]
+            choice = unfilled & grown
+            choice = choice if choice.any() else unfilled
+        else:
+            worst = err[region].max()
+            choice = region & (err >= worst)
+        ys, xs = np.nonzero(choice)
+        k = int(self.rng.integers(len(ys)))
+        return ys[k], xs[k]
+
+    def _placement(self, coords, y0, x0, window):
+        ph, pw = window
+        part = coords[y0:y0 + ph, x0:x0 + pw]
+        known = part[..., 0] >= 0
+        offsets = np.argwhere(known).astype(np.int32)
+        target = self.feats[part[known][:, 0], part[known][:, 1]]
+        stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
+        errors = self.search.errors(offsets, target, window, stride)
+        flat = errors.ravel()
+        k = min(PICK_BEST, flat.size)
+        best = np.argpartition(flat, k - 1)[:k]
+        best = best[np.argsort(flat[best], kind="stable")]
+        gy, gx = divmod(int(best[self.rng.integers(k)]), errors.shape[1])
+        if stride == 1:
+            return gy, gx
+        return self.search.refine(offsets, target, window, gy * stride, gx * stride, stride - 1)
+
+    def _edge_costs(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """Per neighbour pair of the window, what a seam between old and new content there would show:
+        ``|A(s) - B(s)| + |A(t) - B(t)|``, where an unfilled pixel's old content is its filled neighbour's
+        continuation in the exemplar (what the old patch would have put there)."""
+        ph, pw = old.shape[:2]
+        s, t = grid_edges((ph, pw))
+        old_flat, new_flat = old.reshape(-1, 2), new.reshape(-1, 2)
+        step = np.stack(np.divmod(t, pw), 1) - np.stack(np.divmod(s, pw), 1)
+        limit = np.array(self.feats.shape[:2]) - 1
+        filled = old_flat[:, 0] >= 0
+        a_s = np.where(filled[s, None], old_flat[s], np.where(filled[t, None], old_flat[t] - step, new_flat[s]))
+        a_t = np.where(filled[t, None], old_flat[t], np.where(filled[s, None], old_flat[s] + step, new_flat[t]))
+        a_s, a_t = np.clip(a_s, 0, limit), np.clip(a_t, 0, limit)
+        f = self.feats
+        return (np.linalg.norm(f[a_s[:, 0], a_s[:, 1]] - f[new_flat[s, 0], new_flat[s, 1]], axis=1)
+                + np.linalg.norm(f[a_t[:, 0], a_t[:, 1]] - f[new_flat[t, 0], new_flat[t, 1]], axis=1))
+
+    def fill(self, coords: np.ndarray, region: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+        """Fill ``region`` of ``coords [h, w, 2]`` (``-1`` unfilled) in place; pixels outside it stay fixed."""
+        ph, pw = min(window[0], coords.shape[0]), min(window[1], coords.shape[1])
+        err = pixel_errors(coords, self.feats)
+        covering, refining = 0, 0
+        budget = None
+        rim = _rim((ph, pw))
+        while True:
+            n_unfilled, total = _region_cost(err, region)
+            if n_unfilled == 0:
+                if budget is None:
+                    budget = max(2, int(np.ceil(REFINE_SHARE * covering)))
+                if err[region].max() <= self.threshold or refining >= budget:
+                    break
+                refining += 1
+            else:
+                covering += 1
+                if covering > 4 * region.sum():  # cannot happen while each kept patch fills a pixel
+                    raise RuntimeError("patch filling made no progress")
+            ty, tx = self._target(coords, region, err)
+            y0 = int(np.clip(ty - ph // 2, 0, coords.shape[0] - ph))
+            x0 = int(np.clip(tx - pw // 2, 0, coords.shape[1] - pw))
+            clock = time.perf_counter()
+            py, px = self._placement(coords, y0, x0, (ph, pw))
+            self.placed += 1
+            self.seconds["search"] += time.perf_counter() - clock
+            clock = time.perf_counter()
+            dy, dx = np.mgrid[0:ph, 0:pw]
+            new = np.stack([py + dy, px + dx], -1).astype(np.int32)
+            old = coords[y0:y0 + ph, x0:x0 + pw]
+            inside = region[y0:y0 + ph, x0:x0 + pw]
+            filled = old[..., 0] >= 0
+            take = inside & ~filled
+            if self.cut == "graph" and filled.any():
+                keep = filled & (~inside | rim)
+                mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
+            else:
+                mask = take if take.any() else inside & ~rim
+            self.seconds["cut"] += time.perf_counter() - clock
+            clock = time.perf_counter()
+            trial = coords.copy()
+            trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
+            trial_err = pixel_errors(trial, self.feats)
+            self.seconds["bookkeeping"] += time.perf_counter() - clock
+            after = _region_cost(trial_err, region)
+            if after[0] < n_unfilled or (after[0] == n_unfilled and after[1] < total - 1e-9):
+                coords[...] = trial
+                err = trial_err
+                self.kept += 1
+        return err
+
+
+# ----------------------------------------------------------------------------------------------- corners
+
+
+def _patch_descriptors(feats: np.ndarray, size: int) -> np.ndarray:
+    """Cell means of every ``size x size`` window: ``[(H - size + 1) * (W - size + 1), cells^2 * D]``."""
+    cells = max(1, min(DESCRIPTOR_CELLS, size))
+    step = size // cells
+    f = feats.astype(np.float64)
+    sat = np.zeros((f.shape[0] + 1, f.shape[1] + 1, f.shape[2]))
+    sat[1:, 1:] = f.cumsum(0).cumsum(1)
+    n_rows, n_cols = f.shape[0] - size + 1, f.shape[1] - size + 1
+    parts = []
+    for a in range(cells):
+        for b in range(cells):
+            y, x = a * step, b * step
+            box = (sat[y + step:y + step + n_rows, x + step:x + step + n_cols] - sat[y:y + n_rows, x + step:x + step + n_cols]
+                   - sat[y + step:y + step + n_rows, x:x + n_cols] + sat[y:y + n_rows, x:x + n_cols])
+            parts.append(box / (step * step))
+    # The texels around the vertex weigh most: there the pieces of four different strips touch.
+    c0 = size // 2 - CENTRE // 2
+    for a in range(CENTRE):
+        for b in range(CENTRE):
+            parts.append(CENTRE_WEIGHT * f[c0 + a:c0 + a + n_rows, c0 + b:c0 + b + n_cols])
+    return np.concatenate(parts, axis=-1).reshape(n_rows * n_cols, -1).astype(np.float32)
+
+
+def _typical_windows(feats: np.ndarray, size: int) -> np.ndarray:
+    """Whether each ``size x size`` window (by flat index of its origin) has typical contrast: its summed distance
+    between neighbouring texels lies between the TYPICAL percentiles over all windows.  Corner samples are drawn
+    among these only: every vertex shows one, so neither the busiest nor the flattest places of the exemplar (which
+    the search for mutually similar samples would otherwise favour) should set the tile borders."""
+    f = feats.astype(np.float64)
+    grad = np.zeros(f.shape[:2])
+    grad[:, :-1] += np.linalg.norm(f[:, 1:] - f[:, :-1], axis=-1)
+    grad[:-1, :] += np.linalg.norm(f[1:] - f[:-1], axis=-1)
+    sat = np.zeros((grad.shape[0] + 1, grad.shape[1] + 1))
+    sat[1:, 1:] = grad.cumsum(0).cumsum(1)
+    box = sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
+    low, high = np.percentile(box, TYPICAL)
+    return ((box >= low) & (box <= high)).ravel()
+
+
+def _diverse(order: np.ndarray, n_cols: int, spacing: int, limit: int) -> list[tuple[int, int]]:
+    chosen: list[tuple[int, int]] = []
+    for index in order:
+        y, x = divmod(int(index), n_cols)
+        if all(max(abs(y - cy), abs(x - cx)) >= spacing for cy, cx in chosen):
+            chosen.append((y, x))
+            if len(chosen) == limit:
+                break
+    return chosen
+
+
+# The four quadrants of a vertex square: which corner samples cover it and where the vertex lies in it.
+# name: (horizontal sample, vertical sample, rows, cols, vertex corner (row, col) in quadrant coordinates)
+QUADRANTS = {
+    "UL": ("R", "B", 0, 0, (1, 1)),
+    "UR": ("L", "B", 0, 1, (1, 0)),
+    "LL": ("R", "T", 1, 0, (0, 1)),
+    "LR": ("L", "T", 1, 1, (0, 0)),
+}
+
+
+def quadrant_ties(q: int, vertex: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(horizontal, vertical)`` pixels of a ``q x q`` quadrant tied to each strip: the row through the vertex
+    and the column away from it stay with the horizontal strip, the column through the vertex and the row away
+    from it with the vertical one; the two corners where both would apply are left to the cut."""
+    vr, vc = (q - 1) * vertex[0], (q - 1) * vertex[1]
+    horizontal = np.zeros((q, q), bool)
+    vertical = np.zeros((q, q), bool)
+    horizontal[vr, :] = True
+    horizontal[:, q - 1 - vc] = True
+    vertical[:, vc] = True
+    vertical[q - 1 - vr, :] = True
+    both = horizontal & vertical
+    # The vertex texel goes to the vertical strip in all four quadrants, so along the vertical border it continues
+    # one strip; the inner corner is left to the cut.
+    horizontal[vr, vc] = False
+    vertical[q - 1 - vr, q - 1 - vc] = False
+    return horizontal & ~vertical, vertical & ~horizontal
+
+
+def straight_split(q: int, vertex: tuple[int, int]) -> np.ndarray:
+    """The straight-cut baseline: horizontal strips run through the vertex square, vertical ones stop at them."""
+    return np.zeros((q, q), bool)
+
+
+class Corners:
+    """Step 1: a patch per corner sample and the cached cut of every quadrant combination."""
+
+    def __init__(self, feats: np.ndarray, h: int, n_h: int, n_v: int, rng: np.random.Generator, cut: str):
+        self.h, self.q, self.n_h, self.n_v = h, h // 2, n_h, n_v
+        self.feats = feats
+        slots = [f"L{a}" for a in range(n_h)] + [f"R{a}" for a in range(n_h)] + \
+                [f"T{c}" for c in range(n_v)] + [f"B{c}" for c in range(n_v)]
+        n_cols = feats.shape[1] - h + 1
+        desc = _patch_descriptors(feats, h)
+        typical = np.flatnonzero(_typical_windows(feats, h))
+        reference = int(typical[rng.integers(len(typical))])
+        k = min(len(typical), 64 * len(slots))
+        order, _ = knn(desc[typical], desc[reference:reference + 1], k)
+        order = typical[order]
+        pool = _diverse(order[0], n_cols, max(1, self.q), max(CORNER_CANDIDATES, len(slots)))
+        if len(pool) < len(slots):
+            pool = _diverse(order[0], n_cols, 1, len(slots))
+        if len(pool) < len(slots):
+            raise BtforgeInputError("wang.tiles", f"the exemplar has fewer than {len(slots)} distinct "
+                                    f"{h} x {h} patches for the corner samples", "lower 'edge' or use a larger exemplar")
+        self.pool = pool
+        assignment = dict(zip(slots, [pool[i] for i in rng.permutation(len(pool))[:len(slots)]]))
+        self.positions = self._descend(assignment, slots)
+        self.cut = cut
+        self.masks, self.costs = {}, {}
+        for name, (hs, vs, _, _, vertex) in QUADRANTS.items():
+            for a in range(n_h):
+                for c in range(n_v):
+                    mask, cost = self._quadrant_cut(name, f"{hs}{a}", f"{vs}{c}", vertex)
+                    self.masks[name, a, c], self.costs[f"{name} {a} {c}"] = mask, cost
+
+    def vertex_square(self, a: int, b: int, c: int, d: int) -> np.ndarray:
+        """Exemplar coordinates ``[h, h, 2]`` of the vertex square with horizontal colours ``a`` (left), ``b``
+        (right) and vertical ones ``c`` (above), ``d`` (below), as the frames will assemble it."""
+        q = self.q
+        square = np.zeros((self.h, self.h, 2), np.int32)
+        for name, h_colour, v_colour in (("UL", a, c), ("UR", b, c), ("LL", a, d), ("LR", b, d)):
+            h_slot, v_slot, qr, qc, _ = QUADRANTS[name]
+            hp, vp = self._pieces(name, f"{h_slot}{h_colour}", f"{v_slot}{v_colour}")
+            square[qr * q:(qr + 1) * q, qc * q:(qc + 1) * q] = np.where(self.masks[name, h_colour, v_colour][..., None],
+                                                                        vp, hp)
+        return square
+
+    def seam_score(self) -> float:
+        """The worst of mean and 99th-percentile distance across the two centre lines of every vertex square,
+        over the same of the distances from those texels to their own exemplar neighbours."""
+        q, f, parts, local = self.q, self.feats, [], []
+        limit = np.array(f.shape[:2]) - 1
+        for a in range(self.n_h):
+            for b in range(self.n_h):
+                for c in range(self.n_v):
+                    for d in range(self.n_v):
+                        sq = self.vertex_square(a, b, c, d)
+                        for x, y, step in ((sq[:, q - 1], sq[:, q], (0, 1)), (sq[q - 1], sq[q], (1, 0))):
+                            parts.append(np.linalg.norm(f[x[:, 0], x[:, 1]] - f[y[:, 0], y[:, 1]], axis=-1))
+                            ahead, behind = np.clip(x + step, 0, limit), np.clip(y - np.array(step), 0, limit)
+                            local.append(0.5 * (np.linalg.norm(f[x[:, 0], x[:, 1]] - f[ahead[:, 0], ahead[:, 1]], axis=-1)
+                                                + np.linalg.norm(f[behind[:, 0], behind[:, 1]] - f[y[:, 0], y[:, 1]], axis=-1)))
+        values, local = np.concatenate(parts), np.concatenate(local)
+        return max(values.mean() / max(local.mean(), 1e-30),
+                   np.percentile(values, 99) / max(np.percentile(local, 99), 1e-30))
+
+    def patch(self, slot: str) -> np.ndarray:
+        """Exemplar coordinates ``[h, h, 2]`` of a slot's patch, as laid in its vertex square."""
+        y, x = self.positions[slot]
+        dy, dx = np.mgrid[0:self.h, 0:self.h]
+        return np.stack([y + dy, x + dx], -1).astype(np.int32)
+
+    def _pieces(self, name: str, h_slot: str, v_slot: str, positions=None):
+        _, _, qr, qc, _ = QUADRANTS[name]
+        rows, cols = slice(qr * self.q, (qr + 1) * self.q), slice(qc * self.q, (qc + 1) * self.q)
+        positions = positions or self.positions
+        dy, dx = np.mgrid[rows, cols]
+        (hy, hx), (vy, vx) = positions[h_slot], positions[v_slot]
+        return np.stack([hy + dy, hx + dx], -1), np.stack([vy + dy, vx + dx], -1)
+
+    def _difference(self, name, h_slot, v_slot, positions=None) -> np.ndarray:
+        hp, vp = self._pieces(name, h_slot, v_slot, positions)
+        return np.linalg.norm(self.feats[hp[..., 0], hp[..., 1]] - self.feats[vp[..., 0], vp[..., 1]], axis=-1)
+
+    def _slot_cost(self, slot: str, positions) -> float:
+        """The slot's differences with every sample it meets in a quadrant, plus, across the centre line it
+        shares with the samples of the same orientation (``L``/``R``, ``T``/``B``), with those: at the vertex
+        itself some pieces of different strips must touch."""
+        kind, colour = slot[0], int(slot[1:])
+        partner = {"L": "R", "R": "L", "T": "B", "B": "T"}[kind]
+        y, x = positions[slot]
+        c = self.q - CENTRE // 2
+        mine = self.feats[y:y + self.h, x:x + self.h]
+        total = 0.0
+        for other in positions:
+            if other == slot:
+                continue
+            py, px = positions[other]
+            theirs = self.feats[py:py + self.h, px:px + self.h]
+            centre = np.linalg.norm(mine[c:c + CENTRE, c:c + CENTRE] - theirs[c:c + CENTRE, c:c + CENTRE], axis=-1)
+            total += CENTRE_WEIGHT * self.h * centre.sum()
+            if other[0] == partner:
+                total += np.linalg.norm(mine - theirs, axis=-1).sum() / 4
+        for name, (hs, vs, _, _, _) in QUADRANTS.items():
+            if kind == hs:
+                total += sum(self._difference(name, slot, f"{vs}{c}", positions).sum() for c in range(self.n_v))
+            elif kind == vs:
+                total += sum(self._difference(name, f"{hs}{a}", slot, positions).sum() for a in range(self.n_h))
+        return total
+
+    def _descend(self, positions: dict, slots: list[str], sweeps: int = 2) -> dict:
+        """Coordinate descent on the summed quadrant differences, each slot on a distinct pool patch."""
+        positions = dict(positions)
+        for _ in range(sweeps):
+            for slot in slots:
+                taken = {p for s, p in positions.items() if s != slot}
+                best, best_cost = positions[slot], self._slot_cost(slot, positions)
+                for candidate in self.pool:
+                    if candidate in taken:
+                        continue
+                    cost = self._slot_cost(slot, {**positions, slot: candidate})
+                    if cost < best_cost:
+                        best, best_cost = candidate, cost
+                positions[slot] = best
+        return positions
+
+    def _quadrant_cut(self, name, h_slot, v_slot, vertex):
+        difference = self._difference(name, h_slot, v_slot)
+        if self.cut == "straight":
+            mask = straight_split(self.q, vertex)
+            return mask, float("nan")
+        keep, take = quadrant_ties(self.q, vertex)
+        return min_cut(difference, keep, take)
+
+
+# ----------------------------------------------------------------------------------------------- tile set
+
+
+def tile_index(n: int, e: int, s: int, w: int, variant: int, n_h: int, n_v: int, variants: int) -> int:
+    """The index of the tile with colours N, E, S, W (N/S horizontal, E/W vertical) and its variant."""
+    return (((n * n_v + e) * n_h + s) * n_v + w) * variants + variant
+
+
+def _strip_canvas(corners: Corners, kind: str, colour: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    h, q = corners.h, corners.q
+    if kind == "h":
+        coords = np.full((h, w, 2), -1, np.int32)
+        coords[:, :q] = corners.patch(f"L{colour}")[:, q:]
+        coords[:, w - q:] = corners.patch(f"R{colour}")[:, :q]
+    else:
+        coords = np.full((w, h, 2), -1, np.int32)
+        coords[:q] = corners.patch(f"T{colour}")[q:]
+        coords[w - q:] = corners.patch(f"B{colour}")[:q]
+    return coords, coords[..., 0] < 0
+
+
+def _frame(corners: Corners, strips_h, strips_v, n, e, s, west, w: int) -> np.ndarray:
+    q = corners.q
+    tile = np.full((w, w, 2), -1, np.int32)
+    tile[:q] = strips_h[n][q:]
+    tile[w - q:] = strips_h[s][:q]
+    tile[:, :q] = strips_v[west][:, q:]
+    tile[:, w - q:] = strips_v[e][:, :q]
+    # corners: (tile rows, tile cols, quadrant, h colour, v colour, horizontal piece, vertical piece)
+    spots = [(slice(0, q), slice(0, q), "LR", n, west, strips_h[n][q:, :q], strips_v[west][:q, q:]),
+             (slice(0, q), slice(w - q, w), "LL", n, e, strips_h[n][q:, w - q:], strips_v[e][:q, :q]),
+             (slice(w - q, w), slice(0, q), "UR", s, west, strips_h[s][:q, :q], strips_v[west][w - q:, q:]),
+             (slice(w - q, w), slice(w - q, w), "UL", s, e, strips_h[s][:q, w - q:], strips_v[e][w - q:, :q])]
+    for rows, cols, name, a, c, hp, vp in spots:
+        tile[rows, cols] = np.where(corners.masks[name, a, c][..., None], vp, hp)
+    return tile
+
+
+def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
+    problems = []
+    if h < 2 or h % 2:
+        problems.append(f"'edge' must be even and >= 2, found {h}")
+    if w < 2 * h:
+        problems.append(f"'tile' must be at least twice 'edge' ({2 * h}), found {w}")
+    if min(exemplar_size) < max(w // 2 + h // 2, h + 1):
+        problems.append(f"the {exemplar_size[0]} x {exemplar_size[1]} exemplar is too small for tiles of {w} "
+                        f"and edges of {h}")
+    if len(colors) != 2 or min(colors) < 1:
+        problems.append(f"'colors' must be [horizontal, vertical] counts >= 1, found {list(colors)}")
+    if problems:
+        raise BtforgeInputError("wang.tiles", "; ".join(problems),
+                                "the paper's layout: edge = tile / 4, e.g. tile 64, edge 16, colors [2, 2]")
+
+
+def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
+                     seed: int = 0, *, cut: str = "graph", engine: str = "opencl") -> Synthesis:
+    """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring).
+
+    ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
+    """
+    h = w // 4 if h is None else h
+    check_sizes(feats.shape[:2], w, h, colors)
+    n_h, n_v = colors
+    rng = np.random.default_rng(seed)
+    feats = np.ascontiguousarray(feats, np.float32)
+    threshold = THRESHOLD * float(np.median(neighbour_distances(feats)))
+    search = PlacementSearch(feats, engine)
+    filler = Filler(feats, search, rng, cut, threshold)
+    timings, counts = {}, {}
+
+    start = time.perf_counter()
+    drawn = [Corners(feats, h, n_h, n_v, rng, cut) for _ in range(CORNER_TRIALS)]
+    corner_scores = [c.seam_score() for c in drawn]
+    corners = drawn[int(np.argmin(corner_scores))]
+    timings["corners"] = time.perf_counter() - start
+
+    def run(step, jobs):
+        begin, placed, kept = time.perf_counter(), filler.placed, filler.kept
+        out = [job() for job in jobs]
+        timings[step] = time.perf_counter() - begin
+        counts[step] = {"placed": filler.placed - placed, "kept": filler.kept - kept}
+        return out
+
+    def strip(kind, colour):
+        def job():
+            coords, region = _strip_canvas(corners, kind, colour, w)
+            return coords, filler.fill(coords, region, (h, h))
+        return job
+
+    built = run("edges", [strip("h", a) for a in range(n_h)] + [strip("v", c) for c in range(n_v)])
+    strips_h = [c for c, _ in built[:n_h]]
+    strips_v = [c for c, _ in built[n_h:]]
+    unresolved = sum(int(((e > threshold) & np.isfinite(e)).sum()) for _, e in built)
+
+    start = time.perf_counter()
+    combos = [(n, e, s, west) for n in range(n_h) for e in range(n_v) for s in range(n_h) for west in range(n_v)]
+    frames = {combo: _frame(corners, strips_h, strips_v, *combo, w) for combo in combos}
+    timings["frames"] = time.perf_counter() - start
+
+    q = h // 2
+    ring = max(1, q // 2)  # the frame's outer half stays; its inner half is overlap the interior's cuts may take
+    interior = np.zeros((w, w), bool)
+    interior[ring:w - ring, ring:w - ring] = True
+    window = (min(w - h, h + q),) * 2
+    tiles = np.zeros((len(combos) * variants, w, w, 2), np.int32)
+    colors_out = np.zeros((len(combos) * variants, 4), np.int32)
+
+    def interior_job(combo, variant):
+        def job():
+            tile = frames[combo].copy()
+            err = filler.fill(tile, interior, window)
+            index = tile_index(*combo, variant, n_h, n_v, variants)
+            tiles[index], colors_out[index] = tile, combo
+            return int(((err > threshold) & np.isfinite(err)).sum())
+        return job
+
+    unresolved += sum(run("interiors", [interior_job(c, v) for c in combos for v in range(variants)]))
+    counts["filling_seconds"] = {k: round(v, 3) for k, v in filler.seconds.items()}
+    return Synthesis(tiles, colors_out, dict(corners.positions), dict(corners.costs), timings, counts, unresolved)

@@ -1,0 +1,199 @@
+"""The ``TileSet`` buffer: a complete Wang-tile set over one exemplar, stored as a BTFel table.
+
+Tiles are never copies of reflectance data.  The **BTFel table** lists, once each, the exemplar texels any tile
+references (``table [B, 2]`` row, column, sorted); each tile is a ``w x w`` map of indices into it
+(``indices [T, w, w]``).  Tile ``t``'s coordinate map into the exemplar is ``table[indices[t]]``; replaying it on
+any per-texel buffer of the exemplar gives the tile's texels (Leung et al. 2007, section 5.3 and Table III).
+
+Colours: tile ``t`` has ``tile_colors[t] = (N, E, S, W)``; N and S take one of ``colors_h`` horizontal-edge
+colours, E and W one of ``colors_v`` vertical-edge colours.  Two tiles may sit side by side when the left one's
+E equals the right one's W, one above the other when the upper one's S equals the lower one's N.  A complete set
+holds every combination ``variants`` times; tile ``((((N * colors_v + E) * colors_h + S) * colors_v + W) *
+variants + k)`` is variant ``k`` of its combination.  ``edge_seams [T, 4]`` records, per tile edge (N, E, S, W),
+the mean seam distance across it to every tile that may sit there, over the exemplar's mean neighbouring-texel
+distance in that direction (1 = as smooth as the exemplar).
+
+**File format** (``tiles.write``, ``.wang``): a ZIP archive holding ``manifest.json`` and one ``.npy`` file per
+array (``table.npy`` int32 [B, 2], ``indices.npy`` int32 [T, w, w], ``tile_colors.npy`` int32 [T, 4],
+``edge_seams.npy`` float32 [T, 4]).  The manifest: ``{"format": "btforge-wang-tiles", "version": 1,
+"colors_h", "colors_v", "variants", "tile", "edge", "source_size": [H, W], "texel_bytes", "tiles",
+"btfels"}``; ``texel_bytes`` is the size of one exemplar texel of the representation the set was built on.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import zipfile
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from btforge.buffers import Buffer, CoordMap, check_array, frozen
+from btforge.errors import BtforgeInputError
+
+FORMAT = "btforge-wang-tiles"
+VERSION = 1
+ARRAYS = ("table", "indices", "tile_colors", "edge_seams")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TileSet(Buffer):
+    """A Wang-tile set: edge colours per tile and the tiles as index maps into a BTFel table (module docs)."""
+
+    type_name: ClassVar[str] = "TileSet"
+
+    table: np.ndarray
+    indices: np.ndarray
+    tile_colors: np.ndarray
+    edge_seams: np.ndarray
+    colors_h: int
+    colors_v: int
+    source_size: tuple[int, int]
+    edge: int
+    variants: int = 1
+    texel_bytes: int = 0
+
+    def __post_init__(self):
+        owner = "TileSet"
+        check_array("table", self.table, ("B", 2), np.int32, owner=owner)
+        check_array("indices", self.indices, ("T", "w", "w"), np.int32, owner=owner)
+        t = self.indices.shape[0]
+        check_array("tile_colors", self.tile_colors, (t, 4), np.int32, owner=owner)
+        check_array("edge_seams", self.edge_seams, (t, 4), np.float32, owner=owner)
+        src_h, src_w = (int(v) for v in self.source_size)
+        problems = []
+        for name in ("colors_h", "colors_v", "edge", "variants"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                problems.append(f"'{name}' must be an int >= 1, got {value!r}")
+        if problems:
+            raise BtforgeInputError(owner, "; ".join(problems))
+        if self.table.size and (self.table.min() < 0 or self.table[:, 0].max() >= src_h
+                                or self.table[:, 1].max() >= src_w):
+            problems.append(f"'table' must lie inside the {src_h} x {src_w} exemplar")
+        if self.indices.size and (self.indices.min() < 0 or self.indices.max() >= len(self.table)):
+            problems.append(f"'indices' must lie in [0, {len(self.table)})")
+        n, e, s, w = self.tile_colors.T
+        if t and (min(n.min(), s.min(), e.min(), w.min()) < 0 or max(n.max(), s.max()) >= self.colors_h
+                  or max(e.max(), w.max()) >= self.colors_v):
+            problems.append(f"'tile_colors' must hold N/S in [0, {self.colors_h}) and E/W in [0, {self.colors_v})")
+        if problems:
+            raise BtforgeInputError(owner, "; ".join(problems), "rebuild the tile set with wang.tiles")
+        for name in ("colors_h", "colors_v", "edge", "variants", "texel_bytes"):
+            object.__setattr__(self, name, int(getattr(self, name)))
+        object.__setattr__(self, "source_size", (src_h, src_w))
+        for name in ARRAYS:
+            object.__setattr__(self, name, frozen(getattr(self, name)))
+
+    # -- construction ----------------------------------------------------------------------------------
+    @classmethod
+    def from_coords(cls, tile_coords: np.ndarray, tile_colors, edge_seams, *, colors_h: int, colors_v: int,
+                    source_size, edge: int, variants: int = 1, texel_bytes: int = 0) -> "TileSet":
+        """Build the BTFel table of tiles given as coordinate maps ``[T, w, w, 2]`` into the exemplar."""
+        src_w = int(source_size[1])
+        flat = tile_coords[..., 0].astype(np.int64) * src_w + tile_coords[..., 1]
+        unique, inverse = np.unique(flat, return_inverse=True)
+        table = np.stack([unique // src_w, unique % src_w], 1).astype(np.int32)
+        return cls(table, inverse.reshape(flat.shape).astype(np.int32), np.asarray(tile_colors, np.int32),
+                   np.asarray(edge_seams, np.float32), colors_h, colors_v, tuple(source_size), edge, variants,
+                   texel_bytes)
+
+    # -- views -----------------------------------------------------------------------------------------
+    @property
+    def n_tiles(self) -> int:
+        return self.indices.shape[0]
+
+    @property
+    def tile(self) -> int:
+        return self.indices.shape[1]
+
+    @property
+    def tile_coords(self) -> np.ndarray:
+        """``[T, w, w, 2]`` int32 exemplar coordinates of every tile texel, replayed from the BTFel table."""
+        return self.table[self.indices]
+
+    def tile_map(self, index: int) -> CoordMap:
+        """One tile as a coordinate map (for ``materialize``)."""
+        return CoordMap(np.ascontiguousarray(self.tile_coords[index]), self.source_size)
+
+    def lookup(self, n: int, e: int, s: int, w: int) -> np.ndarray:
+        """Indices of the tiles (variants) with colours N, E, S, W."""
+        want = np.array([n, e, s, w], np.int32)
+        return np.flatnonzero((self.tile_colors == want).all(axis=1))
+
+    def statistics(self) -> dict:
+        """Table III of the paper: the share of exemplar texels referenced, and the storage of table + indices."""
+        index_bytes = 2 if len(self.table) <= 1 << 16 else 4
+        table_bytes = len(self.table) * self.texel_bytes
+        return {"tiles": self.n_tiles, "tile": self.tile, "edge": self.edge, "colors": [self.colors_h, self.colors_v],
+                "variants": self.variants, "btfels": int(len(self.table)),
+                "referenced_share": len(self.table) / float(self.source_size[0] * self.source_size[1]),
+                "table_bytes": int(table_bytes), "index_bytes": int(self.indices.size * index_bytes),
+                "total_bytes": int(table_bytes + self.indices.size * index_bytes),
+                "texels_as_copies_bytes": int(self.indices.size * self.texel_bytes)}
+
+    # -- files -----------------------------------------------------------------------------------------
+    def manifest(self) -> dict:
+        return {"format": FORMAT, "version": VERSION, "colors_h": self.colors_h, "colors_v": self.colors_v,
+                "variants": self.variants, "tile": self.tile, "edge": self.edge,
+                "source_size": list(self.source_size), "texel_bytes": self.texel_bytes, "tiles": self.n_tiles,
+                "btfels": int(len(self.table))}
+
+    def write(self, path) -> None:
+        """Write the ``.wang`` archive (module docstring) atomically."""
+        from btforge.atomic import atomic_output_path
+        with atomic_output_path(Path(path)) as temporary:
+            with zipfile.ZipFile(temporary, "w", zipfile.ZIP_DEFLATED) as archive:
+                archive.writestr("manifest.json", json.dumps(self.manifest(), indent=2))
+                for name in ARRAYS:
+                    bio = io.BytesIO()
+                    np.save(bio, getattr(self, name), allow_pickle=False)
+                    archive.writestr(f"{name}.npy", bio.getvalue())
+
+
+def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
+    path = Path(path)
+    try:
+        archive = zipfile.ZipFile(path)
+        manifest = json.loads(archive.read("manifest.json").decode("utf-8"))
+    except (zipfile.BadZipFile, KeyError, UnicodeDecodeError, json.JSONDecodeError, OSError) as exc:
+        raise BtforgeInputError(str(path), f"is not a tile-set archive ({exc})",
+                                "write tile sets with tiles.write (a ZIP with manifest.json and .npy arrays)")
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        archive.close()
+        raise BtforgeInputError(str(path), f"expected manifest format '{FORMAT}', found "
+                                f"{manifest.get('format') if isinstance(manifest, dict) else manifest!r}")
+    if manifest.get("version") != VERSION:
+        archive.close()
+        raise BtforgeInputError(str(path), f"expected format version {VERSION}, found {manifest.get('version')!r}",
+                                "rewrite it with this btforge's tiles.write")
+    return manifest, archive
+
+
+def read_tile_set(path) -> TileSet:
+    manifest, archive = read_manifest(path)
+    with archive:
+        arrays = {}
+        for name in ARRAYS:
+            try:
+                arrays[name] = np.load(io.BytesIO(archive.read(f"{name}.npy")), allow_pickle=False)
+            except (KeyError, ValueError) as exc:
+                raise BtforgeInputError(str(path), f"'{name}.npy' is missing or damaged ({exc})")
+    missing = [k for k in ("colors_h", "colors_v", "source_size", "edge", "variants", "texel_bytes") if k not in manifest]
+    if missing:
+        raise BtforgeInputError(f"{path} manifest.json", f"lacks {', '.join(missing)}")
+    return TileSet(arrays["table"], arrays["indices"], arrays["tile_colors"], arrays["edge_seams"],
+                   manifest["colors_h"], manifest["colors_v"], tuple(manifest["source_size"]), manifest["edge"],
+                   manifest["variants"], manifest["texel_bytes"])
+
+
+def describe(path) -> dict:
+    """``btforge info`` for a ``.wang`` archive: the manifest and the table statistics."""
+    tiles = read_tile_set(path)
+    stats = tiles.statistics()
+    seams = tiles.edge_seams[np.isfinite(tiles.edge_seams)]
+    return {"kind": "Wang tile set", **stats, "source_size": list(tiles.source_size),
+            "referenced_share": round(stats["referenced_share"], 4),
+            "edge_seam_ratio": [round(float(seams.min()), 3), round(float(seams.max()), 3)] if seams.size else None}

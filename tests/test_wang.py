@@ -1,0 +1,327 @@
+"""Wang tiles (Leung et al. 2007): placement kernel, cuts, tile sets, BTFel tables, tilings, seams, rendering."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from btforge.buffers import CoordMap, SampleStack
+from btforge.context import StageContext
+from btforge.errors import BtforgeInputError
+from btforge.plugins.wang import build_tile_set, tiling_ids, wang_score, wang_tiles, wang_tiling
+from btforge.plugins.wang.bench import procedural_exemplar
+from btforge.plugins.wang.cuts import min_cut
+from btforge.plugins.wang.placement import placement_errors_numpy, placement_errors_opencl
+from btforge.plugins.wang.seams import corner_configurations, tiling_report
+from btforge.plugins.wang.synthesis import quadrant_ties, synthesize_tiles
+from btforge.plugins.wang.tileset import TileSet, describe, read_tile_set
+from btforge.plugins.wang.tiling import glue_mismatches, is_periodic, mesh_tiling, plane_tiling
+
+SIZE, TILE, EDGE = 64, 32, 8
+
+
+@pytest.fixture(scope="module")
+def procedural():
+    stack = procedural_exemplar(SIZE, lights=16)
+    tiles, synthesis, ratios = build_tile_set(stack, tile=TILE, edge=EDGE, seed=0)
+    return stack, tiles, synthesis, ratios
+
+
+# ----------------------------------------------------------------------------------------------- kernels
+
+
+def _placement_case(rng, kind: str, h=20, w=23, d=5, window=(6, 7)):
+    feats = rng.normal(size=(h, w, d)).astype(np.float32)
+    if kind == "constant":
+        feats[:] = 0.25
+    elif kind == "black":
+        feats[:] = 0.0
+    elif kind == "huge":
+        feats *= 1e4
+    elif kind == "tiny":
+        feats *= 1e-6
+    known = rng.random(window) < 0.5
+    known[0, 0] = True
+    offsets = np.argwhere(known)
+    target = feats[3 + offsets[:, 0], 4 + offsets[:, 1]] + rng.normal(size=(len(offsets), d)).astype(np.float32) * (
+        0 if kind in ("constant", "black") else 0.1 * np.abs(feats).max())
+    return feats, offsets, target.astype(np.float32), window
+
+
+@pytest.mark.parametrize("kind", ["random", "constant", "black", "huge", "tiny"])
+@pytest.mark.parametrize("stride", [1, 2])
+def test_placement_kernel_matches_its_numpy_twin(kind, stride):
+    feats, offsets, target, window = _placement_case(np.random.default_rng(4), kind)
+    ref = placement_errors_numpy(feats, offsets, target, window, stride)
+    out = placement_errors_opencl(feats, offsets, target, window, stride)
+    assert out.shape == ref.shape and np.isfinite(out).all()
+    np.testing.assert_allclose(out, ref, rtol=2e-5, atol=1e-6 * max(1.0, float(np.abs(ref).max())))
+    if kind in ("constant", "black"):
+        assert np.all(out == 0)
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 9), st.integers(0, 2 ** 31 - 1))
+def test_placement_kernel_on_random_windows(ph, pw, d, seed):
+    rng = np.random.default_rng(seed)
+    feats = rng.normal(size=(ph + 4, pw + 3, d)).astype(np.float32)
+    offsets = np.argwhere(rng.random((ph, pw)) < 0.6)
+    target = rng.normal(size=(len(offsets), d)).astype(np.float32)
+    ref = placement_errors_numpy(feats, offsets, target, (ph, pw))
+    np.testing.assert_allclose(placement_errors_opencl(feats, offsets, target, (ph, pw)), ref, rtol=2e-5, atol=1e-5)
+    if len(offsets):  # the exact placement of a copied window costs nothing
+        exact = feats[2 + offsets[:, 0], 1 + offsets[:, 1]]
+        assert placement_errors_numpy(feats, offsets, exact, (ph, pw))[2, 1] == 0
+
+
+def test_min_cut_follows_the_valley_and_respects_ties():
+    diff = np.ones((6, 9))
+    diff[:, 5] = 0.0
+    keep = np.zeros((6, 9), bool)
+    keep[:, 0] = True
+    take = np.zeros((6, 9), bool)
+    take[:, -1] = True
+    new, cost = min_cut(diff, keep, take)
+    assert not new[:, :5].any() and new[:, 6:].all() and cost == pytest.approx(6.0)
+    h, v = quadrant_ties(4, (0, 0))
+    new, _ = min_cut(np.random.default_rng(0).random((4, 4)), h, v)
+    assert not new[h].any() and new[v].all()
+
+
+# ----------------------------------------------------------------------------------------------- tile sets
+
+
+def test_complete_set_with_colours_and_btfel_replay(procedural):
+    stack, tiles, synthesis, _ = procedural
+    assert tiles.n_tiles == 16 and tiles.tile == TILE and tiles.edge == EDGE
+    assert sorted(map(tuple, tiles.tile_colors.tolist())) == sorted(
+        (n, e, s, w) for n in range(2) for e in range(2) for s in range(2) for w in range(2))
+    # the BTFel table replays the synthesized tiles bit for bit, and so do their texels
+    assert np.array_equal(tiles.tile_coords, synthesis.tile_coords)
+    assert len(np.unique(tiles.table, axis=0)) == len(tiles.table)
+    table_texels = stack.remap(tiles.table[None, :, 0], tiles.table[None, :, 1]).samples
+    for t in (0, 7, 15):
+        direct = stack.remap(synthesis.tile_coords[t, ..., 0], synthesis.tile_coords[t, ..., 1]).samples
+        assert np.array_equal(table_texels[:, :, 0][:, :, tiles.indices[t]], direct)
+    stats = tiles.statistics()
+    assert 0 < stats["referenced_share"] <= 1 and stats["btfels"] == len(tiles.table)
+    assert stats["total_bytes"] == stats["table_bytes"] + stats["index_bytes"]
+    assert stats["table_bytes"] == len(tiles.table) * 16 * 3 * 4
+
+
+def test_tile_set_file_round_trip_and_info(procedural, tmp_path):
+    _, tiles, _, _ = procedural
+    path = tmp_path / "set.wang"
+    tiles.write(path)
+    back = read_tile_set(path)
+    assert back.content_key == tiles.content_key
+    for name in ("table", "indices", "tile_colors", "edge_seams"):
+        assert np.array_equal(getattr(back, name), getattr(tiles, name), equal_nan=True)
+    info = describe(path)
+    assert info["tiles"] == 16 and info["btfels"] == len(tiles.table)
+    bad = tmp_path / "bad.wang"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(BtforgeInputError, match="not a tile-set archive"):
+        read_tile_set(bad)
+
+
+def test_tileset_validation_names_the_field():
+    with pytest.raises(BtforgeInputError, match="indices"):
+        TileSet(np.zeros((2, 2), np.int32), np.full((1, 4, 4), 5, np.int32), np.zeros((1, 4), np.int32),
+                np.zeros((1, 4), np.float32), 2, 2, (8, 8), 2)
+
+
+def test_bad_parameters_are_reported_together():
+    stack = procedural_exemplar(24, lights=4)
+    with pytest.raises(BtforgeInputError) as err:
+        wang_tiles(ctx=StageContext(node="t"), exemplar=stack, tile=8, edge=5)
+    assert "even" in str(err.value) and "twice" in str(err.value)
+
+
+# ----------------------------------------------------------------------------------------------- seams
+
+
+def test_seams_of_the_procedural_set_are_like_the_exemplar(procedural):
+    _, _, _, ratios = procedural
+    assert ratios["worst_mean_ratio"] <= 1.2 and ratios["worst_p99_ratio"] <= 1.2, ratios
+    # top-left: any tile; top-right and bottom-left: half of them; bottom-right: a quarter
+    assert len(corner_configurations(procedural[1].tile_colors)) == 16 * 8 * 8 * 4
+
+
+def test_straight_cuts_fail_where_graph_cuts_pass():
+    from btforge.plugins.synth.quilting import smooth_fields
+    from btforge.plugins.wang import seams
+    feats = smooth_fields(SIZE, 6, 3, sigma=2.0)
+    reference = seams.exemplar_reference(feats)
+    worst = {}
+    for cut in ("graph", "straight"):
+        syn = synthesize_tiles(feats, TILE, EDGE, (2, 2), 1, 0, cut=cut)
+        r = seams.seam_ratios(seams.tile_set_seams(syn.tile_coords, syn.tile_colors, feats, EDGE), reference)
+        worst[cut] = max(r["worst_mean_ratio"], r["worst_p99_ratio"])
+    assert worst["graph"] <= 1.2 < worst["straight"], worst
+
+
+@pytest.mark.shared_data
+def test_seams_of_a_real_capture_set(shared_data):
+    from btforge.plugins.wang.bench import capture_exemplar
+    model = capture_exemplar(str(shared_data / "rti/icon_san_michele/dirs.lp"), SIZE)
+    tiles, _, ratios = build_tile_set(model, tile=TILE, edge=EDGE, seed=0)
+    assert tiles.n_tiles == 16
+    assert ratios["worst_mean_ratio"] <= 1.2 and ratios["worst_p99_ratio"] <= 1.2, ratios
+
+
+# ----------------------------------------------------------------------------------------------- tilings
+
+
+def test_plane_tiling_is_valid_aperiodic_and_uses_every_tile(procedural):
+    stack, tiles, _, _ = procedural
+    ctx = StageContext(node="tiling")
+    coords = wang_tiling(ctx=ctx, tiles=tiles, rows=8, cols=8, seed=3)["coords"]
+    assert coords.coords.shape == (8 * TILE, 8 * TILE, 2)
+    assert np.array_equal(coords.coords[TILE:2 * TILE, 2 * TILE:3 * TILE],
+                          tiles.tile_coords[tiling_ids(tiles, coords)[1, 2]])
+    ids = tiling_ids(tiles, coords)
+    report = ctx.notes["tiling"]
+    assert report["mismatches"] == 0 and report["tiles_used"] == 16
+    assert not is_periodic(ids)
+    scores = wang_score(tiles=tiles, exemplar=stack, coords=coords)["scores"].values
+    assert scores["tiling_mismatches"] == 0 and scores["tiling_periodic"] is False
+    periodic = plane_tiling(tiles, 6, 6, True, 1)
+    assert tiling_report(periodic, tiles.tile_colors, 16, True)["mismatches"] == 0
+    assert is_periodic(np.tile(np.arange(4).reshape(2, 2), (4, 4)))
+
+
+@pytest.mark.parametrize("primitive,cells", [("plane", (8, 8)), ("cube", (3, 3)), ("torus", (8, 4)),
+                                             ("sphere", (8, 4))])
+def test_mesh_tilings_match_colours_across_every_shared_edge(procedural, primitive, cells):
+    from btforge.plugins.render.geometry import build_mesh
+    from btforge.plugins.render.scene import parse_scene
+    _, tiles, _, _ = procedural
+    spec = parse_scene({"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0]},
+                        "meshes": {"m": {"primitive": primitive, "material": "stone"}}}, "<test>", None)
+    mesh = build_mesh(spec.meshes[0])
+    tiling = mesh_tiling(mesh.positions, mesh.triangles, mesh.corner_uv, cells, tiles, seed=2)
+    assert glue_mismatches(tiling) == 0
+    expected_glues = {"plane": 2 * 8 * 7, "cube": 6 * 2 * 3 * 2 + 12 * 3, "torus": 2 * 8 * 4,
+                      "sphere": 8 * 4 + 8 * 3}[primitive]
+    assert len(tiling.glues) == expected_glues
+    assert (tiling.rotated_glues > 0) == (primitive == "cube")
+    used = np.unique(np.concatenate([g.ravel() for g in tiling.grids]))
+    assert len(used) == 16 or tiling.cells < 16
+
+
+# ----------------------------------------------------------------------------------------------- rendering
+
+
+def _plane_scene(cells: int, pixels: int, light) -> dict:
+    return {"camera": {"type": "orthographic", "width": pixels, "height": pixels, "position": [0, 0, 5],
+                       "look_at": [0, 0, 0], "up": [0, 1, 0], "extent": 2.0},
+            "meshes": {"ground": {"primitive": "plane", "size": 2.0, "material": "stone", "tiles": True,
+                                  "uv_scale": [cells, cells]}},
+            "lights": [{"type": "directional", "direction": light, "intensity": 1.0}], "effects": []}
+
+
+def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural):
+    from btforge.plugins.ptm.model import fit_ptm
+    from btforge.plugins.render.geometry import build_mesh
+    from btforge.plugins.render.renderer import Counters, render
+    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.synth import materialize
+    from btforge.plugins.wang.surface import TILING_SEED
+    from btforge.plugins.wang.tiling import tiling_coords
+    from btforge.stages import RunPaths
+    stack, tiles, _, _ = procedural
+    model = fit_ptm(stack, "rgb")[0]
+    light = [0.3, 0.2, 0.93]
+    cells = 4
+    scene = load_scene(_plane_scene(cells, cells * TILE, light), RunPaths(Path.cwd(), Path.cwd()))
+    image = render(scene, {"stone": model, "stone_tiles": tiles}, Counters())
+    mesh = build_mesh(scene.spec.meshes[0], scene)
+    ids = mesh_tiling(mesh.positions, mesh.triangles, mesh.corner_uv, (cells, cells), tiles, TILING_SEED).grids[0]
+    coords = CoordMap(tiling_coords(tiles, ids), tiles.source_size)
+    relit = materialize(coords=coords, source=model)["output"].evaluate(np.array([light]))[0, 0]
+    np.testing.assert_array_equal(image, relit)
+
+
+def test_tiled_scene_needs_its_tile_set():
+    from btforge.plugins.render.scene import parse_scene
+    spec = parse_scene(_plane_scene(2, 8, [0, 0, 1]), "<test>", None)
+    assert spec.ports() == {"stone": "ReflectanceModel", "stone_tiles": "TileSet"}
+    bad = _plane_scene(2, 8, [0, 0, 1])
+    bad["meshes"]["ground"]["uv_scale"] = [2.5, 2]
+    with pytest.raises(BtforgeInputError, match="whole tiles"):
+        parse_scene(bad, "<test>", None)
+
+
+def test_cube_face_edges_match_and_their_seams_are_reported(procedural):
+    from btforge.plugins.render.geometry import build_mesh
+    from btforge.plugins.render.scene import parse_scene
+    from btforge.plugins.wang.features import appearance_features
+    from btforge.plugins.wang.seams import mesh_seams
+    stack, tiles, _, _ = procedural
+    spec = parse_scene({"camera": {"position": [0, 0, 5]}, "meshes": {"m": {"primitive": "cube", "material": "s"}}},
+                       "<test>", None)
+    mesh = build_mesh(spec.meshes[0])
+    tiling = mesh_tiling(mesh.positions, mesh.triangles, mesh.corner_uv, (2, 2), tiles, seed=0)
+    assert glue_mismatches(tiling) == 0
+    report = mesh_seams(tiling, tiles.tile_coords, appearance_features(stack))
+    # the ring of side faces and the top and bottom to the front keep their orientation across 6 of the 12 face
+    # edges (2 cells each); the other 6 turn it (no orientation field on a cube avoids that)
+    assert report["consistent_edges"] == 6 * 2 and report["rotated_edges"] == 6 * 2
+    assert report["consistent_mean_ratio"] <= 1.2, report
+    print("cube face-edge seams", report)
+
+
+def test_graph_runs_write_read_sheet_and_info(tmp_path):
+    import yaml
+
+    import btforge
+    from btforge.cli import main
+    graph = {"nodes": {
+        "material": {"stage": "demo.material", "params": {"size": [40, 40], "lights": 8, "seed": 2}},
+        "tiles": {"stage": "wang.tiles", "params": {"tile": 16, "edge": 4, "seed": 1},
+                  "inputs": {"exemplar": "material.stack"}},
+        "save": {"stage": "tiles.write", "params": {"path": "set.wang"}, "inputs": {"tiles": "tiles.tiles"}},
+        "picture": {"stage": "tiles.sheet", "params": {"path": "set.png", "light": [[0.2, 0.1, 0.97]]},
+                    "inputs": {"tiles": "tiles.tiles", "exemplar": "material.stack"}},
+        "tiling": {"stage": "wang.tiling", "params": {"rows": 3, "cols": 5}, "inputs": {"tiles": "tiles.tiles"}},
+        "texture": {"stage": "materialize", "inputs": {"coords": "tiling.coords", "source": "material.stack"}},
+    }}
+    (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
+    result = btforge.run(tmp_path / "g.yaml", out_dir=tmp_path, cache_dir=tmp_path / "cache")
+    assert result["texture"]["output"].samples.shape[2:4] == (48, 80)
+    notes = next(r for r in result.report if r.node == "tiles").notes
+    assert set(notes["seconds"]) == {"corners", "edges", "frames", "interiors"}
+    back = read_tile_set(tmp_path / "set.wang")
+    assert back.n_tiles == 16 and back.tile == 16 and notes["btfels"]["btfels"] == len(back.table)
+    from PIL import Image
+    assert Image.open(tmp_path / "set.png").size[0] > 4 * 16
+    assert main(["info", str(tmp_path / "set.wang")]) == 0
+
+
+def test_sh_gram_features_give_the_hemisphere_l2_distance_and_drive_a_tile_set():
+    from btforge.plugins.sh.model import SHModel, real_sh
+    from btforge.plugins.wang.features import appearance_features
+    rng = np.random.default_rng(5)
+    coeffs = rng.normal(size=(24, 24, 1, 4, 9)).astype(np.float32)          # view order 2, light order 3
+    model = SHModel(coeffs, np.ones((4, 9), np.float32), np.zeros((4, 9), np.float32), light_order=3,
+                    view_order=2, channel_names=("Y",))
+    feats = appearance_features(model)
+    # L2 over (upper hemisphere of views) x (upper hemisphere of lights): a latitude-longitude midpoint rule,
+    # independent of the features' own quadrature
+    theta, phi = np.meshgrid((np.arange(60) + 0.5) * (np.pi / 2) / 60, (np.arange(120) + 0.5) * 2 * np.pi / 120,
+                             indexing="ij")
+    dirs = np.column_stack([(np.sin(theta) * np.cos(phi)).ravel(), (np.sin(theta) * np.sin(phi)).ravel(),
+                            np.cos(theta).ravel()])
+    weight = (np.sin(theta) * (np.pi / 2 / 60) * (2 * np.pi / 120)).ravel()
+    yl, yv = real_sh(3, dirs), real_sh(2, dirs)
+    diff = coeffs[3, 4, 0].astype(np.float64) - coeffs[17, 9, 0]
+    values = yv @ diff @ yl.T                                               # [views, lights]
+    l2 = np.sqrt(weight @ (values ** 2) @ weight)
+    assert np.linalg.norm(feats[3, 4] - feats[17, 9]) == pytest.approx(l2, rel=2e-2)
+    # and not the full-sphere distance of the coefficients
+    assert abs(np.linalg.norm(diff) - l2) > 0.1 * l2
+    tiles, _, _ = build_tile_set(model, tile=12, edge=4, seed=0)
+    assert tiles.n_tiles == 16 and tiles.texel_bytes == 4 * 9 * 4
