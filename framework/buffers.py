@@ -285,6 +285,12 @@ class PerTexel(Buffer):
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
 
+    def appearance_features(self) -> np.ndarray:
+        """``[H, W, D]`` float32 vectors whose distances approximate those of the texels' reflectance functions;
+        by default the texel fields concatenated (a buffer type with a better measure overrides this)."""
+        arrays = [np.asarray(getattr(self, f), np.float32) for f in self.texel_fields]
+        return np.concatenate([a.reshape(self.height, self.width, -1) for a in arrays], axis=2)
+
     def blend_records(self, name: str, first: np.ndarray, second: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """``(1 - weight) * first + weight * second`` for records of field ``name``, in that field's dtype.
 

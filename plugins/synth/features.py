@@ -42,8 +42,7 @@ def texel_features(buffer: PerTexel, max_dims: int | None = 32, seed: int = 0) -
         relit = buffer.evaluate(probe_lights())
         features = np.moveaxis(relit, (2, 3), (0, 1)).reshape(buffer.height, buffer.width, -1)
     else:
-        arrays = [np.asarray(getattr(buffer, f), np.float32) for f in buffer.texel_fields]
-        features = np.concatenate([a.reshape(buffer.height, buffer.width, -1) for a in arrays], axis=2)
+        features = buffer.appearance_features()
     features = np.ascontiguousarray(features, dtype=np.float32)
     if max_dims is not None and features.shape[2] > max_dims:
         features = pca_reduce(features, max_dims, seed)

@@ -1,0 +1,1 @@
+"""Geometry-guided BTF synthesis after Liu, Yu & Shum (2001)."""
