@@ -20,7 +20,7 @@ from . import io as height_io
     inputs={"stack": "SampleStack"},
     outputs={"height": "HeightField", "weights": "SampleStack"},
     params=[
-        Param("iterations", "int", 150, "conjugate-gradient iterations per round", low=1, high=100000),
+        Param("iterations", "int", 100, "conjugate-gradient iterations per round", low=1, high=100000),
         Param("smoothness", "float", 0.01, "lambda: weight of the edge-weighted second-difference smoothness "
               "of the heights, relative to the mean data term", low=0.0),
         Param("albedo_smoothness", "float", 0.01, "gamma: weight of the second-difference smoothness of the "
@@ -29,7 +29,7 @@ from . import io as height_io
               "shadows and highlights drop out; false: weight 1 wherever the surface faces the light"),
         Param("init", "choice", "photometric_stereo", "start from heights integrated out of robust photometric "
               "stereo, or from a flat field", choices=("photometric_stereo", "flat")),
-        Param("rounds", "int", 3, "solves, each followed by re-estimating the robust weights", low=1, high=20),
+        Param("rounds", "int", 2, "solves, each followed by re-estimating the robust weights", low=1, high=20),
     ],
 )
 def from_shading(ctx, stack, *, iterations, smoothness, albedo_smoothness, robust, init, rounds):

@@ -250,14 +250,16 @@ def conjugate_gradients(energy, z0, rho0, iterations, precondition=None, toleran
 
 def _solve_lambertian(image, lights, weights):
     """Per texel ``b = argmin sum_k w_k (b . l_k - I_k)^2``; ``image, weights [K, H, W]`` -> ``b [H, W, 3]``."""
+    K, H, W = image.shape
     L = lights.astype(np.float64)
-    w = weights.astype(np.float64)
-    A = np.einsum("khw,ki,kj->hwij", w, L, L) + 1e-9 * np.eye(3)
-    rhs = np.einsum("khw,khw,ki->hwi", w, image.astype(np.float64), L)
+    w = weights.reshape(K, -1).astype(np.float64)
+    outer = (L[:, :, None] * L[:, None, :]).reshape(K, 9)
+    A = (outer.T @ w).T.reshape(-1, 3, 3) + 1e-9 * np.eye(3)           # matrix products, not einsum: BLAS
+    rhs = (L.T @ (w * image.reshape(K, -1))).T
     singular = np.linalg.det(A) < 1e-12
     A[singular] = np.eye(3)
     rhs[singular] = (0.0, 0.0, 1e-6)
-    return np.linalg.solve(A, rhs[..., None])[..., 0]
+    return np.linalg.solve(A, rhs[..., None])[..., 0].reshape(H, W, 3)
 
 
 def photometric_stereo_ls(image, lights):
@@ -280,17 +282,20 @@ def robust_weights(image, lights, normals, albedo, scale_floor=MIN_SCALE):
     1.4826 x their median absolute value over the samples the model lights (floored at ``scale_floor``).
     Samples the model puts in attached shadow (n . l < ``ATTACHED_EPS``) get weight 0.
     """
-    shade = np.einsum("hwc,kc->khw", normals.astype(np.float64), lights.astype(np.float64))
+    K, H, W = image.shape
+    shade = (lights.astype(np.float32) @ normals.reshape(-1, 3).astype(np.float32).T).reshape(K, H, W)
     lit = shade > ATTACHED_EPS
-    a = np.maximum(albedo.astype(np.float64), 1e-6)[None]
+    a = np.maximum(albedo.astype(np.float32), 1e-6)[None]
     residual = (image - a * shade) / a
-    sigma = max(1.4826 * float(np.median(np.abs(residual[lit]))) if lit.any() else 1.0, scale_floor)
-    x = residual / (TUKEY_C * sigma)
+    # the scale from an even subsample of the lit residuals: a median of millions is costly and no better
+    sample = np.abs(residual[lit])[::max(1, int(lit.sum()) // 200000)]
+    sigma = max(1.4826 * float(np.median(sample)) if sample.size else 1.0, scale_floor)
+    x = residual / np.float32(TUKEY_C * sigma)
     w = np.where(np.abs(x) < 1, (1 - x * x) ** 2, 0.0) * lit
     return w.astype(np.float32), sigma
 
 
-def photometric_stereo_robust(image, lights, rounds=6):
+def photometric_stereo_robust(image, lights, rounds=8):
     """Robust photometric stereo by iteratively reweighted least squares with Tukey weights.
 
     Starts without each texel's darkest samples (below ``DARK_FRACTION`` of its brightest: likely shadows), then
@@ -365,9 +370,9 @@ def interior_normals(z: np.ndarray) -> np.ndarray:
     return normals_of(z)
 
 
-def recover_height(image_rgb: np.ndarray, lights: np.ndarray, *, iterations: int = 150, smoothness: float = 0.05,
-                   albedo_smoothness: float = 0.05, robust: bool = True, init: str = "photometric_stereo",
-                   rounds: int = 3, use_opencl: bool = True) -> Recovery:
+def recover_height(image_rgb: np.ndarray, lights: np.ndarray, *, iterations: int = 100, smoothness: float = 0.01,
+                   albedo_smoothness: float = 0.01, robust: bool = True, init: str = "photometric_stereo",
+                   rounds: int = 2, use_opencl: bool = True) -> Recovery:
     """Height, albedo and sample weights from ``image_rgb [K, H, W, C]`` linear radiance under ``lights [K, 3]``.
 
     ``rounds`` alternates the conjugate-gradient solve with re-estimating the robust weights from the current

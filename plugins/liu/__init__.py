@@ -113,7 +113,8 @@ def liu_contact_sheet(ctx, stack, templates, references, *, path, isotropic, max
         grey = grey * (image.mean() / max(float(grey.mean()), 1e-6))
         choice = choose_references(stack.views[v], stack.lights[l], ref_views, ref_lights, 1, isotropic)
         rv, rl = pairs[choice.indices[0]]
-        ref, _ = warp(references.image(rv, rl), float(choice.rotations[0]), bool(choice.mirrored[0]), image.shape[:2])
+        ref, valid = warp(references.image(rv, rl), float(choice.rotations[0]), bool(choice.mirrored[0]), image.shape[:2])
+        ref = ref * valid[..., None]  # black where the warped reference has no data
         tiles = [grey, image, ref]
         rows.append(np.concatenate([t if t.shape[2] == 3 else np.repeat(t[..., :1], 3, 2) for t in tiles], 1))
     sheet = linear_to_srgb8(np.concatenate(rows, 0) * exposure)
@@ -126,3 +127,9 @@ def liu_contact_sheet(ctx, stack, templates, references, *, path, isotropic, max
 @hookimpl
 def btforge_stages():
     return [liu_synthesize, liu_contact_sheet]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_liu
+    return {"liu": bench_liu}

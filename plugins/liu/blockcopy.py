@@ -28,7 +28,7 @@ BLOCK_SAMPLES = 5      # a block is compared on at most 5 x 5 evenly spaced pixe
 SEARCH_DIMS = 8        # principal components the k-d tree searches
 RERANK = 8             # candidates re-ranked by the full block distance
 MAX_POSITIONS = 30000  # reference block positions per size (a coarser position grid beyond)
-BATCH = 4096           # Harris-ordered pixels matched at once (one search per block size)
+BATCH = 2048           # Harris-ordered pixels of the first batch matched at once (one search per size)
 HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
 
@@ -152,6 +152,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         raise BtforgeInputError("liu.synthesize 'references'", f"a warped reference has no valid "
                                 f"{hole_size} x {hole_size} block", "give larger reference images")
     pad = max([i.size for i in indexes] + [hole_index.size]) // 2
+    smallest = min(i.size for i in indexes) if indexes else 1
     padded = np.pad(guide, pad, mode="reflect")
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
     order = np.argsort(-response, axis=None, kind="stable")
@@ -161,9 +162,14 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     source = np.zeros((H, W, 2), np.int32)
     covered = np.zeros((H, W), bool)
     blocks, ssd_sum = 0, 0.0
-    for start in range(0, len(pixels_in_order), BATCH):
-        batch = pixels_in_order[start:start + BATCH]
-        batch = batch[~covered[batch[:, 0], batch[:, 1]]]
+    start, step = 0, BATCH
+    while start < len(pixels_in_order):
+        # batches grow geometrically: late pixels are mostly covered already, and every batch rebuilds the trees
+        batch = pixels_in_order[start:start + step]
+        start, step = start + step, step * 2
+        # only pixels where the smallest block still fits are matched; the others are left to hole filling
+        free = ~ndimage.maximum_filter(covered, size=smallest, mode="constant", cval=False)
+        batch = batch[free[batch[:, 0], batch[:, 1]]]
         if len(batch) == 0:
             continue
         matches = [_match(ix, _template_vectors(padded, pad, batch, ix.size), engine) for ix in indexes]
