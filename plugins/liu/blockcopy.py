@@ -152,7 +152,6 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         raise BtforgeInputError("liu.synthesize 'references'", f"a warped reference has no valid "
                                 f"{hole_size} x {hole_size} block", "give larger reference images")
     pad = max([i.size for i in indexes] + [hole_index.size]) // 2
-    smallest = min(i.size for i in indexes) if indexes else 1
     padded = np.pad(guide, pad, mode="reflect")
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
     order = np.argsort(-response, axis=None, kind="stable")
@@ -167,17 +166,27 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         # batches grow geometrically: late pixels are mostly covered already, and every batch rebuilds the trees
         batch = pixels_in_order[start:start + step]
         start, step = start + step, step * 2
-        # only pixels where the smallest block still fits are matched; the others are left to hole filling
-        free = ~ndimage.maximum_filter(covered, size=smallest, mode="constant", cval=False)
-        batch = batch[free[batch[:, 0], batch[:, 1]]]
+        # a size is matched only at pixels where its block still fits; pixels where none fits wait for hole filling
+        fits = [~ndimage.maximum_filter(covered, size=ix.size, mode="constant", cval=False)[batch[:, 0], batch[:, 1]]
+                for ix in indexes]
+        keep = np.logical_or.reduce(fits)
+        batch, fits = batch[keep], [f[keep] for f in fits]
         if len(batch) == 0:
             continue
-        matches = [_match(ix, _template_vectors(padded, pad, batch, ix.size), engine) for ix in indexes]
+        matches = []
+        for ix, fit in zip(indexes, fits):
+            centres = np.zeros((len(batch), 2), np.int64)
+            cost = np.full(len(batch), np.inf)
+            if fit.any():
+                centres[fit], cost[fit] = _match(ix, _template_vectors(padded, pad, batch[fit], ix.size), engine)
+            matches.append((centres, cost))
         for j, (r, c) in enumerate(batch):
             if covered[r, c]:
                 continue
             best = None
             for ix, (centres, cost) in zip(indexes, matches):
+                if not np.isfinite(cost[j]):
+                    continue
                 k = ix.size // 2
                 r0, r1, c0, c1 = max(r - k, 0), min(r + k + 1, H), max(c - k, 0), min(c + k + 1, W)
                 if covered[r0:r1, c0:c1].any():
