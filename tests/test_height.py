@@ -174,3 +174,31 @@ def test_writers_round_trip(tmp_path):
     assert info["uv"] and info["vertices"] == 120
     with pytest.raises(BtforgeInputError, match="ending in .png or .exr"):
         stage("normals.write")(ctx=ctx, height=field, path="n.jpg")
+
+
+def test_kcoherence_grows_a_height_field():
+    field = _field(24, 24)
+    coords = stage("kcoherence")(exemplar=field, size=[32, 32], levels=1, neighborhood=3, k=2, textons=16)["coords"]
+    grown = stage("materialize")(coords=coords, source=field)["output"]
+    assert isinstance(grown, HeightField) and grown.heights.shape == (32, 32)
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.sampled_from(["black", "constant", "saturated", "three_lights", "clustered", "grazing"]))
+def test_height_from_shading_stays_finite_on_hard_stacks(case):
+    rng = np.random.default_rng(0)
+    k = 3 if case == "three_lights" else 8
+    lights = np.column_stack([rng.normal(size=k), rng.normal(size=k), np.abs(rng.normal(size=k)) + 0.3])
+    if case == "clustered":
+        lights = np.tile([0.3, 0.1, 0.95], (k, 1)) + rng.normal(size=(k, 3)) * 1e-3
+    if case == "grazing":
+        lights[:, 2] = 0.01
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    images = {"black": np.zeros((k, 12, 12, 1)), "constant": np.full((k, 12, 12, 1), 0.4),
+              "saturated": np.ones((k, 12, 12, 1))}.get(case, rng.random((k, 12, 12, 1)))
+    stack = SampleStack(images[None].astype(np.float32), lights, [[0.0, 0.0, 1.0]], channels=("Y",))
+    out = stage("height.from_shading")(stack=stack, iterations=30)
+    field = out["height"]
+    for a in (field.heights, field.albedo, field.normals, out["weights"].samples):
+        assert np.isfinite(a).all()
+    assert np.abs(field.heights).max() < 1e3 and (out["weights"].samples >= 0).all() and (out["weights"].samples <= 1).all()
