@@ -189,6 +189,11 @@ def test_stage_grid_forms_and_shapes(tmp_path):
     assert out["stack"].samples.shape == (2, 1, 32, 32, 3) and out["templates"].samples.shape == (2, 1, 32, 32, 1)
     grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": [45, 60], "light_azimuths": [0, 90, 180]}
     assert stage("liu.synthesize")(height=field, references=refs, grid=grid)["stack"].samples.shape[:2] == (1, 6)
+    repeated = dict(grid, view_azimuths=[0, 90], light_tilts=[0, 45], light_azimuths=[0, 90])  # tilt 0 repeats
+    twice = stage("liu.synthesize")(height=field, references=refs, grid=repeated)["stack"].samples
+    np.testing.assert_array_equal(twice[0], twice[1])
+    np.testing.assert_array_equal(twice[:, 0], twice[:, 1])
+    assert not np.array_equal(twice[:, 0], twice[:, 2])
     lvp = tmp_path / "grid.lvp"
     write_light_file(lvp, ["a.png", "b.png"], [[0.5, 0, 0.87], [0, 0.5, 0.87]], [[0, 0, 1], [0, 0, 1]])
     from btforge.context import StageContext

@@ -63,6 +63,13 @@ def synthesize_image(template_image, references, choice: Choice, pairs, block_si
     return out.astype(np.float32), stats
 
 
+def first_equal(directions: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
+    """For each row, the index of the first row equal to it (itself when it is the first)."""
+    d = np.asarray(directions, np.float64)
+    close = np.abs(d[:, None] - d[None]).max(-1) <= tolerance
+    return close.argmax(1)
+
+
 def synthesize(field, references, views, lights, *, isotropic=True, count=3, block_sizes=(3, 5, 9), seed=0,
                out=None, templates_out=None, progress=None):
     """The BTF ``[V, L, H, W, C]`` and templates ``[V, L, H, W, 1]`` of ``field`` on the grid ``views x lights``.
@@ -78,12 +85,19 @@ def synthesize(field, references, views, lights, *, isotropic=True, count=3, blo
     albedo = grey_albedo(field)
     seconds = {"templates": 0.0, "synthesis": 0.0}
     blocks = holes = 0
+    first_view, first_light = first_equal(views), first_equal(lights)
     for v in range(V):
+        if first_view[v] != v:  # the same direction again (a tilt-0 row of a tilt x azimuth grid): same images
+            out[v], templates_out[v] = out[first_view[v]], templates_out[first_view[v]]
+            continue
         start = time.perf_counter()
         images, _ = template.render(field.heights, albedo, field.normals, np.repeat(views[v:v + 1], L, 0), lights)
         seconds["templates"] += time.perf_counter() - start
         templates_out[v, ..., 0] = images
         for l in range(L):
+            if first_light[l] != l:
+                out[v, l] = out[v, first_light[l]]
+                continue
             start = time.perf_counter()
             choice = choose_references(views[v], lights[l], ref_views, ref_lights, count, isotropic)
             out[v, l], stats = synthesize_image(images[l], references, choice, pairs, block_sizes,
