@@ -53,12 +53,14 @@ def test_rotated_setting_is_at_isotropic_distance_zero():
 
 
 @hsettings(max_examples=15, deadline=None)
-@given(st.lists(st.floats(0, 5, allow_nan=False), min_size=1, max_size=8), st.floats(0.1, 50))
+@given(st.lists(st.floats(0, 5, allow_nan=False), min_size=1, max_size=8), st.none() | st.floats(0.1, 50))
 def test_eq8_weights_sum_to_one_and_fall_with_distance(distances, sharpness):
     w = settings.blend_weights(np.array(distances), sharpness)
     assert w.sum() == pytest.approx(1.0) and np.isfinite(w).all()
     order = np.argsort(distances)
     assert (np.diff(w[order]) <= 1e-12).all()
+    if sharpness is None and max(distances) - min(distances) > 1e-9:
+        assert w[order[-1]] == pytest.approx(w[order[0]] / settings.FURTHEST_RATIO, rel=1e-6)
 
 
 def test_warping_a_reference_to_its_own_setting_is_the_identity():
@@ -243,3 +245,25 @@ def test_geometric_consistency_of_shadows_beats_per_light_2d_synthesis():
           f"per-light 2D quilting {np.mean(independent):.3f}")
     assert len(ours) >= 10 and np.mean(ours) >= 0.7
     assert np.mean(ours) > 2 * np.mean(independent)
+
+
+def test_reference_choice_and_weights_move_smoothly_with_the_target():
+    from btforge.plugins.liu.synthesis import choose_references
+    ref_lights = np.array([settings.direction(t, a) for t in (30, 60) for a in range(0, 360, 45)], np.float32)
+    ref_views = np.tile(np.float32([0, 0, 1]), (len(ref_lights), 1))
+    view = np.float32([0, 0, 1])
+    previous = None
+    for azimuth in np.arange(0, 90, 0.1):
+        choice = choose_references(view, settings.direction(45, azimuth), ref_views, ref_lights, 3, isotropic=False)
+        assert not choice.rotations.any() and not choice.mirrored.any()      # eq. 6: no warp
+        weights = dict(zip(choice.indices.tolist(), choice.weights))
+        if previous is not None:
+            change = sum(abs(weights.get(i, 0) - previous.get(i, 0)) for i in set(weights) | set(previous))
+            assert change < 0.06                                   # continuous: small steps, small changes
+            for left in set(previous) - set(weights):              # a reference leaving or joining weighs ~1 %
+                assert previous[left] < 0.02
+            for joined in set(weights) - set(previous):
+                assert weights[joined] < 0.02
+        previous = weights
+    iso = choose_references(view, settings.direction(30, 20), ref_views, ref_lights, 1, isotropic=True)
+    assert iso.distances[0] == pytest.approx(0, abs=1e-6)                     # a rotated reference matches exactly

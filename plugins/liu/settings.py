@@ -21,7 +21,7 @@ import numpy as np
 from btforge.errors import BtforgeInputError
 
 LIGHT_WEIGHT = 1.0   # eq. 6's lambda
-SHARPNESS = 4.0      # eq. 8's sigma, per radian of setting distance
+FURTHEST_RATIO = 100.0  # eq. 8: the nearest reference weighs this many times the furthest chosen one
 
 
 def polar_points(directions: np.ndarray) -> np.ndarray:
@@ -51,9 +51,18 @@ def isotropic_match(view1, light1, view2, light2, lam: float = LIGHT_WEIGHT):
     return d, -np.angle(best), mirrored
 
 
-def blend_weights(distances: np.ndarray, sharpness: float = SHARPNESS) -> np.ndarray:
-    """Eq. 8: ``exp(-sigma d_i) / sum_k exp(-sigma d_k)`` (computed stably)."""
+def blend_weights(distances: np.ndarray, sharpness: float | None = None) -> np.ndarray:
+    """Eq. 8: ``exp(-sigma d_i) / sum_k exp(-sigma d_k)`` (computed stably).
+
+    Without ``sharpness``, sigma is chosen per target so that the furthest of the given references weighs
+    ``1 / FURTHEST_RATIO`` of the nearest - the paper's "close to 1 for the nearest, almost 0 for the furthest" -
+    so a reference that leaves or joins the set as the target moves carries about 1 % of the weight, and the
+    blend changes smoothly.  sigma depends only on the nearest and furthest distances, which move continuously.
+    """
     d = np.asarray(distances, np.float64)
+    if sharpness is None:
+        spread = float(d.max() - d.min())
+        sharpness = math.log(FURTHEST_RATIO) / spread if spread > 1e-12 else 0.0
     e = np.exp(-sharpness * (d - d.min()))
     return e / e.sum()
 
