@@ -1,0 +1,269 @@
+"""Liu, Yu & Shum BTF synthesis: eq. 6-8, warping, templates (kernel vs twin), block copy, geometric consistency."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings as hsettings, strategies as st
+
+from btforge import SampleStack, stage
+from btforge.errors import BtforgeInputError
+from btforge.plugins.height.field import HeightField
+from btforge.plugins.liu import blockcopy, settings, template
+from btforge.plugins.liu.search import knn
+
+angles = st.floats(0, 360, allow_nan=False)
+tilts = st.floats(0, 85, allow_nan=False)
+
+
+def _rotate(d, degrees):
+    a = math.radians(degrees)
+    x, y, z = d
+    return np.array([math.cos(a) * x - math.sin(a) * y, math.sin(a) * x + math.cos(a) * y, z])
+
+
+def _mirror(d):
+    return np.array([d[0], -d[1], d[2]])
+
+
+@hsettings(max_examples=25, deadline=None)
+@given(tilts, angles, tilts, angles, tilts, angles, tilts, angles, angles, st.booleans(), st.booleans())
+def test_isotropic_distance_is_invariant_under_joint_rotation_and_mirroring(tv1, av1, tl1, al1, tv2, av2, tl2, al2,
+                                                                            rot, mirror1, mirror2):
+    v1, l1 = settings.direction(tv1, av1), settings.direction(tl1, al1)
+    v2, l2 = settings.direction(tv2, av2), settings.direction(tl2, al2)
+    d, _, _ = settings.isotropic_match(v1, l1, v2, l2)
+    w1, m1 = (_mirror(v1), _mirror(l1)) if mirror1 else (v1, l1)
+    w2, m2 = _rotate(v2, rot), _rotate(l2, rot)
+    w2, m2 = (_mirror(w2), _mirror(m2)) if mirror2 else (w2, m2)
+    d2, _, _ = settings.isotropic_match(w1, m1, w2, m2)
+    assert d2 == pytest.approx(d, abs=1e-7)
+    assert d <= settings.distance(v1, l1, v2, l2) + 1e-9
+    # the reported rotation and mirror realise the minimum
+    _, r, mirrored = settings.isotropic_match(v1, l1, v2, l2)
+    a, b = (_mirror(v1), _mirror(l1)) if mirrored else (v1, l1)
+    assert settings.distance(a, b, _rotate(v2, math.degrees(r)), _rotate(l2, math.degrees(r))) == pytest.approx(d, abs=1e-6)
+
+
+def test_rotated_setting_is_at_isotropic_distance_zero():
+    v, l = settings.direction(30, 10), settings.direction(60, 100)
+    d, r, m = settings.isotropic_match(v, l, _rotate(v, 70), _rotate(l, 70))
+    assert d == pytest.approx(0, abs=1e-6) and math.degrees(r) % 360 == pytest.approx(290, abs=1e-4) and not m
+
+
+@hsettings(max_examples=15, deadline=None)
+@given(st.lists(st.floats(0, 5, allow_nan=False), min_size=1, max_size=8), st.none() | st.floats(0.1, 50))
+def test_eq8_weights_sum_to_one_and_fall_with_distance(distances, sharpness):
+    w = settings.blend_weights(np.array(distances), sharpness)
+    assert w.sum() == pytest.approx(1.0) and np.isfinite(w).all()
+    order = np.argsort(distances)
+    assert (np.diff(w[order]) <= 1e-12).all()
+    if sharpness is None and max(distances) - min(distances) > 1e-9:
+        assert w[order[-1]] == pytest.approx(w[order[0]] / settings.FURTHEST_RATIO, rel=1e-6)
+
+
+def test_warping_a_reference_to_its_own_setting_is_the_identity():
+    image = np.random.default_rng(0).random((17, 23, 3)).astype(np.float32)
+    warped, valid = blockcopy.warp(image, 0.0, False, image.shape[:2])
+    assert valid.all()
+    np.testing.assert_allclose(warped, image, atol=1e-6)
+    quarter, valid = blockcopy.warp(image[:17, :17], math.pi / 2, False, (17, 17))
+    np.testing.assert_allclose(quarter, np.rot90(image[:17, :17]), atol=1e-5)  # counter-clockwise
+    mirrored, _ = blockcopy.warp(image, 0.0, True, image.shape[:2])
+    np.testing.assert_allclose(mirrored, image[::-1], atol=1e-6)
+    _, valid = blockcopy.warp(image, math.pi / 4, False, image.shape[:2])
+    assert 0.4 < valid.mean() < 0.95  # the corners of a rotated image have no data
+
+
+def test_block_copy_covers_every_pixel_from_real_reference_pixels():
+    rng = np.random.default_rng(3)
+    reference = rng.random((40, 44, 3)).astype(np.float32)
+    valid = np.ones((40, 44), bool)
+    valid[:, :6] = False
+    target = rng.random((37, 31)).astype(np.float32)
+    result = blockcopy.block_copy(target, reference, valid, (5, 9), seed=1)
+    assert result.blocks > 0 and result.hole_pixels > 0
+    src = result.source
+    assert (src[..., 0] >= 0).all() and (src[..., 1] >= 6).all()  # only valid reference pixels are copied
+    np.testing.assert_array_equal(result.image, reference[src[..., 0], src[..., 1]])
+
+
+def test_block_copy_reproduces_a_reference_used_as_its_own_template():
+    from btforge.plugins.demo.procedural import make_material, render_lights
+    m = make_material(48, 48, bumps=12, seed=2)
+    image = render_lights(m, np.float32([[0.5, 0.3, 0.81]]))[0]
+    result = blockcopy.block_copy(image.mean(2), image, np.ones((48, 48), bool), (5, 9))
+    assert np.abs(result.image - image).mean() < 0.1 * image.mean()
+
+
+def test_knn_engines_agree():
+    rng = np.random.default_rng(0)
+    x, q = rng.normal(size=(300, 5)).astype(np.float32), rng.normal(size=(40, 5)).astype(np.float32)
+    i_exact, d_exact = knn(x, q, 3, engine="exact")
+    truth = ((q[:, None] - x[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(i_exact[:, 0], truth.argmin(1))
+    _, d_fast = knn(x, q, 3, engine="fast")
+    assert (d_fast[:, 0] <= d_exact[:, 0] * 4 + 1e-6).all()  # (1 + eps)^2-approximate
+
+
+# ----------------------------------------------------------------------------------------------- templates
+
+
+def _field(rng, h, w, relief, case):
+    if case == "flat":
+        heights = np.zeros((h, w), np.float32)
+    else:
+        heights = (rng.random((h, w)) * relief).astype(np.float32)
+        if case == "spike":
+            heights[h // 2, w // 2] += 50
+    return HeightField.from_height(heights, rng.random((h, w, 1)).astype(np.float32) + 0.1, wrap=True)
+
+
+@hsettings(max_examples=6, deadline=None)
+@given(st.integers(0, 2**16), st.integers(2, 24), st.integers(2, 24), st.sampled_from(["plain", "flat", "spike"]),
+       st.sampled_from(["random", "vertical", "grazing"]))
+def test_template_kernel_matches_twin(seed, h, w, case, directions):
+    rng = np.random.default_rng(seed)
+    field = _field(rng, h, w, 4.0, case)
+    views = rng.normal(size=(3, 3))
+    lights = rng.normal(size=(3, 3))
+    views[:, 2], lights[:, 2] = np.abs(views[:, 2]) + 0.2, np.abs(lights[:, 2])
+    if directions == "vertical":
+        views[:] = lights[:] = (0, 0, 1)
+    elif directions == "grazing":
+        views[:, 2], lights[:, 2] = 0.02, 0.0
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    args = (field.heights, field.albedo[..., 0], field.normals, views.astype(np.float32), lights.astype(np.float32))
+    img_cl, sh_cl = template.render(*args)
+    img_np, sh_np = template.render_numpy(*args)
+    assert np.isfinite(img_cl).all() and (img_cl >= 0).all() and (img_cl <= field.albedo.max() + 1e-5).all()
+    assert (sh_cl != sh_np).mean() <= 0.01          # ties at shadow boundaries only
+    same = sh_cl == sh_np
+    np.testing.assert_allclose(img_cl[same], img_np[same], atol=1e-4)
+
+
+def test_top_view_template_matches_the_demo_renderer():
+    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+    m = make_material(48, 48, bumps=15, bump_height=5.0, seed=2)
+    lights = hemisphere_lights(8, min_elevation_deg=20)
+    grey = np.ones((48, 48), np.float32)
+    images, shadows = template.render(m.height, grey, m.normals, np.tile(np.float32([0, 0, 1]), (8, 1)), lights)
+    white = type(m)(m.height, np.ones_like(m.albedo), m.normals)
+    expected = render_lights(white, lights)[..., 0]
+    assert ((expected <= 0) != shadows).mean() < 0.01
+    assert np.abs(images - expected).mean() < 0.01
+
+
+def test_tilted_view_shows_occlusion_and_foreshortening():
+    # A single wall: seen from +x, the wall hides the floor behind it (to its -x side, between heights).
+    heights = np.zeros((16, 40), np.float32)
+    heights[:, 18:22] = 8.0
+    albedo = np.where(heights > 0, 1.0, 0.5).astype(np.float32)[..., None]
+    field = HeightField.from_height(heights, albedo, wrap=True)
+    view = settings.direction(60, 0)[None].astype(np.float32)
+    image, _ = template.render(field.heights, field.albedo[..., 0], field.normals, view, np.float32([[0, 0, 1]]))
+    top, _ = template.render(field.heights, field.albedo[..., 0], field.normals, np.float32([[0, 0, 1]]),
+                             np.float32([[0, 0, 1]]))
+    # the wall's top (lit 1) appears shifted toward -x by (8 - z_ref) tan(60) in the rectified image
+    shift = int(np.argmax(image[0, 8] > 0.99)) - int(np.argmax(top[0, 8] > 0.99))
+    assert shift == pytest.approx(-(8 - 4) * math.tan(math.radians(60)), abs=1.5)
+
+
+# ----------------------------------------------------------------------------------------------- the stage
+
+
+def _references(size=64, lights=16, seed=1):
+    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+    m = make_material(size, size, bumps=20, bump_height=5.0, seed=seed)
+    dirs = hemisphere_lights(lights, min_elevation_deg=15)
+    return m, SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
+
+
+def test_stage_grid_forms_and_shapes(tmp_path):
+    from btforge.plugins.stackio.lightfile import write_light_file
+    m, refs = _references(32, 8)
+    field = HeightField.from_height(m.height, m.albedo, wrap=True)
+    out = stage("liu.synthesize")(height=field, references=refs,
+                                  grid={"views": [[0, 0, 1], [0.3, 0, 0.95]], "lights": [[0.5, 0, 0.87]]},
+                                  block_sizes=[5, 9], nearest=2)
+    assert out["stack"].samples.shape == (2, 1, 32, 32, 3) and out["templates"].samples.shape == (2, 1, 32, 32, 1)
+    grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": [45, 60], "light_azimuths": [0, 90, 180]}
+    assert stage("liu.synthesize")(height=field, references=refs, grid=grid)["stack"].samples.shape[:2] == (1, 6)
+    repeated = dict(grid, view_azimuths=[0, 90], light_tilts=[0, 45], light_azimuths=[0, 90])  # tilt 0 repeats
+    twice = stage("liu.synthesize")(height=field, references=refs, grid=repeated)["stack"].samples
+    np.testing.assert_array_equal(twice[0], twice[1])
+    np.testing.assert_array_equal(twice[:, 0], twice[:, 1])
+    assert not np.array_equal(twice[:, 0], twice[:, 2])
+    lvp = tmp_path / "grid.lvp"
+    write_light_file(lvp, ["a.png", "b.png"], [[0.5, 0, 0.87], [0, 0.5, 0.87]], [[0, 0, 1], [0, 0, 1]])
+    from btforge.context import StageContext
+    from btforge.stages import RunPaths
+    ctx = StageContext(node="t", paths=RunPaths(tmp_path, tmp_path))
+    assert stage("liu.synthesize")(ctx=ctx, height=field, references=refs, grid="grid.lvp")["stack"].samples.shape[:2] == (1, 2)
+    with pytest.raises(BtforgeInputError, match="'lights' must point above"):
+        stage("liu.synthesize")(height=field, references=refs, grid={"views": [[0, 0, 1]], "lights": [[1, 0, -1]]})
+    with pytest.raises(BtforgeInputError, match="odd sizes"):
+        stage("liu.synthesize")(height=field, references=refs, grid=grid, block_sizes=[4])
+
+
+def _iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+def _dark(image):
+    """Shadowed pixels of a synthesized image: below 2 % of its median brightness (the references' shadows are
+    black, so this is where a shadow was copied)."""
+    lum = image.mean(-1)
+    return lum < 0.02 * np.median(lum)
+
+
+def test_geometric_consistency_of_shadows_beats_per_light_2d_synthesis():
+    from btforge.plugins.demo.procedural import make_material, render_lights
+    m = make_material(96, 96, bumps=20, bump_height=5.0, seed=1)
+    # an RTI-like ring of low lights; the targets lie between its azimuths, so every reference is rotated (eq. 7)
+    dirs = np.array([settings.direction(t, a) for t in (70, 75) for a in (0, 72, 144, 216, 288)], np.float32)
+    refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
+    exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
+    coords = stage("quilt")(exemplar=exemplar, size=[112, 112], block=32, wrap=True, seed=4)["coords"]
+    field = stage("materialize")(coords=coords, source=exemplar)["output"]   # a synthesized height field
+    grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": [70, 75],
+            "light_azimuths": [30, 90, 150, 210, 270, 330]}
+    out = stage("liu.synthesize")(height=field, references=refs, grid=grid, nearest=1)
+    stack, templates = out["stack"], out["templates"]
+    ours, independent = [], []
+    for l in range(stack.n_light):
+        shadow = templates.samples[0, l, ..., 0] <= 0
+        ours.append(_iou(_dark(stack.samples[0, l]), shadow))
+        nearest = int(np.argmax(refs.lights @ stack.lights[l]))
+        one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
+        c2 = stage("quilt")(exemplar=one, size=[112, 112], block=24, seed=l)["coords"]
+        flat = stage("materialize")(coords=c2, source=one)["output"]
+        independent.append(_iou(_dark(flat.samples[0, 0]), shadow))
+    print(f"shadow IoU over {len(ours)} lights: liu {np.mean(ours):.3f} (min {np.min(ours):.3f}), "
+          f"per-light 2D quilting {np.mean(independent):.3f}")
+    assert len(ours) >= 10 and np.mean(ours) >= 0.7
+    assert np.mean(ours) > 2 * np.mean(independent)
+
+
+def test_reference_choice_and_weights_move_smoothly_with_the_target():
+    from btforge.plugins.liu.synthesis import choose_references
+    ref_lights = np.array([settings.direction(t, a) for t in (30, 60) for a in range(0, 360, 45)], np.float32)
+    ref_views = np.tile(np.float32([0, 0, 1]), (len(ref_lights), 1))
+    view = np.float32([0, 0, 1])
+    previous = None
+    for azimuth in np.arange(0, 90, 0.1):
+        choice = choose_references(view, settings.direction(45, azimuth), ref_views, ref_lights, 3, isotropic=False)
+        assert not choice.rotations.any() and not choice.mirrored.any()      # eq. 6: no warp
+        weights = dict(zip(choice.indices.tolist(), choice.weights))
+        if previous is not None:
+            change = sum(abs(weights.get(i, 0) - previous.get(i, 0)) for i in set(weights) | set(previous))
+            assert change < 0.06                                   # continuous: small steps, small changes
+            for left in set(previous) - set(weights):              # a reference leaving or joining weighs ~1 %
+                assert previous[left] < 0.02
+            for joined in set(weights) - set(previous):
+                assert weights[joined] < 0.02
+        previous = weights
+    iso = choose_references(view, settings.direction(30, 20), ref_views, ref_lights, 1, isotropic=True)
+    assert iso.distances[0] == pytest.approx(0, abs=1e-6)                     # a rotated reference matches exactly
