@@ -153,6 +153,7 @@ class Stage:
     precheck: Callable[[Mapping[str, Any], "RunPaths"], Iterable[Path] | None] | None = None
     plugin: str = ""
     dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
+    role: str = ""
 
     @property
     def doc(self) -> str:
@@ -218,6 +219,7 @@ def declare_stage(
     side_effects: bool = False,
     precheck: Callable | None = None,
     dynamic_inputs: Callable | None = None,
+    role: str = "",
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -231,6 +233,8 @@ def declare_stage(
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
     has one port per material its scene names); the function then takes them as ``**kwargs``.
+    ``role`` says what the stage is for, so tools find stages by role, never by name: ``"fit"`` for
+    representation fits, ``"synthesizer"`` for synthesizers that output a ``CoordMap``.
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -245,7 +249,7 @@ def declare_stage(
         return Stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
-            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs,
+            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
         )
 
     return wrap

@@ -31,11 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from btforge import Param, declare_stage
+from btforge import Param
 from btforge.buffers import CoordMap, PerTexel
 from btforge.errors import BtforgeInputError
 
 from .features import texel_features
+from .search import band_window
+from .synthesizer import declare_synthesizer
 
 KERNELS = Path(__file__).with_name("quilting.cl")
 
@@ -452,10 +454,9 @@ class OverlapShape:
 
 
 def shape_texels(block: int, key: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    t, b, l, r = key
-    yy, xx = np.indices((block, block))
-    inside = (yy < t) | (yy >= block - b) | (xx < l) | (xx >= block - r)
-    return yy[inside].astype(np.int32), xx[inside].astype(np.int32)
+    """Rows and columns of an overlap's texels inside the block, row-major (the shared band window)."""
+    texels = band_window(block, *key)
+    return texels[:, 0].copy(), texels[:, 1].copy()
 
 
 class QuiltSearch:
@@ -886,12 +887,9 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
 # ----------------------------------------------------------------------------------------------- stage
 
 
-@declare_stage(
+@declare_synthesizer(
     "quilt",
-    inputs={"exemplar": "PerTexel"},
-    outputs={"coords": "CoordMap"},
     params=[
-        Param("size", "ints", (256, 256), "output size [H, W] in texels", low=1, length=2),
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
               "0 picks block // 6 (at least 1)", low=0),
@@ -901,11 +899,9 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
               choices=SEAMS),
         Param("tolerance", "float", 0.1, "candidates within (1 + tolerance) x the best overlap error are eligible; "
               "one is picked at random", low=0.0),
-        Param("wrap", "bool", False, "make the result tile seamlessly (periodic boundary)"),
-        Param("seed", "int", 0, "random seed: the same seed gives the same result"),
     ],
 )
-def quilt(ctx, exemplar, *, size, block, overlap, search, seam, tolerance, wrap, seed):
+def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
