@@ -56,3 +56,25 @@ __kernel void knn_tile(__global const float *exemplar, const int e0, const int n
     }
     for (int j = 0; j < TOPK; ++j) { dist[j] = d[j]; idx[j] = id[j]; }
 }
+
+// Full squared distances of each query to its candidate rows (the fast engine's re-ranking): work-item
+// (i, j) is query q0 + i against exemplar row rows[i * n_cand + j] (-1: none, distance INFINITY).  The same
+// sum, in the same order, as knn_tile, so a neighbour found by either engine has the same distance.
+__kernel void knn_distances(__global const float *exemplar, __global const float *queries, const int q0,
+                            const int n_query, __global const int *rows, const int n_cand, __global float *out)
+{
+    const int i = get_global_id(1), j = get_global_id(0);
+    if (i >= n_query || j >= n_cand) return;
+    const int e = rows[(size_t)i * n_cand + j];
+    float acc = INFINITY;
+    if (e >= 0) {
+        __global const float *q = queries + (size_t)(q0 + i) * DIM;
+        __global const float *row = exemplar + (size_t)e * DIM;
+        acc = 0.0f;
+        for (int d = 0; d < DIM; ++d) {
+            const float t = q[d] - row[d];
+            acc += t * t;
+        }
+    }
+    out[(size_t)i * n_cand + j] = acc;
+}

@@ -230,14 +230,41 @@ def knn_exact_numpy(exemplar: np.ndarray, queries: np.ndarray, k: int, chunk: in
     return idx.astype(np.int64), dist
 
 
-def squared_distances(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """Full squared distances ``[M, C]`` float32 of each query to its candidate exemplar rows (-1: inf)."""
+def candidate_distances_opencl(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Full squared distances ``[M, C]`` float32 of each query to its candidate exemplar rows (-1: inf), on
+    OpenCL (``knn_distances``): the sums ``knn_tile`` forms, so both engines agree on every neighbour found."""
+    backend = get_backend()
+    cl = backend.cl
+    m, c = rows.shape
+    out = np.empty((m, c), np.float32)
+    if not out.size:
+        return out
+    kernel = backend.kernel(KERNELS, "knn_distances", (f"-DDIM={exemplar.shape[1]}", "-DTOPK=1"))
+    exemplar_dev, queries_dev = backend.host_input(exemplar), backend.host_input(queries)
+    for q0 in range(0, m, QUERY_CHUNK):
+        count = min(QUERY_CHUNK, m - q0)
+        rows_dev = backend.to_device(np.ascontiguousarray(rows[q0:q0 + count], np.int32))
+        out_dev = backend.empty(4 * count * c)
+        kernel.set_args(exemplar_dev, queries_dev, np.int32(q0), np.int32(count), rows_dev, np.int32(c), out_dev)
+        cl.enqueue_nd_range_kernel(backend.queue, kernel, (-(-c // 8) * 8, count), (8, 1))
+        out[q0:q0 + count] = backend.from_device(out_dev, (count, c), np.float32)
+    return out
+
+
+def candidate_distances_numpy(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray,
+                              chunk: int = 1024) -> np.ndarray:
+    """Twin of ``knn_distances``: the same float32 sums, one dimension after the other."""
     out = np.empty(rows.shape, np.float32)
     for start in range(0, len(queries), chunk):
         r = rows[start:start + chunk]
-        diff = exemplar[np.maximum(r, 0)] - queries[start:start + chunk, None, :]
-        d = np.einsum("mcd,mcd->mc", diff, diff)
-        out[start:start + chunk] = np.where(r >= 0, d, np.float32(np.inf))
+        e = exemplar[np.maximum(r, 0)]
+        q = queries[start:start + chunk]
+        acc = np.zeros(r.shape, np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for j in range(exemplar.shape[1]):
+                t = q[:, None, j] - e[:, :, j]
+                acc += t * t
+        out[start:start + chunk] = np.where(r >= 0, acc, np.float32(np.inf))
     return out
 
 
@@ -254,7 +281,7 @@ class Projection:
 
 
 def principal_projection(x: np.ndarray, *, energy: float = FAST_ENERGY, max_dims: int = FAST_MAX_DIMS,
-                         min_dims: int = FAST_MIN_DIMS, sample: int = 20000, seed: int = 0) -> Projection:
+                         min_dims: int = FAST_MIN_DIMS, sample: int = 8192, seed: int = 0) -> Projection:
     """The fewest leading principal axes of ``x`` ``[N, D]`` that keep ``energy`` of its variance (clipped to
     ``[min_dims, max_dims]`` and to D), fitted on at most ``sample`` rows."""
     rng = np.random.default_rng(seed)
@@ -291,7 +318,7 @@ class FastIndex:
         self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
         rows, _ = self.graph.knn_query(self.projection.apply(queries), k=nominated)
         rows = rows.astype(np.int64)
-        dist = squared_distances(self.exemplar, queries, rows)
+        dist = candidate_distances_opencl(self.exemplar, queries, rows)
         order = np.lexsort((rows, dist), axis=1)[:, :k]
         idx, dist = np.take_along_axis(rows, order, axis=1), np.take_along_axis(dist, order, axis=1)
         if k > nominated:
