@@ -71,3 +71,9 @@ def coords_write(ctx, coords, *, path):
 @hookimpl
 def btforge_stages():
     return [materialize, crop, coords_write, *quilting.STAGES, *kcoherence.STAGES, *jumpmap.STAGES, *scoring.STAGES]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_synthesis
+    return {"synthesis": bench_synthesis}

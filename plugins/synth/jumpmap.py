@@ -55,6 +55,15 @@ class JumpMap:
     probability: np.ndarray
 
 
+_jump_maps = ContentCache(4)
+
+
+def cached_jump_map(features: np.ndarray, **params) -> JumpMap:
+    """:func:`build_jump_map`, kept per exemplar content and params: another seed or size skips the analysis."""
+    key = content_key(features, extra=("jumpmap", sorted(params.items())))
+    return _jump_maps.get_or_make(key, lambda: build_jump_map(features, **params))
+
+
 def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = 0.1, neighborhood: int = 5,
                    textons: int = DEFAULT_TEXTONS, search: str = "fast", engine: str = "opencl") -> JumpMap:
     """Analyse ``[H, W, D]`` features into a :class:`JumpMap`.
@@ -269,7 +278,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
                                 f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",
                                 "use a larger exemplar or a smaller neighborhood")
     start = time.perf_counter()
-    jm = build_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
+    jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search)
     analysed = time.perf_counter()
     coords, counts = walk(jm, size, wrap=wrap, seed=seed)

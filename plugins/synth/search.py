@@ -272,12 +272,12 @@ def candidate_distances_numpy(exemplar: np.ndarray, queries: np.ndarray, rows: n
 class Projection:
     """An orthogonal projection onto the leading principal axes of a set of vectors."""
 
-    mean: np.ndarray    # [D] float64
-    axes: np.ndarray    # [D, d] float64, orthonormal columns
+    mean: np.ndarray    # [D] float32
+    axes: np.ndarray    # [D, d] float32, orthonormal columns
     energy: float       # share of the variance kept
 
     def apply(self, x: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(((x - self.mean) @ self.axes).astype(np.float32))
+        return np.ascontiguousarray((x - self.mean) @ self.axes, dtype=np.float32)
 
 
 def principal_projection(x: np.ndarray, *, energy: float = FAST_ENERGY, max_dims: int = FAST_MAX_DIMS,
@@ -294,7 +294,7 @@ def principal_projection(x: np.ndarray, *, energy: float = FAST_ENERGY, max_dims
     total = values.sum()
     kept = np.cumsum(values) / total if total > 0 else np.ones(len(values))
     dims = int(np.clip(np.searchsorted(kept, energy - 1e-12) + 1, min(min_dims, x.shape[1]), min(max_dims, x.shape[1])))
-    return Projection(mean, np.ascontiguousarray(axes[:, :dims]), float(kept[dims - 1]))
+    return Projection(mean.astype(np.float32), np.ascontiguousarray(axes[:, :dims], np.float32), float(kept[dims - 1]))
 
 
 class FastIndex:
@@ -344,12 +344,18 @@ def content_key(*arrays: np.ndarray, extra: object = ()) -> str:
 
 
 class ContentCache:
-    """A small thread-safe LRU of results keyed by :func:`content_key` (an analysis per exemplar)."""
+    """A small thread-safe LRU of results keyed by :func:`content_key` (an analysis per exemplar).
+
+    Every instance is listed, so :func:`clear_caches` can empty them all (a bench timing a cold analysis).
+    """
+
+    instances: list["ContentCache"] = []
 
     def __init__(self, size: int):
         self.size = size
         self._items: OrderedDict[str, object] = OrderedDict()
         self._lock = threading.Lock()
+        ContentCache.instances.append(self)
 
     def get_or_make(self, key: str, make):
         with self._lock:
@@ -366,6 +372,12 @@ class ContentCache:
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
+
+
+def clear_caches() -> None:
+    """Forget every cached index and analysis."""
+    for cache in ContentCache.instances:
+        cache.clear()
 
 
 _indices = ContentCache(INDEX_CACHE)
