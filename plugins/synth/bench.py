@@ -23,11 +23,17 @@ SIZES = (64, 128, 192, 256)
 SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio")
 BASELINE_BLOCK = 16
 RECALL_QUERIES = 2000   # queries whose exact neighbours are computed for the recall
+PROCEDURAL = "procedural"
 
 
 def exemplar_model(path: str, crop: int):
-    """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture."""
+    """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture
+    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar)."""
     from btforge import stage
+    if path == PROCEDURAL:
+        from .kcoherence import benchmark_exemplar
+        stack = benchmark_exemplar(crop, lights=16, seed=7)
+        return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
     from btforge.plugins.stackio.images import load_stack
     stack = load_stack(Path(path))
     h, w = min(crop, stack.height), min(crop, stack.width)
@@ -112,7 +118,8 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
-    p.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crops are the exemplars")
+    p.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crops are the exemplars, or "
+                   "'procedural' for the demo material")
     p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv and synthesis.png")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
     p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")
@@ -161,7 +168,7 @@ def bench_synthesis(args: list[str]) -> int:
     scatter_png(target / "synthesis.png", [r["analysis_s"] + r["synthesis_s"] for r in timed_rows],
                 [r["texture_statistics"] for r in timed_rows],
                 [f"{r['synthesizer']} {r['exemplar']}" for r in timed_rows], [r["synthesizer"] for r in timed_rows],
-                title=f"{opts.size}x{opts.size} outputs from crops of {Path(opts.exemplar).parent.name}",
+                title=f"{opts.size}x{opts.size} outputs from crops of {Path(opts.exemplar).parent.name or opts.exemplar}",
                 xlabel="analysis + synthesis seconds", ylabel="texture statistics ratio (1 = exemplar vs itself)",
                 higher_is_better=False)
     print(_table(rows))

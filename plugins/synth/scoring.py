@@ -408,8 +408,10 @@ def texture_statistics_ratio(out_enc: np.ndarray, ex_enc: np.ndarray, wrap: bool
         halves = [(ex[:, :w // 2], ex[:, w // 2:]), (ex[:h // 2], ex[h // 2:])]
         ratios_self.append(np.mean([statistics_distance(stats(a), stats(b)) for a, b in halves]))
         ratios_out.append(statistics_distance(stats(out, wrap), stats(ex)))
-    own = float(np.mean(ratios_self))
-    return (float(np.mean(ratios_out)) / own if own > 0 else float("inf")), own
+    own, distance = float(np.mean(ratios_self)), float(np.mean(ratios_out))
+    if own > 0:
+        return distance / own, own
+    return (0.0 if distance == 0 else float("inf")), own  # a texture-less exemplar: only itself matches it
 
 
 @dataclasses.dataclass(frozen=True)
