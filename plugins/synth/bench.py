@@ -28,17 +28,25 @@ PROCEDURAL = "procedural"
 
 def exemplar_model(path: str, crop: int):
     """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture
-    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar)."""
+    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar; a ``.ptm`` file:
+    that model, cropped)."""
     from btforge import stage
     if path == PROCEDURAL:
         from .kcoherence import benchmark_exemplar
         stack = benchmark_exemplar(crop, lights=16, seed=7)
         return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
+    if str(path).endswith(".ptm"):
+        return central_crop(stage("ptm.read")(path=str(path))["model"], crop)
     from btforge.plugins.stackio.images import load_stack
-    stack = load_stack(Path(path))
-    h, w = min(crop, stack.height), min(crop, stack.width)
-    patch = stage("crop")(input=stack, origin=[(stack.height - h) // 2, (stack.width - w) // 2], size=[h, w])["output"]
+    patch = central_crop(load_stack(Path(path)), crop)
     return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
+
+
+def central_crop(buffer, crop: int):
+    """The central ``crop`` x ``crop`` texels of any per-texel buffer (all of it where it is smaller)."""
+    from btforge import stage
+    h, w = min(crop, buffer.height), min(crop, buffer.width)
+    return stage("crop")(input=buffer, origin=[(buffer.height - h) // 2, (buffer.width - w) // 2], size=[h, w])["output"]
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
@@ -118,8 +126,8 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
-    p.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crops are the exemplars, or "
-                   "'procedural' for the demo material")
+    p.add_argument("--exemplar", required=True, help="the capture (.lp) or PTM file (.ptm) whose central "
+                   "crops are the exemplars, or 'procedural' for the demo material")
     p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv and synthesis.png")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
     p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")

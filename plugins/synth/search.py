@@ -280,10 +280,13 @@ class Projection:
         return np.ascontiguousarray((x - self.mean) @ self.axes, dtype=np.float32)
 
 
-def principal_projection(x: np.ndarray, *, energy: float = FAST_ENERGY, max_dims: int = FAST_MAX_DIMS,
-                         min_dims: int = FAST_MIN_DIMS, sample: int = 8192, seed: int = 0) -> Projection:
+def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims: int | None = None,
+                         min_dims: int | None = None, sample: int = 8192, seed: int = 0) -> Projection:
     """The fewest leading principal axes of ``x`` ``[N, D]`` that keep ``energy`` of its variance (clipped to
-    ``[min_dims, max_dims]`` and to D), fitted on at most ``sample`` rows."""
+    ``[min_dims, max_dims]`` and to D), fitted on at most ``sample`` rows.  Defaults: the ``FAST_*`` settings."""
+    energy = FAST_ENERGY if energy is None else energy
+    max_dims = FAST_MAX_DIMS if max_dims is None else max_dims
+    min_dims = FAST_MIN_DIMS if min_dims is None else min_dims
     rng = np.random.default_rng(seed)
     pick = x if len(x) <= sample else x[np.sort(rng.choice(len(x), sample, replace=False))]
     pick = pick.astype(np.float64)
@@ -314,7 +317,7 @@ class FastIndex:
 
     def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         n = len(self.exemplar)
-        nominated = min(n, max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES))
+        nominated = min(n, int(max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES)))
         self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
         rows, _ = self.graph.knn_query(self.projection.apply(queries), k=nominated)
         rows = rows.astype(np.int64)
