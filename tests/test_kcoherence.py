@@ -217,3 +217,28 @@ def test_benchmark_reports_figures():
     for key in ("median_s", "analysis_median_s", "synthesis_median_s", "device"):
         assert key in figures
     assert figures["median_s"] > 0
+
+
+def test_analysis_is_kept_per_exemplar_and_params(material):
+    features = texel_features(material)
+    first = kc.analyse_exemplar(features, k=4, neighborhood=5, levels=2)
+    assert kc.analyse_exemplar(features.copy(), k=4, neighborhood=5, levels=2) is first   # same content
+    assert kc.analyse_exemplar(features, k=3, neighborhood=5, levels=2) is not first       # other params
+    changed = features.copy()
+    changed[0, 0, 0] += 1
+    assert kc.analyse_exemplar(changed, k=4, neighborhood=5, levels=2) is not first        # other content
+
+
+def test_search_param_switches_the_engine():
+    exemplar = kc.benchmark_exemplar(48, lights=8)   # 2304 texels: more than the fast engine searches exactly
+    features = textons.normalise_features(texel_features(exemplar))
+    fast = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="fast")[0]
+    exact = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="exact")[0]
+    # the fast lists are nearly the exact ones, and never better
+    same = np.mean([len(np.intersect1d(a, b)) / 5 for a, b in zip(fast.ksets[:, 1:], exact.ksets[:, 1:])])
+    assert same >= 0.9
+    assert (fast.kset_cost[:, -1] >= exact.kset_cost[:, -1]).all()
+    coords = kcoherence(exemplar=exemplar, size=[24, 24], levels=1, search="exact")["coords"].coords
+    assert coords.shape == (24, 24, 2)
+    with pytest.raises(BtforgeInputError, match="search"):
+        kcoherence(exemplar=exemplar, size=[24, 24], search="fastest")
