@@ -314,12 +314,15 @@ class FastIndex:
         self.graph.set_num_threads(1)  # insertion order fixes the graph: results do not depend on timing
         self.graph.add_items(reduced, np.arange(len(reduced)))
         self.graph.set_num_threads(max(1, _cores()))
+        self._lock = threading.Lock()
 
     def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         n = len(self.exemplar)
         nominated = min(n, int(max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES)))
-        self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
-        rows, _ = self.graph.knn_query(self.projection.apply(queries), k=nominated)
+        reduced = self.projection.apply(queries)
+        with self._lock:  # ef is the graph's state: two queries at once must not change it under each other
+            self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
+            rows, _ = self.graph.knn_query(reduced, k=nominated)
         rows = rows.astype(np.int64)
         dist = candidate_distances_opencl(self.exemplar, queries, rows)
         order = np.lexsort((rows, dist), axis=1)[:, :k]
