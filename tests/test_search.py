@@ -9,7 +9,7 @@ from btforge import BtforgeInputError
 from btforge.plugins.synth import kcoherence as kc
 from btforge.plugins.synth import search
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.quilting import shape_texels
+from btforge.plugins.synth.quilt_search import shape_texels
 from btforge.plugins.synth.textons import normalise_features
 
 
