@@ -22,6 +22,11 @@ Engines
         the same recall; a kd-tree degrades past ~10 dimensions.  The graph is built single-threaded with a
         fixed seed, so results do not depend on timing; queries run on every core.
 
+Reuse
+    The fast engine's index is kept per exemplar content (:func:`fast_index`, a small LRU), so repeated
+    :func:`knn` calls on one exemplar build it once; a caller querying one exemplar very often can keep
+    ``index = fast_index(exemplar)`` and call ``index.query(queries, k)``, which skips hashing the exemplar.
+
 Windows
     Neighbourhood vectors of any ``[H, W, D]`` feature image over any window of offsets: :func:`square_window`
     (n x n), :func:`causal_window` (the part of n x n before the centre in scanline order), and
