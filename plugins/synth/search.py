@@ -57,6 +57,8 @@ FAST_MAX_DIMS = 24
 FAST_MIN_DIMS = 8
 FAST_OVERSAMPLE = 2         #: candidates nominated per neighbour asked for, re-ranked at full dimension
 FAST_MIN_CANDIDATES = 16
+SUBSPACE_EXTRA = 8          #: extra columns of the subspace iteration beyond the axes that can be kept
+SUBSPACE_ITERATIONS = 24
 HNSW_M = 12
 HNSW_EF_CONSTRUCTION = 48
 HNSW_SEED = 100
@@ -297,12 +299,31 @@ def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims
     pick = pick.astype(np.float64)
     mean = pick.mean(axis=0)
     centred = pick - mean
-    values, axes = np.linalg.eigh(centred.T @ centred)
-    values, axes = np.clip(values[::-1], 0, None), axes[:, ::-1]
-    total = values.sum()
+    covariance = centred.T @ centred
+    values, axes = leading_eigenpairs(covariance, max_dims + SUBSPACE_EXTRA, seed=seed)
+    total = float(np.trace(covariance))
     kept = np.cumsum(values) / total if total > 0 else np.ones(len(values))
     dims = int(np.clip(np.searchsorted(kept, energy - 1e-12) + 1, min(min_dims, x.shape[1]), min(max_dims, x.shape[1])))
     return Projection(mean.astype(np.float32), np.ascontiguousarray(axes[:, :dims], np.float32), float(kept[dims - 1]))
+
+
+def leading_eigenpairs(matrix: np.ndarray, count: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` largest eigenvalues (descending, >= 0) and eigenvectors of a symmetric PSD matrix.
+
+    Large matrices go by subspace iteration with a Rayleigh-Ritz step: a few products with a thin block, never
+    a full eigendecomposition, whose threaded LAPACK call costs 50x more than the whole iteration when the
+    machine is busy (1 s against 20 ms for 225 x 225 under load).  The axes only steer the search (candidates
+    are re-ranked at full dimension), so the iteration need not converge to the last digit.
+    """
+    d = len(matrix)
+    if d <= 2 * count:
+        values, vectors = np.linalg.eigh(matrix)
+        return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
+    block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
+    for _ in range(SUBSPACE_ITERATIONS):
+        block = np.linalg.qr(matrix @ block)[0]
+    values, vectors = np.linalg.eigh(block.T @ matrix @ block)
+    return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
 
 
 class FastIndex:
