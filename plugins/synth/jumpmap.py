@@ -84,10 +84,11 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
                                 f"expected a value in [0, 1], found {jump_probability}",
                                 "use e.g. 0.1: the walk jumps at about one step in ten")
     h, w, _ = features.shape
-    tx = texton_analysis(normalise_features(features), min(textons, h * w), engine=engine)
+    scaled = normalise_features(features)
+    tx = texton_analysis(scaled, min(textons, h * w), engine=engine)
     allowed = np.zeros((h, w), bool)
     allowed[1:-1, 1:-1] = True
-    targets, distance = similar_texels(normalise_features(features), neighborhood, jumps, exclude=neighborhood // 2,
+    targets, distance = similar_texels(scaled, neighborhood, jumps, exclude=neighborhood // 2,
                                        allowed=allowed, search=search, device=engine)
     real = targets >= 0
     best = distance[:, 0][real[:, 0]]
