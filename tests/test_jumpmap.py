@@ -8,6 +8,7 @@ from btforge.context import StageContext
 from btforge.plugins.ptm.model import PTMModel
 from btforge.plugins.synth import jumpmap as jm_module
 from btforge.plugins.synth import kcoherence as kc
+from btforge.plugins.synth import search, textons
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features
 from btforge.plugins.synth.jumpmap import build_jump_map, jumpmap, walk
@@ -38,8 +39,8 @@ def pair_coherence(coords, period=None):
 
 def test_the_analysis_is_the_shared_search():
     # one implementation of the neighbourhood search, imported - not a copy
-    assert jm_module.neighbourhood_search is kc.neighbourhood_search
-    assert jm_module.texton_analysis is kc.texton_analysis
+    assert jm_module.similar_texels is search.similar_texels
+    assert jm_module.texton_analysis is textons.texton_analysis
 
 
 @pytest.mark.parametrize("case", ["material", "constant", "one-dim"])
@@ -130,7 +131,7 @@ def seam_mismatch(coords, features):
 
 
 def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
-    features = kc.normalise_features(texel_features(material))
+    features = textons.normalise_features(texel_features(material))
     coherence, mismatch = {}, {}
     for wrap in (False, True):
         runs = [jumpmap(exemplar=material, size=[64, 64], wrap=wrap, seed=s)["coords"].coords for s in range(3)]

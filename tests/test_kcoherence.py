@@ -7,6 +7,7 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
 from btforge.plugins.ptm.model import PTMModel
 from btforge.plugins.synth import kcoherence as kc
+from btforge.plugins.synth import synthesizer, textons
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features
 from btforge.plugins.synth.kcoherence import kcoherence
@@ -71,66 +72,12 @@ def test_kmeans_assignment_kernel_matches_numpy(case):
     else:
         x, c = rng.random((2000, 32)), rng.random((300, 32))
     x, c = x.astype(np.float32), c.astype(np.float32)
-    labels_cl, dist_cl = kc.assign_opencl(x, c)
-    labels_np, dist_np = kc.assign_numpy(x, c)
+    labels_cl, dist_cl = textons.assign_opencl(x, c)
+    labels_np, dist_np = textons.assign_numpy(x, c)
     np.testing.assert_array_equal(labels_cl, labels_np)
     np.testing.assert_array_equal(dist_cl, dist_np)
     if case == "constant":
         assert (labels_cl == 0).all()
-
-
-def _random_table(rng, n, d=3, scale=1.0):
-    centres = (rng.normal(size=(n, d)) * scale).astype(np.float32)
-    return centres, kc.texton_table(centres)
-
-
-@pytest.mark.parametrize("case", ["random", "constant", "huge", "masked", "short"])
-def test_neighbourhood_search_kernel_matches_numpy(case):
-    rng = np.random.default_rng(2)
-    h, w, n, m, exclude, allowed = 13, 11, 20, 4, 0, None
-    labels = rng.integers(0, n, (h, w)).astype(np.int32)
-    _, table = _random_table(rng, n)
-    if case == "constant":  # all neighbourhoods equal: every distance is 0, lists sorted by index
-        labels[:] = 3
-    elif case == "huge":  # sums overflow to inf: ties among inf resolved by index
-        table = np.where(table > 0, np.float32(1e38), np.float32(0))
-    elif case == "masked":
-        exclude = 2
-        allowed = rng.random((h, w)) < 0.5
-    elif case == "short":  # fewer candidates than asked for
-        h, w, m, exclude = 4, 4, 9, 1
-        labels = labels[:h, :w]
-    idx_cl, cost_cl = kc.neighbourhood_search(labels, table, 5, m, exclude=exclude, allowed=allowed)
-    idx_np, cost_np = kc.neighbourhood_search(labels, table, 5, m, exclude=exclude, allowed=allowed, engine="numpy")
-    np.testing.assert_array_equal(idx_cl, idx_np)
-    np.testing.assert_array_equal(cost_cl, cost_np)
-    ys, xs = np.divmod(np.arange(h * w), w)
-    real = idx_cl >= 0
-    rows = np.broadcast_to(np.arange(h * w)[:, None], idx_cl.shape)
-    # exclusion and mask respected; lists sorted
-    far = np.maximum(np.abs(ys[idx_cl] - ys[rows]), np.abs(xs[idx_cl] - xs[rows])) > exclude
-    assert far[real].all()
-    if allowed is not None:
-        assert allowed.ravel()[idx_cl[real]].all()
-    sorted_costs = np.where(real, cost_cl, np.inf)
-    assert (sorted_costs[:, 1:] >= sorted_costs[:, :-1]).all()
-    if case == "constant":
-        assert (cost_cl[real] == 0).all()
-    if case == "short":
-        assert (~real).any()
-
-
-def test_neighbourhood_search_is_exact_against_brute_force():
-    rng = np.random.default_rng(3)
-    labels = rng.integers(0, 6, (9, 10)).astype(np.int32)
-    centres, table = _random_table(rng, 6)
-    idx, cost = kc.neighbourhood_search(labels, table, 3, 3, exclude=0)
-    padded = np.pad(centres[labels].astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")
-    windows = np.stack([padded[y:y + 3, x:x + 3].ravel() for y in range(9) for x in range(10)])
-    full = ((windows[:, None] - windows[None]) ** 2).sum(-1)
-    np.fill_diagonal(full, np.inf)
-    for p in range(90):
-        assert np.allclose(np.sort(full[p])[:3], cost[p], rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("wrap,levels,k,neighborhood", [(False, 2, 4, 5), (True, 2, 3, 5), (False, 1, 1, 3),
@@ -192,7 +139,7 @@ def test_output_shape_range_and_determinism(material):
 
 
 def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
-    features = kc.normalise_features(texel_features(material))
+    features = textons.normalise_features(texel_features(material))
     analysis = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=2)
     stats = {}
     for wrap in (False, True):
@@ -252,7 +199,7 @@ def test_invalid_params_name_the_param(material, params, name):
 
 def test_check_params_rejects_even_windows_directly():
     with pytest.raises(BtforgeInputError, match="neighborhood"):
-        kc.check_params("kcoherence", (64, 64), size=(8, 8), neighborhood=6, k=2, levels=1)
+        synthesizer.check_params("kcoherence", (64, 64), size=(8, 8), neighborhood=6, k=2, levels=1)
 
 
 @pytest.mark.parametrize("params,name", [({"k": 0}, "'k'"), ({"levels": 0}, "'levels'"), ({"size": (0, 8)}, "'size'")])
@@ -270,3 +217,28 @@ def test_benchmark_reports_figures():
     for key in ("median_s", "analysis_median_s", "synthesis_median_s", "device"):
         assert key in figures
     assert figures["median_s"] > 0
+
+
+def test_analysis_is_kept_per_exemplar_and_params(material):
+    features = texel_features(material)
+    first = kc.analyse_exemplar(features, k=4, neighborhood=5, levels=2)
+    assert kc.analyse_exemplar(features.copy(), k=4, neighborhood=5, levels=2) is first   # same content
+    assert kc.analyse_exemplar(features, k=3, neighborhood=5, levels=2) is not first       # other params
+    changed = features.copy()
+    changed[0, 0, 0] += 1
+    assert kc.analyse_exemplar(changed, k=4, neighborhood=5, levels=2) is not first        # other content
+
+
+def test_search_param_switches_the_engine():
+    exemplar = kc.benchmark_exemplar(48, lights=8)   # 2304 texels: more than the fast engine searches exactly
+    features = textons.normalise_features(texel_features(exemplar))
+    fast = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="fast")[0]
+    exact = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="exact")[0]
+    # the fast lists are nearly the exact ones, and never better
+    same = np.mean([len(np.intersect1d(a, b)) / 5 for a, b in zip(fast.ksets[:, 1:], exact.ksets[:, 1:])])
+    assert same >= 0.9
+    assert (fast.kset_cost[:, -1] >= exact.kset_cost[:, -1]).all()
+    coords = kcoherence(exemplar=exemplar, size=[24, 24], levels=1, search="exact")["coords"].coords
+    assert coords.shape == (24, 24, 2)
+    with pytest.raises(BtforgeInputError, match="search"):
+        kcoherence(exemplar=exemplar, size=[24, 24], search="fastest")

@@ -9,11 +9,12 @@ from btforge.context import StageContext
 from btforge.plugins.ptm.model import PTMModel
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.quilting import (
-    QuiltSearch, axis_layout, benchmark_quilt, haar_functions, min_cut, project_dense, project_numpy,
-    project_opencl, quilt, quilt_features, reject_numpy, reject_opencl, shape_texels, smooth_fields, ssd_numpy,
-    ssd_opencl, summed_area,
+from btforge.plugins.synth.quilt_search import (
+    QuiltSearch, haar_functions, project_dense, project_numpy, project_opencl, reject_numpy, reject_opencl,
+    shape_texels, ssd_numpy, ssd_opencl, summed_area,
 )
+from btforge.plugins.synth.quilt_seams import min_cut
+from btforge.plugins.synth.quilting import axis_layout, benchmark_quilt, quilt, quilt_features, smooth_fields
 
 BLOCK, OVERLAP = 8, 2
 SMALL = dict(block=BLOCK, overlap=OVERLAP)

@@ -77,5 +77,6 @@ def btforge_stages():
 
 @hookimpl
 def btforge_bench_commands():
+    from .bench import bench_synthesis
     from .bench_commands import COMMANDS
-    return COMMANDS
+    return {**COMMANDS, "synthesis": bench_synthesis}

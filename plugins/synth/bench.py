@@ -1,6 +1,15 @@
-"""What synthesis quality costs in time: ``btforge bench synthesis`` sweeps the synthesizers' main knobs."""
+"""``btforge bench synthesis``: what synthesis quality costs in time, per synthesizer and exemplar size.
+
+Every stage declared with ``role="synthesizer"`` (a third-party one too) runs with its defaults on central crops
+of a real capture, fitted as orthonormal LRGB PTMs (9-D texels).  For each it reports the analysis seconds (its
+first run on an exemplar) and the synthesis seconds (a second run with another seed, which reuses a cached
+analysis), and the ``score`` metrics of the result; a shuffled-block baseline is scored beside them.  The shared
+neighbourhood search is measured on the same exemplars: the fast engine's build and query time, the exact
+engine's query time, and the fast engine's recall and distance ratio at k = 6.
+"""
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import statistics
@@ -10,70 +19,177 @@ from pathlib import Path
 
 import numpy as np
 
-# (synthesizer stage, params) swept by the bench; sizes are added at run time.
-CONFIGURATIONS = (
-    [("quilt", {"block": b, "search": "rejection"}) for b in (16, 24, 32)]
-    + [("quilt", {"block": 32, "search": "brute"}), ("quilt", {"block": 24, "seam": "blend"})]
-    + [("kcoherence", {"k": k, "neighborhood": n, "levels": lv})
-       for k, n, lv in ((1, 5, 3), (6, 3, 3), (6, 5, 1), (6, 5, 3), (6, 7, 3))]
-    + [("jumpmap", {})]
-)
-SCORE_KEYS = ("swd", "coherence", "completeness", "verbatim_share", "seam_ratio", "consistency")
+SIZES = (64, 128, 192, 256)
+SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio")
+BASELINE_BLOCK = 16
+RECALL_QUERIES = 2000   # queries whose exact neighbours are computed for the recall
+PROCEDURAL = "procedural"
 
 
 def exemplar_model(path: str, crop: int):
-    """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture."""
+    """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture
+    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar; a ``.ptm`` file:
+    that model, cropped)."""
     from btforge import stage
+    if path == PROCEDURAL:
+        from .kcoherence import benchmark_exemplar
+        stack = benchmark_exemplar(crop, lights=16, seed=7)
+        return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
+    if str(path).endswith(".ptm"):
+        return central_crop(stage("ptm.read")(path=str(path))["model"], crop)
     from btforge.plugins.stackio.images import load_stack
-    stack = load_stack(Path(path))
-    h, w = min(crop, stack.height), min(crop, stack.width)
-    patch = stage("crop")(input=stack, origin=[(stack.height - h) // 2, (stack.width - w) // 2], size=[h, w])["output"]
+    patch = central_crop(load_stack(Path(path)), crop)
     return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
 
 
-def bench_synthesis(exemplar: str, out: str, *, crop: int = 64, size: int = 256, repeat: int = 1,
-                    only: list[str] | None = None) -> list[dict]:
+def central_crop(buffer, crop: int):
+    """The central ``crop`` x ``crop`` texels of any per-texel buffer (all of it where it is smaller)."""
     from btforge import stage
+    h, w = min(crop, buffer.height), min(crop, buffer.width)
+    return stage("crop")(input=buffer, origin=[(buffer.height - h) // 2, (buffer.width - w) // 2], size=[h, w])["output"]
+
+
+def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
+                    seed: int = 0):
+    """The baseline a synthesizer must beat: ``block x block`` exemplar blocks laid at random, without matching."""
+    from btforge.buffers import CoordMap
+    (eh, ew), (h, w) = exemplar_size, size
+    rng = np.random.default_rng(seed)
+    by, bx = -(-h // block), -(-w // block)
+    oy = rng.integers(0, eh - block + 1, (by, bx))
+    ox = rng.integers(0, ew - block + 1, (by, bx))
+    rows, cols = np.mgrid[0:h, 0:w]
+    coords = np.stack([oy[rows // block, cols // block] + rows % block,
+                       ox[rows // block, cols // block] + cols % block], axis=-1).astype(np.int32)
+    return CoordMap(coords, (eh, ew), wrap=False)
+
+
+def synthesizers() -> dict:
+    """The registered stages whose role is ``synthesizer``, by name."""
+    from btforge.registry import default_registry
+    return {name: st for name, st in sorted(default_registry().stages.items())
+            if getattr(st, "role", "") == "synthesizer"}
+
+
+def score_map(model, coords, lights) -> dict:
+    from btforge import stage
+    output = stage("materialize")(coords=coords, source=model)["output"]
+    values = stage("score")(output=output, exemplar=model, coords=coords, lights=lights)["scores"].values
+    return {k: values.get(k) for k in SCORE_KEYS}
+
+
+def time_synthesizer(st, model, size: int, repeat: int) -> dict:
+    """First run (analysis + synthesis), then ``repeat`` runs with other seeds (cached analysis): seconds."""
+    from btforge.context import StageContext
+    st(exemplar=model, size=[32, 32], seed=99)  # kernel builds outside the timing (the analysis is per exemplar)
+    from .search import clear_caches
+    clear_caches()
+    ctx = StageContext(node="bench", quiet=True)
+    start = time.perf_counter()
+    coords = st(ctx=ctx, exemplar=model, size=[size, size], seed=0)["coords"]
+    first = time.perf_counter() - start
+    again = []
+    for seed in range(1, repeat + 1):
+        start = time.perf_counter()
+        st(exemplar=model, size=[size, size], seed=seed)
+        again.append(time.perf_counter() - start)
+    synthesis = statistics.median(again)
+    return {"coords": coords, "first_s": first, "analysis_s": max(0.0, first - synthesis), "synthesis_s": synthesis,
+            "notes": dict(ctx.notes)}
+
+
+def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
+    """The shared search on the exemplar's 5 x 5 neighbourhoods: fast build/query, exact query, recall at k."""
+    from . import search
+    from .features import texel_features
+    from .textons import normalise_features
+    vectors = search.neighbourhood_vectors(normalise_features(texel_features(model)), search.square_window(5))
+    rng = np.random.default_rng(0)
+    sample = vectors[np.sort(rng.choice(len(vectors), min(queries, len(vectors)), replace=False))]
+    search.knn(vectors[:64], vectors[:4], k, engine="exact")  # kernel build
+    search.clear_caches()
+    start = time.perf_counter()
+    index = search.FastIndex(vectors)
+    build = time.perf_counter() - start
+    start = time.perf_counter()
+    fast_idx, fast_d = index.query(sample, k)
+    fast_query = time.perf_counter() - start
+    start = time.perf_counter()
+    true_idx, true_d = search.knn(vectors, sample, k, engine="exact")
+    exact_query = time.perf_counter() - start
+    per = 1000.0 / len(sample)
+    return {"vectors": list(vectors.shape), "reduced_dims": index.projection.axes.shape[1],
+            "fast_build_s": build, "fast_query_s_per_1000": fast_query * per,
+            "exact_query_s_per_1000": exact_query * per,
+            "recall": search.recall(fast_idx, true_idx), "distance_ratio": search.distance_ratio(fast_d, true_d)}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
+    p.add_argument("--exemplar", required=True, help="the capture (.lp) or PTM file (.ptm) whose central "
+                   "crops are the exemplars, or 'procedural' for the demo material")
+    p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv and synthesis.png")
+    p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
+    p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")
+    p.add_argument("--repeat", type=int, default=1, help="re-syntheses with cached analysis; the median is reported")
+    p.add_argument("--only", action="append", help="only these synthesizers (stage names)")
+    p.add_argument("--lights", type=int, default=8, help="probe lights of the scores (default 8)")
+    return p
+
+
+def bench_synthesis(args: list[str]) -> int:
+    """Synthesis quality (scores) against analysis and synthesis time, per synthesizer and exemplar size."""
     from btforge.atomic import atomic_write_text
     from btforge.plot import scatter_png
-    from btforge.registry import default_registry
 
     from .features import probe_lights
+    opts = _parser().parse_args(args)
+    lights = [list(map(float, light)) for light in probe_lights(opts.lights)]
+    chosen = {n: st for n, st in synthesizers().items() if not opts.only or n in opts.only}
+    rows, search_rows = [], []
+    for crop in opts.sizes:
+        model = exemplar_model(opts.exemplar, crop)
+        label = f"{model.height}x{model.width}"
+        found = measure_search(model)
+        search_rows.append({"exemplar": label, **{k: _round(v) for k, v in found.items()}})
+        print(f"{label} search: recall {found['recall']:.3f}, distance ratio {found['distance_ratio']:.4f}, "
+              f"fast build {found['fast_build_s']:.2f} s + {found['fast_query_s_per_1000']:.3f} s / 1000 queries, "
+              f"exact {found['exact_query_s_per_1000']:.3f} s / 1000 queries", file=sys.stderr)
+        baseline = score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size)), lights)
+        rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
+                     **{k: _round(v) for k, v in baseline.items()}})
+        for name, st in chosen.items():
+            timed = time_synthesizer(st, model, opts.size, opts.repeat)
+            scores = score_map(model, timed["coords"], lights)
+            rows.append({"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
+                         "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}})
+            print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
+                  f"texture stats {scores['texture_statistics']:.3f}  swd {scores['swd']:.4f}", file=sys.stderr)
+    target = Path(opts.out)
+    for filename, table in (("synthesis.csv", rows), ("search.csv", search_rows)):
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=list(table[0]))
+        writer.writeheader()
+        writer.writerows(table)
+        atomic_write_text(target / filename, buffer.getvalue())
+    timed_rows = [r for r in rows if r["synthesizer"] != "shuffled blocks"]
+    scatter_png(target / "synthesis.png", [r["analysis_s"] + r["synthesis_s"] for r in timed_rows],
+                [r["texture_statistics"] for r in timed_rows],
+                [f"{r['synthesizer']} {r['exemplar']}" for r in timed_rows], [r["synthesizer"] for r in timed_rows],
+                title=f"{opts.size}x{opts.size} outputs from crops of {Path(opts.exemplar).parent.name or opts.exemplar}",
+                xlabel="analysis + synthesis seconds", ylabel="texture statistics ratio (1 = exemplar vs itself)",
+                higher_is_better=False)
+    print(_table(rows))
+    print(_table(search_rows))
+    return 0
 
-    model = exemplar_model(exemplar, crop)
-    lights = [list(map(float, l)) for l in probe_lights(8)]
-    registered = default_registry().stages
-    rows = []
-    for name, params in CONFIGURATIONS:
-        if only and name not in only:
-            continue
-        label = f"{name} " + " ".join(f"{k}={v}" for k, v in params.items())
-        if name not in registered:
-            print(f"  {label:40s} skipped: stage '{name}' is not installed", file=sys.stderr)
-            continue
-        synthesize = stage(name)
-        synthesize(exemplar=model, size=[32, 32], **params)  # kernel builds outside the timing
-        times, coords = [], None
-        for _ in range(max(1, repeat)):
-            start = time.perf_counter()
-            coords = synthesize(exemplar=model, size=[size, size], **params)["coords"]
-            times.append(time.perf_counter() - start)
-        output = stage("materialize")(coords=coords, source=model)["output"]
-        scores = stage("score")(output=output, exemplar=model, coords=coords, lights=lights)["scores"].values
-        row = {"synthesizer": name, "params": " ".join(f"{k}={v}" for k, v in params.items()) or "-",
-               "seconds": round(statistics.median(times), 4)}
-        row.update({k: (round(scores[k], 5) if isinstance(scores.get(k), float) else scores.get(k)) for k in SCORE_KEYS})
-        rows.append(row)
-        print(f"  {label:40s} {row['seconds']:8.3f} s  swd {row['swd']:.4f}  coherence {row['coherence']:.4f}  "
-              f"completeness {row['completeness']:.4f}  seams {row['seam_ratio']}", file=sys.stderr)
-    target = Path(out)
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=["synthesizer", "params", "seconds", *SCORE_KEYS])
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(target / "synthesis.csv", buffer.getvalue())
-    scatter_png(target / "synthesis.png", [r["seconds"] for r in rows], [r["swd"] for r in rows],
-                [f"{r['synthesizer']} {r['params']}" for r in rows], [r["synthesizer"] for r in rows],
-                title=f"synthesis quality vs time: {size}x{size} from a {model.height}x{model.width} exemplar of {exemplar}",
-                xlabel="seconds", ylabel="sliced Wasserstein distance (lower is better)", higher_is_better=False)
-    return rows
+
+def _round(value):
+    return round(value, 4) if isinstance(value, float) else value
+
+
+def _table(rows: list[dict]) -> str:
+    keys = list(rows[0])
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join("-" if r[k] is None else str(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)

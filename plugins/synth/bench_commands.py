@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
-
 from btforge.bench import positive_count, print_figures
 
 
@@ -39,21 +37,4 @@ def bench_kcoherence(argv: list[str]) -> int:
     return 0
 
 
-def bench_synthesis_command(argv: list[str]) -> int:
-    """Synthesis quality (scores) against time over the synthesizers' knobs."""
-    from .bench import bench_synthesis
-    p = _parser("synthesis", bench_synthesis_command)
-    p.add_argument("--exemplar", required=True, help="the capture (.lp) whose central crop is the exemplar")
-    p.add_argument("--out", required=True, help="folder for synthesis.csv and synthesis.png")
-    p.add_argument("--crop", type=int, default=64, help="exemplar size in texels (default 64)")
-    p.add_argument("--size", type=int, default=256, help="output size in texels (default 256)")
-    p.add_argument("--repeat", type=positive_count, default=1, help="runs per configuration; the median time is reported")
-    p.add_argument("--only", action="append", help="only these synthesizers (quilt, kcoherence, jumpmap)")
-    args = p.parse_args(argv)
-    rows = bench_synthesis(args.exemplar, args.out, crop=args.crop, size=args.size, repeat=args.repeat,
-                           only=args.only)
-    print(f"wrote {Path(args.out) / 'synthesis.csv'} and synthesis.png ({len(rows)} configurations)")
-    return 0
-
-
-COMMANDS = {"quilt": bench_quilt, "kcoherence": bench_kcoherence, "synthesis": bench_synthesis_command}
+COMMANDS = {"quilt": bench_quilt, "kcoherence": bench_kcoherence}

@@ -1,7 +1,7 @@
 """Jump-map synthesis (Zelinka & Garland 2002): a fast random walk over the exemplar.
 
-The analysis is shared with k-coherence synthesis (:mod:`.kcoherence`): textons of the exemplar's appearance
-vectors and the exact all-pairs neighbourhood search on OpenCL (:func:`~.kcoherence.neighbourhood_search`).
+The analysis is shared with k-coherence synthesis: textons of the exemplar's appearance vectors (:mod:`.textons`)
+and the neighbourhood search every synthesizer uses (:func:`.search.similar_texels`, fast or exact).
 The walk runs on OpenCL (``jumpmap.cl``, one launch per anti-diagonal wavefront) with a NumPy twin that gives
 identical results from the same random numbers.
 """
@@ -13,15 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from btforge import Param, declare_stage
+from btforge import Param
 from btforge.backend import get_backend
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
 from .features import texel_features
-from .kcoherence import (DEFAULT_TEXTONS, LOCAL, MAX_NEIGHBORHOOD, Textons, _round_up, check_params,
-                         coherent_fraction, neighbourhood_search, normalise_features, output_neighbours, pad_textons,
-                         texton_analysis, wavefronts)
+from .device import LOCAL, round_up
+from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
+from .search import ContentCache, content_key, similar_texels
+from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, search_param
+from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")
 
@@ -53,8 +55,17 @@ class JumpMap:
     probability: np.ndarray
 
 
+_jump_maps = ContentCache(4)
+
+
+def cached_jump_map(features: np.ndarray, **params) -> JumpMap:
+    """:func:`build_jump_map`, kept per exemplar content and params: another seed or size skips the analysis."""
+    key = content_key(features, extra=("jumpmap", sorted(params.items())))
+    return _jump_maps.get_or_make(key, lambda: build_jump_map(features, **params))
+
+
 def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = 0.1, neighborhood: int = 5,
-                   textons: int = DEFAULT_TEXTONS, engine: str = "opencl") -> JumpMap:
+                   textons: int = DEFAULT_TEXTONS, search: str = "fast", engine: str = "opencl") -> JumpMap:
     """Analyse ``[H, W, D]`` features into a :class:`JumpMap`.
 
     Jump targets are the texels with the most similar ``neighborhood`` windows, at least ``neighborhood // 2 + 1``
@@ -73,11 +84,12 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
                                 f"expected a value in [0, 1], found {jump_probability}",
                                 "use e.g. 0.1: the walk jumps at about one step in ten")
     h, w, _ = features.shape
-    tx = texton_analysis(normalise_features(features), min(textons, h * w), engine=engine)
+    scaled = normalise_features(features)
+    tx = texton_analysis(scaled, min(textons, h * w), engine=engine)
     allowed = np.zeros((h, w), bool)
     allowed[1:-1, 1:-1] = True
-    targets, distance = neighbourhood_search(tx.labels, tx.table, neighborhood, jumps,
-                                             exclude=neighborhood // 2, allowed=allowed, engine=engine)
+    targets, distance = similar_texels(scaled, neighborhood, jumps, exclude=neighborhood // 2,
+                                       allowed=allowed, search=search, device=engine)
     real = targets >= 0
     best = distance[:, 0][real[:, 0]]
     d_ref = float(np.median(best)) if best.size else 0.0
@@ -148,7 +160,7 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, 
         kernel.set_arg(5, np.int32(t))
         kernel.set_arg(6, np.int32(y0))
         kernel.set_arg(7, np.int32(ny))
-        cl.enqueue_nd_range_kernel(backend.queue, kernel, (_round_up(ny),), (LOCAL,))
+        cl.enqueue_nd_range_kernel(backend.queue, kernel, (round_up(ny),), (LOCAL,))
     src = backend.from_device(src_dev, (ho * wo,), np.int32)
     flags = backend.from_device(flags_dev, (ho * wo,), np.uint8)
     del inputs
@@ -220,28 +232,25 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
     return src.astype(np.int32), flags
 
 
-@declare_stage(
+@declare_synthesizer(
     "jumpmap",
-    inputs={"exemplar": "PerTexel"},
-    outputs={"coords": "CoordMap"},
+    seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
-        Param("size", "ints", (256, 256), "output size [H, W] in texels", low=1, length=2),
-        Param("seed", "int", 0, "random seed of the walk; the same seed gives the same result"),
-        Param("wrap", "bool", False, "make the result tile seamlessly (periodic output boundary)"),
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
         Param("jump_probability", "float", 0.1, "mean chance per step that the walk jumps instead of copying",
               low=0.0, high=1.0),
         Param("neighborhood", "int", 5, "odd window size of the neighbourhoods compared to find jump targets",
               low=3, high=MAX_NEIGHBORHOOD),
         Param("textons", "int", DEFAULT_TEXTONS, "texton (k-means cluster) count of the analysis", low=1, high=2048),
+        search_param(),
     ],
 )
-def jumpmap(ctx, exemplar, *, size, seed, wrap, jumps, jump_probability, neighborhood, textons):
+def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
-    Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (exact search over texton
-    distances, on OpenCL; texels near the texel itself are left out) with probabilities that fall with the
-    distance.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
+    Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
+    the appearance vectors' windows, ``search`` fast or exact; texels near the texel itself are left out) with
+    probabilities that fall with the distance.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
     (a coherent copy); with a probability that is higher where good jumps exist it jumps to one of that
     texel's targets instead, and it must jump where the copy would leave the exemplar.  Of the candidates
     from the left and upper neighbours (and, with ``wrap``, the right and lower ones across the seam) the one
@@ -270,8 +279,8 @@ def jumpmap(ctx, exemplar, *, size, seed, wrap, jumps, jump_probability, neighbo
                                 f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",
                                 "use a larger exemplar or a smaller neighborhood")
     start = time.perf_counter()
-    jm = build_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
-                        neighborhood=neighborhood, textons=textons)
+    jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
+                        neighborhood=neighborhood, textons=textons, search=search)
     analysed = time.perf_counter()
     coords, counts = walk(jm, size, wrap=wrap, seed=seed)
     ctx.note("textons", jm.textons.count)

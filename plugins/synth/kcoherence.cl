@@ -1,123 +1,14 @@
-// Texton-based neighbourhood synthesis: k-means assignment, all-pairs neighbourhood search, k-coherence passes.
+// k-coherence synthesis passes over texton maps (causal wavefronts and correction sub-passes).
 //
 // Every kernel has a NumPy twin in kcoherence.py that performs the same float32 operations in the same order,
-// so both give identical integer results (labels, candidate lists, coordinates), ties included.  Contraction
-// into fused multiply-adds would change the rounding of the k-means distances, so it is switched off.
+// so both give identical coordinates, ties included.
 //
-// Build options: -DNOFF=<entries of an offset table> (private array sizes), -DTOP=<list length> (search).
+// Build options: -DNOFF=<entries of an offset table> (private array sizes).
 #pragma OPENCL FP_CONTRACT OFF
 
 #ifndef NOFF
 #define NOFF 24
 #endif
-#ifndef TOP
-#define TOP 8
-#endif
-#define NO_INDEX 2147483647
-
-// ------------------------------------------------------------------------------------------- k-means assignment
-// x: [n, DIM] ; centres: [nc, DIM] ; labels, dist: [n].  The first nearest centre wins ties.
-#ifndef DIM
-#define DIM 1
-#endif
-__kernel void kmeans_assign(__global const float *x, __global const float *centres, const int n, const int nc,
-                            __global int *labels, __global float *dist)
-{
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    float xi[DIM];
-    for (int j = 0; j < DIM; ++j) xi[j] = x[(size_t)i * DIM + j];
-    float best = INFINITY;
-    int best_c = 0;
-    for (int c = 0; c < nc; ++c) {
-        __global const float *cc = centres + (size_t)c * DIM;
-        float acc = 0.0f;
-        for (int j = 0; j < DIM; ++j) {
-            const float t = xi[j] - cc[j];
-            acc += t * t;
-        }
-        if (acc < best) { best = acc; best_c = c; }
-    }
-    labels[i] = best_c;
-    dist[i] = best;
-}
-
-// ------------------------------------------------------------------------------------------- neighbourhood search
-// For exemplar texels p0 .. p0 + count - 1 (row-major in an h x w exemplar): the TOP texels q with the smallest
-// neighbourhood distance sum_o table[tex(p + o), tex(q + o)], among those with allowed[q] != 0 and Chebyshev
-// distance to p above `exclude`.  tex is the texton map edge-padded by `pad` on every side (row length wp);
-// offs[o] are the window offsets as flat steps in that padded map.  Entries of `table` must be >= 0, which
-// makes partial sums monotone: a q is abandoned as soon as its partial sum exceeds the current TOP-th best,
-// without changing the result.  To make that bite early, the texels whose own texton equals p's (members
-// [starts[t], starts[t + 1]) of texton t) are tried first; the full scan then skips texels already listed.
-// Lists are sorted by (distance, index), which does not depend on the visiting order; missing entries are
-// -1 / INFINITY.
-inline void search_try(const int q, const int qy, const int qx, const int py, const int px, const int wp,
-                       const int pad, const int exclude, __global const uchar *allowed, __global const int *tex,
-                       const int *offs, __global const float *table, const int *rows,
-                       float *best_cost, int *best_idx, float *worst, int *worst_idx)
-{
-    if (!allowed[q] || (abs(qy - py) <= exclude && abs(qx - px) <= exclude)) return;
-    const int cq = (qy + pad) * wp + qx + pad;
-    float acc = 0.0f;
-    for (int o = 0; o < NOFF; ++o) {
-        acc += table[rows[o] + tex[cq + offs[o]]];
-        if (acc > *worst) return;
-    }
-    if (!(acc < *worst || (acc == *worst && q < *worst_idx))) return;
-    for (int j = 0; j < TOP; ++j) {
-        if (best_idx[j] == q) return;  // tried before
-    }
-    int j = TOP - 1;
-    while (j > 0 && (best_cost[j - 1] > acc || (best_cost[j - 1] == acc && best_idx[j - 1] > q))) {
-        best_cost[j] = best_cost[j - 1];
-        best_idx[j] = best_idx[j - 1];
-        --j;
-    }
-    best_cost[j] = acc;
-    best_idx[j] = q;
-    *worst = best_cost[TOP - 1];
-    *worst_idx = best_idx[TOP - 1];
-}
-
-__kernel void nbhd_search(__global const int *tex, const int h, const int w, const int wp, const int pad,
-                          __global const int *offs, const int noff, __global const float *table, const int nt,
-                          __global const int *members, __global const int *starts,
-                          __global const uchar *allowed, const int exclude, const int p0, const int count,
-                          __global int *out_idx, __global float *out_cost)
-{
-    const int gi = get_global_id(0);
-    if (gi >= count) return;
-    const int p = p0 + gi;
-    const int py = p / w, px = p % w;
-    const int cp = (py + pad) * wp + px + pad;
-    int rows[NOFF], off[NOFF];
-    for (int o = 0; o < NOFF; ++o) {
-        off[o] = offs[o];
-        rows[o] = tex[cp + off[o]] * nt;
-    }
-    float best_cost[TOP];
-    int best_idx[TOP];
-    for (int j = 0; j < TOP; ++j) { best_cost[j] = INFINITY; best_idx[j] = NO_INDEX; }
-    float worst = INFINITY;
-    int worst_idx = NO_INDEX;
-    const int own = tex[cp];
-    for (int i = starts[own]; i < starts[own + 1]; ++i) {
-        const int q = members[i];
-        search_try(q, q / w, q % w, py, px, wp, pad, exclude, allowed, tex, off, table, rows,
-                   best_cost, best_idx, &worst, &worst_idx);
-    }
-    for (int qy = 0; qy < h; ++qy) {
-        for (int qx = 0; qx < w; ++qx) {
-            search_try(qy * w + qx, qy, qx, py, px, wp, pad, exclude, allowed, tex, off, table, rows,
-                       best_cost, best_idx, &worst, &worst_idx);
-        }
-    }
-    for (int j = 0; j < TOP; ++j) {
-        out_idx[(size_t)gi * TOP + j] = best_idx[j] == NO_INDEX ? -1 : best_idx[j];
-        out_cost[(size_t)gi * TOP + j] = best_cost[j];
-    }
-}
 
 // ------------------------------------------------------------------------------------------- k-coherence
 // The exemplar level: he x we texels, texton map `tex` [he * we] and its edge-padded copy `tex_pad` (padding

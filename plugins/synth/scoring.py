@@ -43,6 +43,10 @@ CONSISTENCY_SHARE = 4
 COVERING_STEPS = 4
 #: Candidate offsets checked when estimating verbatim islands without a coordinate map.
 MAX_VERBATIM_OFFSETS = 64
+#: Histogram bins of the texture statistics (intensity and gradient magnitude).
+STATISTICS_BINS = 32
+#: Autocorrelation lags of the texture statistics: |dy|, |dx| up to this many texels.
+AUTOCORRELATION_RADIUS = 8
 
 
 # ----------------------------------------------------------------------------------------------- relighting
@@ -328,6 +332,216 @@ def _verbatim_from_matches(out_enc, ex_enc, positions, matched, exact, min_size,
     return float(covered.mean())
 
 
+# ----------------------------------------------------------------------------------------------- texture statistics
+
+
+@dataclasses.dataclass(frozen=True)
+class TextureStatistics:
+    """First- and second-order statistics of one grey image: what a texture "looks like" regardless of layout."""
+
+    intensity: np.ndarray        # [B] histogram of intensities (sums to 1)
+    gradient: np.ndarray         # [B] histogram of forward-difference gradient magnitudes (sums to 1)
+    autocorrelation: np.ndarray  # [(R + 1) (2R + 1) - R - 1] normalised autocorrelation at lags (dy >= 0), lag 0 left out
+
+
+def texture_statistics(image: np.ndarray, intensity_edges: np.ndarray, gradient_edges: np.ndarray,
+                       wrap: bool = False) -> TextureStatistics:
+    """Statistics of ``[H, W]`` values: histograms over the given bin edges (values beyond them fall into the end
+    bins) and the autocorrelation up to :data:`AUTOCORRELATION_RADIUS`, divided by the variance (1 at lag 0; a
+    flat image has 0 at every lag).  ``wrap``: gradients and correlations continue across the edges."""
+    x = np.asarray(image, np.float64)
+    h, w = x.shape
+    if wrap:
+        gy, gx = np.roll(x, -1, axis=0) - x, np.roll(x, -1, axis=1) - x
+        gradient = np.hypot(gy, gx).ravel()
+    else:
+        gradient = np.hypot(np.diff(x, axis=0)[:, :-1], np.diff(x, axis=1)[:-1]).ravel()
+
+    def histogram(values, edges):
+        counts, _ = np.histogram(np.clip(values, edges[0], edges[-1]), bins=edges)
+        return counts / max(1, counts.sum())
+
+    r = min(AUTOCORRELATION_RADIUS, h - 1, w - 1)
+    centred = x - x.mean()
+    shape = (h, w) if wrap else (h + r, w + r)
+    spectrum = np.fft.rfft2(centred, shape)
+    correlation = np.fft.irfft2(spectrum * np.conj(spectrum), shape)
+    dy, dx = np.mgrid[0:r + 1, -r:r + 1]
+    keep = (dy > 0) | (dx > 0)
+    dy, dx = dy[keep], dx[keep]
+    pairs = np.full(dy.shape, h * w, np.float64) if wrap else (h - dy) * (w - np.abs(dx)).astype(np.float64)
+    variance = float((centred ** 2).mean())
+    values = correlation[dy % shape[0], dx % shape[1]] / pairs
+    auto = values / variance if variance > 1e-12 else np.zeros_like(values)
+    if r < AUTOCORRELATION_RADIUS:  # a tiny image: the lags it lacks count as uncorrelated
+        full = (AUTOCORRELATION_RADIUS + 1) * (2 * AUTOCORRELATION_RADIUS + 1) - AUTOCORRELATION_RADIUS - 1
+        auto = np.concatenate([auto, np.zeros(full - len(auto))])
+    return TextureStatistics(histogram(x.ravel(), intensity_edges), histogram(gradient, gradient_edges), auto)
+
+
+def statistics_distance(a: TextureStatistics, b: TextureStatistics) -> float:
+    """Total-variation distances of the two histograms plus the RMS difference of the autocorrelations."""
+    tv = 0.5 * (np.abs(a.intensity - b.intensity).sum() + np.abs(a.gradient - b.gradient).sum())
+    return float(tv + np.sqrt(np.mean((a.autocorrelation - b.autocorrelation) ** 2)))
+
+
+def texture_statistics_ratio(out_enc: np.ndarray, ex_enc: np.ndarray, wrap: bool) -> tuple[float, float]:
+    """The output-exemplar distance of texture statistics over the exemplar's own (its halves' distance),
+    averaged over lights; ``(ratio, halves' distance)``.  1 = as close to the exemplar as it is to itself.
+
+    Images are ``[L, H, W, C]`` in the score's domain; the statistics are of the channel mean.  Bin edges come
+    from the exemplar under each light (intensity: its range; gradient: up to twice its 99th percentile).  The
+    halves are the left/right and the top/bottom halves of the exemplar, averaged.
+    """
+    ratios_out, ratios_self = [], []
+    for ex, out in zip(ex_enc.mean(axis=3), out_enc.mean(axis=3)):
+        low, high = float(ex.min()), float(ex.max())
+        intensity_edges = np.linspace(low, high if high > low else low + 1.0, STATISTICS_BINS + 1)
+        grad = np.hypot(np.diff(ex, axis=0)[:, :-1], np.diff(ex, axis=1)[:-1])
+        top = 2.0 * float(np.percentile(grad, 99)) if grad.size else 0.0
+        gradient_edges = np.linspace(0.0, top if top > 0 else 1.0, STATISTICS_BINS + 1)
+
+        def stats(image, image_wrap=False):
+            return texture_statistics(image, intensity_edges, gradient_edges, image_wrap)
+
+        h, w = ex.shape
+        halves = [(ex[:, :w // 2], ex[:, w // 2:]), (ex[:h // 2], ex[h // 2:])]
+        ratios_self.append(np.mean([statistics_distance(stats(a), stats(b)) for a, b in halves]))
+        ratios_out.append(statistics_distance(stats(out, wrap), stats(ex)))
+    own, distance = float(np.mean(ratios_self)), float(np.mean(ratios_out))
+    if own > 0:
+        return distance / own, own
+    return (0.0 if distance == 0 else float("inf")), own  # a texture-less exemplar: only itself matches it
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchMatches:
+    """Nearest-patch metrics of one comparison, and the matches the map-free estimates are built from."""
+
+    coherence: float            # mean RMS distance of sampled output patches to their nearest exemplar patch
+    completeness: float         # mean RMS distance of sampled exemplar patches to their nearest output patch
+    matched: np.ndarray         # [L, S, 2] exemplar patch position matched to each sampled output patch
+    match_rms: np.ndarray       # [L, S] its RMS distance
+    out_positions: np.ndarray   # [S, 2] the sampled output patches' positions
+    n_out_grid: int             # output patch positions
+    consistency_matched: float  # the map-free cross-light consistency
+
+
+def nearest_patch_metrics(ex_enc: np.ndarray, out_enc: np.ndarray, *, patch: int, match_patch: int, samples: int,
+                          seed: int, wrap: bool, tolerance: float) -> PatchMatches:
+    """Coherence and completeness (nearest patches both ways) per light, with the cross-light matches."""
+    n_light, eh, ew, _ = ex_enc.shape
+    _, h, w, _ = out_enc.shape
+    rng = np.random.default_rng([seed, 2])
+    ex_views = [_patch_source(im, patch, False) for im in ex_enc]
+    out_views = [_patch_source(im, patch, wrap) for im in out_enc]
+    ex_grid_w, out_grid_h, out_grid_w = ex_views[0].shape[1], out_views[0].shape[0], out_views[0].shape[1]
+    n_ex_grid = ex_views[0].shape[0] * ex_grid_w
+    n_out_grid = out_grid_h * out_grid_w
+    ex_tree_idx = _pick(rng, n_ex_grid, TREE_CAP)
+    out_tree_idx = _pick(rng, n_out_grid, TREE_CAP)
+    out_query = _pick(rng, n_out_grid, samples)
+    ex_query = _pick(rng, n_ex_grid, samples)
+    # Texels for the map-free consistency, each judged by the exemplar patches that best explain it.
+    texels = np.stack(np.divmod(_pick(rng, h * w, max(16, samples // CONSISTENCY_SHARE)), w), axis=1)
+    cross = _CrossLight(texels, match_patch, wrap, (h, w), (eh, ew), n_light)
+    if match_patch != patch:
+        m_ex_grid = (eh - match_patch + 1) * (ew - match_patch + 1)
+        m_tree_idx = _pick(rng, m_ex_grid, TREE_CAP)
+        m_sample = _pick(rng, m_ex_grid, samples)
+
+    coherence, completeness = [], []
+    matched = np.empty((n_light, len(out_query), 2), np.int64)
+    match_rms = np.empty((n_light, len(out_query)), np.float32)
+    for li in range(n_light):
+        ex_tree_patches = _gather(ex_views[li], ex_tree_idx)
+        out_q = _gather(out_views[li], out_query)
+        ex_q = _gather(ex_views[li], ex_query)
+        basis, mean = _pca_basis(np.concatenate([out_q, ex_q]), PCA_DIMS)
+        to_exemplar = _NearestPatches(ex_tree_patches, basis, mean)
+        found, dist = to_exemplar.query(out_q)
+        coherence.append(float(dist.mean()))
+        matched[li] = np.stack(np.divmod(ex_tree_idx[found], ex_grid_w), axis=1)
+        match_rms[li] = dist
+        _, dist = _NearestPatches(_gather(out_views[li], out_tree_idx), basis, mean).query(ex_q)
+        completeness.append(float(dist.mean()))
+        if match_patch == patch:
+            cross.add(li, ex_views[li], out_views[li], to_exemplar, ex_tree_idx)
+        else:
+            m_ex = _patch_source(ex_enc[li], match_patch, False)
+            m_out = _patch_source(out_enc[li], match_patch, wrap)
+            m_basis, m_mean = _pca_basis(_gather(m_ex, m_sample), PCA_DIMS)
+            cross.add(li, m_ex, m_out, _NearestPatches(_gather(m_ex, m_tree_idx), m_basis, m_mean), m_tree_idx)
+    out_positions = np.stack(np.divmod(out_query, out_grid_w), axis=1)
+    return PatchMatches(float(np.mean(coherence)), float(np.mean(completeness)), matched, match_rms, out_positions,
+                        n_out_grid, cross.agreement(ex_enc, out_enc, tolerance))
+
+
+def sliced_wasserstein_levels(ex_enc: np.ndarray, out_enc: np.ndarray, *, patch: int, scales: int,
+                              projections: int, seed: int, wrap: bool) -> list[float]:
+    """The sliced Wasserstein distance of patch distributions per Gaussian-pyramid level, averaged over lights
+    (levels too small for a patch are left out)."""
+    dim = ex_enc.shape[3] * patch * patch
+    swd_levels: list[list[float]] = []
+    ex_level, out_level = list(ex_enc), list(out_enc)
+    for level in range(scales):
+        if level:
+            ex_level = [downsample(im, "reflect") for im in ex_level]
+            out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
+        if min(ex_level[0].shape[:2]) < patch or min(out_level[0].shape[:2]) < patch:
+            break
+        rng = np.random.default_rng([seed, 1, level])
+        directions = rng.standard_normal((projections, dim)).astype(np.float32)
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        ex_views = [_patch_source(im, patch, False) for im in ex_level]
+        out_views = [_patch_source(im, patch, wrap) for im in out_level]
+        ex_pick = _pick(rng, ex_views[0].shape[0] * ex_views[0].shape[1], SWD_PATCH_CAP)
+        out_pick = _pick(rng, out_views[0].shape[0] * out_views[0].shape[1], SWD_PATCH_CAP)
+        swd_levels.append([_sliced_wasserstein(_gather(o, out_pick), _gather(e, ex_pick), directions)
+                           for o, e in zip(out_views, ex_views)])
+    return [float(np.mean(v)) for v in swd_levels]
+
+
+def seam_ratio_of(out_enc: np.ndarray, block: int, coords: CoordMap | None, wrap: bool) -> tuple[float | None, list[str]]:
+    """Mean gradient across the known boundaries over the mean gradient elsewhere, and where the boundaries came
+    from (None when no boundary is known)."""
+    masks = _seam_masks(out_enc.shape[1], out_enc.shape[2], block, coords)
+    n_light = out_enc.shape[0]
+    gx = np.linalg.norm(np.diff(out_enc, axis=2), axis=3)  # [L, H, W-1]
+    gy = np.linalg.norm(np.diff(out_enc, axis=1), axis=3)  # [L, H-1, W]
+    seam_sum, seam_n, rest_sum, rest_n = 0.0, 0, 0.0, 0
+    seam_source = []
+    if masks is not None:
+        sx, sy, seam_source = masks[0], masks[1], [masks[2]]
+        for g, m in ((gx, sx), (gy, sy)):
+            seam_sum += float(g[:, m].sum())
+            seam_n += int(m.sum()) * n_light
+            rest_sum += float(g[:, ~m].sum())
+            rest_n += int((~m).sum()) * n_light
+    else:
+        rest_sum = float(gx.sum() + gy.sum())
+        rest_n = gx.size + gy.size
+    if wrap:
+        wx = np.linalg.norm(out_enc[:, :, 0] - out_enc[:, :, -1], axis=-1)
+        wy = np.linalg.norm(out_enc[:, 0] - out_enc[:, -1], axis=-1)
+        seam_sum += float(wx.sum() + wy.sum())
+        seam_n += wx.size + wy.size
+        seam_source.append("wrap")
+    if seam_n and rest_n and rest_sum > 0:
+        return (seam_sum / seam_n) / (rest_sum / rest_n), seam_source
+    return None, seam_source
+
+
+def verbatim_share_of_map(coords: CoordMap, min_island: float) -> float:
+    """Share of output texels in 4-connected regions of constant source offset larger than ``min_island``."""
+    h, w = coords.height, coords.width
+    ew = coords.source_size[1]
+    src = _dominant_source(coords)
+    rows, cols = np.mgrid[0:h, 0:w]
+    keys = (src[..., 0] - rows + h) * (2 * w + ew + 1) + (src[..., 1] - cols + w)
+    return _island_share(keys, min_island)
+
+
 def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np.ndarray, np.ndarray, str] | None:
     """Masks of texel pairs ``(j, j+1)`` across a boundary: ``[H, W-1]`` horizontal, ``[H-1, W]`` vertical."""
     if block > 0:
@@ -406,6 +620,13 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
             random unit directions fixed by ``seed``; sorted projections give the 1-D Wasserstein-1 distance by
             quantile matching), averaged over directions, over ``scales`` Gaussian-pyramid levels (``swd_0`` ...
             per level, up to 16384 sampled patches per image and level) and over lights.  Lower is better.
+        ``texture_statistics``
+            Distance of texture statistics between output and exemplar divided by the same distance between the
+            exemplar's own halves (left/right and top/bottom, averaged), averaged over lights: 1 means the output
+            is as close to the exemplar as the exemplar is to itself, lower is better.  Statistics of the
+            channel mean per light: histograms of intensity and of gradient magnitude (32 bins over the
+            exemplar's range; total-variation distance) and the normalised autocorrelation up to 8 texels of
+            lag (RMS difference).  ``texture_statistics_self`` is the halves' distance.
         ``coherence``
             Mean over sampled output patches of the RMS difference to the nearest exemplar patch (does every
             part of the output look like some part of the exemplar?).  Lower is better.
@@ -481,78 +702,20 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
     whites = _white_points(ex_lin)
     ex_enc = _encode(ex_lin, whites, domain)
     out_enc = _encode(out_lin, whites, domain)
-    dim = n_channel * patch * patch
 
-    # ---- sliced Wasserstein distance over a Gaussian pyramid
-    swd_levels: list[list[float]] = []
-    ex_level, out_level = list(ex_enc), list(out_enc)
-    for level in range(scales):
-        if level:
-            ex_level = [downsample(im, "reflect") for im in ex_level]
-            out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
-        if min(ex_level[0].shape[:2]) < patch or min(out_level[0].shape[:2]) < patch:
-            break
-        rng = np.random.default_rng([seed, 1, level])
-        directions = rng.standard_normal((projections, dim)).astype(np.float32)
-        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-        ex_views = [_patch_source(im, patch, False) for im in ex_level]
-        out_views = [_patch_source(im, patch, wrap) for im in out_level]
-        ex_pick = _pick(rng, ex_views[0].shape[0] * ex_views[0].shape[1], SWD_PATCH_CAP)
-        out_pick = _pick(rng, out_views[0].shape[0] * out_views[0].shape[1], SWD_PATCH_CAP)
-        swd_levels.append([_sliced_wasserstein(_gather(o, out_pick), _gather(e, ex_pick), directions)
-                           for o, e in zip(out_views, ex_views)])
-    swd_per_level = [float(np.mean(v)) for v in swd_levels]
+    swd_per_level = sliced_wasserstein_levels(ex_enc, out_enc, patch=patch, scales=scales, projections=projections,
+                                              seed=seed, wrap=wrap)
 
-    # ---- nearest patches: coherence, completeness, and the per-light matches behind the map-free estimates
-    rng = np.random.default_rng([seed, 2])
-    ex_views = [_patch_source(im, patch, False) for im in ex_enc]
-    out_views = [_patch_source(im, patch, wrap) for im in out_enc]
-    ex_grid_w, out_grid_h, out_grid_w = ex_views[0].shape[1], out_views[0].shape[0], out_views[0].shape[1]
-    n_ex_grid = ex_views[0].shape[0] * ex_grid_w
-    n_out_grid = out_grid_h * out_grid_w
-    ex_tree_idx = _pick(rng, n_ex_grid, TREE_CAP)
-    out_tree_idx = _pick(rng, n_out_grid, TREE_CAP)
-    out_query = _pick(rng, n_out_grid, samples)
-    ex_query = _pick(rng, n_ex_grid, samples)
-    # Texels for the map-free consistency, each judged by the exemplar patches that best explain it.
     match_patch = consistency_patch or patch
     for role, (hh, ww) in (("output", (h, w)), ("exemplar", (eh, ew))):
         if min(hh, ww) < match_patch:
             raise BtforgeInputError(f"score '{role}'", f"expected at least {match_patch} x {match_patch} texels (the "
                                     f"consistency patch size), found {hh} x {ww}", "lower 'consistency_patch'")
-    texels = np.stack(np.divmod(_pick(rng, h * w, max(16, samples // CONSISTENCY_SHARE)), w), axis=1)
-    cross = _CrossLight(texels, match_patch, wrap, (h, w), (eh, ew), n_light)
-    if match_patch != patch:
-        m_ex_grid = (eh - match_patch + 1) * (ew - match_patch + 1)
-        m_tree_idx = _pick(rng, m_ex_grid, TREE_CAP)
-        m_sample = _pick(rng, m_ex_grid, samples)
+    found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=match_patch, samples=samples, seed=seed,
+                                  wrap=wrap, tolerance=tolerance)
+    matched, match_rms, out_positions, n_out_grid = found.matched, found.match_rms, found.out_positions, found.n_out_grid
 
-    coherence, completeness = [], []
-    matched = np.empty((n_light, len(out_query), 2), np.int64)
-    match_rms = np.empty((n_light, len(out_query)), np.float32)
-    for li in range(n_light):
-        ex_tree_patches = _gather(ex_views[li], ex_tree_idx)
-        out_q = _gather(out_views[li], out_query)
-        ex_q = _gather(ex_views[li], ex_query)
-        basis, mean = _pca_basis(np.concatenate([out_q, ex_q]), PCA_DIMS)
-        to_exemplar = _NearestPatches(ex_tree_patches, basis, mean)
-        found, dist = to_exemplar.query(out_q)
-        coherence.append(float(dist.mean()))
-        matched[li] = np.stack(np.divmod(ex_tree_idx[found], ex_grid_w), axis=1)
-        match_rms[li] = dist
-        _, dist = _NearestPatches(_gather(out_views[li], out_tree_idx), basis, mean).query(ex_q)
-        completeness.append(float(dist.mean()))
-        if match_patch == patch:
-            cross.add(li, ex_views[li], out_views[li], to_exemplar, ex_tree_idx)
-        else:
-            m_ex = _patch_source(ex_enc[li], match_patch, False)
-            m_out = _patch_source(out_enc[li], match_patch, wrap)
-            m_basis, m_mean = _pca_basis(_gather(m_ex, m_sample), PCA_DIMS)
-            cross.add(li, m_ex, m_out, _NearestPatches(_gather(m_ex, m_tree_idx), m_basis, m_mean), m_tree_idx)
-    out_positions = np.stack(np.divmod(out_query, out_grid_w), axis=1)
-
-    # ---- consistency
-    consistency_matched = cross.agreement(ex_enc, out_enc, tolerance)
+    consistency_matched = found.consistency_matched
     if coords is not None:
         # Replayed exactly as materialize does (records blended, then relit): blending relit radiance instead
         # differs wherever evaluation is not linear in the records (clamps, sRGB codes, sRGB-space PTMs).
@@ -564,51 +727,24 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
     if n_light < 2:
         ctx.warn("consistency across lights needs at least 2 lights; with one it is trivially 1")
 
-    # ---- verbatim copies
     min_island = verbatim_area * eh * ew
     if coords is not None:
-        src = _dominant_source(coords)
-        rows, cols = np.mgrid[0:h, 0:w]
-        keys = (src[..., 0] - rows + h) * (2 * w + ew + 1) + (src[..., 1] - cols + w)
-        verbatim = _island_share(keys, min_island)
-        verbatim_method = "coords"
+        verbatim, verbatim_method = verbatim_share_of_map(coords, min_island), "coords"
     else:
         exact = (match_rms <= tolerance).all(axis=0) & (np.abs(matched - matched[:1]).max(axis=(0, 2)) == 0)
         verbatim = _verbatim_from_matches(out_enc, ex_enc, out_positions, matched[0], exact, min_island, tolerance,
                                           n_out_grid)
         verbatim_method = "patch matches"
 
-    # ---- seams
-    masks = _seam_masks(h, w, block, coords)
-    gx = np.linalg.norm(np.diff(out_enc, axis=2), axis=3)  # [L, H, W-1]
-    gy = np.linalg.norm(np.diff(out_enc, axis=1), axis=3)  # [L, H-1, W]
-    seam_sum, seam_n, rest_sum, rest_n = 0.0, 0, 0.0, 0
-    seam_source = []
-    if masks is not None:
-        sx, sy, seam_source = masks[0], masks[1], [masks[2]]
-        for g, m in ((gx, sx), (gy, sy)):
-            seam_sum += float(g[:, m].sum())
-            seam_n += int(m.sum()) * n_light
-            rest_sum += float(g[:, ~m].sum())
-            rest_n += int((~m).sum()) * n_light
-    else:
-        rest_sum = float(gx.sum() + gy.sum())
-        rest_n = gx.size + gy.size
-    if wrap:
-        wx = np.linalg.norm(out_enc[:, :, 0] - out_enc[:, :, -1], axis=-1)
-        wy = np.linalg.norm(out_enc[:, 0] - out_enc[:, -1], axis=-1)
-        seam_sum += float(wx.sum() + wy.sum())
-        seam_n += wx.size + wy.size
-        seam_source.append("wrap")
-    seam_ratio = None
-    if seam_n and rest_n and rest_sum > 0:
-        seam_ratio = (seam_sum / seam_n) / (rest_sum / rest_n)
-
+    seam_ratio, seam_source = seam_ratio_of(out_enc, block, coords, wrap)
+    statistics_ratio, statistics_self = texture_statistics_ratio(out_enc, ex_enc, wrap)
     values = {
         "swd": float(np.mean(swd_per_level)),
+        "texture_statistics": statistics_ratio,
+        "texture_statistics_self": statistics_self,
         **{f"swd_{i}": v for i, v in enumerate(swd_per_level)},
-        "coherence": float(np.mean(coherence)),
-        "completeness": float(np.mean(completeness)),
+        "coherence": found.coherence,
+        "completeness": found.completeness,
         "verbatim_share": verbatim,
         "verbatim_method": verbatim_method,
         "seam_ratio": seam_ratio,
@@ -622,7 +758,7 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
         "domain": domain,
         "wrap": bool(wrap),
         "scales_used": len(swd_per_level),
-        "sampled_patches": int(len(out_query)),
+        "sampled_patches": int(len(out_positions)),
     }
     for key, value in values.items():
         ctx.note(key, value)

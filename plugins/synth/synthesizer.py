@@ -1,0 +1,73 @@
+"""Declaring a synthesizer: one helper gives every synthesizer the same port types, shared params and role.
+
+A synthesizer takes an ``exemplar`` port of any per-texel buffer (a stack or any model: it is compared through
+its appearance features) and outputs a ``coords`` :class:`~btforge.buffers.CoordMap`.  It shares the params
+``size``, ``wrap`` and ``seed``, and declares ``role="synthesizer"``, which is how ``btforge bench synthesis``
+finds it (a third-party plugin's synthesizer is benched without editing btforge)::
+
+    @declare_synthesizer("mysynth", params=[Param("k", "int", 4, "...")])
+    def mysynth(ctx, exemplar, *, size, wrap, seed, k):
+        ...
+        return {"coords": CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)}
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+from btforge import Param, declare_stage
+from btforge.errors import BtforgeInputError
+
+from .scan_order import level_sizes
+
+MAX_K = 16
+MAX_NEIGHBORHOOD = 9
+SEARCHES = ("fast", "exact")
+
+
+def shared_params(*, size=(256, 256), seed_doc: str = "random seed: the same seed gives the same result") -> list[Param]:
+    """The params every synthesizer has: output ``size``, ``wrap`` (tile seamlessly) and ``seed``."""
+    return [Param("size", "ints", tuple(size), "output size [H, W] in texels", low=1, length=2),
+            Param("wrap", "bool", False, "make the result tile seamlessly (periodic output boundary)"),
+            Param("seed", "int", 0, seed_doc)]
+
+
+def search_param() -> Param:
+    """The ``search`` param of synthesizers whose analysis runs the shared neighbourhood search (:mod:`.search`)."""
+    return Param("search", "choice", "fast", "exemplar neighbourhood search: fast (PCA-reduced HNSW graph, "
+                 "re-ranked exactly; recall >= 0.9) or exact (OpenCL brute force)", choices=SEARCHES)
+
+
+def declare_synthesizer(name: str, *, params: Sequence[Param] = (), version: str = "1",
+                        seed_doc: str | None = None) -> Callable:
+    """:func:`~btforge.declare_stage` for a synthesizer: ``exemplar`` (PerTexel) in, ``coords`` (CoordMap) out,
+    the :func:`shared_params` first, then ``params``, and ``role="synthesizer"``."""
+    shared = shared_params(**({"seed_doc": seed_doc} if seed_doc else {}))
+    return declare_stage(name, inputs={"exemplar": "PerTexel"}, outputs={"coords": "CoordMap"},
+                         params=[*shared, *params], version=version, role="synthesizer")
+
+
+def check_params(stage: str, exemplar_size: tuple[int, int], *, size, neighborhood: int, k: int | None = None,
+                 levels: int | None = None) -> None:
+    """Raise :class:`BtforgeInputError` naming the parameter when a synthesis parameter cannot be used."""
+    if neighborhood < 3 or neighborhood % 2 == 0 or neighborhood > MAX_NEIGHBORHOOD:
+        raise BtforgeInputError(f"{stage} param 'neighborhood'",
+                                f"expected an odd window size in [3, {MAX_NEIGHBORHOOD}], found {neighborhood}",
+                                "use 3, 5, 7 or 9")
+    if k is not None and not 1 <= k <= MAX_K:
+        raise BtforgeInputError(f"{stage} param 'k'", f"expected an int in [1, {MAX_K}], found {k}",
+                                "use e.g. 6: the coherent source and 5 similar texels")
+    if len(size) != 2 or min(size) < 1:
+        raise BtforgeInputError(f"{stage} param 'size'", f"expected [H, W] with both at least 1, found {list(size)}",
+                                "give the output size as two positive ints, e.g. [256, 256]")
+    if levels is None:
+        return
+    if levels < 1:
+        raise BtforgeInputError(f"{stage} param 'levels'", f"expected at least 1, found {levels}",
+                                "use 1 for a single-resolution synthesis, 3 for the usual pyramid")
+    coarsest = level_sizes(*exemplar_size, levels)[-1]
+    if min(coarsest) < neighborhood:
+        raise BtforgeInputError(
+            f"{stage} param 'levels'",
+            f"{levels} levels shrink the {exemplar_size[0]} x {exemplar_size[1]} exemplar to "
+            f"{coarsest[0]} x {coarsest[1]}, smaller than the {neighborhood} x {neighborhood} neighbourhood",
+            "use fewer levels, a smaller neighbourhood or a larger exemplar")

@@ -1,0 +1,74 @@
+"""The synthesis bench and quality targets: synthesizers found by role (a third-party one too), the texture
+statistics score, and every synthesizer against a shuffled-block baseline."""
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from btforge import stage
+from btforge.registry import Registry
+from btforge.plugins.synth import bench
+from btforge.plugins.synth.features import probe_lights
+from btforge.plugins.synth.scoring import texture_statistics_ratio
+
+sys.path.insert(0, str(Path(__file__).parent / "fixtures"))
+import third_party_synth  # noqa: E402
+
+LIGHTS = [list(map(float, light)) for light in probe_lights(6)]
+
+
+def test_a_third_party_synthesizer_is_benched_by_its_role(tmp_path, monkeypatch):
+    import btforge.registry
+    monkeypatch.setattr(btforge.registry, "_default", Registry(extra_plugins=[third_party_synth]))
+    found = bench.synthesizers()
+    assert {"quilt", "kcoherence", "jumpmap", "thirdparty.offsets"} <= set(found)
+    assert "score" not in found and "materialize" not in found
+    code = bench.bench_synthesis(["--exemplar", "procedural", "--out", str(tmp_path), "--sizes", "24",
+                                  "--size", "32", "--only", "thirdparty.offsets", "--lights", "3"])
+    assert code == 0
+    rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
+    assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "thirdparty.offsets"]
+    assert float(rows[1]["texture_statistics"]) >= 0 and float(rows[1]["swd"]) >= 0
+    search_rows = list(csv.DictReader((tmp_path / "search.csv").open()))
+    assert float(search_rows[0]["recall"]) >= 0.9
+    assert (tmp_path / "synthesis.png").stat().st_size > 0
+
+
+def test_texture_statistics_ratio_orders_textures():
+    rng = np.random.default_rng(0)
+    from scipy.ndimage import gaussian_filter
+    ex = gaussian_filter(rng.random((3, 64, 64, 3)), (0, 2, 2, 0)).astype(np.float32)
+    same, own = texture_statistics_ratio(ex, ex, False)
+    assert same == 0 and own > 0
+    tiled, _ = texture_statistics_ratio(np.tile(ex, (1, 2, 2, 1)), ex, True)
+    shuffled, _ = texture_statistics_ratio(ex[:, rng.permutation(64)][:, :, rng.permutation(64)], ex, False)
+    flat, _ = texture_statistics_ratio(np.full_like(ex, ex.mean()), ex, False)
+    assert tiled < 1 < shuffled and 1 < flat
+    # a constant exemplar has no texture: its halves agree exactly
+    const = np.full((2, 16, 16, 1), 0.5, np.float32)
+    assert texture_statistics_ratio(const, const, False) == (0.0, 0.0)
+    assert texture_statistics_ratio(ex[:, :16, :16, :1], const, False)[0] == float("inf")
+
+
+@pytest.fixture(scope="module")
+def held_out():
+    """A 64 x 64 procedural exemplar the synthesizers were not tuned on (seed 7), as a 9-D PTM."""
+    return bench.exemplar_model(bench.PROCEDURAL, 64)
+
+
+def test_synthesizers_reach_the_texture_statistics_targets(held_out):
+    m = held_out
+    targets = {"quilt": ({"block": 16}, 1.0), "kcoherence": ({}, 1.5), "jumpmap": ({}, 1.5)}
+    for name, (params, target) in targets.items():
+        coords = stage(name)(exemplar=m, size=[96, 96], seed=1, **params)["coords"]
+        scores = bench.score_map(m, coords, LIGHTS)
+        assert scores["texture_statistics"] <= target, (name, scores)
+
+
+def test_quilting_beats_shuffled_blocks_on_sliced_wasserstein(held_out):
+    m = held_out
+    baseline = bench.score_map(m, bench.shuffled_blocks((64, 64), (96, 96), seed=1), LIGHTS)
+    quilted = bench.score_map(m, stage("quilt")(exemplar=m, size=[96, 96], seed=1, block=16)["coords"], LIGHTS)
+    assert quilted["swd"] < baseline["swd"], (quilted, baseline)
