@@ -61,3 +61,18 @@ def btforge_info_readers():
         Maps a lower-case file extension (``".ptm"``) to a function ``path -> dict`` that reads only what it
         needs to describe the file (header, counts, sizes) and raises ``BtforgeInputError`` on bad files.
     """
+
+
+@hookspec
+def btforge_cli_commands():
+    """Return command-line subcommands this plugin adds to ``btforge``.
+
+    Returns
+    -------
+    dict of str to (callable, callable)
+        Maps a command name (``"calibrate"``) to ``(add_arguments, run)``: ``add_arguments(parser)`` adds the
+        command's arguments to its ``argparse`` sub-parser, and ``run(args) -> int`` runs it and returns the exit
+        code.  The first line of ``run``'s docstring is the command's help.  ``run`` raises
+        ``BtforgeInputError`` for bad input, which the CLI prints without a traceback (exit code 2).  A name
+        that a built-in command or another plugin already uses is refused, naming both.
+    """

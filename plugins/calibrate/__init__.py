@@ -1,0 +1,133 @@
+"""Light calibration from mirror spheres: ``btforge calibrate`` and stage ``lights.calibrate``."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
+from btforge.errors import BtforgeInputError
+
+from .lights import calibrate, image_list, parse_sphere, report_picture, summary_lines, write_calibration
+
+
+def _stack_of(images, lights, names) -> SampleStack:
+    from btforge.plugins.stackio.images import read_image
+    frames = [read_image(p)[0] for p in images]
+    channels = frames[0].shape[2]
+    if any(f.shape != frames[0].shape for f in frames):
+        raise BtforgeInputError(str(images[0].parent), "expected images of one size")
+    if frames[0].dtype == np.uint8:
+        return SampleStack(np.stack(frames)[None], lights, [[0.0, 0.0, 1.0]], ("R", "G", "B")[:channels] if
+                           channels == 3 else ("Y",), "srgb8", names)
+    # 16-bit and float images are linear radiance, as stack.read takes them
+    scale = 65535.0 if frames[0].dtype == np.uint16 else 1.0
+    data = np.stack([f.astype(np.float32) / np.float32(scale) for f in frames])[None]
+    return SampleStack(data, lights, [[0.0, 0.0, 1.0]], ("R", "G", "B") if channels == 3 else ("Y",), "linear", names)
+
+
+@declare_stage(
+    "lights.calibrate",
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("images", "str", REQUIRED, "the photographs with the mirror sphere(s): a folder or a glob such as "
+              "'capture/*.jpg' (relative to the graph file)"),
+        Param("out", "outpath", "lights.lp", "the light file to write (relative to --out)"),
+        Param("report", "outpath", "calibration.png", "the picture of the sphere(s) with every highlight numbered"),
+        Param("sphere", "str", "", "the sphere as 'X,Y,R' in pixels (several: 'X,Y,R;X,Y,R'); empty: find them"),
+        Param("focal", "float", 0.0, "focal length in pixels for a perspective camera; 0: orthographic", low=0.0),
+        Param("apply_to", "str", "", "a later capture (folder or glob) shot with the same lights in the same order: "
+              "the light file and the stack then list its images"),
+    ],
+    side_effects=True,
+)
+def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
+    """Find the light direction of every photograph from the highlights on mirror spheres in view.
+
+    The spheres are found automatically (a circle fitted to the outline in the capture's maximum and median
+    images) unless given.  In every image the highlight is found with a brightness threshold that adapts until a
+    small share of the sphere is lit and a weighted centroid refined in a shrinking window; highlights that are too
+    dim or too large are rejected and the image is reported by name (it is left out of the light file: no light
+    is ever shifted onto another image).  Directions follow from reflection on the sphere (orthographic, or
+    perspective with ``focal``) and are averaged over the spheres, weighted by their uncertainty.
+
+    Outputs
+    -------
+    stack : SampleStack
+        The images (or those of ``apply_to``) whose light was found, with the calibrated directions.
+
+    Notes
+    -----
+    ``spheres`` (centre and radius), ``lights_found``, ``missing`` (image names), ``uncertainty_deg_median`` and
+    ``confidence_min``; the light file and the report picture are written.
+    """
+    base = ctx.paths.graph_dir
+    files = image_list(images, base)
+    spheres = [parse_sphere(s) for s in sphere.split(";") if s.strip()] or None
+    result = calibrate(files, spheres, focal or None)
+    later = image_list(apply_to, base) if apply_to else None
+    target = ctx.paths.output(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    missing = write_calibration(result, target, later)
+    report_path = ctx.paths.output(report)
+    report_path.parent.mkdir(parents=True, exist_ok=True)
+    report_picture(result, report_path)
+    for line in result.problems():
+        ctx.warn(line)
+    ctx.note("spheres", [[round(c.x, 2), round(c.y, 2), round(c.r, 2)] for c in result.spheres])
+    ctx.note("lights_found", int(result.found.sum()))
+    ctx.note("missing", missing)
+    ctx.note("uncertainty_deg_median", round(float(np.nanmedian(result.uncertainty_deg)), 3))
+    ctx.note("confidence_min", round(float(result.confidence[result.found].min()), 3))
+    keep = np.flatnonzero(result.found)
+    chosen = [(later or files)[i] for i in keep]
+    return {"stack": _stack_of(chosen, result.lights[keep], tuple(p.name for p in chosen))}
+
+
+def _calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", help="the photographs with the sphere: files, folders or globs")
+    parser.add_argument("--out", required=True, metavar="FILE.lp", help="the light file to write")
+    parser.add_argument("--sphere", action="append", metavar="X,Y,R",
+                        help="a sphere's centre column, row and radius in pixels (repeatable); default: found")
+    parser.add_argument("--focal", type=float, metavar="PIXELS", help="perspective camera focal length in pixels")
+    parser.add_argument("--report", metavar="FILE.png", help="the picture of the highlights (default: beside --out)")
+    parser.add_argument("--apply-to", nargs="+", metavar="IMAGE",
+                        help="write the lights for a later capture's images (same lights, same order) instead")
+
+
+def _calibrate_run(args) -> int:
+    """Light directions (.lp) from the highlights on mirror spheres in the photographs.
+
+    Exits with 0 when every image has a light, 1 when some were left out (they are named), 2 on bad input.
+    """
+    if args.focal is not None and not args.focal > 0:
+        raise BtforgeInputError(f"--focal {args.focal}", "expected a positive focal length in pixels")
+    files = image_list(args.images)
+    spheres = [parse_sphere(s) for s in args.sphere] if args.sphere else None
+    result = calibrate(files, spheres, args.focal)
+    out = Path(args.out)
+    if out.suffix.lower() != ".lp":
+        raise BtforgeInputError(f"--out {args.out}", "expected a .lp file name")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    missing = write_calibration(result, out, image_list(args.apply_to) if args.apply_to else None)
+    report = Path(args.report) if args.report else out.with_name(out.stem + "_calibration.png")
+    report_picture(result, report)
+    for c in result.spheres:
+        print(f"sphere: centre ({c.x:.2f}, {c.y:.2f}), radius {c.r:.2f} px, outline support {c.support:.2f}")
+    print("\n".join(summary_lines(result)))
+    print(f"wrote {out} ({int(result.found.sum())} lights) and {report}")
+    for line in result.problems():
+        print(f"warning: {line}", file=sys.stderr)
+    return 1 if missing else 0
+
+
+@hookimpl
+def btforge_stages():
+    return [lights_calibrate]
+
+
+@hookimpl
+def btforge_cli_commands():
+    return {"calibrate": (_calibrate_arguments, _calibrate_run)}
