@@ -83,5 +83,11 @@ def btforge_buffer_types():
 
 
 @hookimpl
+def btforge_cli_commands():
+    from .server import view_arguments, view_run
+    return {"view": (view_arguments, view_run)}
+
+
+@hookimpl
 def btforge_info_readers():
     return {".rti": _describe_rti, ".json": describe_web}
