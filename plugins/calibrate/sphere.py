@@ -147,12 +147,17 @@ def _coverage(circle: Circle, edges, bins: int = 90) -> float:
 
 
 def _candidates(score: np.ndarray, radii: np.ndarray, factor: int, count: int) -> list[Circle]:
-    """The ``count`` best circles of the vote volume, each the best in its neighbourhood of centre and radius."""
+    """The ``count`` best circles of the vote volume ``[R, H, W]``, each the best in its neighbourhood of centre
+    and radius (the volume is first reduced to the best radius per centre)."""
+    best_k = np.argmax(score, axis=0)
+    best = np.take_along_axis(score, best_k[None], axis=0)[0].reshape(-1)
+    top = np.argpartition(best, -min(best.size, 4000))[-4000:] if best.size > 4000 else np.arange(best.size)
     out: list[Circle] = []
-    flat = score.reshape(-1)
-    for index in np.argsort(flat)[::-1][:50000]:
-        k, cy, cx = np.unravel_index(index, score.shape)
-        c = Circle((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5, float(radii[k] * factor), float(flat[index]))
+    width = score.shape[2]
+    for index in top[np.argsort(best[top])[::-1]]:
+        cy, cx = divmod(int(index), width)
+        c = Circle((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5, float(radii[best_k.flat[index]] * factor),
+                   float(best[index]))
         if any(math.hypot(c.x - o.x, c.y - o.y) < 0.3 * max(c.r, o.r) and abs(c.r - o.r) < 0.3 * max(c.r, o.r)
                for o in out):
             continue
