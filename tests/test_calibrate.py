@@ -155,3 +155,20 @@ def test_psm_uw_chrome_sphere():
     error = angles_deg(result.lights, truth)
     # Measured: 2.67 mean, 7.95 worst (the goal is 2.5 / 6; see README, "Light calibration").
     assert error.mean() <= 2.8 and error.max() <= 8.5, error.round(2)
+
+
+def test_stage_in_a_graph_writes_the_light_file_and_report(tmp_path):
+    import btforge
+    lights = fibonacci_lights(8, seed=9)
+    (tmp_path / "shots").mkdir()
+    render_capture(tmp_path / "shots", lights, [(120, 100, 45)], dark=(2,))
+    graph = tmp_path / "g.yaml"
+    graph.write_text("nodes:\n  lights: {stage: lights.calibrate, params: {images: 'shots/*.jpg'}}\n"
+                     "  fit: {stage: ptm.fit, inputs: {stack: lights.stack}}\n")
+    with pytest.warns(Warning, match="shot_02.jpg"):
+        result = btforge.run(str(graph), only=["lights", "fit"], out_dir=str(tmp_path / "out"), quiet=True)
+    stack = result["lights"]["stack"]
+    assert stack.n_light == 7 and "shot_02.jpg" not in stack.names
+    assert angles_deg(stack.lights, np.delete(lights, 2, axis=0)).max() < 2.0
+    assert (tmp_path / "out" / "lights.lp").is_file() and (tmp_path / "out" / "calibration.png").is_file()
+    assert result["fit"]["model"].height == 240
