@@ -131,3 +131,9 @@ def btforge_stages():
 @hookimpl
 def btforge_cli_commands():
     return {"calibrate": (_calibrate_arguments, _calibrate_run)}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_calibrate
+    return {"calibrate": bench_calibrate}

@@ -54,3 +54,9 @@ def stack_normalize(ctx, stack, *, reference, falloff):
 @hookimpl
 def btforge_stages():
     return [stack_normalize]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_normalize
+    return {"normalize": bench_normalize}

@@ -27,7 +27,7 @@ from btforge.buffers import SampleStack, linear_to_srgb8
 from btforge.errors import BtforgeInputError
 from btforge.plugins.ptm.model import ptm_terms
 
-WORK_SIDE = 96          # the fit runs on block means of at most this many pixels per side
+WORK_SIDE = 64          # the fit runs on block means of at most this many pixels per side
 ITERATIONS = 10
 TUKEY_C = 4.685         # Tukey's biweight constant, in robust standard deviations
 DARK, CLIPPED = 1e-3, 0.98

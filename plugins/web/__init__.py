@@ -89,5 +89,11 @@ def btforge_cli_commands():
 
 
 @hookimpl
+def btforge_bench_commands():
+    from .bench import bench_web
+    return {"web": bench_web}
+
+
+@hookimpl
 def btforge_info_readers():
     return {".rti": _describe_rti, ".json": describe_web}

@@ -126,7 +126,7 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
             if image_format == "jpg":
                 image.save(handle, format="JPEG", quality=quality, subsampling=0)
             else:
-                image.save(handle, format="PNG", compress_level=6)
+                image.save(handle, format="PNG", compress_level=1)  # speed over size: PNG is for exactness
         written.append(target)
     scale += [1.0] * (len(padded) - n)
     bias += [0.0] * (len(padded) - n)
