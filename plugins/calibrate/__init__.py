@@ -28,6 +28,24 @@ def _stack_of(images, lights, names) -> SampleStack:
     return SampleStack(data, lights, [[0.0, 0.0, 1.0]], ("R", "G", "B") if channels == 3 else ("Y",), "linear", names)
 
 
+def _calibrate_precheck(params, paths):
+    """Before any stage runs: the photographs exist, and so do the later capture's; the spheres parse."""
+    files, problems = [], []
+    checks = [lambda: files.extend(image_list(params["images"], paths.graph_dir))]
+    if params.get("apply_to"):
+        checks.append(lambda: files.extend(image_list(params["apply_to"], paths.graph_dir)))
+    spheres = [t for t in (params.get("sphere") or "").split(";") if t.strip()]
+    checks += [lambda t=t: parse_sphere(t, "param 'sphere'") for t in spheres]
+    for check in checks:
+        try:
+            check()
+        except BtforgeInputError as exc:
+            problems.append(exc.one_line())
+    if problems:
+        raise BtforgeInputError("lights.calibrate", "; ".join(problems))
+    return files
+
+
 @declare_stage(
     "lights.calibrate",
     outputs={"stack": "SampleStack"},
@@ -42,6 +60,7 @@ def _stack_of(images, lights, names) -> SampleStack:
               "the light file and the stack then list its images"),
     ],
     side_effects=True,
+    precheck=_calibrate_precheck,
 )
 def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
     """Find the light direction of every photograph from the highlights on mirror spheres in view.
@@ -65,7 +84,7 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
     """
     base = ctx.paths.graph_dir
     files = image_list(images, base)
-    spheres = [parse_sphere(s) for s in sphere.split(";") if s.strip()] or None
+    spheres = [parse_sphere(s, "param 'sphere'") for s in sphere.split(";") if s.strip()] or None
     result = calibrate(files, spheres, focal or None)
     later = image_list(apply_to, base) if apply_to else None
     target = ctx.paths.output(out)

@@ -137,16 +137,17 @@ def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, f
     return Calibration(tuple(images), tuple(spheres), per_sphere, lights, uncertainty, confidence, tuple(shape))
 
 
-def parse_sphere(text: str) -> Circle:
-    """``'X,Y,R'`` (centre column, centre row, radius, in pixels) -> a :class:`Circle`."""
+def parse_sphere(text: str, where: str = "--sphere") -> Circle:
+    """``'X,Y,R'`` (centre column, centre row, radius, in pixels) -> a :class:`Circle`; ``where`` names the
+    option or parameter in messages."""
     parts = [p for p in str(text).replace(" ", "").split(",") if p]
     try:
         x, y, r = (float(p) for p in parts)
     except ValueError:
-        raise BtforgeInputError(f"--sphere {text}", "expected three numbers X,Y,R (centre column, row, radius in "
-                                "pixels)", "e.g. --sphere 253.5,148,119.5") from None
+        raise BtforgeInputError(f"{where} {text}", "expected three numbers X,Y,R (centre column, row, radius in "
+                                "pixels)", "e.g. 253.5,148,119.5") from None
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(r)) or r <= 0:
-        raise BtforgeInputError(f"--sphere {text}", f"expected finite numbers and a positive radius, found {parts}")
+        raise BtforgeInputError(f"{where} {text}", f"expected finite numbers and a positive radius, found {parts}")
     return Circle(x, y, r)
 
 
