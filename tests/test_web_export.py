@@ -12,7 +12,7 @@ import btforge
 from btforge import SampleStack
 from btforge.buffers import linear_to_srgb
 from btforge.errors import BtforgeInputError
-from btforge.plugins.web.hsh import HSHModel, hsh_basis, read_rti, write_rti
+from btforge.plugins.web.hsh import HSHModel, hsh_basis, write_rti
 from btforge.plugins.web.layout import quantize_planes, read_web, sh_weights, write_web
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"

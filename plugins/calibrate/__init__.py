@@ -16,16 +16,17 @@ from .lights import calibrate, image_list, parse_sphere, report_picture, summary
 def _stack_of(images, lights, names) -> SampleStack:
     from btforge.plugins.stackio.images import read_image
     frames = [read_image(p)[0] for p in images]
-    channels = frames[0].shape[2]
-    if any(f.shape != frames[0].shape for f in frames):
-        raise BtforgeInputError(str(images[0].parent), "expected images of one size")
+    odd = [p.name for p, f in zip(images, frames) if f.shape != frames[0].shape or f.dtype != frames[0].dtype]
+    if odd:
+        raise BtforgeInputError(", ".join(odd[:5]), f"expected the size and bit depth of {images[0].name}",
+                                "the capture's images must come from one camera setting")
+    channels = ("R", "G", "B") if frames[0].shape[2] == 3 else ("Y",)
     if frames[0].dtype == np.uint8:
-        return SampleStack(np.stack(frames)[None], lights, [[0.0, 0.0, 1.0]], ("R", "G", "B")[:channels] if
-                           channels == 3 else ("Y",), "srgb8", names)
+        return SampleStack(np.stack(frames)[None], lights, [[0.0, 0.0, 1.0]], channels, "srgb8", names)
     # 16-bit and float images are linear radiance, as stack.read takes them
-    scale = 65535.0 if frames[0].dtype == np.uint16 else 1.0
-    data = np.stack([f.astype(np.float32) / np.float32(scale) for f in frames])[None]
-    return SampleStack(data, lights, [[0.0, 0.0, 1.0]], ("R", "G", "B") if channels == 3 else ("Y",), "linear", names)
+    scale = np.float32(65535.0 if frames[0].dtype == np.uint16 else 1.0)
+    data = np.stack([f.astype(np.float32) / scale for f in frames])[None]
+    return SampleStack(data, lights, [[0.0, 0.0, 1.0]], channels, "linear", names)
 
 
 def _calibrate_precheck(params, paths):

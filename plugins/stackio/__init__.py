@@ -84,11 +84,10 @@ def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure, sides):
     (display values for 8-bit captures, as ``stack.compare`` measures).
     """
     from btforge.plot import labelled_grid, light_label
-    from PIL import Image
+    from btforge.plugins.relight import compare_stacks
     if beside is not None and beside.samples.shape[:4] != stack.samples.shape[:4]:
         raise BtforgeInputError("stack.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
                                 f"found {beside.samples.shape[:4]}")
-    from btforge.plugins.relight import compare_stacks
     n = stack.n_view * stack.n_light
     tiles, labels = [], []
     scores = compare_stacks(stack, beside, per_light=True)["psnr_db_per_light"] if beside is not None else None

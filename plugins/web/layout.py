@@ -21,7 +21,6 @@ ignore the key show it as if it were display values (darker).
 """
 from __future__ import annotations
 
-import io
 import json
 import math
 from pathlib import Path
