@@ -150,3 +150,20 @@ def test_a_model_that_fails_to_load_shows_a_message(served, browser):
     page.wait_for_function("document.body.dataset.state === 'ready'", timeout=30000)
     assert not page.is_visible("#message")
     page.close()
+
+
+def test_ptm_and_rti_files_are_exported_for_the_page(tmp_path):
+    from btforge.plugins.web.hsh import HSHModel, write_rti
+    model = btforge.stage("ptm.fit")(stack=capture(size=(8, 10)))["model"]
+    btforge.stage("ptm.write")(model=model, path=str(tmp_path / "a.ptm"))
+    write_rti(tmp_path / "b.rti", HSHModel(np.ones((6, 5, 3, 9), np.float32)))
+    server, thread, scratch = start([tmp_path / "a.ptm", tmp_path / "b.rti"], 0)
+    try:
+        listing = json.loads(urllib.request.urlopen(server.url + "models.json").read())
+        assert [m["name"] for m in listing] == ["a", "b"]
+        infos = [json.loads(urllib.request.urlopen(server.url + f"m/{i}/info.json").read()) for i in range(2)]
+        assert [(i["type"], i["width"], i["height"]) for i in infos] == [("ptm", 10, 8), ("hsh", 5, 6)]
+    finally:
+        server.shutdown()
+        shutil.rmtree(scratch, ignore_errors=True)
+    assert not scratch.exists()
