@@ -17,6 +17,7 @@ from PIL import Image
 
 import btforge
 from btforge.buffers import linear_to_srgb
+from btforge.plugins.web.hsh import HSHModel
 from btforge.plugins.web.server import start
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -34,12 +35,16 @@ def served(tmp_path_factory):
     stack = capture(size=SIZE, seed=4)
     ptm = btforge.stage("ptm.fit")(stack=stack)["model"]
     sh = btforge.stage("sh.fit")(stack=capture(size=SIZE, seed=4, encoding="linear"), light_order=3)["model"]
-    btforge.stage("model.export_web")(model=ptm, dir=str(root / "ptm"))
-    btforge.stage("model.export_web")(model=sh, dir=str(root / "sh"))
+    lrgb = btforge.stage("ptm.fit")(stack=stack, variant="lrgb")["model"]
+    rng = np.random.default_rng(5)
+    hsh = HSHModel((rng.normal(0, 0.1, SIZE + (3, 9)) + np.array([0.9] + [0.0] * 8)).astype(np.float32))
+    models = {"ptm": ptm, "sh": sh, "lrgb": lrgb, "hsh": hsh}
+    for name, model in models.items():
+        btforge.stage("model.export_web")(model=model, dir=str(root / name))
     shutil.copytree(root / "ptm", root / "broken")
     (root / "broken" / "plane_3.png").unlink()
-    server, thread, scratch = start([root / "ptm", root / "sh", root / "broken"], 0)
-    yield server, {"ptm": ptm, "sh": sh}
+    server, thread, scratch = start([root / "ptm", root / "sh", root / "broken", root / "lrgb", root / "hsh"], 0)
+    yield server, models
     server.shutdown()
     shutil.rmtree(scratch, ignore_errors=True)
 
@@ -47,7 +52,7 @@ def served(tmp_path_factory):
 def test_server_lists_models_and_serves_only_their_files(served):
     server, _ = served
     listing = json.loads(urllib.request.urlopen(server.url + "models.json").read())
-    assert [m["name"] for m in listing] == ["ptm", "sh", "broken"]
+    assert [m["name"] for m in listing] == ["ptm", "sh", "broken", "lrgb", "hsh"]
     assert json.loads(urllib.request.urlopen(server.url + "m/0/info.json").read())["type"] == "ptm"
     for bad in ("m/0/../../../etc/passwd", "m/9/info.json", "m/0/secret.txt", "../pyproject.toml"):
         with pytest.raises(urllib.error.HTTPError) as err:
@@ -101,7 +106,7 @@ def psnr(a, b) -> float:
     return float(10 * np.log10(1.0 / max(np.mean((a - b) ** 2), 1e-12)))
 
 
-@pytest.mark.parametrize("index,name", [(0, "ptm"), (1, "sh")])
+@pytest.mark.parametrize("index,name", [(0, "ptm"), (1, "sh"), (3, "lrgb"), (4, "hsh")])
 def test_page_matches_relight_at_three_lights(served, browser, index, name):
     server, models = served
     for x, y in [(0.0, 0.0), (0.5, 0.3), (-0.4, -0.6)]:
@@ -153,7 +158,7 @@ def test_a_model_that_fails_to_load_shows_a_message(served, browser):
 
 
 def test_ptm_and_rti_files_are_exported_for_the_page(tmp_path):
-    from btforge.plugins.web.hsh import HSHModel, write_rti
+    from btforge.plugins.web.hsh import write_rti
     model = btforge.stage("ptm.fit")(stack=capture(size=(8, 10)))["model"]
     btforge.stage("ptm.write")(model=model, path=str(tmp_path / "a.ptm"))
     write_rti(tmp_path / "b.rti", HSHModel(np.ones((6, 5, 3, 9), np.float32)))
