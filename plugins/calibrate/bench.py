@@ -22,12 +22,15 @@ def bench_calibrate(args: list[str]) -> int:
     parser.add_argument("images", nargs="?", help="folder or glob of the sphere photographs")
     parser.add_argument("--truth", help="known lights: a text file with a count line, then one 'x y z' row per image")
     parser.add_argument("--synthetic", type=int, metavar="N", help="render N lights on two spheres (JPEG q80)")
+    parser.add_argument("--width", type=int, default=320, help="rendered image width (height: 3/4 of it)")
     parser.add_argument("--focal", type=float)
     opts = parser.parse_args(args)
     with tempfile.TemporaryDirectory() as scratch:
         if opts.synthetic:
             truth = fibonacci_lights(opts.synthetic)
-            render_capture(Path(scratch), truth, [(110, 90, 42), (230, 100, 36)])
+            k = opts.width / 320.0
+            render_capture(Path(scratch), truth, [(110 * k, 90 * k, 42 * k), (230 * k, 100 * k, 36 * k)],
+                           size=(opts.width * 3 // 4, opts.width))
             files = image_list(scratch)
         else:
             files = image_list(opts.images)

@@ -28,6 +28,7 @@ LOWEST_THRESHOLD = 0.35         # ... but never below this share of the peak
 MAX_HIGHLIGHT_SHARE = 0.03      # a lit area above this share of the disc at half the peak is not a point light
 MIN_CONTRAST = 8.0              # peak over the noise (median absolute deviation) of the disc
 MIN_PEAK = 0.04                 # peak above the median image, in units of the image's full range
+VALIDATION_IMAGES = 12          # a candidate sphere must show highlights in most of this many images
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,8 +204,9 @@ def find_spheres(lum: np.ndarray, max_spheres: int = 4, background: np.ndarray |
         coverage = _coverage(c, merged)
         if coverage < 0.35:
             continue
-        found = sum(find_highlight(frame, background, c).found for frame in lum)
-        if found < max(2, 0.5 * n):
+        sample = lum[np.linspace(0, n - 1, min(n, VALIDATION_IMAGES)).round().astype(int)]
+        found = sum(find_highlight(frame, background, c).found for frame in sample)
+        if found < max(2, 0.5 * len(sample)):
             continue
         kept.append((dataclasses.replace(c, support=coverage), coverage))
     # Best outline first; a larger circle nearly as well covered wins over one inside it (a highlight's blob).
@@ -251,7 +253,8 @@ def find_highlight(image: np.ndarray, background: np.ndarray, circle: Circle) ->
     residual = np.where(disc, image[box] - background[box], 0.0).astype(np.float32)
     smooth = ndimage.gaussian_filter(residual, 1.0)
     inside = smooth[disc]
-    noise = 1.4826 * float(np.median(np.abs(inside - np.median(inside)))) + 1e-4
+    spread = inside[::7] if inside.size > 7000 else inside  # a sample is enough for the noise level
+    noise = 1.4826 * float(np.median(np.abs(spread - np.median(spread)))) + 1e-4
     peak = float(inside.max())
     contrast = peak / noise
     if peak < MIN_PEAK or contrast < MIN_CONTRAST:
@@ -259,18 +262,26 @@ def find_highlight(image: np.ndarray, background: np.ndarray, circle: Circle) ->
                                                     f"{contrast:.1f} x the noise)")
     py, px = np.unravel_index(int(np.argmax(np.where(disc, smooth, -np.inf))), smooth.shape)
     disc_area = int(disc.sum())
-    half_max = _component(smooth >= 0.5 * peak, py, px)
-    if half_max.sum() > MAX_HIGHLIGHT_SHARE * disc_area:
+    # Components are labelled in a window around the peak wider than any acceptable highlight: one that
+    # reaches the window's border at half the peak is too large whatever its full extent.
+    reach = int(2.0 * math.sqrt(MAX_HIGHLIGHT_SHARE * disc_area / math.pi)) + 3
+    w0, w1 = max(0, py - reach), max(0, px - reach)
+    window = smooth[w0:py + reach + 1, w1:px + reach + 1]
+    wy, wx = py - w0, px - w1
+    half_max = _component(window >= 0.5 * peak, wy, wx)
+    touches = half_max[0].any() or half_max[-1].any() or half_max[:, 0].any() or half_max[:, -1].any()
+    if touches or half_max.sum() > MAX_HIGHLIGHT_SHARE * disc_area:
+        share = 100 * half_max.sum() / disc_area
         return Highlight(contrast=contrast, area=int(half_max.sum()),
-                         problem=f"too large ({100 * half_max.sum() / disc_area:.1f}% of the sphere above half the "
+                         problem=f"too large ({'over ' if touches else ''}{share:.1f}% of the sphere above half the "
                                  f"peak: a matte or a second light?)")
     threshold = 0.9 * peak
-    lit = _component(smooth >= threshold, py, px)
+    lit = _component(window >= threshold, wy, wx)
     while lit.sum() < max(4, LIT_SHARE * disc_area) and threshold > LOWEST_THRESHOLD * peak:
         threshold *= 0.9
-        lit = _component(smooth >= threshold, py, px)
+        lit = _component(window >= threshold, wy, wx)
     ys, xs = np.nonzero(lit)
-    first = (float(ys.mean()), float(xs.mean()))
+    first = (float(ys.mean()) + w0, float(xs.mean()) + w1)
     y, x = first
     half = 2.0 * math.sqrt(lit.sum() / math.pi) + 2.0
     while True:
