@@ -115,3 +115,14 @@ def test_stage_in_a_graph_writes_the_light_file_and_report(tmp_path):
     assert angles_deg(stack.lights, np.delete(lights, 2, axis=0)).max() < 2.0
     assert (tmp_path / "out" / "lights.lp").is_file() and (tmp_path / "out" / "calibration.png").is_file()
     assert result["fit"]["model"].height == 240
+
+
+def test_a_wrong_light_can_be_deleted(tmp_path, capsys):
+    lights = fibonacci_lights(6, seed=12)
+    render_capture(tmp_path, lights, [(120, 100, 45)])
+    out = tmp_path / "dirs.lp"
+    assert main(["calibrate", str(tmp_path), "--out", str(out), "--exclude", "shot_04.jpg"]) == 0
+    assert "shot_04.jpg" in capsys.readouterr().err
+    assert [e.filename for e in read_light_file(out)] == [f"shot_{i:02d}.jpg" for i in (0, 1, 2, 3, 5)]
+    assert main(["calibrate", str(tmp_path), "--out", str(out), "--exclude", "nope.jpg"]) == 2
+    assert "names no calibrated image" in capsys.readouterr().err

@@ -59,11 +59,12 @@ def _calibrate_precheck(params, paths):
         Param("focal", "float", 0.0, "focal length in pixels for a perspective camera; 0: orthographic", low=0.0),
         Param("apply_to", "str", "", "a later capture (folder or glob) shot with the same lights in the same order: "
               "the light file and the stack then list its images"),
+        Param("exclude", "str", "", "image file names to leave out (comma-separated): delete a wrong light"),
     ],
     side_effects=True,
     precheck=_calibrate_precheck,
 )
-def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
+def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to, exclude):
     """Find the light direction of every photograph from the highlights on mirror spheres in view.
 
     The spheres are found automatically (a circle fitted to the outline in the capture's maximum and median
@@ -80,17 +81,18 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
 
     Notes
     -----
-    ``spheres`` (centre and radius), ``lights_found``, ``missing`` (image names), ``uncertainty_deg_median`` and
+    ``spheres`` (centre and radius), ``lights_found``, ``left_out`` (image names: no highlight, or excluded),
+    ``uncertainty_deg_median`` and
     ``confidence_min``; the light file and the report picture are written.
     """
     base = ctx.paths.graph_dir
     files = image_list(images, base)
     spheres = [parse_sphere(s, "param 'sphere'") for s in sphere.split(";") if s.strip()] or None
-    result = calibrate(files, spheres, focal or None)
+    result = calibrate(files, spheres, focal or None).excluding(n.strip() for n in exclude.split(",") if n.strip())
     later = image_list(apply_to, base) if apply_to else None
     target = ctx.paths.output(out)
     target.parent.mkdir(parents=True, exist_ok=True)
-    missing = write_calibration(result, target, later)
+    left_out = write_calibration(result, target, later)
     report_path = ctx.paths.output(report)
     report_path.parent.mkdir(parents=True, exist_ok=True)
     report_picture(result, report_path)
@@ -98,7 +100,7 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to):
         ctx.warn(line)
     ctx.note("spheres", [[round(c.x, 2), round(c.y, 2), round(c.r, 2)] for c in result.spheres])
     ctx.note("lights_found", int(result.found.sum()))
-    ctx.note("missing", missing)
+    ctx.note("left_out", left_out)
     ctx.note("uncertainty_deg_median", round(float(np.nanmedian(result.uncertainty_deg)), 3))
     ctx.note("confidence_min", round(float(result.confidence[result.found].min()), 3))
     keep = np.flatnonzero(result.found)
@@ -115,23 +117,27 @@ def _calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", metavar="FILE.png", help="the picture of the highlights (default: beside --out)")
     parser.add_argument("--apply-to", nargs="+", metavar="IMAGE",
                         help="write the lights for a later capture's images (same lights, same order) instead")
+    parser.add_argument("--exclude", action="append", default=[], metavar="NAME",
+                        help="leave this image (file name) out: delete a wrong light (repeatable)")
 
 
 def _calibrate_run(args) -> int:
     """Light directions (.lp) from the highlights on mirror spheres in the photographs.
 
     Exits with 0 when every image has a light, 1 when some were left out (they are named), 2 on bad input.
+    Images excluded with ``--exclude`` are left out on request and do not count as missing.
     """
     if args.focal is not None and not args.focal > 0:
         raise BtforgeInputError(f"--focal {args.focal}", "expected a positive focal length in pixels")
     files = image_list(args.images)
     spheres = [parse_sphere(s) for s in args.sphere] if args.sphere else None
-    result = calibrate(files, spheres, args.focal)
+    result = calibrate(files, spheres, args.focal).excluding(args.exclude)
     out = Path(args.out)
     if out.suffix.lower() != ".lp":
         raise BtforgeInputError(f"--out {args.out}", "expected a .lp file name")
     out.parent.mkdir(parents=True, exist_ok=True)
-    missing = write_calibration(result, out, image_list(args.apply_to) if args.apply_to else None)
+    write_calibration(result, out, image_list(args.apply_to) if args.apply_to else None)
+    missing = [line for line in result.problems() if not line.endswith("left out on request")]
     report = Path(args.report) if args.report else out.with_name(out.stem + "_calibration.png")
     report_picture(result, report)
     for c in result.spheres:

@@ -17,6 +17,7 @@ from .sphere import Circle, Highlight, angular_uncertainty_deg, find_highlight, 
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".tga", ".exr", ".bmp")
 MASK_WORDS = ("mask",)  # e.g. psm_uw's chrome.mask.tga is not a photograph
+REPORT_SUFFIX = "calibration"  # our own report pictures (dirs_calibration.png) beside the photographs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,22 +32,37 @@ class Calibration:
     uncertainty_deg: np.ndarray
     confidence: np.ndarray
     shape: tuple[int, int]
+    excluded: frozenset[str] = frozenset()
 
     @property
     def found(self) -> np.ndarray:
-        return np.isfinite(self.lights[:, 0])
+        """Images with a light: a highlight was found and the user did not exclude them."""
+        return np.isfinite(self.lights[:, 0]) & ~np.array([p.name in self.excluded for p in self.images])
 
     def problems(self) -> list[str]:
-        """One line per image whose light was not found, naming the image and why."""
+        """One line per image left without a light, naming the image and why."""
         out = []
         for i in np.flatnonzero(~self.found):
+            if self.images[i].name in self.excluded:
+                out.append(f"{self.images[i].name}: left out on request")
+                continue
             reasons = "; ".join(f"sphere {s + 1}: {self.highlights[s][i].problem}" for s in range(len(self.spheres)))
             out.append(f"{self.images[i].name}: no light ({reasons})")
         return out
 
+    def excluding(self, names) -> "Calibration":
+        """The same calibration with the images ``names`` (file names) left out: a wrong light deleted."""
+        names = frozenset(names)
+        unknown = sorted(names - {p.name for p in self.images})
+        if unknown:
+            raise BtforgeInputError(f"exclude {', '.join(unknown)}", "names no calibrated image",
+                                    f"give file names such as {self.images[0].name}")
+        return dataclasses.replace(self, excluded=self.excluded | names)
+
 
 def image_list(pattern: str | os.PathLike | Sequence, base: Path | None = None) -> list[Path]:
-    """Images named by a folder, a glob, or a list of files/globs, sorted by name; masks are left out."""
+    """Images named by a folder, a glob, or a list of files/globs, sorted by name; masks and calibration
+    report pictures are left out."""
     items = [pattern] if isinstance(pattern, (str, os.PathLike)) else list(pattern)
     found: list[Path] = []
     for item in items:
@@ -63,7 +79,8 @@ def image_list(pattern: str | os.PathLike | Sequence, base: Path | None = None) 
                 raise BtforgeInputError(str(item), "matches no image file", "give a folder, a glob such as "
                                         "'photos/*.jpg', or image files")
             found += [p for p in matches if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
-    unique = sorted(set(p for p in found if not any(w in p.stem.lower() for w in MASK_WORDS)),
+    unique = sorted(set(p for p in found if not any(w in p.stem.lower() for w in MASK_WORDS)
+                        and not p.stem.lower().endswith(REPORT_SUFFIX)),
                     key=lambda p: _natural_key(p.name))
     if not unique:
         raise BtforgeInputError(str(pattern), "names no images", f"expected files ending in {', '.join(IMAGE_SUFFIXES)}")
@@ -206,14 +223,15 @@ def report_picture(result: Calibration, path: Path, lum: np.ndarray | None = Non
             if not h.found:
                 continue
             x, y = px(h.x, h.y)
-            colour = (80, 255, 80) if result.confidence[i] >= 0.5 else (255, 200, 0)
+            colour = (255, 60, 60) if not result.found[i] else (80, 255, 80) if result.confidence[i] >= 0.5 \
+                else (255, 200, 0)
             draw.ellipse([x - 4, y - 4, x + 4, y + 4], outline=colour)
             draw.text((x + 5, y - 12), str(i + 1), fill=colour, font=font)
         draw.text((4, 4), f"sphere {s + 1}: centre ({circle.x:.1f}, {circle.y:.1f}), radius {circle.r:.1f} px",
                   fill=(0, 170, 255), font=font)
         tiles.append(crop)
     lines = [f"{len(result.images)} images, {int(result.found.sum())} lights found; numbers = image order; "
-             "green: confidence >= 0.5, yellow: below"] + result.problems()
+             "green: confidence >= 0.5, yellow: below, red: left out"] + result.problems()
     width = max(sum(t.width for t in tiles), 480)
     height = max(t.height for t in tiles) + 14 * len(lines) + 8
     sheet = Image.new("RGB", (width, height), (0, 0, 0))
@@ -234,8 +252,9 @@ def summary_lines(result: Calibration) -> list[str]:
     rows = [f"{'#':>3}  {'image':24} {'x':>8} {'y':>8} {'z':>8} {'elev':>6} {'azim':>7} {'+-deg':>6} {'conf':>5}"]
     for i, path in enumerate(result.images):
         if not result.found[i]:
-            problem = "; ".join(hs[i].problem for hs in result.highlights)
-            rows.append(f"{i + 1:>3}  {path.name[:24]:24} no light: {problem}")
+            problem = "left out on request" if path.name in result.excluded else \
+                "no light: " + "; ".join(hs[i].problem for hs in result.highlights)
+            rows.append(f"{i + 1:>3}  {path.name[:24]:24} {problem}")
             continue
         x, y, z = result.lights[i]
         elev, azim = math.degrees(math.asin(max(-1.0, min(1.0, z)))), math.degrees(math.atan2(y, x)) % 360
