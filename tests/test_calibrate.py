@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from btforge.cli import main
@@ -126,3 +128,63 @@ def test_a_wrong_light_can_be_deleted(tmp_path, capsys):
     assert [e.filename for e in read_light_file(out)] == [f"shot_{i:02d}.jpg" for i in (0, 1, 2, 3, 5)]
     assert main(["calibrate", str(tmp_path), "--out", str(out), "--exclude", "nope.jpg"]) == 2
     assert "names no calibrated image" in capsys.readouterr().err
+
+
+@settings(max_examples=30, deadline=None)
+@given(elevation=st.floats(0.5, 90.0), azimuth=st.floats(0.0, 360.0), radius=st.floats(3.0, 2000.0),
+       focal=st.sampled_from([None, 200.0, 5000.0]))
+def test_reflection_inverts_the_mirror_geometry(elevation, azimuth, radius, focal):
+    """Grazing and overhead lights, tiny and huge spheres: the direction of a highlight placed by the mirror law
+    comes back, finite and unit length (orthographic exactly; perspective through the same ray geometry)."""
+    from btforge.plugins.calibrate.sphere import reflect
+    e, a = np.radians(elevation), np.radians(azimuth)
+    light = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    circle = Circle(400.0, 300.0, radius)
+    if focal is None:
+        normal = (light + [0, 0, 1]) / np.linalg.norm(light + [0, 0, 1])
+        xy = np.array([[circle.x + radius * normal[0], circle.y - radius * normal[1]]])
+        got = reflect(xy, circle, (600, 800))
+        np.testing.assert_allclose(got[0], light, atol=1e-9)
+    else:
+        rng = np.random.default_rng(int(elevation * 1000) % 997)
+        rho = rng.uniform(0, 0.999, 5)
+        phi = rng.uniform(0, 2 * np.pi, 5)
+        xy = np.stack([circle.x + radius * rho * np.cos(phi), circle.y + radius * rho * np.sin(phi)], 1)
+        got = reflect(xy, circle, (600, 800), focal)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(kind=st.sampled_from(["black", "saturated", "noise", "rim", "spot", "two"]), radius=st.integers(8, 60),
+       seed=st.integers(0, 10))
+def test_highlight_search_on_hard_images(kind, radius, seed):
+    """Black, saturated or noisy balls, a highlight at the rim, two lights: a position inside the disc or a
+    reason, never a crash or a silent guess."""
+    from btforge.plugins.calibrate.sphere import find_highlight
+    rng = np.random.default_rng(seed)
+    h = w = 2 * radius + 20
+    circle = Circle(w / 2, h / 2, float(radius))
+    yy, xx = np.mgrid[0:h, 0:w]
+    image = np.zeros((h, w), np.float32)
+    spot = lambda x, y: np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0).astype(np.float32)
+    if kind == "saturated":
+        image[:] = 1.0
+    elif kind == "noise":
+        image = rng.uniform(0, 0.02, (h, w)).astype(np.float32)
+    elif kind == "rim":
+        a = rng.uniform(0, 2 * np.pi)
+        image = spot(circle.x + 0.9 * radius * np.cos(a), circle.y + 0.9 * radius * np.sin(a))
+    elif kind == "spot":
+        image = spot(circle.x + rng.uniform(-0.5, 0.5) * radius, circle.y + rng.uniform(-0.5, 0.5) * radius)
+    elif kind == "two":
+        image = spot(circle.x - 0.4 * radius, circle.y) + spot(circle.x + 0.4 * radius, circle.y)
+    result = find_highlight(image, np.zeros_like(image), circle)
+    if kind in ("black", "saturated", "noise"):
+        assert not result.found and result.problem
+    elif kind in ("rim", "spot"):
+        assert result.found and np.hypot(result.x - circle.x, result.y - circle.y) <= radius
+    else:
+        assert result.found or result.problem  # one of the two lamps, or refused: never in between
+        if result.found:
+            assert min(abs(result.x - (circle.x - 0.4 * radius)), abs(result.x - (circle.x + 0.4 * radius))) < 1.0

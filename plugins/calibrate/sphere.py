@@ -25,7 +25,8 @@ SECOND_SPHERE_SUPPORT = 0.6     # another sphere must have this share of the bes
 DISC_SHARE = 0.97               # highlights are searched inside this share of the radius (the rim is unreliable)
 LIT_SHARE = 0.002               # the threshold is lowered until this share of the disc is lit ...
 LOWEST_THRESHOLD = 0.35         # ... but never below this share of the peak
-MAX_HIGHLIGHT_SHARE = 0.03      # a lit area above this share of the disc at half the peak is not a point light
+MAX_HIGHLIGHT_SHARE = 0.03      # a lit area above this share of the disc at half the peak is not a point light ...
+BLUR_PIXELS = 25                # ... unless it is no larger than the lens blur of a point (on small spheres)
 MIN_CONTRAST = 8.0              # peak over the noise (median absolute deviation) of the disc
 MIN_PEAK = 0.04                 # peak above the median image, in units of the image's full range
 VALIDATION_IMAGES = 12          # a candidate sphere must show highlights in most of this many images
@@ -264,13 +265,14 @@ def find_highlight(image: np.ndarray, background: np.ndarray, circle: Circle) ->
     disc_area = int(disc.sum())
     # Components are labelled in a window around the peak wider than any acceptable highlight: one that
     # reaches the window's border at half the peak is too large whatever its full extent.
-    reach = int(2.0 * math.sqrt(MAX_HIGHLIGHT_SHARE * disc_area / math.pi)) + 3
+    largest = max(MAX_HIGHLIGHT_SHARE * disc_area, BLUR_PIXELS)
+    reach = int(2.0 * math.sqrt(largest / math.pi)) + 3
     w0, w1 = max(0, py - reach), max(0, px - reach)
     window = smooth[w0:py + reach + 1, w1:px + reach + 1]
     wy, wx = py - w0, px - w1
     half_max = _component(window >= 0.5 * peak, wy, wx)
     touches = half_max[0].any() or half_max[-1].any() or half_max[:, 0].any() or half_max[:, -1].any()
-    if touches or half_max.sum() > MAX_HIGHLIGHT_SHARE * disc_area:
+    if touches or half_max.sum() > largest:
         share = 100 * half_max.sum() / disc_area
         return Highlight(contrast=contrast, area=int(half_max.sum()),
                          problem=f"too large ({'over ' if touches else ''}{share:.1f}% of the sphere above half the "
