@@ -141,7 +141,17 @@ def test_dragging_moves_the_light_and_snapshot_saves_the_view(served, browser):
     zoom = page.evaluate("window.btforgeViewer.zoom")
     page.mouse.move(200, 150)
     page.mouse.wheel(0, -300)
-    assert page.evaluate("window.btforgeViewer.zoom") > zoom
+    page.wait_for_function(f"window.btforgeViewer.zoom > {zoom}", timeout=10000)
+    pan, light = page.evaluate("window.btforgeViewer.pan"), page.evaluate("window.btforgeViewer.light")
+    page.keyboard.down("Shift")  # shift-drag pans and leaves the light alone
+    page.mouse.move(200, 150)
+    page.mouse.down()
+    page.mouse.move(260, 190, steps=3)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    moved = page.evaluate("window.btforgeViewer.pan")
+    assert abs(moved[0] - pan[0] - 60) < 1 and abs(moved[1] - pan[1] - 40) < 1
+    assert page.evaluate("window.btforgeViewer.light") == light
     page.close()
 
 
