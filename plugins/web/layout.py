@@ -179,9 +179,10 @@ def _read_planes(info: dict) -> np.ndarray:
     from PIL import Image
     folder, fmt = Path(info["_folder"]), info.get("format", "jpg")
     n, h, w = info["nplanes"], info["height"], info["width"]
-    planes = np.empty((n, h, w), np.float64)
+    planes = np.empty((n, h, w), np.float32)  # 8-bit steps are far above float32 rounding
     scale = np.asarray(info["materials"][0]["scale"], np.float64)
     bias = np.asarray(info["materials"][0]["bias"], np.float64)
+    lut = np.arange(256) / 255.0
     for j in range(-(-n // 3)):
         path = folder / f"plane_{j}.{fmt}"
         try:
@@ -196,7 +197,7 @@ def _read_planes(info: dict) -> np.ndarray:
         for c in range(3):
             p = 3 * j + c
             if p < n:
-                planes[p] = (pixels[..., c] / 255.0 - bias[p]) * scale[p]
+                planes[p] = ((lut - bias[p]) * scale[p]).astype(np.float32)[pixels[..., c]]
     return planes
 
 
