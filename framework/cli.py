@@ -196,7 +196,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     from . import bench
     bench.add_parser(sub).set_defaults(func=cmd_bench)
+    _add_plugin_commands(sub)
     return parser
+
+
+def _add_plugin_commands(sub) -> None:
+    """Subcommands from plugins' ``btforge_cli_commands`` hooks (``btforge NAME ...`` runs ``run(args)``)."""
+    from .registry import default_registry
+    for name, (add_arguments, run_command) in sorted(default_registry().cli_commands.items()):
+        if name in sub.choices:
+            raise BtforgeInputError(f"command '{name}'", "a plugin defines a command that btforge already has",
+                                    "rename the plugin's command")
+        summary = (run_command.__doc__ or "").strip().splitlines()
+        p = sub.add_parser(name, help=summary[0] if summary else None)
+        add_arguments(p)
+        p.set_defaults(func=run_command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -82,3 +82,18 @@ def btforge_bench_commands():
         (``prog="btforge bench NAME"``), prints its figures, and returns an exit code.  The first line of its
         docstring is the one-line help ``btforge bench`` lists.  Names must be unique across plugins.
     """
+
+
+@hookspec
+def btforge_cli_commands():
+    """Return command-line subcommands this plugin adds to ``btforge``.
+
+    Returns
+    -------
+    dict of str to (callable, callable)
+        Maps a command name (``"calibrate"``) to ``(add_arguments, run)``: ``add_arguments(parser)`` adds the
+        command's arguments to its ``argparse`` sub-parser, and ``run(args) -> int`` runs it and returns the exit
+        code.  The first line of ``run``'s docstring is the command's help.  ``run`` raises
+        ``BtforgeInputError`` for bad input, which the CLI prints without a traceback (exit code 2).  A name
+        that a built-in command or another plugin already uses is refused, naming both.
+    """

@@ -72,3 +72,31 @@ def scatter_png(path, xs, ys, labels, groups, *, title: str, xlabel: str, ylabel
     draw.text((width - right - 260, top + 8), "outlined + grey line: Pareto front", fill=(90, 90, 90), font=font)
     with atomic_write(path) as handle:
         img.save(handle, format="PNG")
+
+
+def light_label(light) -> str:
+    """``'el 45.0 az 120.0'``: a light's elevation above the surface and azimuth (degrees, from +x toward +y)."""
+    x, y, z = (float(v) for v in light)
+    elevation = math.degrees(math.asin(max(-1.0, min(1.0, z))))
+    azimuth = math.degrees(math.atan2(y, x)) % 360.0
+    return f"el {elevation:.1f} az {azimuth:.1f}"
+
+
+def labelled_grid(tiles, labels: Sequence[str], columns: int, header: str = "", strip: int = 12):
+    """One RGB uint8 image of ``tiles`` (equal-size ``[h, w, 3]`` uint8) in a grid, each with its label in a strip
+    above it (so the label covers no pixel of the tile), and an optional header line on top."""
+    import numpy as np
+    h, w = tiles[0].shape[:2]
+    rows = -(-len(tiles) // columns)
+    top = strip if header else 0
+    sheet = Image.new("RGB", (columns * w, top + rows * (h + strip)), "black")
+    draw = ImageDraw.Draw(sheet)
+    font = ImageFont.load_default()
+    if header:
+        draw.text((2, 0), header, fill=(255, 255, 0), font=font)
+    for i, (tile, label) in enumerate(zip(tiles, labels)):
+        r, q = divmod(i, columns)
+        y0 = top + r * (h + strip)
+        sheet.paste(Image.fromarray(np.ascontiguousarray(tile)), (q * w, y0 + strip))
+        draw.text((q * w + 2, y0), label, fill=(255, 255, 255), font=font)
+    return sheet

@@ -112,6 +112,14 @@ class Registry:
                                                 f"known types: {', '.join(sorted(self.types))}")
                 self.stages[st.name] = st
                 self._stage_sources[st.name] = impl.plugin
+        self.cli_commands: dict[str, tuple[Any, Any]] = {}
+        for impl in self.pm.hook.btforge_cli_commands.get_hookimpls():
+            plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
+            for name, command in (impl.function() or {}).items():
+                if name in self.cli_commands:
+                    raise BtforgeInputError(f"command '{name}'", f"is defined by two plugins (one is {plugin_name})",
+                                            "uninstall one of the plugins or rename the command")
+                self.cli_commands[name] = command
         self.info_readers: dict[str, Any] = {}
         for result in self.pm.hook.btforge_info_readers():
             self.info_readers.update(result or {})

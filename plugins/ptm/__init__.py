@@ -1,6 +1,8 @@
 """Polynomial texture maps: fit on OpenCL, read and write HP ``.ptm`` files."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
@@ -74,19 +76,38 @@ def ptm_basis(ctx, model, *, basis):
 def _ptm_file_precheck(params, paths):
     from .ptmfile import describe_ptm
     path = paths.input(params["path"])
+    if _is_web_layout(path):
+        from btforge.plugins.web.layout import read_info
+        info = read_info(path)
+        if info["type"] != "ptm":
+            raise BtforgeInputError(str(path), f"holds a {info['type']} model, not a PTM",
+                                    "read it with stage model.read")
+        folder = Path(info["_folder"])
+        return [folder / "info.json"] + sorted(folder.glob(f"plane_*.{info.get('format', 'jpg')}"))
     describe_ptm(path)
     return [path]
 
 
+def _is_web_layout(path) -> bool:
+    """relight's web layout: its info.json, or the folder holding one."""
+    return path.suffix.lower() == ".json" or (path.is_dir() and (path / "info.json").is_file())
+
+
 @declare_stage("ptm.read", outputs={"model": "PTMModel"},
-               params=[Param("path", "path", REQUIRED, "the .ptm file (PTM_1.2: LRGB, RGB or JPEG_LRGB)")],
+               params=[Param("path", "path", REQUIRED, "the .ptm file (PTM_1.2: LRGB, RGB or JPEG_LRGB), or a "
+                             "PTM in relight's web layout (its info.json or folder)")],
                precheck=_ptm_file_precheck)
 def ptm_read(ctx, *, path):
-    """Read an HP ``.ptm`` file (PTM_FORMAT_LRGB, PTM_FORMAT_RGB, or PTM_FORMAT_JPEG_LRGB with plane prediction).
+    """Read an HP ``.ptm`` file (PTM_FORMAT_LRGB, PTM_FORMAT_RGB, or PTM_FORMAT_JPEG_LRGB with plane prediction),
+    or a PTM in relight's web layout (``info.json`` with its coefficient planes, as OpenLIME reads it).
 
     The model's ``space`` is ``srgb``: PTM files hold display values, decoded to linear when relit.
     """
     from .ptmfile import read_ptm
+    if _is_web_layout(ctx.paths.input(path)):
+        from btforge.plugins.web.layout import read_web
+        ctx.note("file_format", "relight web layout")
+        return {"model": read_web(ctx.paths.input(path))}
     content = read_ptm(ctx.paths.input(path))
     ctx.note("file_format", content.file_format)
     albedo = content.albedo if content.albedo is not None else content.coeffs[..., :0, 0]

@@ -66,11 +66,11 @@ def relight(ctx, model, at=None, *, lights, views):
     return {"stack": SampleStack(np.ascontiguousarray(values), directions, view_dirs, model.channels, names=names)}
 
 
-def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0) -> dict:
+def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0, per_light: bool = False) -> dict:
     """PSNR (overall, worst and median light), RMSE and max error of ``stack`` against ``reference``.
 
     On display values (sRGB-encoded, clipped) when the reference is an 8-bit capture, as RTI tools report it;
-    on linear values otherwise.  Streams over bands of rows.
+    on linear values otherwise.  Streams over bands of rows.  ``per_light`` adds ``psnr_db_per_light``.
     """
     display = reference.encoding == "srgb8"
     per_light_sq = np.zeros(reference.n_light)
@@ -89,9 +89,12 @@ def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0
 
     mse = float(per_light_mse.mean())
     per_light = [psnr(m) for m in per_light_mse]
-    return {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(per_light), 3),
-            "psnr_db_median_light": round(float(np.median(per_light)), 3), "rmse": round(mse ** 0.5, 6),
-            "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
+    scores = {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(per_light), 3),
+              "psnr_db_median_light": round(float(np.median(per_light)), 3), "rmse": round(mse ** 0.5, 6),
+              "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
+    if per_light:
+        scores["psnr_db_per_light"] = per_light
+    return scores
 
 
 @declare_stage("stack.compare", inputs={"stack": "SampleStack", "reference": "SampleStack"},

@@ -74,33 +74,40 @@ def stack_write(ctx, stack, *, dir, format, half):
         Param("path", "outpath", REQUIRED, "the PNG to write (relative to --out)"),
         Param("columns", "int", 8, "images per row", low=1),
         Param("exposure", "float", 1.0, "multiplier applied to linear radiance before sRGB encoding", low=0.0),
+        Param("sides", "str", "fit,truth", "what the two sides of a tile are, left and right (with 'beside')"),
     ],
     side_effects=True,
 )
-def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure):
+def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure, sides):
     """Write every light's image of a stack in one sRGB PNG grid, for a quick look.
 
-    With a second stack wired to ``beside`` (e.g. the measured images at the same lights), each tile shows
-    the two side by side: ``stack`` left, ``beside`` right.
+    Each tile is labelled with its light (elevation and azimuth in degrees).  With a second stack wired to
+    ``beside`` (e.g. the measured images at the same lights), each tile shows the two side by side: ``stack``
+    left, ``beside`` right, as the header says (``sides`` names them), and each label adds the tile's PSNR
+    (display values for 8-bit captures, as ``stack.compare`` measures).
     """
-    from PIL import Image
+    from btforge.plot import labelled_grid, light_label
+    from btforge.plugins.relight import compare_stacks
     if beside is not None and beside.samples.shape[:4] != stack.samples.shape[:4]:
         raise BtforgeInputError("stack.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
                                 f"found {beside.samples.shape[:4]}")
     n = stack.n_view * stack.n_light
-    cols = min(columns, n)
-    rows = -(-n // cols)
-    h, w = stack.height, stack.width * (2 if beside is not None else 1)
-    sheet = np.zeros((rows * h, cols * w, 3), np.uint8)
+    tiles, labels = [], []
+    scores = compare_stacks(stack, beside, per_light=True)["psnr_db_per_light"] if beside is not None else None
     for i in range(n):
         v, l = divmod(i, stack.n_light)
         parts = [stack.image(v, l)] + ([beside.image(v, l)] if beside is not None else [])
         tile = np.concatenate([p if p.shape[2] == 3 else np.repeat(p[..., :1], 3, axis=2) for p in parts], axis=1)
-        r, q = divmod(i, cols)
-        sheet[r * h:(r + 1) * h, q * w:(q + 1) * w] = linear_to_srgb8(tile * exposure)
+        tiles.append(linear_to_srgb8(tile * exposure))
+        label = f"{l + 1} {light_label(stack.lights[l])}"
+        labels.append(label + (f" {scores[l]:.1f} dB" if scores is not None else ""))
+    names = [s.strip() for s in sides.split(",")] + ["beside"]
+    header = f"left: {names[0]}, right: {names[1]}; per tile: light, elevation, azimuth, PSNR" if beside is not None \
+        else ""
+    sheet = labelled_grid(tiles, labels, min(columns, n), header)
     target = ctx.paths.output(path)
     with atomic_write(target) as handle:
-        Image.fromarray(sheet).save(handle, format="PNG", compress_level=1)  # large sheets: speed over size
+        sheet.save(handle, format="PNG", compress_level=1)  # large sheets: speed over size
     ctx.note("written", str(target))
     return {}
 

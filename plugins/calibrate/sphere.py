@@ -1,0 +1,358 @@
+"""Finding mirror spheres in a capture and the highlight of every light on them.
+
+The outline of a sphere is found in the per-pixel maximum and median images (a static reflection of the room or
+the lamp's moving highlight makes the sphere stand out from the background in one or the other): strong edge
+pixels vote along their gradient for circle centres at every radius (a Hough transform), the best-supported
+circles are kept, and each is refined by a robust least-squares circle fit to the edge pixels near it.
+
+A highlight is searched for in each image after subtracting the per-pixel median of the capture (so static
+reflections on the ball drop out).  The brightness threshold adapts, from the peak down, until a small share of
+the sphere is lit; the weighted centroid of what lies above it is refined in a shrinking window, so flare and
+bloom around the lamp do not pull it.  Highlights that are too dim or too large are rejected with a reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import ndimage
+
+DETECT_MAX_SIDE = 800           # sphere search runs on images scaled down to this longer side
+EDGE_SHARE = 0.06               # the strongest share of gradient pixels that vote for circles
+MIN_RADIUS_SHARE = 0.04         # smallest sphere: this share of the image's shorter side
+SECOND_SPHERE_SUPPORT = 0.6     # another sphere must have this share of the best one's outline support
+DISC_SHARE = 0.97               # highlights are searched inside this share of the radius (the rim is unreliable)
+LIT_SHARE = 0.002               # the threshold is lowered until this share of the disc is lit ...
+LOWEST_THRESHOLD = 0.35         # ... but never below this share of the peak
+MAX_HIGHLIGHT_SHARE = 0.03      # a lit area above this share of the disc at half the peak is not a point light ...
+BLUR_PIXELS = 25                # ... unless it is no larger than the lens blur of a point (on small spheres)
+MIN_CONTRAST = 8.0              # peak over the noise (median absolute deviation) of the disc
+MIN_PEAK = 0.04                 # peak above the median image, in units of the image's full range
+VALIDATION_IMAGES = 12          # a candidate sphere must show highlights in most of this many images
+
+
+@dataclasses.dataclass(frozen=True)
+class Circle:
+    """A sphere's outline in pixels: centre column ``x``, centre row ``y``, radius ``r``; ``support`` in [0, 1]
+    is the share of the outline backed by edge pixels (1.0 for a circle the user gave)."""
+
+    x: float
+    y: float
+    r: float
+    support: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Highlight:
+    """The highlight of one image on one sphere: pixel position (column ``x``, row ``y``), its contrast over the
+    disc's noise, its lit area in pixels, a localisation spread in pixels, or ``problem`` when none was found."""
+
+    x: float = math.nan
+    y: float = math.nan
+    contrast: float = 0.0
+    area: int = 0
+    spread_px: float = math.nan
+    problem: str = ""
+
+    @property
+    def found(self) -> bool:
+        return not self.problem
+
+
+# ----------------------------------------------------------------------------------------------- images
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """``[H, W]`` float32 in [0, 1]: the largest channel (a highlight saturates whichever channel first)."""
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(image.dtype, 1.0)
+    values = image.astype(np.float32) / np.float32(scale)
+    return values.max(axis=2) if values.ndim == 3 else values
+
+
+def _downscale(image: np.ndarray, factor: int) -> np.ndarray:
+    if factor == 1:
+        return image
+    h, w = (image.shape[0] // factor) * factor, (image.shape[1] // factor) * factor
+    return image[:h, :w].reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+
+
+# ----------------------------------------------------------------------------------------------- spheres
+
+
+def _edges(image: np.ndarray, sigma: float, share: float):
+    """Rows, columns, unit gradient and magnitude of the strongest ``share`` of gradient pixels."""
+    smooth = ndimage.gaussian_filter(np.sqrt(np.maximum(image, 0.0)), sigma)  # sqrt: dark rims count too
+    gy, gx = ndimage.sobel(smooth, axis=0), ndimage.sobel(smooth, axis=1)
+    mag = np.hypot(gx, gy)
+    floor = max(float(np.quantile(mag, 1.0 - share)), 1e-6)
+    rows, cols = np.nonzero(mag > floor)
+    m = mag[rows, cols]
+    return rows, cols, gx[rows, cols] / m, gy[rows, cols] / m, m
+
+
+def _hough(shape, edges, radii) -> tuple[np.ndarray, np.ndarray]:
+    """Votes per radius and centre, normalised by the circumference: ``[R, H, W]`` float32 and the radii."""
+    h, w = shape
+    rows, cols, ux, uy, _ = edges
+    out = np.zeros((len(radii), h, w), np.float32)
+    for k, r in enumerate(radii):
+        for sign in (1.0, -1.0):  # the sphere may be brighter or darker than what surrounds it
+            cy = np.rint(rows - sign * r * uy).astype(np.int64)
+            cx = np.rint(cols - sign * r * ux).astype(np.int64)
+            ok = (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
+            out[k] += np.bincount(cy[ok] * w + cx[ok], minlength=h * w).reshape(h, w)
+        out[k] = ndimage.uniform_filter(out[k], 3) * 9 / (2 * math.pi * r)
+    return out, np.asarray(radii, np.float64)
+
+
+def _refine(circle: Circle, edges, scale: float, iterations: int = 12) -> Circle:
+    """Robust algebraic circle fit to the edge pixels near ``circle`` whose gradient points along the radius."""
+    rows, cols, ux, uy, mag = edges
+    x, y, r = circle.x, circle.y, circle.r
+    band = max(3.0 * scale, 0.06 * r)
+    for _ in range(iterations):
+        dx, dy = cols - x, rows - y
+        dist = np.hypot(dx, dy) + 1e-9
+        radial = (dx * ux + dy * uy) / dist
+        close = np.abs(dist - r) < band
+        # Keep the outline's dominant polarity: the inner edge of a bright reflection on the rim points inward.
+        polarity = 1.0 if (mag[close] * radial[close]).sum() >= 0 else -1.0
+        near = close & (polarity * radial > 0.85)
+        if near.sum() < 12:
+            break
+        px, py, weight = cols[near].astype(np.float64), rows[near].astype(np.float64), mag[near].astype(np.float64)
+        residual = np.abs(dist[near] - r)
+        weight = weight * np.clip(1.0 - (residual / band) ** 2, 0.0, None) ** 2  # Tukey's biweight
+        a = np.stack([px, py, np.ones_like(px)], axis=1) * np.sqrt(weight)[:, None]
+        b = (px * px + py * py) * np.sqrt(weight)
+        (c0, c1, c2), *_ = np.linalg.lstsq(a, b, rcond=None)
+        step = math.hypot(c0 / 2 - x, c1 / 2 - y)
+        x, y = c0 / 2, c1 / 2
+        new_r = math.sqrt(max(c2 + x * x + y * y, 1e-9))
+        step += abs(new_r - r)
+        r = new_r
+        if step < 0.25 * band:  # narrow the band once the circle has settled, not before
+            band = max(1.5 * scale, band * 0.7)
+    return Circle(float(x), float(y), float(r), circle.support)
+
+
+def _coverage(circle: Circle, edges, bins: int = 90) -> float:
+    """Share of the outline's angular bins holding an edge pixel on the circle whose gradient is radial."""
+    rows, cols, ux, uy, _ = edges
+    dx, dy = cols - circle.x, rows - circle.y
+    dist = np.hypot(dx, dy) + 1e-9
+    on = (np.abs(dist - circle.r) < max(2.0, 0.02 * circle.r)) & (np.abs(dx * ux + dy * uy) / dist > 0.85)
+    angles = np.arctan2(dy[on], dx[on])
+    hit = np.unique(((angles + math.pi) / (2 * math.pi) * bins).astype(int) % bins)
+    return len(hit) / bins
+
+
+def _candidates(score: np.ndarray, radii: np.ndarray, factor: int, count: int) -> list[Circle]:
+    """The ``count`` best circles of the vote volume ``[R, H, W]``, each the best in its neighbourhood of centre
+    and radius (the volume is first reduced to the best radius per centre)."""
+    best_k = np.argmax(score, axis=0)
+    best = np.take_along_axis(score, best_k[None], axis=0)[0].reshape(-1)
+    top = np.argpartition(best, -min(best.size, 4000))[-4000:] if best.size > 4000 else np.arange(best.size)
+    out: list[Circle] = []
+    width = score.shape[2]
+    for index in top[np.argsort(best[top])[::-1]]:
+        cy, cx = divmod(int(index), width)
+        c = Circle((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5, float(radii[best_k.flat[index]] * factor),
+                   float(best[index]))
+        if any(math.hypot(c.x - o.x, c.y - o.y) < 0.3 * max(c.r, o.r) and abs(c.r - o.r) < 0.3 * max(c.r, o.r)
+               for o in out):
+            continue
+        out.append(c)
+        if len(out) == count:
+            break
+    return out
+
+
+def find_spheres(lum: np.ndarray, max_spheres: int = 4, background: np.ndarray | None = None) -> list[Circle]:
+    """Mirror spheres in a capture ``[N, H, W]`` (luminance), best-supported first; empty when none is found.
+
+    Circles voted for in the maximum and median images are refined and kept when their outline is well covered by
+    edges and most images show a highlight on them; of two overlapping circles the larger wins unless its outline
+    is much less complete (a highlight's blob inside a sphere is a circle too).  Circles are in full-resolution
+    pixel coordinates (pixel centres at integers).
+    """
+    n, height, width = lum.shape
+    factor = max(1, int(math.ceil(max(height, width) / DETECT_MAX_SIDE)))
+    summaries = [lum.max(axis=0), np.median(lum, axis=0)]
+    background = summaries[1] if background is None else background
+    radii = np.arange(max(6, int(MIN_RADIUS_SHARE * min(height, width) / factor)),
+                      int(0.5 * min(height, width) / factor) + 1)
+    full_edges = [_edges(s, 1.0, EDGE_SHARE) for s in summaries]
+    merged = tuple(np.concatenate(parts) for parts in zip(*full_edges))
+    candidates = []
+    for image in summaries:
+        small = _downscale(image, factor)
+        votes, _ = _hough(small.shape, _edges(small, 1.5, EDGE_SHARE), radii)
+        low = 0
+        while low < len(radii):  # the best few per band of radii: small blobs must not crowd out the spheres
+            high = int(np.searchsorted(radii, radii[low] * 1.5))
+            candidates += _candidates(votes[low:high], radii[low:high], factor, 4)
+            low = high
+    kept: list[tuple[Circle, float]] = []
+    for c in candidates:
+        c = _refine(c, merged, float(factor))
+        if any(abs(c.x - o.x) + abs(c.y - o.y) + abs(c.r - o.r) < 1.0 for o, _ in kept):
+            continue  # two candidates refined to one circle
+        if not (c.r > 3 and -0.1 * c.r < c.x - c.r and c.x + c.r < width + 0.1 * c.r
+                and -0.1 * c.r < c.y - c.r and c.y + c.r < height + 0.1 * c.r):
+            continue  # a sphere mostly outside the frame gives no usable highlights
+        coverage = _coverage(c, merged)
+        if coverage < 0.35:
+            continue
+        sample = lum[np.linspace(0, n - 1, min(n, VALIDATION_IMAGES)).round().astype(int)]
+        found = sum(find_highlight(frame, background, c).found for frame in sample)
+        if found < max(2, 0.5 * len(sample)):
+            continue
+        kept.append((dataclasses.replace(c, support=coverage), coverage))
+    # Best outline first; a larger circle nearly as well covered wins over one inside it (a highlight's blob).
+    kept.sort(key=lambda item: -item[1])
+    chosen: list[Circle] = []
+    for c, coverage in kept:
+        clash = [o for o in chosen if math.hypot(c.x - o.x, c.y - o.y) < c.r + o.r]
+        if not clash:
+            chosen.append(c)
+        elif all(o.r < 0.8 * c.r and coverage >= 0.85 * o.support for o in clash):
+            chosen = [o for o in chosen if o not in clash] + [c]
+    chosen.sort(key=lambda c: -c.support)
+    best = chosen[0].support if chosen else 0.0
+    return [c for c in chosen if c.support >= SECOND_SPHERE_SUPPORT * best][:max_spheres]
+
+
+# ----------------------------------------------------------------------------------------------- highlights
+
+
+def disc_mask(shape, circle: Circle, share: float = DISC_SHARE):
+    """Bounding slices of the circle and the mask of the disc of ``share`` x its radius inside them."""
+    h, w = shape
+    r0, r1 = max(0, int(circle.y - circle.r) - 1), min(h, int(circle.y + circle.r) + 2)
+    c0, c1 = max(0, int(circle.x - circle.r) - 1), min(w, int(circle.x + circle.r) + 2)
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    mask = (xx - circle.x) ** 2 + (yy - circle.y) ** 2 <= (share * circle.r) ** 2
+    return (slice(r0, r1), slice(c0, c1)), mask
+
+
+def _weighted_centroid(values: np.ndarray, threshold: float, y: float, x: float, half: float):
+    r0, r1 = max(0, int(math.floor(y - half))), min(values.shape[0], int(math.ceil(y + half)) + 1)
+    c0, c1 = max(0, int(math.floor(x - half))), min(values.shape[1], int(math.ceil(x + half)) + 1)
+    window = np.clip(values[r0:r1, c0:c1] - threshold, 0.0, None)
+    total = float(window.sum())
+    if total <= 0:
+        return y, x
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    return float((window * yy).sum() / total), float((window * xx).sum() / total)
+
+
+def find_highlight(image: np.ndarray, background: np.ndarray, circle: Circle) -> Highlight:
+    """The highlight of a point light on one sphere in one luminance image (see the module docs)."""
+    box, disc = disc_mask(image.shape, circle)
+    residual = np.where(disc, image[box] - background[box], 0.0).astype(np.float32)
+    smooth = ndimage.gaussian_filter(residual, 1.0)
+    inside = smooth[disc]
+    spread = inside[::7] if inside.size > 7000 else inside  # a sample is enough for the noise level
+    noise = 1.4826 * float(np.median(np.abs(spread - np.median(spread)))) + 1e-4
+    peak = float(inside.max())
+    contrast = peak / noise
+    if peak < MIN_PEAK or contrast < MIN_CONTRAST:
+        return Highlight(contrast=contrast, problem=f"too dim (peak {peak:.3f} over the median image, "
+                                                    f"{contrast:.1f} x the noise)")
+    py, px = np.unravel_index(int(np.argmax(np.where(disc, smooth, -np.inf))), smooth.shape)
+    disc_area = int(disc.sum())
+    # Components are labelled in a window around the peak wider than any acceptable highlight: one that
+    # reaches the window's border at half the peak is too large whatever its full extent.
+    largest = max(MAX_HIGHLIGHT_SHARE * disc_area, BLUR_PIXELS)
+    reach = int(2.0 * math.sqrt(largest / math.pi)) + 3
+    w0, w1 = max(0, py - reach), max(0, px - reach)
+    window = smooth[w0:py + reach + 1, w1:px + reach + 1]
+    wy, wx = py - w0, px - w1
+    half_max = _component(window >= 0.5 * peak, wy, wx)
+    touches = half_max[0].any() or half_max[-1].any() or half_max[:, 0].any() or half_max[:, -1].any()
+    if touches or half_max.sum() > largest:
+        share = 100 * half_max.sum() / disc_area
+        return Highlight(contrast=contrast, area=int(half_max.sum()),
+                         problem=f"too large ({'over ' if touches else ''}{share:.1f}% of the sphere above half the "
+                                 f"peak: a matte or a second light?)")
+    threshold = 0.9 * peak
+    lit = _component(window >= threshold, wy, wx)
+    while lit.sum() < max(4, LIT_SHARE * disc_area) and threshold > LOWEST_THRESHOLD * peak:
+        threshold *= 0.9
+        lit = _component(window >= threshold, wy, wx)
+    ys, xs = np.nonzero(lit)
+    first = (float(ys.mean()) + w0, float(xs.mean()) + w1)
+    y, x = first
+    half = 2.0 * math.sqrt(lit.sum() / math.pi) + 2.0
+    while True:
+        y, x = _weighted_centroid(np.where(disc, residual, 0.0), threshold, y, x, half)
+        if half <= 2.0:
+            break
+        half = max(2.0, half * 0.75)
+    spread = math.hypot(y - first[0], x - first[1])
+    return Highlight(x=x + box[1].start, y=y + box[0].start, contrast=contrast, area=int(lit.sum()), spread_px=spread)
+
+
+def _component(mask: np.ndarray, row: int, col: int) -> np.ndarray:
+    labels, _ = ndimage.label(mask)
+    label = labels[row, col]
+    return labels == label if label else np.zeros_like(mask)
+
+
+# ----------------------------------------------------------------------------------------------- directions
+
+
+def reflect(highlight_xy: np.ndarray, circle: Circle, shape, focal: float | None = None) -> np.ndarray:
+    """Light directions ``[N, 3]`` (x right, y up, z toward the camera) for highlights ``[N, 2]`` (column, row).
+
+    Orthographic when ``focal`` is None (the view is (0, 0, 1) everywhere); otherwise a pinhole camera with that
+    focal length in pixels and the principal point at the image centre.
+    """
+    xy = np.asarray(highlight_xy, np.float64)
+    if focal is None:
+        nx = (xy[:, 0] - circle.x) / circle.r
+        ny = -(xy[:, 1] - circle.y) / circle.r
+        rho2 = np.minimum(nx * nx + ny * ny, 1.0)
+        normal = np.stack([nx, ny, np.sqrt(1.0 - rho2)], axis=1)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        view = np.array([0.0, 0.0, 1.0])
+    else:
+        px, py = (shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0
+
+        def ray(u, v):
+            d = np.stack([(u - px) / focal, -(v - py) / focal, -np.ones_like(u)], axis=-1)
+            return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+        # Under perspective the outline is the image of a cone tangent to the sphere: its two ends along the line
+        # through the principal point see the sphere's axis as their bisector and its angular radius as half
+        # the angle between them.
+        offset = np.array([circle.x - px, circle.y - py])
+        radial = offset / np.linalg.norm(offset) if np.linalg.norm(offset) > 1e-9 else np.array([1.0, 0.0])
+        ends = np.array([[circle.x, circle.y]]) + np.outer([-circle.r, circle.r], radial)
+        rays = ray(ends[:, 0], ends[:, 1])
+        axis = rays.sum(axis=0) / np.linalg.norm(rays.sum(axis=0))
+        alpha = 0.5 * math.acos(float(np.clip(rays[0] @ rays[1], -1.0, 1.0)))
+        centre = axis / math.sin(alpha)                      # unit sphere radius, distance 1 / sin(alpha)
+        d = ray(xy[:, 0], xy[:, 1])
+        b = d @ centre
+        disc = np.maximum(b * b - (centre @ centre - 1.0), 0.0)
+        point = (b - np.sqrt(disc))[:, None] * d
+        normal = point - centre
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        view = -d
+    cos = np.sum(normal * view, axis=-1, keepdims=True)
+    light = 2.0 * cos * normal - view
+    return light / np.linalg.norm(light, axis=1, keepdims=True)
+
+
+def angular_uncertainty_deg(highlight: Highlight, circle: Circle) -> float:
+    """How far (degrees) the direction moves for the highlight's localisation spread (at least half a pixel).
+
+    The light's angle from the view is ``2 asin(rho)`` at ``rho`` radii from the centre, so a pixel's error costs
+    ``2 / (r sqrt(1 - rho^2))`` radians: highlights near the rim are the least certain.
+    """
+    rho = min(math.hypot(highlight.x - circle.x, highlight.y - circle.y) / circle.r, 0.999)
+    pixels = max(0.5, highlight.spread_px)
+    return math.degrees(2.0 * pixels / (circle.r * math.sqrt(1.0 - rho * rho)))

@@ -1,0 +1,249 @@
+"""relight's web layout, as OpenLIME reads it: ``info.json`` plus coefficient planes packed three to an image.
+
+``info.json`` names the basis (``type``: ``ptm``, ``hsh`` or ``sh``), the ``colorspace`` (``rgb``: every
+image holds one coefficient for R, G and B; ``lrgb``: image 0 the colour, the others three luminance
+coefficients each), ``nplanes``, the image ``format`` (``jpg`` or ``png``) and, in ``materials[0]``, a
+``scale`` and ``bias`` per plane: a coefficient is ``(byte / 255 - bias) * scale``.  Image ``plane_j`` holds
+planes ``3j .. 3j + 2`` in its red, green and blue channels, row 0 at the top.
+
+The relit value is the sum of coefficient x basis, shown as a display (sRGB) value.  Light-direction bases, in
+OpenLIME's order:
+
+- ``ptm``: ``1, lx, ly, lx^2, lx ly, ly^2``;
+- ``sh``: real spherical harmonics of bands 0-2 (``Y00; x, z, y; xy, xz, 3z^2 - 1, yz, y^2 - x^2`` with their
+  usual normalisations);
+- ``hsh``: hemispherical harmonics (see :mod:`.hsh`).
+
+Each plane's scale and bias cover its whole range (relight's exporter clips at a quantile), so the export is
+exact up to the 8-bit rounding.  A model of linear radiance (every SH fit, a PTM fitted in ``space: linear``)
+gets ``"btforge": {"transfer": "linear"}``: our reader and viewer encode it to sRGB for display; viewers that
+ignore the key show it as if it were display values (darker).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from btforge.atomic import atomic_write, atomic_write_text
+from btforge.errors import BtforgeInputError
+
+from .hsh import HSHModel
+
+PTM_ORDER = (5, 3, 4, 0, 2, 1)  # relight's (1, u, v, u^2, uv, v^2) from btforge's (u^2, v^2, uv, u, v, 1)
+FORMATS = {"png": "PNG", "jpg": "JPEG"}
+
+
+def sh_weights(lights: np.ndarray) -> np.ndarray:
+    """OpenLIME's 9 ``sh`` basis functions at unit ``lights [L, 3]`` -> ``[L, 9]`` (exact pi)."""
+    x, y, z = (np.asarray(lights, np.float64)[:, i] for i in range(3))
+    a, b = 0.5 * math.sqrt(3 / math.pi), 0.5 * math.sqrt(15 / math.pi)
+    return np.stack([np.full_like(x, 0.5 / math.sqrt(math.pi)), a * x, a * z, a * y, b * x * y, b * x * z,
+                     0.5 * math.sqrt(5 / math.pi) * (3 * z * z - 1), b * y * z, 0.5 * b * (y * y - x * x)], axis=1)
+
+
+def _sh_to_web_matrix() -> np.ndarray:
+    """``M [9, 9]`` with ``sh_weights = real_sh(3) @ M`` (a signed permutation): web = inverse(M) @ ours."""
+    from btforge.plugins.sh.model import real_sh
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    m = np.linalg.lstsq(real_sh(3, d), sh_weights(d), rcond=None)[0]
+    return np.round(m, 9)
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+def _model_planes(model) -> tuple[dict, np.ndarray]:
+    """info.json fields and the coefficient planes ``[P, H, W]`` of a model, in the web layout's order."""
+    kind = model.type_name
+    if kind == "PTMModel":
+        raw = model.with_basis("raw")
+        coeffs = raw.coeffs[..., PTM_ORDER]                         # [H, W, K, 6] relight order
+        info = {"type": "ptm", "colorspace": model.variant}
+        if model.variant == "rgb":
+            planes = coeffs.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)   # plane 3j + c
+        else:
+            lum = coeffs[:, :, 0].transpose(2, 0, 1)
+            planes = np.concatenate([model.albedo.transpose(2, 0, 1), lum])
+        linear = model.space == "linear"
+    elif kind == "SHModel":
+        if model.k_v != 1 or model.light_order > 3:
+            raise BtforgeInputError("model.export_web 'model'", f"expected SH of light order <= 3 and view order 1 "
+                                    f"(9 coefficients, as OpenLIME's sh basis), found light order "
+                                    f"{model.light_order}, view order {model.view_order}",
+                                    "fit with `light_order: 3` (and view_order 1) for the web")
+        ours = np.zeros(model.coeffs.shape[:3] + (9,), np.float64)
+        ours[..., :model.k_l] = model.dequantized()[:, :, :, 0, :] / math.sqrt(4 * math.pi)   # f(l) = sum c Y(l)
+        web = ours @ np.linalg.inv(_sh_to_web_matrix()).T
+        planes = web.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)
+        info, linear = {"type": "sh", "colorspace": "rgb"}, True
+    elif kind == "HSHModel":
+        planes = model.coeffs.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)
+        info, linear = {"type": "hsh", "colorspace": "rgb"}, model.space == "linear"
+    else:
+        raise BtforgeInputError("model.export_web 'model'", f"expected a PTM, SH or HSH model, found {kind}",
+                                "fit ptm.fit or sh.fit (light_order 3) for the web layout")
+    if len(model.channel_names) != 3:
+        raise BtforgeInputError("model.export_web 'model'", f"expected 3 colour channels, found "
+                                f"{len(model.channel_names)}")
+    if linear:
+        info["btforge"] = {"transfer": "linear"}
+    return info, np.asarray(planes, np.float64)
+
+
+def quantize_planes(planes: np.ndarray) -> tuple[np.ndarray, list[float], list[float]]:
+    """Bytes ``[P, H, W]`` and per-plane scale and bias so that ``(byte / 255 - bias) * scale`` is within half a
+    step (``scale / 510``) of each value: the whole range of every plane, nothing clipped."""
+    low = planes.min(axis=(1, 2))
+    span = planes.max(axis=(1, 2)) - low
+    scale = np.where(span > 0, span, 1.0)
+    bias = -low / scale
+    levels = np.clip(np.rint((planes / scale[:, None, None] + bias[:, None, None]) * 255.0), 0, 255)
+    return levels.astype(np.uint8), [float(s) for s in scale], [float(b) for b in bias]
+
+
+def write_web(model, folder, image_format: str = "png", quality: int = 95) -> list[Path]:
+    """Write ``info.json`` and ``plane_0 .. plane_{n-1}`` images; returns the files written."""
+    from PIL import Image
+    if image_format not in FORMATS:
+        raise BtforgeInputError("model.export_web 'format'", f"expected png or jpg, found {image_format!r}")
+    info, planes = _model_planes(model)
+    levels, scale, bias = quantize_planes(planes)
+    n = len(planes)
+    padded = np.concatenate([levels, np.zeros(((-n) % 3,) + levels.shape[1:], np.uint8)])
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for j in range(len(padded) // 3):
+        target = folder / f"plane_{j}.{image_format}"
+        image = Image.fromarray(np.ascontiguousarray(padded[3 * j:3 * j + 3].transpose(1, 2, 0)), "RGB")
+        with atomic_write(target) as handle:
+            if image_format == "jpg":
+                image.save(handle, format="JPEG", quality=quality, subsampling=0)
+            else:
+                image.save(handle, format="PNG", compress_level=1)  # speed over size: PNG is for exactness
+        written.append(target)
+    scale += [1.0] * (len(padded) - n)
+    bias += [0.0] * (len(padded) - n)
+    content = {"width": model.width, "height": model.height, "format": image_format, **info, "nplanes": n,
+               "quality": quality, "materials": [{"scale": scale, "bias": bias}]}
+    atomic_write_text(folder / "info.json", json.dumps(content, indent=1) + "\n")
+    return written + [folder / "info.json"]
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def read_info(path) -> dict:
+    """The checked ``info.json`` of a web layout (a folder or the file itself)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "info.json"
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise BtforgeInputError(str(path), f"cannot be read ({exc.strerror or exc})",
+                                "give an exported folder or its info.json") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise BtforgeInputError(str(path), f"is not valid JSON ({exc})") from None
+    problems = []
+    for key, kind in (("width", int), ("height", int), ("nplanes", int), ("type", str), ("colorspace", str),
+                      ("materials", list)):
+        if not isinstance(info.get(key), kind):
+            problems.append(f"'{key}' missing or not {kind.__name__}")
+    if not problems:
+        if info["type"] not in ("ptm", "hsh", "sh"):
+            problems.append(f"'type' {info['type']!r} is not ptm, hsh or sh")
+        if info["colorspace"] not in ("rgb", "lrgb") or (info["colorspace"] == "lrgb" and info["type"] != "ptm"):
+            problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
+                            "(rgb, or lrgb for ptm)")
+        material = info["materials"][0] if info["materials"] else {}
+        for key in ("scale", "bias"):
+            values = material.get(key)
+            if not isinstance(values, list) or len(values) < info["nplanes"] or not all(
+                    isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+                problems.append(f"materials[0].{key} must list {info['nplanes']} finite numbers")
+        if info.get("format", "jpg") not in FORMATS:
+            problems.append(f"'format' {info.get('format')!r} is not jpg or png")
+    if problems:
+        raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or model.export_web)")
+    info["_folder"] = str(path.parent)
+    return info
+
+
+def _read_planes(info: dict) -> np.ndarray:
+    from PIL import Image
+    folder, fmt = Path(info["_folder"]), info.get("format", "jpg")
+    n, h, w = info["nplanes"], info["height"], info["width"]
+    planes = np.empty((n, h, w), np.float32)  # 8-bit steps are far above float32 rounding
+    scale = np.asarray(info["materials"][0]["scale"], np.float64)
+    bias = np.asarray(info["materials"][0]["bias"], np.float64)
+    lut = np.arange(256) / 255.0
+    for j in range(-(-n // 3)):
+        path = folder / f"plane_{j}.{fmt}"
+        try:
+            with Image.open(path) as image:
+                pixels = np.asarray(image.convert("RGB"))
+        except OSError as exc:
+            raise BtforgeInputError(str(path), f"cannot be read as an image ({exc})",
+                                    "every plane_J image the info.json implies must be present") from None
+        if pixels.shape[:2] != (h, w):
+            raise BtforgeInputError(str(path), f"expected {w} x {h} pixels as info.json says, found "
+                                    f"{pixels.shape[1]} x {pixels.shape[0]}")
+        for c in range(3):
+            p = 3 * j + c
+            if p < n:
+                planes[p] = ((lut - bias[p]) * scale[p]).astype(np.float32)[pixels[..., c]]
+    return planes
+
+
+def read_web(path):
+    """The model a web layout holds: a PTMModel, SHModel or HSHModel (see the module docs)."""
+    from btforge.plugins.ptm.model import PTMModel
+    info = read_info(path)
+    planes = _read_planes(info)
+    h, w = info["height"], info["width"]
+    linear = (info.get("btforge") or {}).get("transfer") == "linear"
+    kind, space = info["type"], "linear" if linear else "srgb"
+    if kind == "ptm":
+        inverse = np.argsort(PTM_ORDER)
+        if info["colorspace"] == "rgb":
+            _expect_planes(info, 18)
+            coeffs = planes[:18].reshape(6, 3, h, w).transpose(2, 3, 1, 0)[..., inverse]
+            return PTMModel(coeffs.astype(np.float32), np.zeros((h, w, 0), np.float32), "rgb", space)
+        _expect_planes(info, 9)
+        albedo = planes[:3].transpose(1, 2, 0)
+        coeffs = planes[3:9].transpose(1, 2, 0)[:, :, None, :][..., inverse]
+        return PTMModel(coeffs.astype(np.float32), albedo.astype(np.float32), "lrgb", space)
+    terms = info["nplanes"] // 3
+    coeffs = planes[:3 * terms].reshape(terms, 3, h, w).transpose(2, 3, 1, 0)
+    if kind == "hsh":
+        if terms not in (4, 9):
+            raise BtforgeInputError(str(path), f"expected 12 or 27 planes for hsh, found {info['nplanes']}")
+        return HSHModel(coeffs.astype(np.float32), space)
+    from btforge.plugins.sh.model import SHModel
+    _expect_planes(info, 27)
+    ours = coeffs @ _sh_to_web_matrix().T * math.sqrt(4 * math.pi)
+    if not linear:
+        raise BtforgeInputError(str(path), "expected an sh layout of linear radiance (exported by btforge)",
+                                "sh layouts of display values are not read yet; relight's hsh or ptm are")
+    return SHModel(ours[:, :, :, None, :].astype(np.float32), np.ones((1, 9), np.float32),
+                   np.zeros((1, 9), np.float32), light_order=3, view_order=1)
+
+
+def _expect_planes(info, n):
+    if info["nplanes"] < n:
+        raise BtforgeInputError(str(Path(info["_folder"]) / "info.json"),
+                                f"expected {n} planes for {info['type']} {info['colorspace']}, found {info['nplanes']}")
+
+
+def describe_web(path) -> dict:
+    """Facts of a web layout for ``btforge info``."""
+    info = read_info(path)
+    return {"kind": "relight web layout", "type": info["type"], "colorspace": info["colorspace"],
+            "size": [info["width"], info["height"]], "planes": info["nplanes"], "format": info.get("format", "jpg"),
+            "transfer": (info.get("btforge") or {}).get("transfer", "srgb")}
