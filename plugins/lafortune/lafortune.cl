@@ -13,9 +13,9 @@
 #endif
 #define NP (1 + 4 * NLOBE)
 
-// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, LAM_DOWN, LAM_UP, LAM_MIN, LAM_MAX, FTOL, ETOL, ATOL,
-// D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
-#if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC)
+// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, LAM_MIN, LAM_MAX, FTOL, ETOL, ATOL, PTOL,
+// D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS, RACE_ITER) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
+#if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC) || !defined(RACE_ITER)
 #error "build lafortune.cl with model.BUILD_OPTIONS"
 #endif
 #define N_CAND (N_DIRS * N_EXPS)
@@ -259,85 +259,131 @@ inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
     }
 }
 
-// Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.
-// Returns the steps tried; *cost_out is the final cost, *converged whether a stopping test was met.
+// One pass over the samples at state z: the cost |y - f(z)|^2 and, with H given, the normal equations H = J'J
+// (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).
+float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g) {
+    const int np = 1 + 4 * k;
+    float nexp[NLOBE], full[NS], J[NP];
+    exponents_of(z, k, nexp);
+    if (H) {
+        for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
+        for (int i = 0; i < np; ++i) g[i] = 0.0f;
+    }
+    float cost = 0.0f;
+    for (int s = 0; s < tx->n_sample; ++s) {
+        float x[3], c;
+        geometry(tx, s, x, &c);
+        full[0] = c;
+        float f = z[0];
+        for (int i = 0; i < k; ++i) {
+            const float *l = z + 1 + 5 * i;
+            const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
+            float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
+            if (b > B_MIN) {
+                const float lb = log(b);
+                const float e = l[3] + nexp[i] * lb;
+                v = exp(fmin(e, T_CAP));
+                if (e <= T_CAP) {
+                    dpsi = v * nexp[i] / b;
+                    da = v;
+                    dp = v * nexp[i] * lb;
+                }
+            }
+            for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
+            full[4 + 5 * i] = c * da;
+            full[5 + 5 * i] = c * dp;
+            f += v;
+        }
+        const float r = load_y(tx, s) - c * f;
+        cost += r * r;
+        if (!H) continue;
+        for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
+        for (int a = 0; a < np; ++a) {
+            g[a] += J[a] * r;
+            for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
+        }
+    }
+    return cost;
+}
+
+// Whether free parameter a (state index col) sits on a bound that its descent direction g_a pushes against:
+// such a parameter is held for the step (an active-set step) instead of being clipped by the projection, which
+// left LM crawling along the bound with ever shorter steps.
+inline int held_at_bound(const float *z, int col, float ga, float log_cap) {
+    if (col == 0) return z[0] <= 0.0f && ga < 0.0f;
+    const int slot = (col - 1) % 5;
+    if (slot == 4) return (z[col] >= P_MAX && ga > 0.0f) || (z[col] <= 0.0f && ga < 0.0f);
+    if (slot == 3) return z[col] >= log_cap && ga > 0.0f;
+    return 0;
+}
+
+// Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.  Damped normal
+// equations (H + lam D) d = g with Marquardt's scaling D = diag(H), solved by Cholesky; lam follows the gain
+// ratio of actual to predicted reduction (Nielsen's trust-region rule: shrink by up to 3 on a good step, double
+// the growth factor on every rejected one).  Each trial's pass also builds its normal equations, so an accepted
+// step costs one pass.  Returns the steps tried; *cost_out the final cost, *converged whether a test was met.
 int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float atol, float etol, int max_iter,
                         float *cost_out, int *converged) {
     const int np = 1 + 4 * k;
-    float H[NP * NP], A[NP * NP], g[NP], dg[NP], delta[NP], trial[NS], J[NP], full[NS], nexp[NLOBE];
-    int cols[NP];
-    float cost = cost_of(tx, z, k);
-    float lam = LAM0;
-    int need = 1, its = 0, conv = 0;
+    float H[NP * NP], Ht[NP * NP], A[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS];
+    int cols[NP], cols_t[NP];
+    free_columns(z, k, cols);
+    float cost = normal_equations(tx, z, k, cols, H, g);
+    float lam = LAM0, nu = 2.0f;
+    int its = 0, conv = 0, fresh = 1;
     while (its < max_iter) {
-        if (need) {
-            for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
-            for (int i = 0; i < np; ++i) g[i] = 0.0f;
-            exponents_of(z, k, nexp);
-            free_columns(z, k, cols);
-            for (int s = 0; s < tx->n_sample; ++s) {
-                float x[3], c;
-                geometry(tx, s, x, &c);
-                full[0] = c;
-                float f = z[0];
-                for (int i = 0; i < k; ++i) {
-                    const float *l = z + 1 + 5 * i;
-                    const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
-                    float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
-                    if (b > B_MIN) {
-                        const float lb = log(b);
-                        const float e = l[3] + nexp[i] * lb;
-                        v = exp(fmin(e, T_CAP));
-                        if (e <= T_CAP) {
-                            dpsi = v * nexp[i] / b;
-                            da = v;
-                            dp = v * nexp[i] * lb;
-                        }
-                    }
-                    for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
-                    full[4 + 5 * i] = c * da;
-                    full[5 + 5 * i] = c * dp;
-                    f += v;
-                }
-                for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
-                const float r = load_y(tx, s) - c * f;
-                for (int a = 0; a < np; ++a) {
-                    g[a] += J[a] * r;
-                    for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
-                }
-            }
+        if (fresh) {
             float dmax = 0.0f;
-            for (int i = 0; i < np; ++i) dmax = fmax(dmax, H[i * NP + i]);
-            for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
-            need = 0;
             int zero = 1;
-            for (int i = 0; i < np; ++i) zero &= (g[i] == 0.0f);
+            for (int i = 0; i < np; ++i) {
+                dmax = fmax(dmax, H[i * NP + i]);
+                zero &= (g[i] == 0.0f);
+            }
+            for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
             if (cost <= atol || zero) { conv = 1; break; }
+            fresh = 0;
         }
         ++its;
+        float rhs[NP];
         for (int i = 0; i < np; ++i) {
-            for (int j = 0; j <= i; ++j) A[i * NP + j] = H[i * NP + j];
-            A[i * NP + i] += lam * dg[i];
+            const int held = held_at_bound(z, cols[i], g[i], log_cap);
+            rhs[i] = held ? 0.0f : g[i];
+            for (int j = 0; j < i; ++j)
+                A[i * NP + j] = (held || held_at_bound(z, cols[j], g[j], log_cap)) ? 0.0f : H[i * NP + j];
+            A[i * NP + i] = held ? 1.0f : H[i * NP + i] + lam * dg[i];
         }
         const int ok = cholesky(A, np);
-        float trial_cost = INFINITY;
+        float trial_cost = INFINITY, predicted = 0.0f;
         if (ok) {
-            cholesky_solve(A, g, delta, np);
+            cholesky_solve(A, rhs, delta, np);
+            for (int i = 0; i < np; ++i) predicted += delta[i] * (rhs[i] + lam * dg[i] * delta[i]);
+            // The local model promises less than the gain test asks for: a stationary point (within the bounds).
+            if (!(predicted > PTOL * (FTOL * cost + etol))) { conv = 1; break; }
             for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
             for (int a = 0; a < np; ++a) trial[cols[a]] += delta[a];
             project(trial, k, log_cap);
-            trial_cost = cost_of(tx, trial, k);
+            free_columns(trial, k, cols_t);
+            trial_cost = normal_equations(tx, trial, k, cols_t, Ht, gt);
         }
         if (ok && trial_cost < cost) {            // NaN compares false: rejected
             const float gain = cost - trial_cost;
+            const float ratio = predicted > 0.0f ? gain / predicted : 1.0f;
+            const float q = 2.0f * ratio - 1.0f;
+            lam = fmax(lam * fmax(1.0f / 3.0f, 1.0f - q * q * q), LAM_MIN);
+            nu = 2.0f;
             const int small = gain <= FTOL * cost + etol;
             for (int i = 0; i < 1 + 5 * k; ++i) z[i] = trial[i];
+            for (int i = 0; i < np; ++i) {
+                cols[i] = cols_t[i];
+                g[i] = gt[i];
+                for (int j = 0; j <= i; ++j) H[i * NP + j] = Ht[i * NP + j];
+            }
             cost = trial_cost;
-            lam = fmax(lam * LAM_DOWN, LAM_MIN);
-            need = 1;
+            fresh = 1;
             if (small) { conv = 1; break; }
         } else {
-            lam *= LAM_UP;
+            lam *= nu;
+            nu *= 2.0f;
             if (lam > LAM_MAX) { conv = 1; break; }   // no descent left at this point: a stationary point
         }
     }
@@ -436,10 +482,15 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             for (int di = 0; di < N_DIRS; ++di) {
                 const float b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
                 if (!(b > B_MIN) || c == 0.0f) continue;     // the shape is 0 here (as lobe_value gives)
-                const float lb = log(b);
+                // The exponent ladder 1, 1.5, 2, 3, 4, 6, ... (model.CANDIDATE_EXPONENTS) by squaring alone:
+                // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
+                float even = b, odd = b * sqrt(b);
                 for (int ei = 0; ei < N_EXPS; ++ei) {
                     const int ci = ei * N_DIRS + di;
-                    const float g = c * exp(fmin(CAND_EXPS[ei] * lb, T_CAP));
+                    float power;
+                    if (ei & 1) { power = odd; odd = odd * odd; }
+                    else { power = even; even = even * even; }
+                    const float g = c * power;
                     sgg[ci] += g * g;
                     scg[ci] += c * g;
                     sgt[ci] += g * target;
@@ -474,7 +525,9 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             project(start, k, log_cap);
             int conv = 0;
             float cost = 0.0f;
-            its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, max_iter, &cost, &conv);
+            // With several starts each gets RACE_ITER steps and only the best is refined further.
+            const int budget = n_starts > 1 ? min(max_iter, RACE_ITER) : max_iter;
+            its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, budget, &cost, &conv);
             if (attempt == 0 || cost < best_cost) {
                 for (int i = 0; i < NS; ++i) best[i] = start[i];
                 best_cost = cost;
@@ -482,6 +535,9 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
                 best_ci = ci;
             }
         }
+        if (!best_conv && n_starts > 1 && max_iter > RACE_ITER)
+            its_total += levenberg_marquardt(&tx, best, k, log_cap, atol, etol, max_iter - RACE_ITER, &best_cost,
+                                             &best_conv);
         used |= 1ul << best_ci;
         const float new_crit = criterion(&tx, best, k, 0);
         if (new_crit < crit) {                     // else keep k - 1 lobes, this one switched off (psi = 0)

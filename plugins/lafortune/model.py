@@ -82,8 +82,9 @@ P_MAX = math.log(EXPONENT_MAX)
 LOBE_CAP = 10.0          # a lobe's peak over all directions <= LOBE_CAP x the texel's brightest sample
 T_CAP = 20.0             # numerical guard: n ln(base) is clamped here (the cap above normally binds first)
 B_MIN = 1e-30            # bases at or below this count as 0
-LAM0, LAM_DOWN, LAM_UP, LAM_MIN, LAM_MAX = 1e-3, 0.1, 10.0, 1e-7, 1e7
-FTOL = 1e-4              # converged when an accepted step lowers the cost by <= FTOL x cost + ETOL x sum(y^2)
+LAM0, LAM_MIN, LAM_MAX = 1e-3, 1e-7, 1e7
+FTOL = 1e-3              # converged when an accepted step lowers the cost by <= FTOL x cost + ETOL x sum(y^2)
+PTOL = 0.1               # ... or when the damped step is predicted to gain less than PTOL x that
 ETOL = 1e-9
 ATOL = 1e-12             # ... or when cost <= ATOL x sum(y^2) (an exact fit)
 D_FLOOR = 1e-9           # Marquardt scaling floor relative to the largest diagonal entry
@@ -92,9 +93,12 @@ W_FLOOR = 1e-3           # a new lobe starts with at least this x brightest samp
 CANDIDATE_DIRS = np.array([[-1.0, -1.0, 1.0],   # mirror lobe: base = u . reflect(v) (specular)
                            [1.0, 1.0, 1.0],     # retro lobe: base = u . v
                            [0.0, 0.0, 1.0]])    # normal lobe: base = uz vz (shaped diffuse)
-CANDIDATE_EXPONENTS = np.geomspace(EXPONENT_MIN, EXPONENT_MAX, 16)   # steps of x1.58: coarser grids strand LM
+# 1, 1.5, 2, 3, 4, 6, ... 768 (steps of x1.33 and x1.5; coarser grids strand LM): every power of a base is a
+# square of the one two rungs below, so scoring the grid needs no exp or log.
+CANDIDATE_EXPONENTS = np.array([m * 2.0 ** e for e in range(10) for m in (1.0, 1.5)])
 DEFAULT_ITERATIONS = 50
 N_STARTS = 2            # each new lobe is fitted from this many start shapes (the best, then the best broader one)
+RACE_ITER = 4           # ... each for this many LM steps; only the better one is refined further
 
 
 def _cl_float(value: float) -> str:
@@ -105,9 +109,10 @@ def _cl_float(value: float) -> str:
 # their NumPy twins cannot drift apart.
 BUILD_OPTIONS = tuple(f"-D{name}={_cl_float(value)}" for name, value in (
     ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0),
-    ("LAM_DOWN", LAM_DOWN), ("LAM_UP", LAM_UP), ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL),
-    ("ETOL", ETOL), ("ATOL", ATOL), ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
-    f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}")
+    ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("PTOL", PTOL),
+    ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
+    f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}",
+    f"-DRACE_ITER={RACE_ITER}")
 
 
 def _candidates() -> list[tuple[np.ndarray, float]]:
@@ -541,78 +546,114 @@ def _nnls_box(scc, sgg, scg, sct, sgt, stt, wmax):
     return best_r, best_w, best_c
 
 
+def _normal_equations(z, k, y, x, c):
+    """Cost ``[M]``, ``J'J [M, P, P]``, ``J'r [M, P]`` and the free columns ``[M, P]`` at states ``z [M, 1 + 5k]``."""
+    val, d_psi, d_alpha, d_p = _lobe_terms(z, k, x, True)
+    full = np.empty(x.shape[:2] + (1 + 5 * k,))
+    full[..., 0] = c
+    for i in range(k):
+        full[..., 1 + 5 * i:4 + 5 * i] = c[..., None] * d_psi[:, :, i]
+        full[..., 4 + 5 * i] = c * d_alpha[:, :, i]
+        full[..., 5 + 5 * i] = c * d_p[:, :, i]
+    cols = _free_columns(z, k)
+    jac = np.take_along_axis(full, cols[:, None, :], axis=2)
+    r = y - c * (z[:, :1] + val.sum(axis=2))
+    return (r * r).sum(axis=1), np.einsum("msi,msj->mij", jac, jac), np.einsum("msi,ms->mi", jac, r), cols
+
+
+def _held_at_bound(z, cols, g, log_cap):
+    """Free parameters on a bound that their descent direction pushes against ``[M, P]`` (held for the step)."""
+    value = np.take_along_axis(z, cols, axis=1)
+    slot = (cols - 1) % 5
+    rho = (cols == 0) & (value <= 0) & (g < 0)
+    p = (cols > 0) & (slot == 4) & (((value >= P_MAX) & (g > 0)) | ((value <= 0) & (g < 0)))
+    alpha = (cols > 0) & (slot == 3) & (value >= log_cap[:, None]) & (g > 0)
+    return rho | p | alpha
+
+
 def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
-    """Levenberg-Marquardt on the ``1 + 4k`` free parameters of every state ``z [M, 1 + 5k]``.
+    """Levenberg-Marquardt on the ``1 + 4k`` free parameters of every state ``z [M, 1 + 5k]``, as the kernel's
+    ``levenberg_marquardt``: active-set steps, Nielsen's gain-ratio damping, one pass per trial.
 
     Returns ``(z, cost, converged, steps tried)``; only improving steps are taken.
     """
     m, p = len(z), 1 + 4 * k
     z = z.copy()
-    cost = ((y - _model64(z, k, x, c)) ** 2).sum(axis=1)
-    lam = np.full(m, LAM0)
-    need = np.ones(m, bool)
+    cost, h, g, cols = _normal_equations(z, k, y, x, c)
+    lam, nu = np.full(m, LAM0), np.full(m, 2.0)
+    fresh = np.ones(m, bool)
     active = np.ones(m, bool)
     conv = np.zeros(m, bool)
     its = np.zeros(m, np.int64)
-    h, g, dg = np.zeros((m, p, p)), np.zeros((m, p)), np.zeros((m, p))
-    cols = np.zeros((m, p), np.int64)
+    dg = np.zeros((m, p))
+    diagonal = np.arange(p)
     while True:
         idx = np.flatnonzero(active & (its < iterations))
-        if idx.size == 0:
-            break
-        nb = idx[need[idx]]
+        nb = idx[fresh[idx]]
         if nb.size:
-            zb, cn = z[nb], c[nb]
-            val, d_psi, d_alpha, d_p = _lobe_terms(zb, k, x[nb], True)
-            full = np.empty((nb.size, x.shape[1], 1 + 5 * k))
-            full[..., 0] = cn
-            for i in range(k):
-                full[..., 1 + 5 * i:4 + 5 * i] = cn[..., None] * d_psi[:, :, i]
-                full[..., 4 + 5 * i] = cn * d_alpha[:, :, i]
-                full[..., 5 + 5 * i] = cn * d_p[:, :, i]
-            cols[nb] = _free_columns(zb, k)
-            jac = np.take_along_axis(full, cols[nb][:, None, :], axis=2)
-            r = y[nb] - cn * (zb[:, :1] + val.sum(axis=2))
-            h[nb] = np.einsum("msi,msj->mij", jac, jac)
-            g[nb] = np.einsum("msi,ms->mi", jac, r)
             diag = np.einsum("mii->mi", h[nb])
             dg[nb] = np.maximum(diag, D_FLOOR * diag.max(axis=1, keepdims=True))
-            need[nb] = False
+            fresh[nb] = False
             done = (cost[nb] <= atol[nb]) | ~np.any(g[nb] != 0, axis=1)
             conv[nb[done]] = True
             active[nb[done]] = False
             idx = np.flatnonzero(active & (its < iterations))
-            if idx.size == 0:
-                break
+        if idx.size == 0:
+            break
         its[idx] += 1
-        a = h[idx] + lam[idx, None, None] * (dg[idx][:, :, None] * np.eye(p)[None])
+        held = _held_at_bound(z[idx], cols[idx], g[idx], log_cap[idx])
+        free = ~held
+        rhs = np.where(free, g[idx], 0.0)
+        a = np.where(free[:, :, None] & free[:, None, :], h[idx], 0.0)
+        a[:, diagonal, diagonal] = np.where(free, np.einsum("mii->mi", h[idx]) + lam[idx, None] * dg[idx], 1.0)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            delta, ok = _cholesky_solve(a, g[idx])
-            step = np.zeros((idx.size, z.shape[1]))
-            np.put_along_axis(step, cols[idx], np.where(ok[:, None], delta, 0.0), axis=1)
-            trial = _project(z[idx] + step, k, log_cap[idx])
-            cost_t = ((y[idx] - _model64(trial, k, x[idx], c[idx])) ** 2).sum(axis=1)
-        accept = ok & (cost_t < cost[idx])
-        acc, rej = idx[accept], idx[~accept]
-        gain = cost[acc] - cost_t[accept]
+            delta, ok = _cholesky_solve(a, rhs)
+            predicted = (delta * (rhs + lam[idx, None] * dg[idx] * delta)).sum(axis=1)
+        flat = ok & ~(predicted > PTOL * (FTOL * cost[idx] + etol[idx]))   # a stationary point
+        conv[idx[flat]] = True
+        active[idx[flat]] = False
+        go = ok & ~flat
+        tried = idx[go]
+        step = np.zeros((tried.size, z.shape[1]))
+        np.put_along_axis(step, cols[tried], delta[go], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            trial = _project(z[tried] + step, k, log_cap[tried])
+            cost_t, h_t, g_t, cols_t = _normal_equations(trial, k, y[tried], x[tried], c[tried])
+        better = cost_t < cost[tried]
+        acc, gain = tried[better], cost[tried][better] - cost_t[better]
+        pred = predicted[go][better]
+        ratio = np.where(pred > 0, gain / np.where(pred > 0, pred, 1.0), 1.0)
+        lam[acc] = np.maximum(lam[acc] * np.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), LAM_MIN)
+        nu[acc] = 2.0
         small = acc[gain <= FTOL * cost[acc] + etol[acc]]
-        z[acc] = trial[accept]
-        cost[acc] = cost_t[accept]
-        lam[acc] = np.maximum(lam[acc] * LAM_DOWN, LAM_MIN)
-        need[acc] = True
+        z[acc], cost[acc], h[acc], g[acc], cols[acc] = trial[better], cost_t[better], h_t[better], g_t[better], cols_t[better]
+        fresh[acc] = True
         conv[small] = True
         active[small] = False
-        lam[rej] *= LAM_UP
+        rej = np.concatenate([idx[~ok], tried[~better]])
+        lam[rej] *= nu[rej]
+        nu[rej] *= 2.0
         stuck = rej[lam[rej] > LAM_MAX]
         conv[stuck] = True
         active[stuck] = False
     return z, cost, conv, its
 
 
-def _lobe_shape(x: np.ndarray, d: np.ndarray, n: float) -> np.ndarray:
-    base = x @ d
+def _ladder_powers(base: np.ndarray) -> list[np.ndarray]:
+    """``base ^ n`` for every ``n`` of ``CANDIDATE_EXPONENTS`` (1, 1.5, 2, 3, ...) by squaring, as the kernel;
+    0 where ``base <= B_MIN``."""
     pos = base > B_MIN
-    return np.where(pos, np.exp(np.minimum(n * np.log(np.where(pos, base, 1.0)), T_CAP)), 0.0)
+    even = np.where(pos, base, 0.0)
+    odd = even * np.sqrt(even)
+    powers = []
+    for ei in range(len(CANDIDATE_EXPONENTS)):
+        if ei % 2:
+            powers.append(odd)
+            odd = odd * odd
+        else:
+            powers.append(even)
+            even = even * even
+    return powers
 
 
 def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
@@ -645,10 +686,12 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
         stt, sct = (target * target).sum(axis=1), (c * target).sum(axis=1)
         cand_cost = np.empty((m, len(cands)))
         cand_rho, cand_w = np.empty_like(cand_cost), np.empty_like(cand_cost)
-        for ci, (d, n) in enumerate(cands):
-            g = c * _lobe_shape(x, d, n)
-            cand_rho[:, ci], cand_w[:, ci], cand_cost[:, ci] = _nnls_box(
-                scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, capval)
+        for di, d in enumerate(CANDIDATE_DIRS):
+            for ei, power in enumerate(_ladder_powers(x @ d)):
+                ci = ei * len(CANDIDATE_DIRS) + di
+                g = c * power
+                cand_rho[:, ci], cand_w[:, ci], cand_cost[:, ci] = _nnls_box(
+                    scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, capval)
         cand_cost[used] = np.inf
         lowest = np.full(m, np.inf)
         for attempt in range(N_STARTS):
@@ -669,7 +712,8 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
             start = _project(start, k, log_cap)
             n_state = 1 + 5 * k
             trial = start.copy()
-            trial[:, :n_state], cost_t, conv_t, its = _lm_numpy(start[:, :n_state], k, y, x, c, log_cap, atol, etol, iterations)
+            budget = min(iterations, RACE_ITER) if N_STARTS > 1 else iterations
+            trial[:, :n_state], cost_t, conv_t, its = _lm_numpy(start[:, :n_state], k, y, x, c, log_cap, atol, etol, budget)
             its_total += its
             if attempt == 0:
                 fitted, conv, fit_cost, fit_ci = trial, conv_t, cost_t, ci
@@ -678,6 +722,13 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
                 fitted = np.where(better[:, None], trial, fitted)
                 conv, fit_cost, fit_ci = (np.where(better, conv_t, conv), np.where(better, cost_t, fit_cost),
                                           np.where(better, ci, fit_ci))
+        more = np.flatnonzero(~conv) if N_STARTS > 1 and iterations > RACE_ITER else np.zeros(0, np.int64)
+        if more.size:                           # only the better start is refined further
+            n_state = 1 + 5 * k
+            fitted[more, :n_state], fit_cost[more], conv[more], its = _lm_numpy(
+                fitted[more, :n_state], k, y[more], x[more], c[more], log_cap[more], atol[more], etol[more],
+                iterations - RACE_ITER)
+            its_total[more] += its
         used[rows, fit_ci] = True
         new_crit = criterion(_model64(fitted, k, x, c))
         take = new_crit < crit                  # else keep k - 1 lobes and switch this one off (psi = 0)
