@@ -13,7 +13,7 @@
 #endif
 #define NP (1 + 4 * NLOBE)
 
-// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, LAM_MIN, LAM_MAX, FTOL, ETOL, ATOL, PTOL,
+// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, NU0, LAM_MIN, LAM_MAX, LAM_DEC, FTOL, GTOL, ETOL, ATOL,
 // D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS, RACE_ITER) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
 #if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC) || !defined(RACE_ITER)
 #error "build lafortune.cl with model.BUILD_OPTIONS"
@@ -106,24 +106,23 @@ __kernel void lafortune_eval_scattered(__global const float *diffuse, __global c
 
 #define NS (1 + 5 * NLOBE)
 
+// The host lays out each texel's samples and their geometry contiguously (a texel's fit reads them every pass).
 typedef struct {
-    __global const float *samples;   // [S, n_texel, C]
-    __global const float *lights;    // [L, 3]
-    __global const float *views;     // [V, 3]
-    float F[9];
-    int n_light, n_texel, n_channel, n_sample, t, channel;   // channel < 0: the channel mean (luminance)
+    __global const float *samples;   // this texel's [S, C]
+    __global const float *geom;      // this texel's [S, 4]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
+    int n_channel, n_sample, channel;   // channel < 0: the channel mean (luminance)
 } Texel;
 
 inline void geometry(const Texel *tx, int s, float *x, float *c) {
-    float u[3], w[3];
-    to_frame(tx->F, tx->lights + 3 * (s % tx->n_light), u);
-    to_frame(tx->F, tx->views + 3 * (s / tx->n_light), w);
-    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
-    *c = fmax(u[2], 0.0f);
+    __global const float *q = tx->geom + 4 * s;
+    x[0] = q[0];
+    x[1] = q[1];
+    x[2] = q[2];
+    *c = q[3];
 }
 
 inline __global const float *sample_ptr(const Texel *tx, int s) {
-    return tx->samples + ((size_t)s * tx->n_texel + tx->t) * tx->n_channel;
+    return tx->samples + (size_t)s * tx->n_channel;
 }
 
 inline float load_y(const Texel *tx, int s) {
@@ -306,30 +305,70 @@ float normal_equations(const Texel *tx, const float *z, int k, const int *cols, 
     return cost;
 }
 
-// Whether free parameter a (state index col) sits on a bound that its descent direction g_a pushes against:
-// such a parameter is held for the step (an active-set step) instead of being clipped by the projection, which
-// left LM crawling along the bound with ever shorter steps.
-inline int held_at_bound(const float *z, int col, float ga, float log_cap) {
-    if (col == 0) return z[0] <= 0.0f && ga < 0.0f;
+// How far free parameter `col` may move by `d` before it leaves its box (rho >= 0, p in [0, P_MAX], alpha <=
+// log_cap): d itself, or the move that lands it on the bound it would cross.
+inline float clip_move(const float *z, int col, float d, float log_cap) {
+    if (col == 0) return fmax(d, -z[0]);
     const int slot = (col - 1) % 5;
-    if (slot == 4) return (z[col] >= P_MAX && ga > 0.0f) || (z[col] <= 0.0f && ga < 0.0f);
-    if (slot == 3) return z[col] >= log_cap && ga > 0.0f;
-    return 0;
+    if (slot == 4) return clamp(d, -z[col], P_MAX - z[col]);
+    if (slot == 3) return fmin(d, log_cap - z[col]);
+    return d;
+}
+
+// The damped step (H + lam D) d = g inside the box: a parameter whose step would leave the box moves onto the
+// bound it crosses (a parameter already there stays) and the others are solved again with that move fixed.
+// Clipping the step instead (and projecting) left LM trying ever shorter steps against a bound that the
+// other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd, or -1
+// when a Cholesky factorisation fails.
+float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
+                  int np, float log_cap, float *delta) {
+    float A[NP * NP], rhs[NP];
+    int pinned[NP];
+    for (int i = 0; i < np; ++i) pinned[i] = 0;
+    for (int round = 0; round < 2; ++round) {
+        for (int i = 0; i < np; ++i) {
+            rhs[i] = g[i];
+            for (int j = 0; j < np; ++j)
+                if (pinned[j] && j != i) rhs[i] -= (i > j ? H[i * NP + j] : H[j * NP + i]) * delta[j];
+            for (int j = 0; j < i; ++j) A[i * NP + j] = (pinned[i] || pinned[j]) ? 0.0f : H[i * NP + j];
+            A[i * NP + i] = pinned[i] ? 1.0f : H[i * NP + i] + lam * dg[i];
+            if (pinned[i]) rhs[i] = delta[i];
+        }
+        if (!cholesky(A, np)) return -1.0f;
+        cholesky_solve(A, rhs, delta, np);
+        int more = 0;
+        for (int i = 0; i < np; ++i) {
+            const float d = clip_move(z, cols[i], delta[i], log_cap);
+            if (!pinned[i] && d != delta[i]) { pinned[i] = 1; delta[i] = d; more = 1; }
+        }
+        if (!more) break;
+    }
+    for (int i = 0; i < np; ++i) delta[i] = clip_move(z, cols[i], delta[i], log_cap);
+    float predicted = 0.0f;
+    for (int i = 0; i < np; ++i) {
+        float hd = 0.0f;
+        for (int j = 0; j < np; ++j) hd += (i >= j ? H[i * NP + j] : H[j * NP + i]) * delta[j];
+        predicted += delta[i] * (2.0f * g[i] - hd);
+    }
+    return predicted;
 }
 
 // Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.  Damped normal
-// equations (H + lam D) d = g with Marquardt's scaling D = diag(H), solved by Cholesky; lam follows the gain
-// ratio of actual to predicted reduction (Nielsen's trust-region rule: shrink by up to 3 on a good step, double
-// the growth factor on every rejected one).  Each trial's pass also builds its normal equations, so an accepted
-// step costs one pass.  Returns the steps tried; *cost_out the final cost, *converged whether a test was met.
+// equations with Marquardt's scaling D = diag(H), solved by Cholesky; lam follows the gain ratio of actual to
+// predicted reduction (Nielsen's trust-region rule: shrink by up to 3 on a good step, double the growth factor
+// on every rejected one).  Each trial's pass also builds its normal equations, so an accepted step costs one
+// pass.  Converged: an exact fit, a zero gradient, a Gauss-Newton step (damped by LAM_DEC only) that promises
+// less than FTOL x cost - the Newton decrement, unlike a small gain of one step, is not fooled by short steps in
+// a curved valley - or no descent left at all (lam > LAM_MAX).  Returns the steps tried; *cost_out the final
+// cost, *converged whether a test was met.
 int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float atol, float etol, int max_iter,
                         float *cost_out, int *converged) {
     const int np = 1 + 4 * k;
-    float H[NP * NP], Ht[NP * NP], A[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS];
+    float H[NP * NP], Ht[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS];
     int cols[NP], cols_t[NP];
     free_columns(z, k, cols);
     float cost = normal_equations(tx, z, k, cols, H, g);
-    float lam = LAM0, nu = 2.0f;
+    float lam = LAM0, nu = NU0;
     int its = 0, conv = 0, fresh = 1;
     while (its < max_iter) {
         if (fresh) {
@@ -341,43 +380,32 @@ int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float a
             }
             for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
             if (cost <= atol || zero) { conv = 1; break; }
+            const float decrement = damped_step(H, g, dg, LAM_DEC, z, cols, np, log_cap, delta);
+            if (decrement >= 0.0f && decrement <= FTOL * cost + etol) { conv = 1; break; }
             fresh = 0;
         }
         ++its;
-        float rhs[NP];
-        for (int i = 0; i < np; ++i) {
-            const int held = held_at_bound(z, cols[i], g[i], log_cap);
-            rhs[i] = held ? 0.0f : g[i];
-            for (int j = 0; j < i; ++j)
-                A[i * NP + j] = (held || held_at_bound(z, cols[j], g[j], log_cap)) ? 0.0f : H[i * NP + j];
-            A[i * NP + i] = held ? 1.0f : H[i * NP + i] + lam * dg[i];
-        }
-        const int ok = cholesky(A, np);
-        float trial_cost = INFINITY, predicted = 0.0f;
-        if (ok) {
-            cholesky_solve(A, rhs, delta, np);
-            for (int i = 0; i < np; ++i) predicted += delta[i] * (rhs[i] + lam * dg[i] * delta[i]);
-            // The local model promises less than the gain test asks for: a stationary point (within the bounds).
-            if (!(predicted > PTOL * (FTOL * cost + etol))) { conv = 1; break; }
+        const float predicted = damped_step(H, g, dg, lam, z, cols, np, log_cap, delta);
+        float trial_cost = INFINITY;
+        if (predicted >= 0.0f) {
             for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
             for (int a = 0; a < np; ++a) trial[cols[a]] += delta[a];
             project(trial, k, log_cap);
             free_columns(trial, k, cols_t);
             trial_cost = normal_equations(tx, trial, k, cols_t, Ht, gt);
         }
-        if (ok && trial_cost < cost) {            // NaN compares false: rejected
-            const float gain = cost - trial_cost;
-            const float ratio = predicted > 0.0f ? gain / predicted : 1.0f;
+        if (trial_cost < cost) {                  // NaN compares false: rejected
+            const float ratio = predicted > 0.0f ? (cost - trial_cost) / predicted : 1.0f;
             const float q = 2.0f * ratio - 1.0f;
             lam = fmax(lam * fmax(1.0f / 3.0f, 1.0f - q * q * q), LAM_MIN);
-            nu = 2.0f;
-            const int small = gain <= FTOL * cost + etol;
+            nu = NU0;
             for (int i = 0; i < 1 + 5 * k; ++i) z[i] = trial[i];
             for (int i = 0; i < np; ++i) {
                 cols[i] = cols_t[i];
                 g[i] = gt[i];
                 for (int j = 0; j <= i; ++j) H[i * NP + j] = Ht[i * NP + j];
             }
+            const int small = cost - trial_cost <= GTOL * cost + etol;
             cost = trial_cost;
             fresh = 1;
             if (small) { conv = 1; break; }
@@ -419,14 +447,13 @@ inline float nnls_box(float scc, float sgg, float scg, float sct, float sgt, flo
     return bc;
 }
 
-// samples [S = V * L, n_texel, C] (s = view * L + light) ; frames [n_texel, 9].  Work-item (t, signal): the
-// luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel, signal): diffuse
-// [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse, iterations, not-converged
-// flag [n, n_signal]; colour [n, C] for luminance.
-__kernel void lafortune_fit(__global const float *samples, __global const float *frames,
-                            __global const float *lights, __global const float *views,
+// samples [n_texel, S, C] (s = view * L + light) ; geom [n_texel, S, 4] (model.fit_geometry).  Work-item
+// (t, signal): the luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel,
+// signal): diffuse [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse,
+// iterations, not-converged flag [n, n_signal]; colour [n, C] for luminance.
+__kernel void lafortune_fit(__global const float *samples, __global const float *geom,
                             __global const float *CAND_DIRS, __global const float *CAND_EXPS,
-                            const int n_light, const int n_view, const int n_texel, const int n_channel,
+                            const int n_sample, const int n_texel, const int n_channel,
                             const int luminance, const int max_iter, const int n_starts,
                             __global float *diffuse_out, __global float *lobes_out, __global float *expo_out,
                             __global float *colour_out, __global float *sse_out, __global int *iter_out,
@@ -437,10 +464,11 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
     const int n_signal = luminance ? 1 : n_channel;
     if (sig >= n_signal) return;
     Texel tx;
-    tx.samples = samples; tx.lights = lights; tx.views = views;
-    for (int i = 0; i < 9; ++i) tx.F[i] = frames[(size_t)t * 9 + i];
-    tx.n_light = n_light; tx.n_texel = n_texel; tx.n_channel = n_channel;
-    tx.n_sample = n_light * n_view; tx.t = t; tx.channel = luminance ? -1 : sig;
+    tx.samples = samples + (size_t)t * n_sample * n_channel;
+    tx.geom = geom + (size_t)t * n_sample * 4;
+    tx.n_channel = n_channel;
+    tx.n_sample = n_sample;
+    tx.channel = luminance ? -1 : sig;
 
     float ymax = 0.0f, energy = 0.0f, scc = 0.0f, scy = 0.0f;
     for (int s = 0; s < tx.n_sample; ++s) {

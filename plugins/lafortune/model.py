@@ -83,8 +83,10 @@ LOBE_CAP = 10.0          # a lobe's peak over all directions <= LOBE_CAP x the t
 T_CAP = 20.0             # numerical guard: n ln(base) is clamped here (the cap above normally binds first)
 B_MIN = 1e-30            # bases at or below this count as 0
 LAM0, LAM_MIN, LAM_MAX = 1e-3, 1e-7, 1e7
-FTOL = 1e-3              # converged when an accepted step lowers the cost by <= FTOL x cost + ETOL x sum(y^2)
-PTOL = 0.1               # ... or when the damped step is predicted to gain less than PTOL x that
+NU0 = 2.0                # a rejected step multiplies lambda by nu, and nu by 2 (reset to NU0 on acceptance)
+LAM_DEC = 1e-4           # damping of the Gauss-Newton step whose predicted gain (the Newton decrement) ...
+FTOL = 1e-3              # ... is at most FTOL x cost + ETOL x sum(y^2): converged; so is an accepted step that
+GTOL = 1e-4              # ... gains at most GTOL x cost + ETOL x sum(y^2)
 ETOL = 1e-9
 ATOL = 1e-12             # ... or when cost <= ATOL x sum(y^2) (an exact fit)
 D_FLOOR = 1e-9           # Marquardt scaling floor relative to the largest diagonal entry
@@ -98,7 +100,7 @@ CANDIDATE_DIRS = np.array([[-1.0, -1.0, 1.0],   # mirror lobe: base = u . reflec
 CANDIDATE_EXPONENTS = np.array([m * 2.0 ** e for e in range(10) for m in (1.0, 1.5)])
 DEFAULT_ITERATIONS = 50
 N_STARTS = 2            # each new lobe is fitted from this many start shapes (the best, then the best broader one)
-RACE_ITER = 4           # ... each for this many LM steps; only the better one is refined further
+RACE_ITER = 3           # ... each for this many LM steps; only the better one is refined further
 
 
 def _cl_float(value: float) -> str:
@@ -108,8 +110,8 @@ def _cl_float(value: float) -> str:
 # lafortune.cl takes every constant above from these build options (it defines none itself), so the kernels and
 # their NumPy twins cannot drift apart.
 BUILD_OPTIONS = tuple(f"-D{name}={_cl_float(value)}" for name, value in (
-    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0),
-    ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("PTOL", PTOL),
+    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0), ("NU0", NU0),
+    ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL), ("GTOL", GTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("LAM_DEC", LAM_DEC),
     ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
     f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}",
     f"-DRACE_ITER={RACE_ITER}")
@@ -561,32 +563,58 @@ def _normal_equations(z, k, y, x, c):
     return (r * r).sum(axis=1), np.einsum("msi,msj->mij", jac, jac), np.einsum("msi,ms->mi", jac, r), cols
 
 
-def _held_at_bound(z, cols, g, log_cap):
-    """Free parameters on a bound that their descent direction pushes against ``[M, P]`` (held for the step)."""
+def _clip_move(z, cols, delta, log_cap):
+    """The kernel's ``clip_move``: each free parameter's move ``delta [M, P]`` cut where it would leave the box."""
     value = np.take_along_axis(z, cols, axis=1)
     slot = (cols - 1) % 5
-    rho = (cols == 0) & (value <= 0) & (g < 0)
-    p = (cols > 0) & (slot == 4) & (((value >= P_MAX) & (g > 0)) | ((value <= 0) & (g < 0)))
-    alpha = (cols > 0) & (slot == 3) & (value >= log_cap[:, None]) & (g > 0)
-    return rho | p | alpha
+    low = np.where(cols == 0, -value, np.where(slot == 4, -value, -np.inf))
+    high = np.where((cols > 0) & (slot == 4), P_MAX - value, np.where((cols > 0) & (slot == 3), log_cap[:, None] - value, np.inf))
+    return np.minimum(np.maximum(delta, low), high)
+
+
+def _damped_step(h, g, dg, lam, z, cols, log_cap):
+    """The kernel's ``damped_step`` for every row: ``(delta [M, P], predicted gain [M])``, gain -1 where a
+    Cholesky factorisation fails."""
+    m, p = g.shape
+    diagonal = np.arange(p)
+    pinned = np.zeros((m, p), bool)
+    delta = np.zeros((m, p))
+    ok = np.ones(m, bool)
+    for _ in range(2):
+        fixed = np.where(pinned, delta, 0.0)
+        rhs = np.where(pinned, delta, g - np.einsum("mij,mj->mi", h, fixed) + np.einsum("mii,mi->mi", h, fixed))
+        a = np.where(~pinned[:, :, None] & ~pinned[:, None, :], h, 0.0)
+        a[:, diagonal, diagonal] = np.where(pinned, 1.0, h[:, diagonal, diagonal] + lam[:, None] * dg)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            solved, good = _cholesky_solve(a, rhs)
+        ok &= good
+        delta = np.where(pinned, delta, solved)
+        clipped = _clip_move(z, cols, delta, log_cap)
+        new = ~pinned & (clipped != delta)
+        delta = np.where(new, clipped, delta)
+        pinned |= new
+        if not new.any():
+            break
+    delta = _clip_move(z, cols, delta, log_cap)
+    with np.errstate(invalid="ignore", over="ignore"):
+        predicted = (delta * (2.0 * g - np.einsum("mij,mj->mi", h, delta))).sum(axis=1)
+    return delta, np.where(ok, predicted, -1.0)
 
 
 def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
     """Levenberg-Marquardt on the ``1 + 4k`` free parameters of every state ``z [M, 1 + 5k]``, as the kernel's
-    ``levenberg_marquardt``: active-set steps, Nielsen's gain-ratio damping, one pass per trial.
-
-    Returns ``(z, cost, converged, steps tried)``; only improving steps are taken.
+    ``levenberg_marquardt``: active-set steps, Nielsen's gain-ratio damping, the Newton-decrement stop, one pass
+    per trial.  Returns ``(z, cost, converged, steps tried)``; only improving steps are taken.
     """
     m, p = len(z), 1 + 4 * k
     z = z.copy()
     cost, h, g, cols = _normal_equations(z, k, y, x, c)
-    lam, nu = np.full(m, LAM0), np.full(m, 2.0)
+    lam, nu = np.full(m, LAM0), np.full(m, NU0)
     fresh = np.ones(m, bool)
     active = np.ones(m, bool)
     conv = np.zeros(m, bool)
     its = np.zeros(m, np.int64)
     dg = np.zeros((m, p))
-    diagonal = np.arange(p)
     while True:
         idx = np.flatnonzero(active & (its < iterations))
         nb = idx[fresh[idx]]
@@ -594,25 +622,17 @@ def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
             diag = np.einsum("mii->mi", h[nb])
             dg[nb] = np.maximum(diag, D_FLOOR * diag.max(axis=1, keepdims=True))
             fresh[nb] = False
-            done = (cost[nb] <= atol[nb]) | ~np.any(g[nb] != 0, axis=1)
+            _, decrement = _damped_step(h[nb], g[nb], dg[nb], np.full(nb.size, LAM_DEC), z[nb], cols[nb], log_cap[nb])
+            done = ((cost[nb] <= atol[nb]) | ~np.any(g[nb] != 0, axis=1)
+                    | ((decrement >= 0) & (decrement <= FTOL * cost[nb] + etol[nb])))
             conv[nb[done]] = True
             active[nb[done]] = False
             idx = np.flatnonzero(active & (its < iterations))
         if idx.size == 0:
             break
         its[idx] += 1
-        held = _held_at_bound(z[idx], cols[idx], g[idx], log_cap[idx])
-        free = ~held
-        rhs = np.where(free, g[idx], 0.0)
-        a = np.where(free[:, :, None] & free[:, None, :], h[idx], 0.0)
-        a[:, diagonal, diagonal] = np.where(free, np.einsum("mii->mi", h[idx]) + lam[idx, None] * dg[idx], 1.0)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            delta, ok = _cholesky_solve(a, rhs)
-            predicted = (delta * (rhs + lam[idx, None] * dg[idx] * delta)).sum(axis=1)
-        flat = ok & ~(predicted > PTOL * (FTOL * cost[idx] + etol[idx]))   # a stationary point
-        conv[idx[flat]] = True
-        active[idx[flat]] = False
-        go = ok & ~flat
+        delta, predicted = _damped_step(h[idx], g[idx], dg[idx], lam[idx], z[idx], cols[idx], log_cap[idx])
+        go = predicted >= 0
         tried = idx[go]
         step = np.zeros((tried.size, z.shape[1]))
         np.put_along_axis(step, cols[tried], delta[go], axis=1)
@@ -620,17 +640,16 @@ def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
             trial = _project(z[tried] + step, k, log_cap[tried])
             cost_t, h_t, g_t, cols_t = _normal_equations(trial, k, y[tried], x[tried], c[tried])
         better = cost_t < cost[tried]
-        acc, gain = tried[better], cost[tried][better] - cost_t[better]
-        pred = predicted[go][better]
+        acc, gain, pred = tried[better], cost[tried][better] - cost_t[better], predicted[go][better]
         ratio = np.where(pred > 0, gain / np.where(pred > 0, pred, 1.0), 1.0)
         lam[acc] = np.maximum(lam[acc] * np.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), LAM_MIN)
-        nu[acc] = 2.0
-        small = acc[gain <= FTOL * cost[acc] + etol[acc]]
+        nu[acc] = NU0
+        small = acc[gain <= GTOL * cost[acc] + etol[acc]]
         z[acc], cost[acc], h[acc], g[acc], cols[acc] = trial[better], cost_t[better], h_t[better], g_t[better], cols_t[better]
         fresh[acc] = True
         conv[small] = True
         active[small] = False
-        rej = np.concatenate([idx[~ok], tried[~better]])
+        rej = np.concatenate([idx[~go], tried[~better]])
         lam[rej] *= nu[rej]
         nu[rej] *= 2.0
         stuck = rej[lam[rej] > LAM_MAX]
@@ -746,9 +765,8 @@ def _external(z: np.ndarray, k: int):
 
 
 def _geometry64(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np.ndarray):
-    u = _local(frames, sample_lights).astype(np.float64)     # float32 ops like the kernel, then widened
-    v = _local(frames, sample_views).astype(np.float64)
-    return u * v, np.maximum(u[..., 2], 0.0)
+    geom = fit_geometry(frames, sample_lights, sample_views).astype(np.float64)   # float32 ops, then widened
+    return geom[..., :3], geom[..., 3]
 
 
 def _colour_fit(f: np.ndarray, values: np.ndarray):
@@ -791,9 +809,15 @@ def fit_band_numpy(values, frames, sample_lights, sample_views, per_fit, variant
 # ----------------------------------------------------------------------------------------------- OpenCL fit
 
 
-def fit_band_opencl(values, frames, lights, views, per_fit, variant, iterations):
-    """OpenCL fit of one band; same results as :func:`fit_band_numpy` (float32 arithmetic).  ``lights [L, 3]``
-    and ``views [V, 3]`` are the stack's (sample ``s = view * L + light``)."""
+def fit_geometry(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np.ndarray) -> np.ndarray:
+    """``[n, S, 4]`` float32: per texel and sample ``x = (ux vx, uy vy, uz vz)`` and ``c = max(uz, 0)``, with the
+    light ``u`` and view ``v`` in the texel's frame (the float32 operations the NumPy fit widens)."""
+    u, v = _local(frames, sample_lights), _local(frames, sample_views)
+    return np.ascontiguousarray(np.concatenate([u * v, np.maximum(u[..., 2:], np.float32(0))], axis=2), np.float32)
+
+
+def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, variant, iterations):
+    """OpenCL fit of one band; same results as :func:`fit_band_numpy` (float32 arithmetic)."""
     backend = get_backend()
     s, n, n_channel = values.shape
     n_signal = 1 if variant == "lum" else n_channel
@@ -801,10 +825,8 @@ def fit_band_opencl(values, frames, lights, views, per_fit, variant, iterations)
     dirs_dev = backend.to_device(CANDIDATE_DIRS.astype(np.float32).ravel())
     exps_dev = backend.to_device(CANDIDATE_EXPONENTS.astype(np.float32))
     k_total = per_fit * n_signal
-    s_dev = backend.to_device(np.ascontiguousarray(values, np.float32))
-    f_dev = backend.to_device(np.ascontiguousarray(frames, np.float32))
-    l_dev = backend.to_device(np.ascontiguousarray(lights, np.float32))
-    v_dev = backend.to_device(np.ascontiguousarray(views, np.float32))
+    s_dev = backend.to_device(np.ascontiguousarray(np.transpose(values, (1, 0, 2)), np.float32))
+    g_dev = backend.to_device(fit_geometry(frames, sample_lights, sample_views))
     d_dev = backend.empty(n * n_signal * 4)
     c_dev = backend.empty(n * k_total * 3 * 4)
     e_dev = backend.empty(n * k_total * 4)
@@ -812,8 +834,8 @@ def fit_band_opencl(values, frames, lights, views, per_fit, variant, iterations)
     sse_dev = backend.empty(n * n_signal * 4)
     it_dev = backend.empty(n * n_signal * 4)
     fl_dev = backend.empty(n * n_signal * 4)
-    backend.run(kernel, (n, n_signal), s_dev, f_dev, l_dev, v_dev, dirs_dev, exps_dev, np.int32(len(lights)), np.int32(len(views)),
-                np.int32(n), np.int32(n_channel), np.int32(variant == "lum"), np.int32(iterations), np.int32(N_STARTS),
+    backend.run(kernel, (n, n_signal), s_dev, g_dev, dirs_dev, exps_dev, np.int32(s), np.int32(n), np.int32(n_channel),
+                np.int32(variant == "lum"), np.int32(iterations), np.int32(N_STARTS),
                 d_dev, c_dev, e_dev, col_dev, sse_dev, it_dev, fl_dev)
     diffuse = backend.from_device(d_dev, (n, n_signal), np.float32)
     lobes = backend.from_device(c_dev, (n, k_total, 3), np.float32)
@@ -839,7 +861,7 @@ def _signal_scale(values: np.ndarray, variant: str) -> np.ndarray:
     return np.repeat(scale, 1 if variant == "lum" else values.shape[2], axis=1)
 
 
-def fit_band(values, frames, sample_lights, sample_views, lights, views, per_fit, variant, iterations, engine):
+def fit_band(values, frames, sample_lights, sample_views, per_fit, variant, iterations, engine):
     """Fit one band on either engine, each texel scaled to a peak in (0.5, 1] first and the result scaled back.
 
     LM's damping floor (``D_FLOOR`` x the largest diagonal entry) and the tolerances are relative, but the
@@ -858,7 +880,7 @@ def fit_band(values, frames, sample_lights, sample_views, lights, views, per_fit
     if engine == "numpy":
         res = fit_band_numpy(normed, frames, sample_lights, sample_views, per_fit, variant, iterations)
     else:
-        res = fit_band_opencl(normed, frames, lights, views, per_fit, variant, iterations)
+        res = fit_band_opencl(normed, frames, sample_lights, sample_views, per_fit, variant, iterations)
     diffuse, lob, expo, colour, sse, flag, its = res
     n_signal = diffuse.shape[1]
     stored = per_fit if variant == "lum" else RGB_LOBES
@@ -979,8 +1001,8 @@ def fit_lafortune(stack: SampleStack, lobes: int | None = None, variant: str = "
         band_normals = (normals[rows].reshape(-1, 3) if normals is not None
                         else _normals_band(values, sample_lights))
         frames = texel_frames(band_normals)
-        diffuse, lob, expo, colour, sse, flag, its = fit_band(values, frames, sample_lights, sample_views, stack.lights,
-                                                              stack.views, per_fit, variant, iterations, engine)
+        diffuse, lob, expo, colour, sse, flag, its = fit_band(values, frames, sample_lights, sample_views, per_fit,
+                                                              variant, iterations, engine)
         out_n[texels] = frames[:, 2]
         out_d[texels], out_c[texels], out_e[texels], out_col[texels] = diffuse, lob, expo, colour
         sse_total += float(np.sum(sse))
