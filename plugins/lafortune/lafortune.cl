@@ -306,13 +306,17 @@ float normal_equations(const Texel *tx, const float *z, int k, const int *cols, 
 }
 
 // How far free parameter `col` may move by `d` before it leaves its box (rho >= 0, p in [0, P_MAX], alpha <=
-// log_cap): d itself, or the move that lands it on the bound it would cross.
+// log_cap, and |psi_j| <= exp((log_cap - alpha) / n): the lobe cap once psi is renormalised into alpha): d
+// itself, or the move that lands it on the bound it would cross.
 inline float clip_move(const float *z, int col, float d, float log_cap) {
     if (col == 0) return fmax(d, -z[0]);
     const int slot = (col - 1) % 5;
     if (slot == 4) return clamp(d, -z[col], P_MAX - z[col]);
     if (slot == 3) return fmin(d, log_cap - z[col]);
-    return d;
+    const int lobe = col - slot;                     // state index of the lobe's psi_x
+    const float reach = exp(fmax(log_cap - z[lobe + 3], 0.0f) / exp(z[lobe + 4]));
+    const float to = z[col] + d;
+    return fabs(to) <= reach ? d : copysign(reach, to) - z[col];   // d itself unless it crosses (no rounding)
 }
 
 // The damped step (H + lam D) d = g inside the box: a parameter whose step would leave the box moves onto the

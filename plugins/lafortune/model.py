@@ -567,9 +567,14 @@ def _clip_move(z, cols, delta, log_cap):
     """The kernel's ``clip_move``: each free parameter's move ``delta [M, P]`` cut where it would leave the box."""
     value = np.take_along_axis(z, cols, axis=1)
     slot = (cols - 1) % 5
-    low = np.where(cols == 0, -value, np.where(slot == 4, -value, -np.inf))
-    high = np.where((cols > 0) & (slot == 4), P_MAX - value, np.where((cols > 0) & (slot == 3), log_cap[:, None] - value, np.inf))
-    return np.minimum(np.maximum(delta, low), high)
+    lobe = np.maximum(cols - slot, 1)
+    alpha, n = np.take_along_axis(z, lobe + 3, axis=1), np.exp(np.take_along_axis(z, lobe + 4, axis=1))
+    reach = np.exp(np.maximum(log_cap[:, None] - alpha, 0.0) / n)
+    low = np.where((cols == 0) | (slot == 4), -value, -np.inf)
+    high = np.where(cols == 0, np.inf, np.where(slot == 4, P_MAX - value, np.where(slot == 3, log_cap[:, None] - value, np.inf)))
+    to = value + delta
+    psi_move = np.where(np.abs(to) <= reach, delta, np.copysign(reach, to) - value)   # delta itself unless it crosses
+    return np.where((cols > 0) & (slot < 3), psi_move, np.minimum(np.maximum(delta, low), high))
 
 
 def _damped_step(h, g, dg, lam, z, cols, log_cap):
