@@ -536,7 +536,8 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.
         float lowest = INFINITY, best_cost = INFINITY;
         int best_conv = 0, best_ci = 0;
-        for (int attempt = 0; attempt < n_starts; ++attempt) {
+        const int starts = k == 1 ? n_starts : 1;
+        for (int attempt = 0; attempt < starts; ++attempt) {
             int ci = -1, cb = -1;
             for (int cj = 0; cj < N_CAND; ++cj) {
                 if (!(ccost[cj] < INFINITY)) continue;
@@ -558,7 +559,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             int conv = 0;
             float cost = 0.0f;
             // With several starts each gets RACE_ITER steps and only the best is refined further.
-            const int budget = n_starts > 1 ? min(max_iter, RACE_ITER) : max_iter;
+            const int budget = starts > 1 ? min(max_iter, RACE_ITER) : max_iter;
             its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, budget, &cost, &conv);
             if (attempt == 0 || cost < best_cost) {
                 for (int i = 0; i < NS; ++i) best[i] = start[i];
@@ -567,7 +568,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
                 best_ci = ci;
             }
         }
-        if (!best_conv && n_starts > 1 && max_iter > RACE_ITER)
+        if (!best_conv && starts > 1 && max_iter > RACE_ITER)
             its_total += levenberg_marquardt(&tx, best, k, log_cap, atol, etol, max_iter - RACE_ITER, &best_cost,
                                              &best_conv);
         used |= 1ul << best_ci;

@@ -99,7 +99,7 @@ CANDIDATE_DIRS = np.array([[-1.0, -1.0, 1.0],   # mirror lobe: base = u . reflec
 # square of the one two rungs below, so scoring the grid needs no exp or log.
 CANDIDATE_EXPONENTS = np.array([m * 2.0 ** e for e in range(10) for m in (1.0, 1.5)])
 DEFAULT_ITERATIONS = 50
-N_STARTS = 2            # each new lobe is fitted from this many start shapes (the best, then the best broader one)
+N_STARTS = 2            # the first lobe is fitted from this many start shapes (the best, then the best broader one)
 RACE_ITER = 3           # ... each for this many LM steps; only the better one is refined further
 
 
@@ -718,7 +718,8 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
                     scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, capval)
         cand_cost[used] = np.inf
         lowest = np.full(m, np.inf)
-        for attempt in range(N_STARTS):
+        starts = N_STARTS if k == 1 else 1     # later lobes start from one shape: a second one never paid off
+        for attempt in range(starts):
             # The best shape not tried yet; after the first, the best broader one (lower exponent) if any: a
             # sharp start that sees one light is where LM gets stuck, a broad one can still sharpen.
             broader = np.where(all_n[None, :] < lowest[:, None], cand_cost, np.inf)
@@ -736,7 +737,7 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
             start = _project(start, k, log_cap)
             n_state = 1 + 5 * k
             trial = start.copy()
-            budget = min(iterations, RACE_ITER) if N_STARTS > 1 else iterations
+            budget = min(iterations, RACE_ITER) if starts > 1 else iterations
             trial[:, :n_state], cost_t, conv_t, its = _lm_numpy(start[:, :n_state], k, y, x, c, log_cap, atol, etol, budget)
             its_total += its
             if attempt == 0:
@@ -746,7 +747,7 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
                 fitted = np.where(better[:, None], trial, fitted)
                 conv, fit_cost, fit_ci = (np.where(better, conv_t, conv), np.where(better, cost_t, fit_cost),
                                           np.where(better, ci, fit_ci))
-        more = np.flatnonzero(~conv) if N_STARTS > 1 and iterations > RACE_ITER else np.zeros(0, np.int64)
+        more = np.flatnonzero(~conv) if starts > 1 and iterations > RACE_ITER else np.zeros(0, np.int64)
         if more.size:                           # only the better start is refined further
             n_state = 1 + 5 * k
             fitted[more, :n_state], fit_cost[more], conv[more], its = _lm_numpy(
