@@ -13,7 +13,7 @@
 #endif
 #define NP (1 + 4 * NLOBE)
 
-// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, NU0, LAM_MIN, LAM_MAX, LAM_DEC, FTOL, GTOL, ETOL, ATOL,
+// The constants (P_MAX, LOBE_CAP, CAP_DROP, T_CAP, B_MIN, LAM0, NU0, LAM_MIN, LAM_MAX, LAM_DEC, FTOL, GTOL, ETOL, ATOL,
 // D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS, RACE_ITER) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
 #if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC) || !defined(RACE_ITER)
 #error "build lafortune.cl with model.BUILD_OPTIONS"
@@ -165,6 +165,9 @@ float cost_of(const Texel *tx, const float *z, int k) {
 
 // rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= log_cap,
 // so each lobe's peak over all directions, exp(alpha), stays below LOBE_CAP x the brightest sample.
+// Lobe i's log cap: log_cap (the first lobe's) less CAP_DROP for every later lobe.
+inline float lobe_log_cap(float log_cap, int i) { return i > 0 ? log_cap - CAP_DROP : log_cap; }
+
 inline void project(float *z, int k, float log_cap) {
     z[0] = fmax(z[0], 0.0f);
     for (int i = 0; i < k; ++i) {
@@ -175,7 +178,7 @@ inline void project(float *z, int k, float log_cap) {
         const int live = mx > B_MIN;
         const float msafe = live ? mx : 1.0f;
         for (int j = 0; j < 3; ++j) l[j] = l[j] / msafe;
-        l[3] = fmin(l[3] + (live ? n * log(msafe) : 0.0f), log_cap);
+        l[3] = fmin(l[3] + (live ? n * log(msafe) : 0.0f), lobe_log_cap(log_cap, i));
     }
 }
 
@@ -312,9 +315,10 @@ inline float clip_move(const float *z, int col, float d, float log_cap) {
     if (col == 0) return fmax(d, -z[0]);
     const int slot = (col - 1) % 5;
     if (slot == 4) return clamp(d, -z[col], P_MAX - z[col]);
-    if (slot == 3) return fmin(d, log_cap - z[col]);
+    const float cap = lobe_log_cap(log_cap, (col - 1) / 5);
+    if (slot == 3) return fmin(d, cap - z[col]);
     const int lobe = col - slot;                     // state index of the lobe's psi_x
-    const float reach = exp(fmax(log_cap - z[lobe + 3], 0.0f) / exp(z[lobe + 4]));
+    const float reach = exp(fmax(cap - z[lobe + 3], 0.0f) / exp(z[lobe + 4]));
     const float to = z[col] + d;
     return fabs(to) <= reach ? d : copysign(reach, to) - z[col];   // d itself unless it crosses (no rounding)
 }
@@ -322,8 +326,8 @@ inline float clip_move(const float *z, int col, float d, float log_cap) {
 // The damped step (H + lam D) d = g inside the box: a parameter whose step would leave the box moves onto the
 // bound it crosses (a parameter already there stays) and the others are solved again with that move fixed.
 // Clipping the step instead (and projecting) left LM trying ever shorter steps against a bound that the
-// other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd, or -1
-// when a Cholesky factorisation fails.
+// other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd (<= 0 when
+// the box leaves no descent), or NaN when a Cholesky factorisation fails.
 float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
                   int np, float log_cap, float *delta) {
     float A[NP * NP], rhs[NP];
@@ -338,7 +342,7 @@ float damped_step(const float *H, const float *g, const float *dg, float lam, co
             A[i * NP + i] = pinned[i] ? 1.0f : H[i * NP + i] + lam * dg[i];
             if (pinned[i]) rhs[i] = delta[i];
         }
-        if (!cholesky(A, np)) return -1.0f;
+        if (!cholesky(A, np)) return NAN;
         cholesky_solve(A, rhs, delta, np);
         int more = 0;
         for (int i = 0; i < np; ++i) {
@@ -385,13 +389,13 @@ int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float a
             for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
             if (cost <= atol || zero) { conv = 1; break; }
             const float decrement = damped_step(H, g, dg, LAM_DEC, z, cols, np, log_cap, delta);
-            if (decrement >= 0.0f && decrement <= FTOL * cost + etol) { conv = 1; break; }
+            if (decrement >= 0.0f && decrement <= FTOL * cost + etol) { conv = 1; break; }   // NaN compares false
             fresh = 0;
         }
         ++its;
         const float predicted = damped_step(H, g, dg, lam, z, cols, np, log_cap, delta);
         float trial_cost = INFINITY;
-        if (predicted >= 0.0f) {
+        if (!isnan(predicted)) {
             for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
             for (int a = 0; a < np; ++a) trial[cols[a]] += delta[a];
             project(trial, k, log_cap);
@@ -485,7 +489,6 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         scy += c * y;
     }
     const float log_cap = log(LOBE_CAP * fmax(ymax, 1e-12f));
-    const float capval = exp(log_cap);
     const float atol = ATOL * energy, etol = ETOL * energy;
 
     float z[NS], start[NS], best[NS];
@@ -530,7 +533,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             }
         }
         for (int ci = 0; ci < N_CAND; ++ci) {
-            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, capval, &crho[ci], &cw[ci]);
+            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, exp(lobe_log_cap(log_cap, j)), &crho[ci], &cw[ci]);
             if ((used >> ci) & 1ul) ccost[ci] = INFINITY;
         }
         // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.

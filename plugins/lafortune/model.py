@@ -79,7 +79,9 @@ MAX_CHANNELS = 4
 EXPONENT_MIN = 1.0
 EXPONENT_MAX = 1000.0
 P_MAX = math.log(EXPONENT_MAX)
-LOBE_CAP = 10.0          # a lobe's peak over all directions <= LOBE_CAP x the texel's brightest sample
+LOBE_CAP = 10.0          # the first lobe's peak over all directions <= LOBE_CAP x the texel's brightest sample,
+LATER_CAP = 2.0          # ... a later lobe's <= LATER_CAP x (a residual lobe: one allowed 10x let held-out lights see spikes)
+CAP_DROP = math.log(LOBE_CAP / LATER_CAP)
 T_CAP = 20.0             # numerical guard: n ln(base) is clamped here (the cap above normally binds first)
 B_MIN = 1e-30            # bases at or below this count as 0
 LAM0, LAM_MIN, LAM_MAX = 1e-3, 1e-7, 1e7
@@ -98,7 +100,7 @@ CANDIDATE_DIRS = np.array([[-1.0, -1.0, 1.0],   # mirror lobe: base = u . reflec
 # 1, 1.5, 2, 3, 4, 6, ... 768 (steps of x1.33 and x1.5; coarser grids strand LM): every power of a base is a
 # square of the one two rungs below, so scoring the grid needs no exp or log.
 CANDIDATE_EXPONENTS = np.array([m * 2.0 ** e for e in range(10) for m in (1.0, 1.5)])
-DEFAULT_ITERATIONS = 50
+DEFAULT_ITERATIONS = 100
 N_STARTS = 2            # the first lobe is fitted from this many start shapes (the best, then the best broader one)
 RACE_ITER = 3           # ... each for this many LM steps; only the better one is refined further
 
@@ -110,7 +112,7 @@ def _cl_float(value: float) -> str:
 # lafortune.cl takes every constant above from these build options (it defines none itself), so the kernels and
 # their NumPy twins cannot drift apart.
 BUILD_OPTIONS = tuple(f"-D{name}={_cl_float(value)}" for name, value in (
-    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0), ("NU0", NU0),
+    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("CAP_DROP", CAP_DROP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0), ("NU0", NU0),
     ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL), ("GTOL", GTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("LAM_DEC", LAM_DEC),
     ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
     f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}",
@@ -471,6 +473,10 @@ def _model64(z: np.ndarray, k: int, x: np.ndarray, c: np.ndarray) -> np.ndarray:
     return c * f
 
 
+def _lobe_log_cap(log_cap, i: int):
+    return log_cap - CAP_DROP if i > 0 else log_cap
+
+
 def _project(z: np.ndarray, k: int, log_cap: np.ndarray) -> np.ndarray:
     """rho >= 0; p in [0, ln 1000]; psi renormalised to max |psi_j| = 1 (into alpha); alpha <= log_cap."""
     z = z.copy()
@@ -483,7 +489,7 @@ def _project(z: np.ndarray, k: int, log_cap: np.ndarray) -> np.ndarray:
         live = mx > B_MIN
         msafe = np.where(live, mx, 1.0)
         z[:, 1 + 5 * i:4 + 5 * i] = psi / msafe[:, None]
-        z[:, 4 + 5 * i] = np.minimum(z[:, 4 + 5 * i] + np.where(live, n * np.log(msafe), 0.0), log_cap)
+        z[:, 4 + 5 * i] = np.minimum(z[:, 4 + 5 * i] + np.where(live, n * np.log(msafe), 0.0), _lobe_log_cap(log_cap, i))
     return z
 
 
@@ -569,16 +575,17 @@ def _clip_move(z, cols, delta, log_cap):
     slot = (cols - 1) % 5
     lobe = np.maximum(cols - slot, 1)
     alpha, n = np.take_along_axis(z, lobe + 3, axis=1), np.exp(np.take_along_axis(z, lobe + 4, axis=1))
-    reach = np.exp(np.maximum(log_cap[:, None] - alpha, 0.0) / n)
+    cap = np.where((cols - 1) // 5 > 0, log_cap[:, None] - CAP_DROP, log_cap[:, None])
+    reach = np.exp(np.maximum(cap - alpha, 0.0) / n)
     low = np.where((cols == 0) | (slot == 4), -value, -np.inf)
-    high = np.where(cols == 0, np.inf, np.where(slot == 4, P_MAX - value, np.where(slot == 3, log_cap[:, None] - value, np.inf)))
+    high = np.where(cols == 0, np.inf, np.where(slot == 4, P_MAX - value, np.where(slot == 3, cap - value, np.inf)))
     to = value + delta
     psi_move = np.where(np.abs(to) <= reach, delta, np.copysign(reach, to) - value)   # delta itself unless it crosses
     return np.where((cols > 0) & (slot < 3), psi_move, np.minimum(np.maximum(delta, low), high))
 
 
 def _damped_step(h, g, dg, lam, z, cols, log_cap):
-    """The kernel's ``damped_step`` for every row: ``(delta [M, P], predicted gain [M])``, gain -1 where a
+    """The kernel's ``damped_step`` for every row: ``(delta [M, P], predicted gain [M])``, gain NaN where a
     Cholesky factorisation fails."""
     m, p = g.shape
     diagonal = np.arange(p)
@@ -603,7 +610,7 @@ def _damped_step(h, g, dg, lam, z, cols, log_cap):
     delta = _clip_move(z, cols, delta, log_cap)
     with np.errstate(invalid="ignore", over="ignore"):
         predicted = (delta * (2.0 * g - np.einsum("mij,mj->mi", h, delta))).sum(axis=1)
-    return delta, np.where(ok, predicted, -1.0)
+    return delta, np.where(ok, predicted, np.nan)
 
 
 def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
@@ -637,7 +644,7 @@ def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
             break
         its[idx] += 1
         delta, predicted = _damped_step(h[idx], g[idx], dg[idx], lam[idx], z[idx], cols[idx], log_cap[idx])
-        go = predicted >= 0
+        go = ~np.isnan(predicted)
         tried = idx[go]
         step = np.zeros((tried.size, z.shape[1]))
         np.put_along_axis(step, cols[tried], delta[go], axis=1)
@@ -690,7 +697,6 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
     ymax = np.abs(y).max(axis=1)
     energy = (y * y).sum(axis=1)
     log_cap = np.log(LOBE_CAP * np.maximum(ymax, 1e-12))
-    capval = np.exp(log_cap)
     atol, etol = ATOL * energy, ETOL * energy
     z = np.zeros((m, 1 + 5 * n_lobes))
     scc = (c * c).sum(axis=1)
@@ -715,7 +721,7 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
                 ci = ei * len(CANDIDATE_DIRS) + di
                 g = c * power
                 cand_rho[:, ci], cand_w[:, ci], cand_cost[:, ci] = _nnls_box(
-                    scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, capval)
+                    scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, np.exp(_lobe_log_cap(log_cap, j)))
         cand_cost[used] = np.inf
         lowest = np.full(m, np.inf)
         starts = N_STARTS if k == 1 else 1     # later lobes start from one shape: a second one never paid off
