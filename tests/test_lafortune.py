@@ -247,6 +247,37 @@ def test_photometric_stereo_does_not_depend_on_the_order_of_the_lights():
         np.testing.assert_allclose(again, first, atol=1e-6)
 
 
+def _angle_deg(a, b):
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1))).mean()
+
+
+@pytest.mark.parametrize("n_lights", [12, 48])
+def test_normals_beat_least_squares_with_few_lights_shadows_and_highlights(n_lights):
+    import dataclasses
+    from btforge.plugins.demo.procedural import make_material, render_lights
+    material = make_material(32, 32, bump_height=3.0, seed=3)
+    truth = material.normals.reshape(-1, 3).astype(np.float64)
+    lights = spiral(n_lights)
+    rng = np.random.default_rng(0)
+    white = dataclasses.replace(material, albedo=np.ones_like(material.albedo))
+    shaded = np.maximum(truth @ lights.T, 0).T                                   # [L, N], no shadows
+    cast = render_lights(white, lights)[..., 0].reshape(n_lights, -1)            # with cast shadows
+    half = lights + [0, 0, 1]
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    gloss = 0.6 * np.clip(truth @ half.T, 0, 1).T ** 40
+    albedo = material.albedo.reshape(1, -1, 3)
+    for kind, radiance in (("lambert", shaded[..., None] * albedo),
+                           ("glossy, cast shadows", cast[..., None] * (albedo + gloss[..., None]))):
+        noisy = radiance + rng.normal(0, 0.01, radiance.shape)
+        est = estimate_normals(stack_of(noisy.reshape(1, n_lights, 32, 32, 3), lights)).reshape(-1, 3)
+        plain = np.linalg.lstsq(lights, noisy.mean(-1), rcond=None)[0].T      # least-squares photometric stereo
+        ours, ls = _angle_deg(est, truth), _angle_deg(plain, truth)
+        assert ours <= ls, (kind, ours, ls)
+        if kind != "lambert":
+            assert ours < 0.5 * ls, (kind, ours, ls)
+
+
 def test_user_normals_must_point_up():
     s = stack_of(np.random.default_rng(0).uniform(0, 1, (1, 8, 3, 4, 3)), dome(8))
     normals = np.tile(np.float32([0, 0, 1]), (3, 4, 1))

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -374,11 +375,25 @@ BRIGHT_FRACTION = 0.3   # ... and this fraction of its brightest (highlights)
 NORMAL_MIN_Z = 0.05
 PS_RIDGE = 1e-4         # tangential components of b are damped by this x trace(L'L): clustered lights -> up
 PS_Z_RIDGE = 1e-12      # ... and the normal component by this x trace: L'L stays invertible for coplanar lights
+PS_IRLS_STEPS = 4       # reweighted least-squares steps after the trimmed start
+PS_HORIZON = 0.05       # a light with n . l at or below this is in attached shadow and left out
+PS_TUKEY = 4.685        # Tukey's biweight (1 - (r / (PS_TUKEY s))^2)^2, s = 1.4826 x median |r| (95 % efficient)
+PS_SCALE_FLOOR = 1e-3   # s >= this x the texel's brightest sample (exact data: s = 0 would weight by noise)
 
 
-def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
-    """Robust photometric stereo of ``values [S, n, C]`` lit from ``sample_lights [S, 3]`` -> ``[n, 3]`` float32."""
-    lum = values.astype(np.float64).mean(axis=2).T            # [n, S]
+def _solve_normals(weight, lum, ld):
+    """Weighted least squares ``lum ~ b . l`` per texel with the tangential ridge -> ``b [n, 3]``."""
+    a = np.einsum("ns,si,sj->nij", weight, ld, ld)
+    rhs = np.einsum("ns,ns,si->ni", weight, lum, ld)
+    trace = np.maximum(np.trace(a, axis1=1, axis2=2), 1e-30)
+    a[:, 0, 0] += PS_RIDGE * trace
+    a[:, 1, 1] += PS_RIDGE * trace
+    a[:, 2, 2] += PS_Z_RIDGE * trace
+    return np.linalg.solve(a, rhs[..., None])[..., 0]
+
+
+def _trimmed_weights(lum):
+    """0/1 weights dropping each texel's darkest and brightest samples (by value, ties included)."""
     n_texel, s = lum.shape
     n_dark = int(DARK_FRACTION * s)
     n_bright = int(BRIGHT_FRACTION * s)
@@ -391,20 +406,50 @@ def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     high = ordered[:, s - n_bright:s - n_bright + 1] if n_bright else np.full((n_texel, 1), np.inf)
     keep = (lum > low) & (lum < high)
     keep[keep.sum(axis=1) < 3] = True            # ties left too few samples: use them all
+    return keep
+
+
+def _tukey_weights(resid, scale):
+    return np.maximum(1.0 - (resid / (PS_TUKEY * scale)) ** 2, 0.0) ** 2
+
+
+def _reweighted_normals(b, lum, ld, bright):
+    """``PS_IRLS_STEPS`` reweighted least-squares steps from ``b [n, 3]`` -> ``(b, robust scale [n, 1])``."""
+    scale = np.zeros((len(b), 1))
+    # A run of samples tied at the texel's top value is saturated: the true value is unknown, not an outlier.
+    top = lum >= bright[:, None]
+    clipped = top & (top.sum(axis=1, keepdims=True) >= 2)
+    for _ in range(PS_IRLS_STEPS):
+        pred = b @ ld.T
+        lit = pred > PS_HORIZON * np.linalg.norm(b, axis=1, keepdims=True)
+        resid = lum - pred
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)            # a texel with no lit sample: NaN, floored
+            scale = 1.4826 * np.nanmedian(np.where(lit, np.abs(resid), np.nan), axis=1, keepdims=True)
+        scale = np.maximum(np.nan_to_num(scale, nan=0.0), PS_SCALE_FLOOR * bright[:, None] + 1e-30)
+        enough = lit.sum(axis=1) >= 3
+        weight = np.where(enough[:, None], (lit & ~clipped) * _tukey_weights(resid, scale), 1.0)
+        b = np.where(enough[:, None], _solve_normals(weight, lum, ld), b)
+    return b, scale
+
+
+def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
+    """Robust photometric stereo of ``values [S, n, C]`` lit from ``sample_lights [S, 3]`` -> ``[n, 3]`` float32."""
+    lum = values.astype(np.float64).mean(axis=2).T            # [n, S]
+    keep = _trimmed_weights(lum)
     kept_lo = np.where(keep, lum, np.inf).min(axis=1)
     kept_hi = np.where(keep, lum, -np.inf).max(axis=1)
     spread = kept_hi > kept_lo                   # no spread (a constant texel) says nothing about the normal
-    weight = keep.astype(np.float64)
     ld = sample_lights.astype(np.float64)
-    a = np.einsum("ns,si,sj->nij", weight, ld, ld)
-    rhs = np.einsum("ns,ns,si->ni", weight, lum, ld)
-    trace = np.trace(a, axis1=1, axis2=2)        # >= 1: every texel keeps at least one unit light
-    a[:, 0, 0] += PS_RIDGE * trace
-    a[:, 1, 1] += PS_RIDGE * trace
-    a[:, 2, 2] += PS_Z_RIDGE * trace
-    b = np.linalg.solve(a, rhs[..., None])[..., 0]
-    norm = np.linalg.norm(b, axis=1)
     bright = np.abs(lum).max(axis=1)
+    # Reweighted least squares over every sample from the trimmed start: a light the current normal puts at or
+    # below the horizon carries no linear information (attached shadow) and is left out; the others are weighted
+    # by Tukey's biweight of their residual against a robust scale, so cast shadows and highlights lose their
+    # pull (far ones entirely) while the clean samples the trim dropped count again - which matters most when
+    # lights are few.  (Starting from plain least squares as well and keeping the lower robust loss was tried:
+    # highlights inflate the scale and the loss then often picks the worse start.)
+    b, _ = _reweighted_normals(_solve_normals(keep.astype(np.float64), lum, ld), lum, ld, bright)
+    norm = np.linalg.norm(b, axis=1)
     good = (norm > 1e-12 * np.maximum(bright, 1e-30)) & (bright > 0) & np.isfinite(norm) & spread
     normals = np.where(good[:, None], b / np.where(good, norm, 1.0)[:, None], [0.0, 0.0, 1.0])
     normals[normals[:, 2] <= NORMAL_MIN_Z] = (0.0, 0.0, 1.0)
