@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from pathlib import Path
 from typing import ClassVar
 
@@ -383,8 +382,8 @@ PS_SCALE_FLOOR = 1e-3   # s >= this x the texel's brightest sample (exact data: 
 
 def _solve_normals(weight, lum, ld):
     """Weighted least squares ``lum ~ b . l`` per texel with the tangential ridge -> ``b [n, 3]``."""
-    a = np.einsum("ns,si,sj->nij", weight, ld, ld)
-    rhs = np.einsum("ns,ns,si->ni", weight, lum, ld)
+    a = (weight @ (ld[:, :, None] * ld[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
+    rhs = (weight * lum) @ ld
     trace = np.maximum(np.trace(a, axis1=1, axis2=2), 1e-30)
     a[:, 0, 0] += PS_RIDGE * trace
     a[:, 1, 1] += PS_RIDGE * trace
@@ -413,6 +412,16 @@ def _tukey_weights(resid, scale):
     return np.maximum(1.0 - (resid / (PS_TUKEY * scale)) ** 2, 0.0) ** 2
 
 
+def _masked_median(values, mask):
+    """Per row, the median of ``values`` where ``mask`` -> ``[n, 1]`` (0 for a row with nothing masked in)."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    low = ordered[rows, np.maximum((count - 1) // 2, 0)]
+    high = ordered[rows, np.maximum(count // 2, 0)]
+    return np.where(count > 0, 0.5 * (low + high), 0.0)[:, None]
+
+
 def _reweighted_normals(b, lum, ld, bright):
     """``PS_IRLS_STEPS`` reweighted least-squares steps from ``b [n, 3]`` -> ``(b, robust scale [n, 1])``."""
     scale = np.zeros((len(b), 1))
@@ -423,10 +432,8 @@ def _reweighted_normals(b, lum, ld, bright):
         pred = b @ ld.T
         lit = pred > PS_HORIZON * np.linalg.norm(b, axis=1, keepdims=True)
         resid = lum - pred
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)            # a texel with no lit sample: NaN, floored
-            scale = 1.4826 * np.nanmedian(np.where(lit, np.abs(resid), np.nan), axis=1, keepdims=True)
-        scale = np.maximum(np.nan_to_num(scale, nan=0.0), PS_SCALE_FLOOR * bright[:, None] + 1e-30)
+        scale = 1.4826 * _masked_median(np.abs(resid), lit)
+        scale = np.maximum(scale, PS_SCALE_FLOOR * bright[:, None] + 1e-30)
         enough = lit.sum(axis=1) >= 3
         weight = np.where(enough[:, None], (lit & ~clipped) * _tukey_weights(resid, scale), 1.0)
         b = np.where(enough[:, None], _solve_normals(weight, lum, ld), b)
