@@ -150,23 +150,17 @@ inline float model_at(const float *z, const float *nexp, int k, const float *x, 
     return c * f;
 }
 
+float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g);
+
 float cost_of(const Texel *tx, const float *z, int k) {
-    float nexp[NLOBE];
-    exponents_of(z, k, nexp);
-    float acc = 0.0f;
-    for (int s = 0; s < tx->n_sample; ++s) {
-        float x[3], c;
-        geometry(tx, s, x, &c);
-        const float r = load_y(tx, s) - model_at(z, nexp, k, x, c);
-        acc += r * r;
-    }
-    return acc;
+    return normal_equations(tx, z, k, 0, 0, 0);
 }
 
-// rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= log_cap,
-// so each lobe's peak over all directions, exp(alpha), stays below LOBE_CAP x the brightest sample.
 // Lobe i's log cap: log_cap (the first lobe's) less CAP_DROP for every later lobe.
 inline float lobe_log_cap(float log_cap, int i) { return i > 0 ? log_cap - CAP_DROP : log_cap; }
+
+// rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= its lobe's
+// log cap, so each lobe's peak over all directions, exp(alpha), stays below its cap x the brightest sample.
 
 inline void project(float *z, int k, float log_cap) {
     z[0] = fmax(z[0], 0.0f);
