@@ -99,7 +99,7 @@ EXPONENT_MIN = 1.0
 EXPONENT_MAX = 1000.0
 P_MAX = math.log(EXPONENT_MAX)
 LOBE_CAP = 10.0          # the first lobe's peak over all directions <= LOBE_CAP x the texel's brightest sample,
-LATER_CAP = 2.0          # ... a later lobe's <= LATER_CAP x (a residual lobe: one allowed 10x let held-out lights see spikes)
+LATER_CAP = 2.0          # ... a later lobe's <= LATER_CAP x (allowed 10x, residual lobes spiked between lights)
 CAP_DROP = math.log(LOBE_CAP / LATER_CAP)
 T_CAP = 20.0             # numerical guard: n ln(base) is clamped here (the cap above normally binds first)
 B_MIN = 1e-30            # bases at or below this count as 0
@@ -131,9 +131,9 @@ def _cl_float(value: float) -> str:
 # lafortune.cl takes every constant above from these build options (it defines none itself), so the kernels and
 # their NumPy twins cannot drift apart.
 BUILD_OPTIONS = tuple(f"-D{name}={_cl_float(value)}" for name, value in (
-    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("CAP_DROP", CAP_DROP), ("T_CAP", T_CAP), ("B_MIN", B_MIN), ("LAM0", LAM0), ("NU0", NU0),
-    ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("FTOL", FTOL), ("GTOL", GTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("LAM_DEC", LAM_DEC),
-    ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
+    ("P_MAX", P_MAX), ("LOBE_CAP", LOBE_CAP), ("CAP_DROP", CAP_DROP), ("T_CAP", T_CAP), ("B_MIN", B_MIN),
+    ("LAM0", LAM0), ("NU0", NU0), ("LAM_MIN", LAM_MIN), ("LAM_MAX", LAM_MAX), ("LAM_DEC", LAM_DEC), ("FTOL", FTOL),
+    ("GTOL", GTOL), ("ETOL", ETOL), ("ATOL", ATOL), ("D_FLOOR", D_FLOOR), ("W_FLOOR", W_FLOOR))) + (
     f"-DMAXC={MAX_CHANNELS}", f"-DN_DIRS={len(CANDIDATE_DIRS)}", f"-DN_EXPS={len(CANDIDATE_EXPONENTS)}",
     f"-DRACE_ITER={RACE_ITER}")
 
