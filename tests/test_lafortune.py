@@ -247,6 +247,37 @@ def test_photometric_stereo_does_not_depend_on_the_order_of_the_lights():
         np.testing.assert_allclose(again, first, atol=1e-6)
 
 
+def _angle_deg(a, b):
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1))).mean()
+
+
+@pytest.mark.parametrize("n_lights", [12, 48])
+def test_normals_beat_least_squares_with_few_lights_shadows_and_highlights(n_lights):
+    import dataclasses
+    from btforge.plugins.demo.procedural import make_material, render_lights
+    material = make_material(32, 32, bump_height=3.0, seed=3)
+    truth = material.normals.reshape(-1, 3).astype(np.float64)
+    lights = spiral(n_lights)
+    rng = np.random.default_rng(0)
+    white = dataclasses.replace(material, albedo=np.ones_like(material.albedo))
+    shaded = np.maximum(truth @ lights.T, 0).T                                   # [L, N], no shadows
+    cast = render_lights(white, lights)[..., 0].reshape(n_lights, -1)            # with cast shadows
+    half = lights + [0, 0, 1]
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    gloss = 0.6 * np.clip(truth @ half.T, 0, 1).T ** 40
+    albedo = material.albedo.reshape(1, -1, 3)
+    for kind, radiance in (("lambert", shaded[..., None] * albedo),
+                           ("glossy, cast shadows", cast[..., None] * (albedo + gloss[..., None]))):
+        noisy = radiance + rng.normal(0, 0.01, radiance.shape)
+        est = estimate_normals(stack_of(noisy.reshape(1, n_lights, 32, 32, 3), lights)).reshape(-1, 3)
+        plain = np.linalg.lstsq(lights, noisy.mean(-1), rcond=None)[0].T      # least-squares photometric stereo
+        ours, ls = _angle_deg(est, truth), _angle_deg(plain, truth)
+        assert ours <= ls, (kind, ours, ls)
+        if kind != "lambert":
+            assert ours < 0.5 * ls, (kind, ours, ls)
+
+
 def test_user_normals_must_point_up():
     s = stack_of(np.random.default_rng(0).uniform(0, 1, (1, 8, 3, 4, 3)), dome(8))
     normals = np.tile(np.float32([0, 0, 1]), (3, 4, 1))
@@ -309,9 +340,11 @@ def hard_stack(kind, seed, variant):
 
 
 # Kinds whose fit is ill-conditioned: lights at one elevation or grazing (the lobe shape barely varies over the
-# samples) and as few samples as unknowns.  There a 1-ulp change of the input alone moves the NumPy fit of up to
-# half the texels to another, as good minimum, so float32 (OpenCL) and float64 (NumPy) are compared by their errors.
-ILL_CONDITIONED = {"one elevation", "grazing", "few lights"}
+# samples), as few samples as unknowns, and pure noise (no lobe to find: many minima about equally good - the
+# explore profile found one where a texel of 12 settles elsewhere in float32, fit error 0.5 % apart).  There a
+# 1-ulp change of the input alone moves the NumPy fit of up to half the texels to another, as good minimum, so
+# float32 (OpenCL) and float64 (NumPy) are compared by their errors.
+ILL_CONDITIONED = {"one elevation", "grazing", "few lights", "noise"}
 
 
 @FAST
@@ -341,6 +374,30 @@ def test_fit_is_finite_and_bounded_on_hard_inputs(kind, seed, variant):
         a, b = gpu.evaluate(s.lights), ref.evaluate(s.lights)
         per_texel = np.abs(a - b).max(axis=(0, 1, 4)) / max(float(np.abs(b).max()), 1e-30)
         assert np.mean(per_texel < 1e-3) >= 0.75 and np.mean(per_texel < 1e-2) >= 0.75, per_texel
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(kind=st.sampled_from([k for k in HARD_KINDS if k != "few lights"]), seed=st.integers(0, 2**16),
+       variant=st.sampled_from(["lum", "rgb"]))
+def test_two_lobe_fit_is_finite_bounded_and_converges_on_hard_inputs(kind, seed, variant):
+    s = hard_stack(kind, seed, variant)
+    top = float(s.samples.max())
+    fits = {engine: fit_lafortune(s, 2, variant, engine=engine) for engine in ("opencl", "numpy")}
+    for engine, (model, info) in fits.items():
+        for name in LafortuneModel.texel_fields:
+            assert np.isfinite(getattr(model, name)).all(), (engine, name)
+        assert model.exponents.min() >= EXPONENT_MIN and model.exponents.max() <= EXPONENT_MAX
+        anywhere = model.evaluate(dome(50, seed, min_el=0))
+        assert np.isfinite(anywhere).all() and anywhere.max() <= 60 * max(top, 1e-6)
+        assert info["not_converged"] <= 2, (engine, info)                     # of 12 texels
+    one, _ = fit_lafortune(s, 1, variant)
+    assert fits["opencl"][1]["rms"] <= _rms(one, s) * (1 + 1e-5) + 1e-7       # a second lobe never hurts
+    rms = {engine: info["rms"] for engine, (_, info) in fits.items()}
+    assert abs(rms["opencl"] - rms["numpy"]) <= 0.1 * rms["numpy"] + 1e-6, rms
+
+
+def _rms(model, s):
+    return float(np.sqrt(np.mean((model.evaluate(s.lights) - s.samples) ** 2)))
 
 
 # ----------------------------------------------------------------------------------------------- glossy surface

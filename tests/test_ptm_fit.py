@@ -186,3 +186,38 @@ def test_lrgb_colour_of_sparse_highlights_stays_non_negative_and_writable(engine
     model, _ = fit_ptm(stack_of(samples, lights), "lrgb", engine=engine)
     assert model.albedo.min() >= 0.0 and model.albedo.max() <= 1.0
     write_ptm(tmp_path / "sparse.ptm", "lrgb", model.coeffs, model.albedo)
+
+
+def test_auto_space_follows_held_out_lights():
+    from btforge.buffers import linear_to_srgb8
+    lights = dome(30, 2, min_el=10)
+    rng = np.random.default_rng(1)
+    normals = rng.normal([0, 0, 1], 0.3, (8, 8, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    radiance = 0.8 * np.maximum(np.einsum("hwi,li->lhw", normals, lights), 0)[..., None] * [1.0, 0.7, 0.5]
+    lambert = stack_of(linear_to_srgb8(radiance)[None], lights, "srgb8")
+    assert fit_ptm(lambert, "rgb", "auto")[0].space == "linear"       # shading is linear in radiance
+    display = 0.3 + 0.4 * lights[:, 0, None, None, None] ** 2 + 0.1 * lights[:, 1, None, None, None]
+    poly = stack_of(np.rint(np.broadcast_to(display, radiance.shape) * 255).astype(np.uint8)[None], lights, "srgb8")
+    assert fit_ptm(poly, "rgb", "auto")[0].space == "srgb"            # display values that are a polynomial
+    assert fit_ptm(stack_of(radiance[None].astype(np.float32), lights), "rgb", "auto")[0].space == "linear"
+
+
+def test_auto_space_picks_linear_on_a_rendered_capture_and_srgb_on_real_ones(shared_data):
+    from btforge.plugins.relight import compare_stacks
+    from btforge.plugins.stackio.images import load_stack
+    root = shared_data / "rti" / "synthrti" / "Single_Object1" / "material1"
+
+    def centre(stack, size=64):
+        r0, c0 = (stack.height - size) // 2, (stack.width - size) // 2
+        return SampleStack(stack.samples[:, :, r0:r0 + size, c0:c0 + size], stack.lights, stack.views,
+                           stack.channels, stack.encoding)
+    fit, test = centre(load_stack(root / "Dome" / "dirs.lp")), centre(load_stack(root / "Test" / "dirs.lp"))
+    scores = {}
+    for space in ("linear", "srgb", "auto"):
+        model, _ = fit_ptm(fit, "rgb", space)
+        relit = SampleStack(model.evaluate(test.lights), test.lights, test.views, model.channels)
+        scores[space if space != "auto" else "auto=" + model.space] = compare_stacks(relit, test)["psnr_db"]
+    assert "auto=linear" in scores and scores["linear"] > scores["srgb"] + 2.0, scores
+    real = centre(load_stack(shared_data / "rti" / "realrti" / "item6" / "dirs.lp"))
+    assert fit_ptm(real, "rgb", "auto")[0].space == "srgb"

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 import btforge
 from btforge import BtforgeInputError, BtforgeWarning
-from btforge.buffers import SampleStack
+from btforge.buffers import SampleStack, linear_to_srgb8
 from btforge.context import StageContext
 from btforge.plugins.sh.model import (ENERGY_SLACK, RCOND, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
                                       energy_root, evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
@@ -454,3 +454,72 @@ def test_model_validation_names_the_problem():
         model_of(np.zeros((2, 2, 3, 1, 121)), 11)
     with pytest.raises(BtforgeInputError, match="finite"):
         model_of(np.full((2, 2, 3, 1, 4), np.nan), 2)
+
+
+# ----------------------------------------------------------------------------------------------- space
+
+
+def display_sh_stack(seed, light_order=2, n_light=30):
+    """An 8-bit stack whose display values are exactly a low-order SH of the light (up to byte rounding)."""
+    rng = np.random.default_rng(seed)
+    lights = hemisphere(n_light, 0.1)
+    coeffs = np.zeros((3, 4, 3, 1, light_order ** 2))
+    coeffs[..., 0, 0] = rng.uniform(1.0, 1.6, (3, 4, 3))                     # Y_0 = 1 / sqrt(4 pi)
+    coeffs[..., 0, 1:] = rng.uniform(-0.4, 0.4, (3, 4, 3, light_order ** 2 - 1))
+    coeffs[..., 0, 2] = np.abs(coeffs[..., 0, 2])    # brighter above the horizon: within the energy bound
+    display = np.einsum("hwcvk,lk->lhwc", coeffs, real_sh(light_order, lights))
+    assert 0 < display.min() and display.max() < 1
+    raw = np.rint(display * 255).astype(np.uint8)[None]
+    return SampleStack(raw, lights, [[0, 0, 1]], encoding="srgb8"), lights
+
+
+def test_srgb_space_fits_display_values_and_relights_in_linear_radiance():
+    stack, lights = display_sh_stack(3)
+    model, stats = fit_sh(stack, 2, space="srgb")
+    assert model.space == stats["space"] == "srgb" and not model.blendable
+    relit = model.evaluate(lights)
+    # the fit reproduces the bytes (within rounding), and relighting decodes them to linear radiance
+    np.testing.assert_allclose(relit, stack.linear(), atol=2.5 / 255)
+    np.testing.assert_allclose(model.evaluate(lights, engine="numpy"), relit, rtol=1e-5, atol=1e-7)
+    rows, cols = np.array([0, 2, 1]), np.array([0, 3, 1])
+    texels = model.evaluate_texels(rows, cols, lights[[0, 5, 9]])
+    np.testing.assert_allclose(texels, relit[0, [0, 5, 9], rows, cols], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(model.evaluate_texels(rows, cols, lights[[0, 5, 9]], engine="numpy"), texels,
+                               rtol=1e-5, atol=1e-7)
+    again = SHModel.from_payload(*model.payload())
+    assert again.space == "srgb" and again.content_key == model.content_key
+    with pytest.raises(BtforgeInputError, match="space"):
+        fit_sh(stack, 2, space="gamma")
+
+
+def test_auto_space_picks_the_space_the_data_is_smooth_in():
+    display, _ = display_sh_stack(4)                                          # exact in display values
+    assert fit_sh(display, 2)[1]["space"] == "srgb"
+    lights = hemisphere(30, 0.1)
+    rng = np.random.default_rng(5)
+    normals = rng.normal([0, 0, 1], 0.3, (8, 8, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    radiance = 0.8 * np.maximum(np.einsum("hwi,li->lhw", normals, lights), 0)[..., None] * [1.0, 0.8, 0.6]
+    lambert = SampleStack(linear_to_srgb8(radiance)[None], lights, [[0, 0, 1]], encoding="srgb8")
+    assert fit_sh(lambert, 3)[1]["space"] == "linear"                          # Lambert is linear in radiance
+    assert fit_sh(stack_of(radiance[None], lights), 3)[1]["space"] == "linear"  # a linear capture stays linear
+
+
+@pytest.mark.parametrize("item", ["item5", "item6"])
+def test_srgb_space_beats_linear_sh_on_real_captures(shared_data, item):
+    from btforge.plugins.relight import compare_stacks
+    from btforge.plugins.stackio.images import load_stack
+    stack = load_stack(shared_data / "rti" / "realrti" / item / "dirs.lp")
+    r0, c0 = (stack.height - 64) // 2, (stack.width - 64) // 2
+    held = np.arange(stack.n_light) % 5 == 0
+
+    def part(mask):
+        return SampleStack(stack.samples[:, mask, r0:r0 + 64, c0:c0 + 64], stack.lights[mask], stack.views,
+                           stack.channels, stack.encoding)
+    fit, test = part(~held), part(held)
+    scores = {}
+    for space in ("linear", "auto"):
+        model, stats = fit_sh(fit, 3, space=space)
+        scores[stats["space"]] = compare_stacks(
+            SampleStack(model.evaluate(test.lights), test.lights, test.views, model.channels), test)["psnr_db"]
+    assert scores["srgb"] >= scores["linear"] + 2.0, scores

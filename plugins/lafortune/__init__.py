@@ -30,9 +30,11 @@ NOT_CONVERGED_WARN = 0.05  # warn when more than this fraction of texels ran out
 def lafortune_fit(ctx, stack, *, lobes, variant, iterations):
     """Fit per-texel Lafortune lobes to a stack (top view or multi-view BTF) by Levenberg-Marquardt, on OpenCL.
 
-    Each texel gets its own frame: a normal from robust photometric stereo on its samples (the darkest and the
-    brightest 30 % dropped, with any samples tied to them, so the order of the lights does not matter;
-    ``(0, 0, 1)`` for black or constant texels or normals within 3 degrees of the surface plane)
+    Each texel gets its own frame: a normal from robust photometric stereo on its samples (least squares with
+    the darkest and the brightest 30 % dropped, with any samples tied to them, then Tukey-reweighted least
+    squares over every sample that is lit and not saturated, so shadows and highlights lose their pull while
+    few lights keep all their clean samples; the order of the lights does not matter; ``(0, 0, 1)`` for black
+    or constant texels or normals within 3 degrees of the surface plane)
     and the surface x-axis made orthogonal to it as tangent.  In that frame the model is::
 
         radiance = max(uz, 0) * (rho_d + sum_i max(Cx_i ux vx + Cy_i uy vy + Cz_i uz vz, 0) ^ n_i)
@@ -42,11 +44,13 @@ def lafortune_fit(ctx, stack, *, lobes, variant, iterations):
     a per-texel colour (non-negative least squares per channel); ``rgb`` fits each channel on its own.
 
     One OpenCL work-item fits one texel (and channel, for rgb): lobes are added one at a time, each started
-    from the best-scoring of a grid of mirror / retro / normal-aligned shapes at exponents 1 ... 1000 (two
-    starts per lobe), then all parameters are refined by Levenberg-Marquardt with adaptive damping.  A lobe is
-    kept only if it lowers the texel's error, so more lobes never fit worse.  Exponents stay in [1, 1000], a
-    negative lobe base counts as 0 (no negative number is raised to a fractional power), and no lobe may peak
-    above 10x the texel's brightest sample in any direction, which keeps relighting between the measured
+    from the best-scoring of a grid of mirror / retro / normal-aligned shapes at exponents 1 ... 768 (the
+    first lobe races two starts), then all parameters are refined by Levenberg-Marquardt: Cholesky-solved
+    damped normal equations, trust-region (gain-ratio) damping, steps kept inside the parameter bounds, and a
+    Newton-decrement stop after which the texel's work-item retires.  A lobe is kept only if it lowers the
+    texel's error, so more lobes never fit worse.  Exponents stay in [1, 1000], a negative lobe base counts as
+    0 (no negative number is raised to a fractional power), and no lobe may peak above 10x (the first) or 2x
+    (later lobes) the texel's brightest sample in any direction, which keeps relighting between the measured
     lights bounded.  Each texel is fitted scaled to a peak near 1 (by a power of two) and scaled back, so
     the fit does not depend on the data's overall brightness.  The stack is streamed in bands of rows.
 
@@ -86,3 +90,9 @@ def btforge_stages():
 @hookimpl
 def btforge_buffer_types():
     return [LafortuneModel]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_lafortune
+    return {"lafortune": bench_lafortune}

@@ -13,9 +13,9 @@
 #endif
 #define NP (1 + 4 * NLOBE)
 
-// The constants (P_MAX, LOBE_CAP, T_CAP, B_MIN, LAM0, LAM_DOWN, LAM_UP, LAM_MIN, LAM_MAX, FTOL, ETOL, ATOL,
-// D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
-#if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC)
+// The constants (P_MAX, LOBE_CAP, CAP_DROP, T_CAP, B_MIN, LAM0, NU0, LAM_MIN, LAM_MAX, LAM_DEC, FTOL, GTOL, ETOL, ATOL,
+// D_FLOOR, W_FLOOR, MAXC, N_DIRS, N_EXPS, RACE_ITER) come from model.BUILD_OPTIONS only, so the NumPy twins share them.
+#if !defined(T_CAP) || !defined(W_FLOOR) || !defined(N_EXPS) || !defined(MAXC) || !defined(RACE_ITER)
 #error "build lafortune.cl with model.BUILD_OPTIONS"
 #endif
 #define N_CAND (N_DIRS * N_EXPS)
@@ -106,24 +106,23 @@ __kernel void lafortune_eval_scattered(__global const float *diffuse, __global c
 
 #define NS (1 + 5 * NLOBE)
 
+// The host lays out each texel's samples and their geometry contiguously (a texel's fit reads them every pass).
 typedef struct {
-    __global const float *samples;   // [S, n_texel, C]
-    __global const float *lights;    // [L, 3]
-    __global const float *views;     // [V, 3]
-    float F[9];
-    int n_light, n_texel, n_channel, n_sample, t, channel;   // channel < 0: the channel mean (luminance)
+    __global const float *samples;   // this texel's [S, C]
+    __global const float *geom;      // this texel's [S, 4]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
+    int n_channel, n_sample, channel;   // channel < 0: the channel mean (luminance)
 } Texel;
 
 inline void geometry(const Texel *tx, int s, float *x, float *c) {
-    float u[3], w[3];
-    to_frame(tx->F, tx->lights + 3 * (s % tx->n_light), u);
-    to_frame(tx->F, tx->views + 3 * (s / tx->n_light), w);
-    for (int i = 0; i < 3; ++i) x[i] = u[i] * w[i];
-    *c = fmax(u[2], 0.0f);
+    __global const float *q = tx->geom + 4 * s;
+    x[0] = q[0];
+    x[1] = q[1];
+    x[2] = q[2];
+    *c = q[3];
 }
 
 inline __global const float *sample_ptr(const Texel *tx, int s) {
-    return tx->samples + ((size_t)s * tx->n_texel + tx->t) * tx->n_channel;
+    return tx->samples + (size_t)s * tx->n_channel;
 }
 
 inline float load_y(const Texel *tx, int s) {
@@ -151,21 +150,18 @@ inline float model_at(const float *z, const float *nexp, int k, const float *x, 
     return c * f;
 }
 
+float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g);
+
 float cost_of(const Texel *tx, const float *z, int k) {
-    float nexp[NLOBE];
-    exponents_of(z, k, nexp);
-    float acc = 0.0f;
-    for (int s = 0; s < tx->n_sample; ++s) {
-        float x[3], c;
-        geometry(tx, s, x, &c);
-        const float r = load_y(tx, s) - model_at(z, nexp, k, x, c);
-        acc += r * r;
-    }
-    return acc;
+    return normal_equations(tx, z, k, 0, 0, 0);
 }
 
-// rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= log_cap,
-// so each lobe's peak over all directions, exp(alpha), stays below LOBE_CAP x the brightest sample.
+// Lobe i's log cap: log_cap (the first lobe's) less CAP_DROP for every later lobe.
+inline float lobe_log_cap(float log_cap, int i) { return i > 0 ? log_cap - CAP_DROP : log_cap; }
+
+// rho >= 0 ; p in [0, ln 1000] ; psi renormalised to max |psi_j| = 1 (folded into alpha) ; alpha <= its lobe's
+// log cap, so each lobe's peak over all directions, exp(alpha), stays below its cap x the brightest sample.
+
 inline void project(float *z, int k, float log_cap) {
     z[0] = fmax(z[0], 0.0f);
     for (int i = 0; i < k; ++i) {
@@ -176,7 +172,7 @@ inline void project(float *z, int k, float log_cap) {
         const int live = mx > B_MIN;
         const float msafe = live ? mx : 1.0f;
         for (int j = 0; j < 3; ++j) l[j] = l[j] / msafe;
-        l[3] = fmin(l[3] + (live ? n * log(msafe) : 0.0f), log_cap);
+        l[3] = fmin(l[3] + (live ? n * log(msafe) : 0.0f), lobe_log_cap(log_cap, i));
     }
 }
 
@@ -259,85 +255,165 @@ inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
     }
 }
 
-// Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.
-// Returns the steps tried; *cost_out is the final cost, *converged whether a stopping test was met.
+// One pass over the samples at state z: the cost |y - f(z)|^2 and, with H given, the normal equations H = J'J
+// (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).
+float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g) {
+    const int np = 1 + 4 * k;
+    float nexp[NLOBE], full[NS], J[NP];
+    exponents_of(z, k, nexp);
+    if (H) {
+        for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
+        for (int i = 0; i < np; ++i) g[i] = 0.0f;
+    }
+    float cost = 0.0f;
+    for (int s = 0; s < tx->n_sample; ++s) {
+        float x[3], c;
+        geometry(tx, s, x, &c);
+        full[0] = c;
+        float f = z[0];
+        for (int i = 0; i < k; ++i) {
+            const float *l = z + 1 + 5 * i;
+            const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
+            float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
+            if (b > B_MIN) {
+                const float lb = log(b);
+                const float e = l[3] + nexp[i] * lb;
+                v = exp(fmin(e, T_CAP));
+                if (e <= T_CAP) {
+                    dpsi = v * nexp[i] / b;
+                    da = v;
+                    dp = v * nexp[i] * lb;
+                }
+            }
+            for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
+            full[4 + 5 * i] = c * da;
+            full[5 + 5 * i] = c * dp;
+            f += v;
+        }
+        const float r = load_y(tx, s) - c * f;
+        cost += r * r;
+        if (!H) continue;
+        for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
+        for (int a = 0; a < np; ++a) {
+            g[a] += J[a] * r;
+            for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
+        }
+    }
+    return cost;
+}
+
+// How far free parameter `col` may move by `d` before it leaves its box (rho >= 0, p in [0, P_MAX], alpha <=
+// log_cap, and |psi_j| <= exp((log_cap - alpha) / n): the lobe cap once psi is renormalised into alpha): d
+// itself, or the move that lands it on the bound it would cross.
+inline float clip_move(const float *z, int col, float d, float log_cap) {
+    if (col == 0) return fmax(d, -z[0]);
+    const int slot = (col - 1) % 5;
+    if (slot == 4) return clamp(d, -z[col], P_MAX - z[col]);
+    const float cap = lobe_log_cap(log_cap, (col - 1) / 5);
+    if (slot == 3) return fmin(d, cap - z[col]);
+    const int lobe = col - slot;                     // state index of the lobe's psi_x
+    const float reach = exp(fmax(cap - z[lobe + 3], 0.0f) / exp(z[lobe + 4]));
+    const float to = z[col] + d;
+    return fabs(to) <= reach ? d : copysign(reach, to) - z[col];   // d itself unless it crosses (no rounding)
+}
+
+// The damped step (H + lam D) d = g inside the box: a parameter whose step would leave the box moves onto the
+// bound it crosses (a parameter already there stays) and the others are solved again with that move fixed.
+// Clipping the step instead (and projecting) left LM trying ever shorter steps against a bound that the
+// other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd (<= 0 when
+// the box leaves no descent), or NaN when a Cholesky factorisation fails.
+float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
+                  int np, float log_cap, float *delta) {
+    float A[NP * NP], rhs[NP];
+    int pinned[NP];
+    for (int i = 0; i < np; ++i) pinned[i] = 0;
+    for (int round = 0; round < 2; ++round) {
+        for (int i = 0; i < np; ++i) {
+            rhs[i] = g[i];
+            for (int j = 0; j < np; ++j)
+                if (pinned[j] && j != i) rhs[i] -= (i > j ? H[i * NP + j] : H[j * NP + i]) * delta[j];
+            for (int j = 0; j < i; ++j) A[i * NP + j] = (pinned[i] || pinned[j]) ? 0.0f : H[i * NP + j];
+            A[i * NP + i] = pinned[i] ? 1.0f : H[i * NP + i] + lam * dg[i];
+            if (pinned[i]) rhs[i] = delta[i];
+        }
+        if (!cholesky(A, np)) return NAN;
+        cholesky_solve(A, rhs, delta, np);
+        int more = 0;
+        for (int i = 0; i < np; ++i) {
+            const float d = clip_move(z, cols[i], delta[i], log_cap);
+            if (!pinned[i] && d != delta[i]) { pinned[i] = 1; delta[i] = d; more = 1; }
+        }
+        if (!more) break;
+    }
+    for (int i = 0; i < np; ++i) delta[i] = clip_move(z, cols[i], delta[i], log_cap);
+    float predicted = 0.0f;
+    for (int i = 0; i < np; ++i) {
+        float hd = 0.0f;
+        for (int j = 0; j < np; ++j) hd += (i >= j ? H[i * NP + j] : H[j * NP + i]) * delta[j];
+        predicted += delta[i] * (2.0f * g[i] - hd);
+    }
+    return predicted;
+}
+
+// Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.  Damped normal
+// equations with Marquardt's scaling D = diag(H), solved by Cholesky; lam follows the gain ratio of actual to
+// predicted reduction (Nielsen's trust-region rule: shrink by up to 3 on a good step, double the growth factor
+// on every rejected one).  Each trial's pass also builds its normal equations, so an accepted step costs one
+// pass.  Converged: an exact fit, a zero gradient, a Gauss-Newton step (damped by LAM_DEC only) that promises
+// less than FTOL x cost - the Newton decrement, unlike a small gain of one step, is not fooled by short steps in
+// a curved valley - or no descent left at all (lam > LAM_MAX).  Returns the steps tried; *cost_out the final
+// cost, *converged whether a test was met.
 int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float atol, float etol, int max_iter,
                         float *cost_out, int *converged) {
     const int np = 1 + 4 * k;
-    float H[NP * NP], A[NP * NP], g[NP], dg[NP], delta[NP], trial[NS], J[NP], full[NS], nexp[NLOBE];
-    int cols[NP];
-    float cost = cost_of(tx, z, k);
-    float lam = LAM0;
-    int need = 1, its = 0, conv = 0;
+    float H[NP * NP], Ht[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS];
+    int cols[NP], cols_t[NP];
+    free_columns(z, k, cols);
+    float cost = normal_equations(tx, z, k, cols, H, g);
+    float lam = LAM0, nu = NU0;
+    int its = 0, conv = 0, fresh = 1;
     while (its < max_iter) {
-        if (need) {
-            for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
-            for (int i = 0; i < np; ++i) g[i] = 0.0f;
-            exponents_of(z, k, nexp);
-            free_columns(z, k, cols);
-            for (int s = 0; s < tx->n_sample; ++s) {
-                float x[3], c;
-                geometry(tx, s, x, &c);
-                full[0] = c;
-                float f = z[0];
-                for (int i = 0; i < k; ++i) {
-                    const float *l = z + 1 + 5 * i;
-                    const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
-                    float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
-                    if (b > B_MIN) {
-                        const float lb = log(b);
-                        const float e = l[3] + nexp[i] * lb;
-                        v = exp(fmin(e, T_CAP));
-                        if (e <= T_CAP) {
-                            dpsi = v * nexp[i] / b;
-                            da = v;
-                            dp = v * nexp[i] * lb;
-                        }
-                    }
-                    for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
-                    full[4 + 5 * i] = c * da;
-                    full[5 + 5 * i] = c * dp;
-                    f += v;
-                }
-                for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
-                const float r = load_y(tx, s) - c * f;
-                for (int a = 0; a < np; ++a) {
-                    g[a] += J[a] * r;
-                    for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
-                }
-            }
+        if (fresh) {
             float dmax = 0.0f;
-            for (int i = 0; i < np; ++i) dmax = fmax(dmax, H[i * NP + i]);
-            for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
-            need = 0;
             int zero = 1;
-            for (int i = 0; i < np; ++i) zero &= (g[i] == 0.0f);
+            for (int i = 0; i < np; ++i) {
+                dmax = fmax(dmax, H[i * NP + i]);
+                zero &= (g[i] == 0.0f);
+            }
+            for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
             if (cost <= atol || zero) { conv = 1; break; }
+            const float decrement = damped_step(H, g, dg, LAM_DEC, z, cols, np, log_cap, delta);
+            if (decrement >= 0.0f && decrement <= FTOL * cost + etol) { conv = 1; break; }   // NaN compares false
+            fresh = 0;
         }
         ++its;
-        for (int i = 0; i < np; ++i) {
-            for (int j = 0; j <= i; ++j) A[i * NP + j] = H[i * NP + j];
-            A[i * NP + i] += lam * dg[i];
-        }
-        const int ok = cholesky(A, np);
+        const float predicted = damped_step(H, g, dg, lam, z, cols, np, log_cap, delta);
         float trial_cost = INFINITY;
-        if (ok) {
-            cholesky_solve(A, g, delta, np);
+        if (!isnan(predicted)) {
             for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
             for (int a = 0; a < np; ++a) trial[cols[a]] += delta[a];
             project(trial, k, log_cap);
-            trial_cost = cost_of(tx, trial, k);
+            free_columns(trial, k, cols_t);
+            trial_cost = normal_equations(tx, trial, k, cols_t, Ht, gt);
         }
-        if (ok && trial_cost < cost) {            // NaN compares false: rejected
-            const float gain = cost - trial_cost;
-            const int small = gain <= FTOL * cost + etol;
+        if (trial_cost < cost) {                  // NaN compares false: rejected
+            const float ratio = predicted > 0.0f ? (cost - trial_cost) / predicted : 1.0f;
+            const float q = 2.0f * ratio - 1.0f;
+            lam = fmax(lam * fmax(1.0f / 3.0f, 1.0f - q * q * q), LAM_MIN);
+            nu = NU0;
             for (int i = 0; i < 1 + 5 * k; ++i) z[i] = trial[i];
+            for (int i = 0; i < np; ++i) {
+                cols[i] = cols_t[i];
+                g[i] = gt[i];
+                for (int j = 0; j <= i; ++j) H[i * NP + j] = Ht[i * NP + j];
+            }
+            const int small = cost - trial_cost <= GTOL * cost + etol;
             cost = trial_cost;
-            lam = fmax(lam * LAM_DOWN, LAM_MIN);
-            need = 1;
+            fresh = 1;
             if (small) { conv = 1; break; }
         } else {
-            lam *= LAM_UP;
+            lam *= nu;
+            nu *= 2.0f;
             if (lam > LAM_MAX) { conv = 1; break; }   // no descent left at this point: a stationary point
         }
     }
@@ -373,14 +449,13 @@ inline float nnls_box(float scc, float sgg, float scg, float sct, float sgt, flo
     return bc;
 }
 
-// samples [S = V * L, n_texel, C] (s = view * L + light) ; frames [n_texel, 9].  Work-item (t, signal): the
-// luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel, signal): diffuse
-// [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse, iterations, not-converged
-// flag [n, n_signal]; colour [n, C] for luminance.
-__kernel void lafortune_fit(__global const float *samples, __global const float *frames,
-                            __global const float *lights, __global const float *views,
+// samples [n_texel, S, C] (s = view * L + light) ; geom [n_texel, S, 4] (model.fit_geometry).  Work-item
+// (t, signal): the luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel,
+// signal): diffuse [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse,
+// iterations, not-converged flag [n, n_signal]; colour [n, C] for luminance.
+__kernel void lafortune_fit(__global const float *samples, __global const float *geom,
                             __global const float *CAND_DIRS, __global const float *CAND_EXPS,
-                            const int n_light, const int n_view, const int n_texel, const int n_channel,
+                            const int n_sample, const int n_texel, const int n_channel,
                             const int luminance, const int max_iter, const int n_starts,
                             __global float *diffuse_out, __global float *lobes_out, __global float *expo_out,
                             __global float *colour_out, __global float *sse_out, __global int *iter_out,
@@ -391,10 +466,11 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
     const int n_signal = luminance ? 1 : n_channel;
     if (sig >= n_signal) return;
     Texel tx;
-    tx.samples = samples; tx.lights = lights; tx.views = views;
-    for (int i = 0; i < 9; ++i) tx.F[i] = frames[(size_t)t * 9 + i];
-    tx.n_light = n_light; tx.n_texel = n_texel; tx.n_channel = n_channel;
-    tx.n_sample = n_light * n_view; tx.t = t; tx.channel = luminance ? -1 : sig;
+    tx.samples = samples + (size_t)t * n_sample * n_channel;
+    tx.geom = geom + (size_t)t * n_sample * 4;
+    tx.n_channel = n_channel;
+    tx.n_sample = n_sample;
+    tx.channel = luminance ? -1 : sig;
 
     float ymax = 0.0f, energy = 0.0f, scc = 0.0f, scy = 0.0f;
     for (int s = 0; s < tx.n_sample; ++s) {
@@ -407,7 +483,6 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         scy += c * y;
     }
     const float log_cap = log(LOBE_CAP * fmax(ymax, 1e-12f));
-    const float capval = exp(log_cap);
     const float atol = ATOL * energy, etol = ETOL * energy;
 
     float z[NS], start[NS], best[NS];
@@ -436,10 +511,15 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             for (int di = 0; di < N_DIRS; ++di) {
                 const float b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
                 if (!(b > B_MIN) || c == 0.0f) continue;     // the shape is 0 here (as lobe_value gives)
-                const float lb = log(b);
+                // The exponent ladder 1, 1.5, 2, 3, 4, 6, ... (model.CANDIDATE_EXPONENTS) by squaring alone:
+                // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
+                float even = b, odd = b * sqrt(b);
                 for (int ei = 0; ei < N_EXPS; ++ei) {
                     const int ci = ei * N_DIRS + di;
-                    const float g = c * exp(fmin(CAND_EXPS[ei] * lb, T_CAP));
+                    float power;
+                    if (ei & 1) { power = odd; odd = odd * odd; }
+                    else { power = even; even = even * even; }
+                    const float g = c * power;
                     sgg[ci] += g * g;
                     scg[ci] += c * g;
                     sgt[ci] += g * target;
@@ -447,13 +527,14 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             }
         }
         for (int ci = 0; ci < N_CAND; ++ci) {
-            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, capval, &crho[ci], &cw[ci]);
+            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, exp(lobe_log_cap(log_cap, j)), &crho[ci], &cw[ci]);
             if ((used >> ci) & 1ul) ccost[ci] = INFINITY;
         }
         // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.
         float lowest = INFINITY, best_cost = INFINITY;
         int best_conv = 0, best_ci = 0;
-        for (int attempt = 0; attempt < n_starts; ++attempt) {
+        const int starts = k == 1 ? n_starts : 1;
+        for (int attempt = 0; attempt < starts; ++attempt) {
             int ci = -1, cb = -1;
             for (int cj = 0; cj < N_CAND; ++cj) {
                 if (!(ccost[cj] < INFINITY)) continue;
@@ -474,7 +555,9 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             project(start, k, log_cap);
             int conv = 0;
             float cost = 0.0f;
-            its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, max_iter, &cost, &conv);
+            // With several starts each gets RACE_ITER steps and only the best is refined further.
+            const int budget = starts > 1 ? min(max_iter, RACE_ITER) : max_iter;
+            its_total += levenberg_marquardt(&tx, start, k, log_cap, atol, etol, budget, &cost, &conv);
             if (attempt == 0 || cost < best_cost) {
                 for (int i = 0; i < NS; ++i) best[i] = start[i];
                 best_cost = cost;
@@ -482,6 +565,9 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
                 best_ci = ci;
             }
         }
+        if (!best_conv && starts > 1 && max_iter > RACE_ITER)
+            its_total += levenberg_marquardt(&tx, best, k, log_cap, atol, etol, max_iter - RACE_ITER, &best_cost,
+                                             &best_conv);
         used |= 1ul << best_ci;
         const float new_crit = criterion(&tx, best, k, 0);
         if (new_crit < crit) {                     // else keep k - 1 lobes, this one switched off (psi = 0)

@@ -23,7 +23,8 @@ POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noi
         Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
               choices=("rgb", "lrgb")),
         Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
-              ".ptm files hold; auto picks srgb for 8-bit captures and linear otherwise",
+              ".ptm files hold; auto: for an 8-bit capture the one that predicts held-out lights of a sample of "
+              "texels better, linear otherwise",
               choices=("auto", "linear", "srgb")),
         Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
               "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),

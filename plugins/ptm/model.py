@@ -9,6 +9,7 @@ evaluates to: ``linear`` radiance, or ``srgb`` display values (what ``.ptm`` fil
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import ClassVar
 
@@ -248,10 +249,44 @@ def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND) -> PTMSolve:
     return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped)
 
 
-def resolve_space(stack: SampleStack, space: str) -> str:
-    if space == "auto":
+AUTO_TEXELS = 4096       # texels (a regular grid over the capture) on which `auto` compares the spaces
+AUTO_HOLD_EVERY = 5      # ... holding out every fifth light
+AUTO_MIN_LIGHTS = 10     # fewer lights than this: no held-out test, 8-bit captures are fitted in display space
+
+
+def held_out_space(stack: SampleStack, predict) -> str:
+    """``auto``'s choice for an 8-bit capture: the space whose fit predicts held-out lights better.
+
+    ``predict(fit_stack, space, lights, views)`` fits ``fit_stack`` in ``space`` and returns linear radiance
+    ``[V, L, h, w, C]`` at the held-out lights.  On a regular grid of at most ``AUTO_TEXELS`` texels, every
+    ``AUTO_HOLD_EVERY``-th light is held out, both spaces are fitted to the rest, and the one with the lower
+    mean squared error of the held-out display values (the bytes the capture holds) wins.  Neither space wins
+    everywhere: real captures (camera tone curves, gloss) fit better as display values, a rendered matte relief
+    (SynthRTI: radiance linear in n . l, then sRGB-encoded) as linear radiance.  A linear capture is fitted
+    linearly; one with fewer than ``AUTO_MIN_LIGHTS`` lights in display space.
+    """
+    if stack.encoding != "srgb8":
+        return "linear"
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        return "srgb"
+    step = max(1, math.ceil(math.sqrt(stack.height * stack.width / AUTO_TEXELS)))
+    grid = stack.samples[:, :, ::step, ::step]
+    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
+    fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels, "srgb8")
+    target = grid[:, held].astype(np.float64) / 255.0
+    errors = {space: float(np.mean((linear_to_srgb(predict(fit, space, stack.lights[held], stack.views)) - target) ** 2))
+              for space in ("srgb", "linear")}
+    return min(errors, key=errors.get)
+
+
+def resolve_space(stack: SampleStack, space: str, predict=None) -> str:
+    """The space to fit: ``space`` itself, or for ``auto`` :func:`held_out_space` (display values for an 8-bit
+    capture when no ``predict`` is given)."""
+    if space != "auto":
+        return space
+    if predict is None:
         return "srgb" if stack.encoding == "srgb8" else "linear"
-    return space
+    return held_out_space(stack, predict)
 
 
 def _kernel_input(stack: SampleStack, space: str):
@@ -325,7 +360,8 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
             "select one view, or fit a view-dependent representation")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
-    space = resolve_space(stack, space)
+    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_ptm(
+        fit, variant, sp, engine=engine, rcond=rcond)[0].evaluate(lights))
     solver = ptm_solver(stack.lights, rcond)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c

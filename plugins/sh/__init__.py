@@ -21,12 +21,15 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
         Param("view_order", "int", 1, "SH order over the view (N^2 coefficients); ignored, with a note, for a "
               "single-view stack", low=1, high=MAX_ORDER),
         Param("quantize", "bool", False, "store coefficients as 8 bits with a per-coefficient scale and bias"),
+        Param("space", "choice", "auto", "what the harmonics fit: linear radiance, or sRGB display values (the bytes "
+              "of an 8-bit capture); auto: for an 8-bit capture the one that predicts held-out lights of a sample of "
+              "texels better, linear otherwise", choices=("auto", "linear", "srgb")),
         Param("energy_factor", "float", DEFAULT_ENERGY_FACTOR, "scales the energy bound of the constrained fit; 1 "
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
     ],
 )
-def sh_fit(ctx, stack, *, light_order, view_order, quantize, energy_factor):
+def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.
 
     Order N means SH bands 0 .. N-1, i.e. N^2 coefficients: ``k_l = light_order^2`` over the light and
@@ -47,6 +50,13 @@ the bound also caps the relit value in every direction, below the horizon includ
 
     The design matrix is shared by all texels, so its SVD is computed once; each texel then costs a
     projection and a cheap bisection.  The stack is streamed over bands of rows.
+
+    ``space: srgb`` fits the display values an 8-bit capture holds (its bytes / 255; a linear capture's
+    radiance sRGB-encoded) and relighting decodes the evaluated values (clipped to [0, 1]) back to linear
+    radiance; the energy bound then applies to the display values.  Held-out PSNR is judged on display values,
+    where a display-space fit spends its accuracy evenly instead of on the bright samples.  ``auto`` fits a
+    linear capture linearly and, for an 8-bit one, compares both spaces on held-out lights of a grid of up to
+    4096 texels (as ``ptm.fit`` does).
 
     With ``quantize`` each coefficient is stored as ``uint8`` with a scale and bias per coefficient index,
     covering its range over all texels and channels; coefficients are then within half a step of the fit.
@@ -70,7 +80,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     k_l = light_order ** 2
     k_v = (1 if stack.n_view == 1 else view_order) ** 2
     n_samples = stack.n_light * stack.n_view
-    model, stats = fit_sh(stack, light_order, view_order, quantize, energy_factor=energy_factor)
+    model, stats = fit_sh(stack, light_order, view_order, quantize, energy_factor=energy_factor, space=space)
     if n_samples < k_l * k_v:
         ctx.warn(f"fewer samples ({stack.n_light} lights x {stack.n_view} views = {n_samples}) than coefficients "
                  f"({k_v} x {k_l} = {k_v * k_l}): the fit is underdetermined and the energy constraint picks the "
@@ -86,6 +96,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     ctx.note("clamped_fraction", round(stats["clamped_fraction"], 4))
     ctx.note("view_order", stats["view_order"])
     ctx.note("rank", stats["rank"])
+    ctx.note("space", stats["space"])
     return {"model": model}
 
 

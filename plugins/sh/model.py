@@ -51,8 +51,10 @@ import numpy as np
 
 from btforge.backend import get_backend
 from btforge.numerics import real_sh, texel_chunks
-from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
+from btforge.buffers import (ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb, scattered_lookup,
+                             srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
+from btforge.plugins.ptm.model import resolve_space
 
 KERNELS = Path(__file__).with_name("sh.cl")
 MAX_ORDER = 10
@@ -64,6 +66,7 @@ LAMBDA_ITERS = 32
 # sh.cl defines none of these itself: every build of it gets them from here, so the kernel and its twin agree.
 BUILD_OPTIONS = (f"-DLAMBDA_SPAN={LAMBDA_SPAN!r}f", f"-DLAMBDA_ITERS={LAMBDA_ITERS}")
 FOUR_PI = 4.0 * math.pi
+SPACES = ("linear", "srgb")
 
 
 # ----------------------------------------------------------------------------------------------- basis
@@ -99,6 +102,7 @@ class SHModel(ReflectanceModel):
     view_order: int = 1
     quantized: bool = False
     channel_names: tuple[str, ...] = ("R", "G", "B")
+    space: str = "linear"
 
     def __post_init__(self):
         owner = "SHModel"
@@ -106,6 +110,8 @@ class SHModel(ReflectanceModel):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
                 raise BtforgeInputError(f"{owner} '{name}'", f"must be an int in [1, {MAX_ORDER}], got {value!r}")
+        if self.space not in SPACES:
+            raise BtforgeInputError(f"{owner} 'space'", f"must be one of {SPACES}, got {self.space!r}")
         if not isinstance(self.quantized, (bool, np.bool_)):
             raise BtforgeInputError(f"{owner} 'quantized'", f"must be a bool, got {self.quantized!r}")
         k_l, k_v = int(self.light_order) ** 2, int(self.view_order) ** 2
@@ -135,6 +141,17 @@ class SHModel(ReflectanceModel):
         return self.view_order > 1
 
     @property
+    def blendable(self) -> bool:
+        # srgb coefficients describe display values, decoded per direction after evaluation: they do not mix
+        # like radiance.
+        return self.space == "linear"
+
+    def _radiance(self, values: np.ndarray) -> np.ndarray:
+        """Evaluated values -> linear radiance: as they are (linear), or display values clipped to [0, 1] and
+        decoded by the sRGB curve."""
+        return values if self.space == "linear" else srgb_to_linear(np.minimum(values, 1.0)).astype(np.float32)
+
+    @property
     def k_l(self) -> int:
         return self.light_order ** 2
 
@@ -160,7 +177,7 @@ class SHModel(ReflectanceModel):
         flat = self.coeffs.reshape(self.height * self.width, len(self.channel_names), self.k_v, self.k_l)
         self._check_engine(engine)
         run = evaluate_sh_scattered_numpy if engine == "numpy" else evaluate_sh_scattered_opencl
-        return run(flat, self.scale, self.bias, self.quantized, texels, yv, yl)
+        return self._radiance(run(flat, self.scale, self.bias, self.quantized, texels, yv, yl))
 
     @staticmethod
     def _check_engine(engine: str) -> None:
@@ -181,7 +198,7 @@ class SHModel(ReflectanceModel):
         flat = self.coeffs.reshape(n_texel, len(self.channel_names), self.k_v, self.k_l)
         self._check_engine(engine)
         run = evaluate_sh_numpy if engine == "numpy" else evaluate_sh_opencl
-        out = run(flat, self.scale, self.bias, self.quantized, yv, yl)
+        out = self._radiance(run(flat, self.scale, self.bias, self.quantized, yv, yl))
         return out.reshape(len(views), len(lights), self.height, self.width, len(self.channel_names))
 
 
@@ -398,9 +415,19 @@ def quantize_coeffs(coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.clip(q, 0, 255).astype(np.uint8), scale, bias
 
 
+def _fitted_values(stack: SampleStack, rows: slice, space: str) -> np.ndarray:
+    """The band's values in the space fitted: linear radiance, or display values (an 8-bit capture's bytes / 255,
+    a linear one's radiance clipped to [0, 1] and sRGB-encoded)."""
+    if space == "linear":
+        return stack.linear(rows)
+    if stack.encoding == "srgb8":
+        return stack.samples[:, :, rows].astype(np.float32) / np.float32(255.0)
+    return linear_to_srgb(stack.linear(rows)).astype(np.float32)
+
+
 def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
-           energy_factor: float = DEFAULT_ENERGY_FACTOR) -> tuple[SHModel, dict]:
+           energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto") -> tuple[SHModel, dict]:
     """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
 
     ``view_order`` is forced to 1 for a single-view stack.  Returns the model and a dict of statistics:
@@ -417,6 +444,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         raise BtforgeInputError("sh.fit 'energy_factor'", f"expected a positive number, found {energy_factor!r}")
     if engine not in ("opencl", "numpy"):
         raise BtforgeInputError("sh.fit 'engine'", f"expected 'opencl' or 'numpy', found {engine!r}")
+    if space not in SPACES + ("auto",):
+        raise BtforgeInputError("sh.fit 'space'", f"expected one of auto, linear, srgb, found {space!r}")
     if stack.n_view == 1:
         view_order = 1
     k_l, k_v = light_order ** 2, view_order ** 2
@@ -428,6 +457,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
+    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_sh(
+        fit, light_order, view_order, engine=engine, energy_factor=energy_factor, space=sp)[0].evaluate(lights, views))
     solver = sh_solver(stack.lights, stack.views, light_order, view_order)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
@@ -437,7 +468,7 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     # Working set per row: the samples plus projections, weights and coefficients.
     scale = n_samples / (n_samples + 2 * solver.rank + k_v * k_l)
     for rows in stack.row_bands(max(1, int(budget_bytes * scale))):
-        y = stack.linear(rows)
+        y = _fitted_values(stack, rows, space)
         y = np.ascontiguousarray(y).reshape(stack.n_view, stack.n_light, -1)
         proj = solver.project(y)
         root = energy_root(y, energy_factor)
@@ -449,10 +480,10 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     coeffs = coeffs.reshape(h, w, c, k_v, k_l)
     if quantize:
         q, qscale, qbias = quantize_coeffs(coeffs)
-        model = SHModel(q, qscale, qbias, light_order, view_order, True, stack.channels)
+        model = SHModel(q, qscale, qbias, light_order, view_order, True, stack.channels, space)
     else:
         model = SHModel(coeffs, np.ones((k_v, k_l), np.float32), np.zeros((k_v, k_l), np.float32),
-                        light_order, view_order, False, stack.channels)
+                        light_order, view_order, False, stack.channels, space)
     clamped = int((lam > 0).sum())
     stats = {
         "lambda": lam.reshape(h, w, c),
@@ -467,6 +498,7 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         "underdetermined": solver.rank < k_l * k_v,
         "view_order": view_order,
         "energy_factor": energy_factor,
+        "space": space,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
     }
     return model, stats
