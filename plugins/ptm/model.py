@@ -315,7 +315,9 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     if stack.n_view != 1:
         raise BtforgeInputError(
             "ptm.fit 'stack'", f"expected a single-view stack (a PTM depends on the light only), found {stack.n_view} views",
-            "select one view, or fit a view-dependent representation")
+            "pick one view with a stack.select node before the fit, e.g. `pick: {stage: stack.select, params: "
+            "{views: [0]}, inputs: {stack: NODE.stack}}` (or a view by its angles, views: ['tv0_pv0']), or fit a "
+            "view-dependent representation such as sh.fit or lafortune.fit")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
     space = resolve_space(stack, space)

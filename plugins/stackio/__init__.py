@@ -126,6 +126,42 @@ def stack_split(ctx, stack, *, every):
     return {"fit": part(~held), "test": part(held)}
 
 
+def _selection_precheck(params, paths):
+    from .select import check_selection
+    for name in ("views", "lights"):
+        check_selection(params[name], f"param '{name}'")
+    return []
+
+
+@declare_stage(
+    "stack.select",
+    inputs={"stack": "SampleStack"},
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("views", "any", (), "views to keep, in this order: 0-based indices or angle names like 'tv30_pv90' "
+              "(degrees from the zenith, azimuth); [] keeps all"),
+        Param("lights", "any", (), "lights to keep, in this order: 0-based indices, image names ('light_003.jpg') "
+              "or angle names like 'tl45_pl120'; [] keeps all"),
+    ],
+    precheck=_selection_precheck,
+)
+def stack_select(ctx, stack, *, views, lights):
+    """Keep some views and lights of a stack, by index or by name, in the order given.
+
+    Use it to fit a single-view representation (a PTM) to one view of a BTF, or to hold lights out.  A name
+    is matched exactly against the image names, or as angles (``tl45_pl120``, ``tv30_pv90``, in degrees) to the
+    direction within 0.75 degrees (whole-degree names); unknown or ambiguous names and out-of-range indices are all reported at
+    once.
+    """
+    from .select import check_selection, select
+    for name, value in (("views", views), ("lights", lights)):
+        check_selection(value, f"stack.select '{name}'")
+    picked = select(stack, views, lights)
+    ctx.note("views", picked.n_view)
+    ctx.note("lights", picked.n_light)
+    return {"stack": picked}
+
+
 def _describe_light_file(path):
     from .lightfile import read_light_file
     entries = read_light_file(path, require_images=False)
@@ -145,7 +181,7 @@ def _describe_exr(path):
 
 @hookimpl
 def btforge_stages():
-    return [stack_read, stack_write, contact_sheet, stack_split]
+    return [stack_read, stack_write, contact_sheet, stack_split, stack_select]
 
 
 @hookimpl
