@@ -4,33 +4,38 @@ from __future__ import annotations
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
+from btforge.plugins.stackio import light_file_precheck
+
 from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
+
+FIT_PARAMS = (
+    Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
+          choices=("rgb", "lrgb")),
+    Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
+          ".ptm files hold; auto picks srgb for 8-bit captures and linear otherwise",
+          choices=("auto", "linear", "srgb")),
+    Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
+          "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
+    Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
+          "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
+)
 
 
 @declare_stage(
     "ptm.fit",
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
-    params=[
-        Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
-              choices=("rgb", "lrgb")),
-        Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
-              ".ptm files hold; auto picks srgb for 8-bit captures and linear otherwise",
-              choices=("auto", "linear", "srgb")),
-        Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
-              "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
-        Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
-              "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
-    ],
+    params=list(FIT_PARAMS),
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
-    matrix.  The kernel reads an 8-bit capture in place (decoding bytes through a table) and writes straight
-    into the result, so memory stays near the stack plus its coefficients.  A light set whose
+    matrix.  The kernel reads an 8-bit capture in place (bytes as numbers for display values, through a table
+    for linear radiance) and writes straight into the result, so memory stays near the stack plus its
+    coefficients; ``ptm.fit_capture`` fits while reading, without the stack.  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
     singular values (the minimum-norm solution), with a warning naming the condition number.
 
@@ -40,7 +45,10 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
         ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
     """
     model, solver = fit_ptm(stack, variant, space, rcond=rcond)
-    model = model.with_basis(basis)
+    return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
+
+
+def _report_fit(ctx, model, solver, rcond):
     ctx.note("condition_number", round(solver.condition_number, 3))
     ctx.note("space", model.space)
     if solver.clamped:
@@ -50,7 +58,33 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     elif solver.condition_number > POOR_CONDITION:
         ctx.warn(f"light directions are poorly conditioned for a PTM (condition number {solver.condition_number:.3g}): "
                  "noise in the samples is amplified up to that factor; lights at more elevations would help")
-    return {"model": model}
+    return model
+
+
+@declare_stage(
+    "ptm.fit_capture",
+    outputs={"model": "PTMModel"},
+    params=[Param("path", "path", REQUIRED, "the capture's .lp light file (a single view)"),
+            Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+                  choices=("auto", "srgb", "linear")),
+            *FIT_PARAMS],
+    precheck=light_file_precheck,
+)
+def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
+    """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``
+    in the memory of the coefficients alone.
+
+    The fit is linear in the samples, so each batch of decoded images (about 16 MB) is projected onto the light
+    set's pseudo-inverse on OpenCL and added onto the sums of the lights before it, in light order; the images
+    are then dropped.  Images decode two at a time (simplejpeg for JPEG where installed, else Pillow).  The
+    model equals ``ptm.fit`` of ``stack.read`` with the same parameters (the same regularised estimator; for
+    rgb the same float operations in the same order).  For a 1024 x 1024, 49-light JPEG capture the whole
+    process peaks near the size of the coefficients plus the interpreter (README, Benchmarks).
+    """
+    from .model import fit_ptm_capture
+    model, solver = fit_ptm_capture(ctx.paths.input(path), variant, space, transfer=transfer, rcond=rcond)
+    ctx.note("lights", int(solver.solve.shape[1]))
+    return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
 
 
 @declare_stage("ptm.basis", inputs={"model": "PTMModel"}, outputs={"model": "PTMModel"},
@@ -124,7 +158,7 @@ def _describe_ptm(path):
 
 @hookimpl
 def btforge_stages():
-    return [ptm_fit, ptm_basis, ptm_read, ptm_write]
+    return [ptm_fit, ptm_fit_capture, ptm_basis, ptm_read, ptm_write]
 
 
 @hookimpl

@@ -248,19 +248,24 @@ def resolve_space(stack: SampleStack, space: str) -> str:
 
 
 def _kernel_input(stack: SampleStack, space: str):
-    """The samples as ``[L, H*W, C]`` (a view of the stack), the byte-decoding table, and a converter if needed.
+    """The samples as ``[L, H*W, C]`` (a view of the stack), how the kernel reads them, and a converter if needed.
 
-    Bytes are decoded by a 256-entry table inside the kernel (identity/255 for display space, the sRGB curve
-    for linear space), so an 8-bit capture is fitted in place.  Only a linear stack fitted in display space
-    needs its values converted, band by band.
+    Returns ``(samples, lut, byte_scale, convert)``.  An 8-bit capture is fitted in place: in display space its
+    bytes are numbers scaled by ``byte_scale = 1 / 255`` (folded into the weights), in linear space they are
+    decoded by a 256-entry table (``lut``) inside the kernel.  Only a linear stack fitted in display space needs
+    its values converted, band by band.
     """
     samples = stack.samples[0].reshape(stack.n_light, stack.height * stack.width, stack.n_channel)
     if stack.encoding == "srgb8":
-        lut = (np.arange(256, dtype=np.float32) / 255.0) if space == "srgb" else SRGB8_TO_LINEAR
-        return samples, np.ascontiguousarray(lut, np.float32), None
+        if space == "srgb":
+            return samples, None, 1.0 / 255.0, None
+        return samples, np.ascontiguousarray(SRGB8_TO_LINEAR, np.float32), 1.0, None
     if space == "linear":
-        return samples, None, None
-    return samples, None, lambda band: linear_to_srgb(band).astype(np.float32)
+        return samples, None, 1.0, None
+    return samples, None, 1.0, lambda band: linear_to_srgb(band).astype(np.float32)
+
+
+BYTE_LEVELS = (np.arange(256, dtype=np.float32) / 255.0)
 
 
 def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
@@ -282,27 +287,94 @@ def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve,
     return coeffs.astype(np.float32), albedo.astype(np.float32)
 
 
-def fit_ptm_opencl(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str,
-                   coeffs: np.ndarray, albedo: np.ndarray) -> None:
-    """Fit ``samples [L, N, C]`` into the preallocated ``coeffs [N, K, 6]`` and ``albedo [N, C or 0]``.
+def project_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, light_offset: int = 0) -> np.ndarray:
+    """Twin of kernel ``ptm_project``: ``samples [B, N, C]`` of lights ``light_offset ..`` -> ``[N, C, 6]`` float32,
+    the projections ``sum_l solve[k, l] * y[l, n, c]``."""
+    values = (lut[samples] if lut is not None else samples).astype(np.float64)
+    solve = solver.solve[:, light_offset:light_offset + len(samples)].astype(np.float64)
+    return np.einsum("kl,lnc->nck", solve, values).astype(np.float32)
 
-    Inputs and outputs are handed to the device without copies where it shares host memory (PoCL on a CPU).
+
+def finish_lrgb(sums: np.ndarray, solver: PTMSolve) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of kernel ``ptm_finish_lrgb`` (float64): an lrgb PTM from the per-channel projections ``sums [N, C, 6]``: ``(coeffs [N, 1, 6], albedo [N, C])``.
+
+    The luminance polynomial ``a`` is the channel mean of the projections (the fit is linear), and with the Gram
+    matrix ``G = D^T D`` of the design ``D`` its energy over the lights is ``a^T G a`` and its correlation with
+    channel ``c`` is ``a^T G s_c`` - the sums the kernel of the whole stack forms over every light, without the
+    samples.  (``a`` lies in the span the regularised solve keeps, so ``G`` loses nothing there.)  The colour is
+    then the non-negative least-squares scale per channel, kept in [0, 1] by moving any excess into ``a``.
     """
-    backend = get_backend()
-    sample_type = "uchar" if samples.dtype == np.uint8 else "float"
-    options = (f"-DSAMPLE_T={sample_type}",) + (("-DUSE_LUT",) if lut is not None else ())
-    kernel = backend.kernel(KERNELS, "ptm_fit", options)
-    n_light, n_texel, n_channel = samples.shape
-    albedo_target = albedo if albedo.size else np.zeros(1, np.float32)
-    s_dev = backend.host_input(samples)
-    c_dev = backend.host_output(coeffs)
-    a_dev = backend.host_output(albedo_target)
-    backend.run(kernel, (n_texel,), s_dev, backend.to_device(lut if lut is not None else np.zeros(1, np.float32)),
-                backend.to_device(solver.solve), backend.to_device(solver.design), np.int32(n_light),
-                np.int32(n_texel), np.int32(0), np.int32(n_texel), np.int32(n_channel), np.int32(variant == "lrgb"),
-                c_dev, a_dev)
-    backend.finish_output(c_dev, coeffs)
-    backend.finish_output(a_dev, albedo_target)
+    gram = solver.design.astype(np.float64).T @ solver.design.astype(np.float64)
+    s64 = sums.astype(np.float64)
+    luminance = s64.mean(axis=1)                                          # [N, 6]
+    g_lum = luminance @ gram
+    pp = (luminance * g_lum).sum(axis=1)                                  # [N]
+    cross = np.einsum("nck,nk->nc", s64, g_lum)
+    scale = np.where(pp[:, None] > 1e-20, np.maximum(cross / np.where(pp > 1e-20, pp, 1.0)[:, None], 0.0), 1.0)
+    norm = np.maximum(scale.max(axis=1), 1.0)
+    return (luminance * norm[:, None])[:, None, :].astype(np.float32), (scale / norm[:, None]).astype(np.float32)
+
+
+class PTMProjection:
+    """Sums of the PTM projections of ``n_texel`` texels, added a batch of lights at a time, then finished.
+
+    ``add`` takes the samples of consecutive lights (an image or a few, as they decode, or a whole stack at once)
+    and runs kernel ``ptm_project`` on them; the samples can be dropped afterwards.  An rgb PTM sums straight into
+    its coefficients.  ``finish`` returns ``(coeffs [N, K, 6], albedo [N, C or 0])``.  ``lut`` decodes bytes to
+    the fitted values; ``byte_scale`` (instead of a table) multiplies the weights, so bytes are read as numbers
+    (display space: ``1 / 255``), which the kernel does several times faster than table lookups.
+    """
+
+    def __init__(self, n_texel: int, n_channel: int, variant: str, solver: PTMSolve, lut: np.ndarray | None,
+                 coeffs: np.ndarray | None = None, albedo: np.ndarray | None = None, byte_scale: float = 1.0):
+        self.variant, self.solver, self.lut = variant, solver, lut
+        self.n_texel, self.n_channel = n_texel, n_channel
+        k = 1 if variant == "lrgb" else n_channel
+        self.coeffs = coeffs if coeffs is not None else np.empty((n_texel, k, N_TERMS), np.float32)
+        self.albedo = albedo if albedo is not None else np.empty((n_texel, n_channel if variant == "lrgb" else 0),
+                                                                 np.float32)
+        self.sums = self.coeffs if variant == "rgb" else np.empty((n_texel, n_channel, N_TERMS), np.float32)
+        self.lights_added = 0
+        backend = self._backend = get_backend()
+        weights = (solver.solve.T.astype(np.float64) * byte_scale).astype(np.float32)
+        self._weights = backend.to_device(np.ascontiguousarray(weights))
+        self._lut = backend.to_device(lut if lut is not None else np.zeros(1, np.float32))
+        flags = backend.cl.mem_flags
+        self._sums = backend.cl.Buffer(backend.context, flags.READ_WRITE | flags.USE_HOST_PTR, hostbuf=self.sums)
+
+    def add(self, samples: np.ndarray, texel_offset: int = 0) -> None:
+        """Add the next lights' ``samples [B, T, C]`` (uint8 or float32, C-contiguous); texels
+        ``texel_offset .. texel_offset + n_texel`` of them are this projection's."""
+        backend = self._backend
+        options = (f"-DSAMPLE_T={'uchar' if samples.dtype == np.uint8 else 'float'}",) + (
+            ("-DUSE_LUT",) if self.lut is not None else ())
+        kernel = backend.kernel(KERNELS, "ptm_project", options)
+        n_batch, n_sample_texel, n_channel = samples.shape
+        n_element = self.n_texel * n_channel
+        backend.run(kernel, (-(-n_element // 8),), backend.host_input(samples), self._lut, self._weights,
+                    np.int32(n_batch), np.int32(self.lights_added), np.int64(n_sample_texel * n_channel),
+                    np.int64(texel_offset * n_channel), np.int64(n_element), np.int32(self.lights_added > 0),
+                    self._sums)
+        backend.queue.finish()
+        self.lights_added += n_batch
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.lights_added != self.solver.solve.shape[1]:
+            raise BtforgeInputError("ptm.fit", f"expected samples of {self.solver.solve.shape[1]} lights, "
+                                    f"found {self.lights_added}", "a bug in the caller: add every light once")
+        backend = self._backend
+        if self.variant == "lrgb":
+            gram = self.solver.design.astype(np.float64).T @ self.solver.design.astype(np.float64)
+            c_dev, a_dev = backend.host_output(self.coeffs), backend.host_output(self.albedo)
+            backend.run(backend.kernel(KERNELS, "ptm_finish_lrgb"), (self.n_texel,), self._sums,
+                        backend.to_device(gram.astype(np.float32)), np.int32(self.n_texel), np.int32(self.n_channel),
+                        c_dev, a_dev)
+            backend.finish_output(c_dev, self.coeffs)
+            backend.finish_output(a_dev, self.albedo)
+            self._sums = self.sums = None
+        else:
+            backend.finish_output(self._sums, self.sums)
+        return self.coeffs, self.albedo
 
 
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
@@ -326,18 +398,66 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     k = 1 if variant == "lrgb" else c
     coeffs = np.empty((h * w, k, N_TERMS), np.float32)
     albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
-    samples, lut, convert = _kernel_input(stack, space)
-    if engine == "opencl" and convert is None:
-        fit_ptm_opencl(samples, lut, solver, variant, coeffs, albedo)
-    else:
-        per_texel = stack.n_light * c * 8  # the reference works in float64
-        for texels in _chunks(h * w, per_texel, budget_bytes):
+    samples, lut, byte_scale, convert = _kernel_input(stack, space)
+    if engine == "numpy":
+        reference_lut = BYTE_LEVELS if byte_scale != 1.0 else lut  # the twin reads bytes through a table
+        for texels in _chunks(h * w, stack.n_light * c * 8, budget_bytes):  # the reference works in float64
             band = samples[:, texels]
-            band = convert(band) if convert else band
-            if engine == "numpy":
-                coeffs[texels], albedo[texels] = fit_ptm_numpy(band, lut, solver, variant)
+            coeffs[texels], albedo[texels] = fit_ptm_numpy(convert(band) if convert else band, reference_lut,
+                                                           solver, variant)
+    elif convert is None and variant == "rgb":
+        projection = PTMProjection(h * w, c, variant, solver, lut, coeffs, albedo, byte_scale)
+        projection.add(samples)  # the whole capture, read in place
+        projection.finish()
+    else:  # bands of texels: a converted band is a copy, an lrgb band keeps 6 sums per channel until finished
+        per_texel = stack.n_light * c * 8 if convert else c * N_TERMS * 16
+        for texels in _chunks(h * w, per_texel, budget_bytes):
+            projection = PTMProjection(texels.stop - texels.start, c, variant, solver, lut, coeffs[texels],
+                                       albedo[texels], byte_scale)
+            if convert:
+                projection.add(np.ascontiguousarray(convert(samples[:, texels])))
             else:
-                fit_ptm_opencl(np.ascontiguousarray(band), lut, solver, variant, coeffs[texels], albedo[texels])
+                projection.add(samples, texel_offset=texels.start)
+            projection.finish()
     model = PTMModel(coeffs.reshape(h, w, k, N_TERMS), albedo.reshape(h, w, albedo.shape[1]), variant, space,
                      stack.channels)
+    return model, solver
+
+
+def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, transfer: str = "auto",
+                    rcond: float = DEFAULT_RCOND, batch_bytes: int = 16 << 20,
+                    threads: int = 2) -> tuple[PTMModel, PTMSolve]:
+    """The PTM fit of a capture's light file, accumulated as its images decode: the capture is never held whole.
+
+    Images are decoded ``threads`` at a time into a batch of about ``batch_bytes`` and projected onto the
+    pseudo-inverse (kernel ``ptm_project``), the batch adding onto the sums of the lights before it, in light
+    order.  The result is the one of ``fit_ptm(load_stack(light_file))``: the same regularised estimator and,
+    for rgb, the same float operations in the same order.  Peak memory is the coefficients plus one batch.
+    """
+    from btforge.plugins.stackio.images import CaptureReader
+    reader = CaptureReader(light_file, transfer=transfer)
+    if reader.n_view != 1:
+        raise BtforgeInputError(
+            f"{light_file}", f"expected a single-view capture (a PTM depends on the light only), found {reader.n_view} "
+            "views", "read it with stack.read and pick one view with stack.select before ptm.fit")
+    h, w, c = reader.shape
+    if c > MAX_CHANNELS:
+        raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {c}")
+    space = ("srgb" if reader.encoding == "srgb8" else "linear") if space == "auto" else space
+    solver = ptm_solver(reader.lights, rcond)
+    probe = SampleStack(np.zeros((1, 1, 1, 1, c), reader.dtype), reader.lights[:1], reader.views, reader.channels,
+                        reader.encoding)
+    _, lut, byte_scale, convert = _kernel_input(probe, space)
+    batch_size = max(1, min(reader.n_light, batch_bytes // max(1, h * w * c * reader.dtype.itemsize)))
+    batch = np.empty((batch_size, h * w, c), reader.dtype)
+    projection = PTMProjection(h * w, c, variant, solver, lut, byte_scale=byte_scale)
+    for start in range(0, reader.n_light, batch_size):
+        lights = range(start, min(reader.n_light, start + batch_size))
+        part = batch[:len(lights)]
+        reader.read_into([(0, light) for light in lights], part.reshape(len(lights), h, w, c), threads=threads)
+        projection.add(np.ascontiguousarray(convert(part)) if convert else part)
+    del batch, part
+    coeffs, albedo = projection.finish()
+    model = PTMModel(coeffs.reshape(h, w, coeffs.shape[1], N_TERMS), albedo.reshape(h, w, albedo.shape[1]),
+                     variant, space, reader.channels)
     return model, solver

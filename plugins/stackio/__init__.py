@@ -9,7 +9,7 @@ from btforge.buffers import linear_to_srgb8
 from btforge.errors import BtforgeInputError
 
 
-def _light_file_precheck(params, paths):
+def light_file_precheck(params, paths):
     from .lightfile import image_path, read_capture_index
     path = paths.input(params["path"])
     entries = read_capture_index(path, require_images=True)
@@ -26,7 +26,7 @@ def _light_file_precheck(params, paths):
         Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
-    precheck=_light_file_precheck,
+    precheck=light_file_precheck,
 )
 def stack_read(ctx, *, path, transfer):
     """Read a multi-light (and multi-view) capture: a light file and the images it lists, or a BTF folder.
