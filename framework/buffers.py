@@ -183,11 +183,16 @@ class Buffer:
 
     # -- serialisation (cache entries, `btforge info`) ---------------------------------------------------
     def to_bytes(self) -> bytes:
-        meta, arrays = self.payload()
         bio = io.BytesIO()
-        header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
-        np.savez(bio, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
+        self.write_npz(bio)
         return bio.getvalue()
+
+    def write_npz(self, handle) -> None:
+        """Write what :meth:`to_bytes` returns to an open binary file, a few MB at a time (a large model is not
+        held twice)."""
+        meta, arrays = self.payload()
+        header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
+        np.savez(handle, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
 
     @staticmethod
     def from_file(path, types: Mapping[str, type["Buffer"]]) -> "Buffer":

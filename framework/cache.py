@@ -19,7 +19,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from .atomic import atomic_write_bytes, atomic_write_text
+from .atomic import atomic_write, atomic_write_text
 from .buffers import Buffer
 
 
@@ -109,9 +109,9 @@ class NodeCache:
         entry = self._entry(key)
         sizes = {}
         for port, buf in outputs.items():
-            data = buf.to_bytes()
-            atomic_write_bytes(entry / f"{port}.npz", data)
-            sizes[port] = len(data)
+            with atomic_write(entry / f"{port}.npz") as handle:
+                buf.write_npz(handle)
+            sizes[port] = (entry / f"{port}.npz").stat().st_size
         manifest = {
             "outputs": {port: {"type": buf.type_name, "content_key": buf.content_key, "bytes": sizes[port]}
                         for port, buf in outputs.items()},

@@ -205,6 +205,27 @@ def _read_pillow(path: str) -> np.ndarray:
     return _read_with_imageio(path, f"16-bit colour {fmt or 'image'} ({rawmode})")
 
 
+def _jpeg_turbo_into(path: str, out: np.ndarray) -> bool:
+    """Decode a JPEG with simplejpeg straight into ``out`` (C-contiguous uint8 ``[H, W, C]``); False (and ``out``
+    untouched) when the file is not such a JPEG of exactly that shape, so the caller decodes it the usual way."""
+    try:
+        import simplejpeg
+    except ImportError:
+        return False
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+        height, width, colourspace, _ = simplejpeg.decode_jpeg_header(data)
+        channels = 1 if colourspace == "Gray" else 3
+        if colourspace not in ("Gray", "YCbCr", "RGB") or (height, width, channels) != out.shape \
+                or not out.flags.c_contiguous:
+            return False
+        simplejpeg.decode_jpeg(data, colorspace="GRAY" if channels == 1 else "RGB", buffer=out)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
 def _read_jpeg_turbo(path: str) -> np.ndarray | None:
     """A grey or colour JPEG decoded by simplejpeg (libjpeg-turbo), or None to let Pillow decode the file.
 
@@ -337,6 +358,8 @@ class CaptureReader:
         self.shape = first.shape
         self.dtype = np.dtype(np.uint8 if first.dtype == np.uint8 and transfer != "linear" else np.float32)
         self._convert = _converter(first.dtype, transfer)
+        # 8-bit JPEG kept as bytes: the decoder can write into the caller's slot (same pixels, checked shape).
+        self._bytes_as_decoded = first.dtype == np.uint8 and self.dtype == np.uint8
         self.n_view, self.n_light = len(self.grid), len(self.grid[0])
         self.encoding = "srgb8" if self.dtype == np.uint8 else "linear"
         self.lights = np.asarray([self.entries[index].light for index in self.grid[0]], dtype=np.float32)
@@ -389,6 +412,9 @@ class CaptureReader:
                 return
             view, light = slots[i]
             index = self.grid[view][light]
+            if self._bytes_as_decoded and index != self.first_index and _jpeg_turbo_into(
+                    str(image_path(self.light_file, self.entries[index].filename)), out[i]):
+                return  # decoded in its slot: no image-sized buffer, no copy
             array = self._first if index == self.first_index else self._decode(index)
             self._check(index, array)
             self._convert(array, out[i])
