@@ -61,6 +61,14 @@ def _report_fit(ctx, model, solver, rcond):
     return model
 
 
+def _capture_precheck(params, paths):
+    from btforge.store import is_store
+    if is_store(paths.input(params["path"])):
+        raise BtforgeInputError(f"param 'path' ({params['path']})", "is a chunked store, not a light file",
+                                "read a store with stack.read and fit it with ptm.fit")
+    return light_file_precheck(params, paths)
+
+
 @declare_stage(
     "ptm.fit_capture",
     outputs={"model": "PTMModel"},
@@ -68,7 +76,7 @@ def _report_fit(ctx, model, solver, rcond):
             Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
                   choices=("auto", "srgb", "linear")),
             *FIT_PARAMS],
-    precheck=light_file_precheck,
+    precheck=_capture_precheck,
 )
 def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
     """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``
@@ -169,3 +177,9 @@ def btforge_buffer_types():
 @hookimpl
 def btforge_info_readers():
     return {".ptm": _describe_ptm}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_ptm_stream
+    return {"ptm-stream": bench_ptm_stream}

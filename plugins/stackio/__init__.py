@@ -10,9 +10,16 @@ from btforge.errors import BtforgeInputError
 
 
 def light_file_precheck(params, paths):
-    from .lightfile import image_path, read_capture_index
+    from btforge.store import is_store, open_store
+
+    from .lightfile import image_path, is_btf_zip, read_capture_index
     path = paths.input(params["path"])
+    if is_store(path):  # the cache keys the folder by its contents
+        open_store(path)
+        return [path]
     entries = read_capture_index(path, require_images=True)
+    if is_btf_zip(path):
+        return [path]
     return [path] + [image_path(path, e.filename) for e in entries]
 
 
@@ -21,8 +28,8 @@ def light_file_precheck(params, paths):
     outputs={"stack": "SampleStack"},
     params=[
         Param("path", "path", REQUIRED, "the capture: a .lp light file (filename x y z per line after the count), "
-              "a .lvp light-and-view file (filename lx ly lz vx vy vz), or a UBO-style BTF folder whose image "
-              "names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi})"),
+              "a .lvp light-and-view file (filename lx ly lz vx vy vz), a UBO-style BTF folder or UBO2003 zip whose "
+              "image names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi}), or a store made by stack.import"),
         Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
@@ -35,8 +42,12 @@ def stack_read(ctx, *, path, transfer):
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
     8-bit in memory (decoded to linear on use), a quarter of the float size.
     """
+    from btforge.store import is_store
+
     from .images import load_stack
-    stack = load_stack(ctx.paths.input(path), transfer=transfer)
+    from .importer import load_store_stack
+    source = ctx.paths.input(path)
+    stack = load_store_stack(source) if is_store(source) else load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
     ctx.note("size", [stack.height, stack.width])
     return {"stack": stack}
@@ -126,6 +137,38 @@ def stack_split(ctx, stack, *, every):
     return {"fit": part(~held), "test": part(held)}
 
 
+@declare_stage(
+    "stack.import",
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("path", "path", REQUIRED, "the capture: a .lp/.lvp light file, or a Bonn UBO2003 BTF as a zip archive "
+              "or unpacked folder (image names carry the angles, tl15_pl0_tv30_pv120.jpg)"),
+        Param("store", "outpath", REQUIRED, "the zarr v3 store to write, conventionally NAME.zarr (relative paths "
+              "land under --out); an existing store there is replaced"),
+        Param("block", "ints", (32, 32), "texels per chunk [rows, columns]: each chunk holds all samples of one "
+              "block", length=2, low=1, high=4096),
+        Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+              choices=("auto", "srgb", "linear")),
+    ],
+    precheck=light_file_precheck,
+    side_effects=True,
+)
+def stack_import(ctx, *, path, store, block, transfer):
+    """Convert a capture once into a chunked, compressed store (zarr v3) that stack.read opens later.
+
+    Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
+    them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
+    store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  The output
+    is the stack read back from the store.  ``btforge info NAME.zarr`` describes a store.
+    """
+    from .importer import import_capture, load_store_stack
+    target = ctx.paths.output(store)
+    array = import_capture(ctx.paths.input(path), target, transfer=transfer, block=tuple(block))
+    ctx.note("written", str(target))
+    ctx.note("chunk", list(array.chunks))
+    return {"stack": load_store_stack(target)}
+
+
 def _selection_precheck(params, paths):
     from .select import check_selection
     for name in ("views", "lights"):
@@ -181,9 +224,10 @@ def _describe_exr(path):
 
 @hookimpl
 def btforge_stages():
-    return [stack_read, stack_write, contact_sheet, stack_split, stack_select]
+    return [stack_read, stack_import, stack_write, contact_sheet, stack_split, stack_select]
 
 
 @hookimpl
 def btforge_info_readers():
-    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr}
+    from btforge.store import store_summary
+    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr, ".zarr": store_summary}

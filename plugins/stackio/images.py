@@ -16,10 +16,12 @@ installed, and otherwise stop with an error rather than lose precision.
 from __future__ import annotations
 
 import concurrent.futures
+import io
 import os
 import re
 import struct
 import threading
+import zipfile
 import zlib
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -30,7 +32,7 @@ from btforge.atomic import atomic_output_path, atomic_write
 from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb8, srgb_to_linear
 from btforge.errors import BtforgeInputError
 
-from .lightfile import LightFileEntry, image_path, read_capture_index, write_light_file
+from .lightfile import LightFileEntry, image_path, is_btf_zip, read_capture_index, write_light_file
 
 __all__ = ["read_image", "read_exr", "load_stack", "write_stack", "write_exr", "write_png"]
 
@@ -113,6 +115,8 @@ def _read_png16_colour(path: str, rawmode: str) -> np.ndarray:
     from PIL import Image
 
     def decode(new_rawmode: str) -> np.ndarray:
+        if hasattr(path, "seek"):
+            path.seek(0)
         with Image.open(path) as image:
             image.tile = [image.tile[0]._replace(args=new_rawmode)]
             image.load()
@@ -170,11 +174,12 @@ def _normalised(array: np.ndarray, path: str) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def _read_pillow(path: str) -> np.ndarray:
+def _read_pillow(path, label: str | None = None) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
+    source, path = path, label or str(path)  # messages name the file; an in-memory file is read from 'source'
     try:
-        with Image.open(path) as image:
+        with Image.open(source) as image:
             mode, rawmode, fmt = image.mode, _rawmode(image), image.format
             high_depth_colour = bool(re.search(r";16", rawmode)) and mode in ("RGB", "RGBA", "LA")
             if not high_depth_colour:
@@ -199,13 +204,21 @@ def _read_pillow(path: str) -> np.ndarray:
 
     if fmt == "PNG" and rawmode in ("RGB;16B", "RGBA;16B", "LA;16B"):
         try:
-            return _read_png16_colour(path, rawmode)
+            return _read_png16_colour(source, rawmode)
         except (ValueError, OSError, AttributeError, IndexError):
             pass  # a Pillow without these unpackers: let imageio try
     return _read_with_imageio(path, f"16-bit colour {fmt or 'image'} ({rawmode})")
 
 
-def _jpeg_turbo_into(path: str, out: np.ndarray) -> bool:
+def _contents(source) -> bytes:
+    """The bytes of an image file: a path, or an in-memory file (a member of a zip archive)."""
+    if hasattr(source, "getvalue"):
+        return source.getvalue()
+    with open(source, "rb") as handle:
+        return handle.read()
+
+
+def _jpeg_turbo_into(path, out: np.ndarray) -> bool:
     """Decode a JPEG with simplejpeg straight into ``out`` (C-contiguous uint8 ``[H, W, C]``); False (and ``out``
     untouched) when the file is not such a JPEG of exactly that shape, so the caller decodes it the usual way."""
     try:
@@ -213,8 +226,7 @@ def _jpeg_turbo_into(path: str, out: np.ndarray) -> bool:
     except ImportError:
         return False
     try:
-        with open(path, "rb") as handle:
-            data = handle.read()
+        data = _contents(path)
         height, width, colourspace, _ = simplejpeg.decode_jpeg_header(data)
         channels = 1 if colourspace == "Gray" else 3
         if colourspace not in ("Gray", "YCbCr", "RGB") or (height, width, channels) != out.shape \
@@ -226,7 +238,7 @@ def _jpeg_turbo_into(path: str, out: np.ndarray) -> bool:
         return False
 
 
-def _read_jpeg_turbo(path: str) -> np.ndarray | None:
+def _read_jpeg_turbo(path) -> np.ndarray | None:
     """A grey or colour JPEG decoded by simplejpeg (libjpeg-turbo), or None to let Pillow decode the file.
 
     Same pixels as Pillow (both use libjpeg-turbo's accurate integer DCT and smooth upsampling), in 30-40 %
@@ -238,8 +250,7 @@ def _read_jpeg_turbo(path: str) -> np.ndarray | None:
     except ImportError:
         return None
     try:
-        with open(path, "rb") as handle:
-            data = handle.read()
+        data = _contents(path)
         colourspace = simplejpeg.decode_jpeg_header(data)[2]
         if colourspace not in ("Gray", "YCbCr", "RGB"):
             return None
@@ -248,8 +259,8 @@ def _read_jpeg_turbo(path: str) -> np.ndarray | None:
         return None
 
 
-def read_image(path: str | os.PathLike) -> tuple[np.ndarray, str]:
-    """Read one image of a capture.
+def read_image(path, name: str | None = None) -> tuple[np.ndarray, str]:
+    """Read one image of a capture: a file, or an in-memory file (``io.BytesIO``) called ``name``.
 
     Returns
     -------
@@ -259,14 +270,18 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, str]:
     transfer
         ``'srgb'`` for 8-bit data (camera-encoded), ``'linear'`` for 16-bit and float data.
     """
-    path_text = str(path)
-    suffix = Path(path).suffix.lower()
+    in_memory = hasattr(path, "getvalue")
+    path_text = name or str(path)
+    suffix = Path(path_text).suffix.lower()
     if suffix == ".exr":
+        if in_memory:
+            raise BtforgeInputError(path_text, "OpenEXR images inside a zip archive cannot be read",
+                                    "unpack the archive and read the folder")
         array = read_exr(path)
     else:
-        array = (_read_jpeg_turbo(path_text) if suffix in (".jpg", ".jpeg") else None)
+        array = (_read_jpeg_turbo(path) if suffix in (".jpg", ".jpeg") else None)
         if array is None:
-            array = _read_pillow(path_text)
+            array = _read_pillow(path if in_memory else path_text, path_text)
     array = _normalised(array, path_text)
     return array, ("srgb" if array.dtype == np.uint8 else "linear")
 
@@ -348,6 +363,7 @@ class CaptureReader:
             raise BtforgeInputError("load_stack 'transfer'", f"expected one of {TRANSFERS}, found {transfer!r}")
         self.light_file, self.transfer, self.path_text = light_file, transfer, str(light_file)
         self.entries = read_capture_index(light_file, require_images=True)
+        self._archive = zipfile.ZipFile(light_file) if is_btf_zip(light_file) else None  # UBO2003 download
         if self.entries[0].view is None:
             views, self.grid = np.array([[0.0, 0.0, 1.0]]), [list(range(len(self.entries)))]
         else:
@@ -367,11 +383,18 @@ class CaptureReader:
         self.channels = ("Y",) if first.shape[2] == 1 else ("R", "G", "B")
         self.names = tuple(self.entries[index].filename for index in self.grid[0])
 
+    def _image(self, index: int):
+        """The image file of entry ``index``: a path, or the member's bytes in a zip archive."""
+        name = self.entries[index].filename
+        if self._archive is not None:
+            return io.BytesIO(self._archive.read(name))
+        return image_path(self.light_file, name)
+
     def _decode(self, index: int) -> np.ndarray:
         entry = self.entries[index]
         where = f"{self.path_text}, line {entry.line}"
         try:
-            array, _ = read_image(image_path(self.light_file, entry.filename))
+            array, _ = read_image(self._image(index), name=entry.filename if self._archive is not None else None)
         except BtforgeInputError as exc:
             # The light file line locates the image better than its full path; keep the name in the problem.
             raise BtforgeInputError(where, f"image {entry.filename!r}: {exc.problem}", exc.hint) from None
@@ -412,8 +435,7 @@ class CaptureReader:
                 return
             view, light = slots[i]
             index = self.grid[view][light]
-            if self._bytes_as_decoded and index != self.first_index and _jpeg_turbo_into(
-                    str(image_path(self.light_file, self.entries[index].filename)), out[i]):
+            if self._bytes_as_decoded and index != self.first_index and _jpeg_turbo_into(self._image(index), out[i]):
                 return  # decoded in its slot: no image-sized buffer, no copy
             array = self._first if index == self.first_index else self._decode(index)
             self._check(index, array)

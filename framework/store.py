@@ -1,0 +1,105 @@
+"""Chunked sample stores: a capture converted once into a zarr v3 store of compressed texel blocks.
+
+A store is a folder (conventionally ``NAME.zarr``) holding one zarr v3 array ``samples`` of shape
+``[V, L, H, W, C]`` (uint8 sRGB codes or float32 linear radiance, as a :class:`~btforge.buffers.SampleStack`
+holds them) whose chunks are ``[V, L, block_h, block_w, C]``: every chunk holds all samples of one block of
+texels, since every per-texel fit needs all of them.  Chunks are Zstandard-compressed with byte shuffling.  The
+array's attributes carry the rest of the stack and the layout's version::
+
+    {"btforge": {"format": "btforge.samples", "format_version": 1, "lights": [[x, y, z], ...],
+                 "views": [...], "channels": ["R", "G", "B"], "encoding": "srgb8", "names": [...]}}
+
+:func:`create_store` makes an empty store that a caller fills block by block (so nothing is held whole),
+:func:`open_store` checks one and :func:`read_samples` reads any block of texels.  The node cache keys a store
+by the digest of its contents (``framework/cache.py``), as it keys files.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .errors import BtforgeInputError
+
+FORMAT = "btforge.samples"
+FORMAT_VERSION = 1
+ARRAY = "samples"
+DEFAULT_BLOCK = (64, 64)
+
+
+def is_store(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a zarr store folder (it has a ``zarr.json``)."""
+    return (Path(path) / "zarr.json").is_file()
+
+
+def create_store(path: str | os.PathLike, shape: Sequence[int], dtype, *, lights, views, channels: Sequence[str],
+                 encoding: str, names: Sequence[str] = (), block: Sequence[int] = DEFAULT_BLOCK):
+    """An empty store for a stack of ``shape`` ``[V, L, H, W, C]``; returns its zarr array to fill by blocks.
+
+    An existing store at ``path`` is replaced (a folder that is not a store is refused).
+    """
+    import zarr
+    from zarr.codecs import BloscCodec, BloscShuffle
+
+    path = Path(path)
+    if path.exists() and not is_store(path):
+        raise BtforgeInputError(str(path), "exists and is not a zarr store", "give a new path, e.g. capture.zarr")
+    if path.exists():
+        shutil.rmtree(path)
+    n_view, n_light, height, width, n_channel = (int(v) for v in shape)
+    chunks = (n_view, n_light, max(1, min(height, int(block[0]))), max(1, min(width, int(block[1]))), n_channel)
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    array = group.create_array(ARRAY, shape=(n_view, n_light, height, width, n_channel), chunks=chunks,
+                               dtype=np.dtype(dtype),
+                               compressors=[BloscCodec(cname="zstd", clevel=3, shuffle=BloscShuffle.shuffle)])
+    array.attrs["btforge"] = {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "lights": np.asarray(lights, np.float64).tolist(), "views": np.asarray(views, np.float64).tolist(),
+        "channels": list(channels), "encoding": encoding, "names": list(names)}
+    return array
+
+
+def open_store(path: str | os.PathLike):
+    """The checked ``samples`` array of a store and its stack attributes ``(array, meta)``."""
+    import zarr
+
+    path = Path(path)
+    if not is_store(path):
+        raise BtforgeInputError(str(path), "is not a zarr store (no zarr.json)", "make one with stack.import")
+    try:
+        array = zarr.open_group(str(path), mode="r", zarr_format=3)[ARRAY]
+    except (KeyError, ValueError, OSError, json.JSONDecodeError) as exc:
+        raise BtforgeInputError(str(path), f"has no readable '{ARRAY}' array ({exc})",
+                                "make the store with stack.import") from None
+    meta = dict(array.attrs.get("btforge") or {})
+    if meta.get("format") != FORMAT:
+        raise BtforgeInputError(str(path), f"expected a store of format '{FORMAT}', found {meta.get('format')!r}",
+                                "make the store with stack.import")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise BtforgeInputError(str(path), f"is a sample store of format version {meta.get('format_version')!r}; "
+                                f"this btforge reads version {FORMAT_VERSION}", "import the capture again with "
+                                "this btforge's stack.import, or upgrade btforge")
+    if array.ndim != 5 or len(meta.get("lights", ())) != array.shape[1] or len(meta.get("views", ())) != array.shape[0]:
+        raise BtforgeInputError(str(path), f"its samples {array.shape} do not match its {len(meta.get('lights', ()))} "
+                                f"lights and {len(meta.get('views', ()))} views", "the store is damaged; import it again")
+    return array, meta
+
+
+def read_samples(array, rows: slice = slice(None), cols: slice = slice(None)) -> np.ndarray:
+    """Samples ``[V, L, h, w, C]`` of a block of texels, decompressing only the chunks it touches."""
+    return np.asarray(array[:, :, rows, cols, :])
+
+
+def store_summary(path: str | os.PathLike) -> dict[str, Any]:
+    """What ``btforge info`` shows for a store."""
+    array, meta = open_store(path)
+    size = sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+    raw = int(np.prod(array.shape)) * array.dtype.itemsize
+    return {"kind": "btforge sample store (zarr v3)", "format_version": meta["format_version"],
+            "views": array.shape[0], "lights": array.shape[1], "texels": list(array.shape[2:4]),
+            "channels": meta["channels"], "encoding": meta["encoding"], "chunk": list(array.chunks),
+            "size_bytes": size, "compression_ratio": round(raw / max(size, 1), 2)}

@@ -1,0 +1,113 @@
+"""Chunked stores: stack.import from every public layout the tests write, stack.read of a store, cache keys."""
+import json
+import math
+import zipfile
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import btforge
+from btforge import BtforgeInputError
+from btforge.cli import main
+from btforge.plugins.stackio.images import load_stack, write_stack
+from btforge.plugins.stackio.importer import import_capture, load_store_stack
+from btforge.store import open_store
+
+from lightsets import dome
+
+
+def _ubo_images(rng, views=((0, 0), (30, 90)), lights=((15, 0), (45, 120), (60, 240), (75, 300))):
+    return {f"tl{tl}_pl{pl}_tv{tv}_pv{pv}.png": rng.integers(0, 256, (9, 11, 3), dtype=np.uint8)
+            for tv, pv in views for tl, pl in lights}
+
+
+def _same(a, b):
+    np.testing.assert_array_equal(a.samples, b.samples)
+    np.testing.assert_allclose(a.lights, b.lights, atol=1e-7)
+    np.testing.assert_allclose(a.views, b.views, atol=1e-7)
+    assert (a.channels, a.encoding, a.names) == (b.channels, b.encoding, b.names)
+
+
+@pytest.mark.parametrize("layout", ["lp-jpeg", "lp-exr", "lvp-png", "ubo-folder", "ubo-zip"])
+def test_import_matches_the_capture_it_was_written_from(tmp_path, layout):
+    rng = np.random.default_rng(1)
+    if layout.startswith("lp"):
+        stack = btforge.stage("demo.material")(size=[13, 10], lights=7)["stack"]
+        write_stack(stack, tmp_path / "cap", fmt="exr")
+        source = tmp_path / "cap" / "lights.lp"
+        if layout == "lp-jpeg":
+            for i in range(7):
+                Image.fromarray(rng.integers(0, 256, (13, 10, 3), dtype=np.uint8)).save(tmp_path / "cap" / f"j{i}.jpg")
+            from btforge.plugins.stackio.lightfile import write_light_file
+            write_light_file(tmp_path / "cap" / "j.lp", [f"j{i}.jpg" for i in range(7)], dome(7))
+            source = tmp_path / "cap" / "j.lp"
+    elif layout == "lvp-png":
+        write_stack(btforge.stage("demo.btf")(size=[12, 9], lights=5, views=3)["stack"], tmp_path / "cap", fmt="png")
+        source = tmp_path / "cap" / "lights.lvp"
+    else:
+        images = _ubo_images(rng)
+        folder = tmp_path / "ubo"
+        folder.mkdir()
+        for name, pixels in images.items():
+            Image.fromarray(pixels).save(folder / name)
+        source = folder
+        if layout == "ubo-zip":
+            source = tmp_path / "ubo.zip"
+            with zipfile.ZipFile(source, "w") as archive:
+                for name in images:
+                    archive.write(folder / name, f"sample/{name}")  # the download nests the images in a folder
+    expected = load_stack(source if layout != "ubo-zip" else tmp_path / "ubo")
+    array = import_capture(source, tmp_path / "s.zarr", block=(4, 5))
+    assert array.chunks == (expected.n_view, expected.n_light, 4, 5, expected.n_channel)
+    back = load_store_stack(tmp_path / "s.zarr")
+    if layout == "ubo-zip":
+        expected = type(expected)(expected.samples, expected.lights, expected.views, expected.channels,
+                                  expected.encoding, tuple(f"sample/{n}" for n in expected.names))
+    _same(back, expected)
+    if layout.startswith("ubo"):
+        theta, phi = math.radians(45), math.radians(120)
+        np.testing.assert_allclose(back.lights[1], [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi),
+                                                    math.cos(theta)], atol=1e-6)
+
+
+def test_graph_imports_then_reads_the_store_and_the_cache_follows_its_contents(tmp_path, capsys):
+    stack = btforge.stage("demo.material")(size=[8, 8], lights=8)["stack"]
+    write_stack(stack, tmp_path / "cap", fmt="exr")
+    importing = {"nodes": {"imp": {"stage": "stack.import", "params": {"path": str(tmp_path / "cap" / "lights.lp"),
+                                                                      "store": str(tmp_path / "s.zarr"), "block": [4, 4]}}}}
+    btforge.run(importing, out_dir=tmp_path)
+    reading = {"nodes": {"read": {"stage": "stack.read", "params": {"path": str(tmp_path / "s.zarr")}},
+                         "fit": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}}
+    first = btforge.run(reading, out_dir=tmp_path)
+    np.testing.assert_array_equal(first["fit"]["model"].coeffs, btforge.stage("ptm.fit")(stack=stack)["model"].coeffs)
+    again = btforge.run(reading, out_dir=tmp_path)
+    assert [r.status for r in again.report] == ["cached", "cached"]
+    array, _ = open_store(tmp_path / "s.zarr")
+    import zarr
+    writable = zarr.open_array(str(tmp_path / "s.zarr" / "samples"), mode="r+")
+    writable[0, 0, 0, 0, 0] = 0.5  # one chunk changes: the store's key changes
+    changed = btforge.run(reading, out_dir=tmp_path)
+    assert [r.status for r in changed.report] == ["ran", "ran"]
+    assert main(["info", str(tmp_path / "s.zarr"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["lights"] == 8 and info["texels"] == [8, 8] and info["chunk"] == [1, 8, 4, 4, 3]
+
+
+def test_bad_stores_and_archives_are_refused(tmp_path):
+    (tmp_path / "not.zarr").mkdir()
+    (tmp_path / "not.zarr" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
+    with pytest.raises(BtforgeInputError, match="no readable 'samples' array"):
+        load_store_stack(tmp_path / "not.zarr")
+    (tmp_path / "bad.zip").write_bytes(b"PK nothing")
+    with pytest.raises(BtforgeInputError, match="cannot read the zip archive"):
+        import_capture(tmp_path / "bad.zip", tmp_path / "s.zarr")
+    with zipfile.ZipFile(tmp_path / "empty.zip", "w") as archive:
+        archive.writestr("readme.txt", "no images")
+    with pytest.raises(BtforgeInputError, match="tl15_pl0_tv30_pv120"):
+        import_capture(tmp_path / "empty.zip", tmp_path / "s.zarr")
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(BtforgeInputError, match="not a zarr store"):
+        from btforge.store import create_store
+        create_store(tmp_path / "folder", (1, 1, 1, 1, 1), np.uint8, lights=[[0, 0, 1]], views=[[0, 0, 1]],
+                     channels=("Y",), encoding="srgb8")
