@@ -315,6 +315,9 @@ class SampleStack(PerTexel):
     type_name: ClassVar[str] = "SampleStack"
     texel_fields: ClassVar[tuple[str, ...]] = ("samples",)
     texel_axis: ClassVar[int] = 2
+    # True for a stack read lazily from a chunked store (btforge.store.StoredSampleStack): stages then read it by
+    # row bands (linear, row_bands, take) instead of holding ``samples`` whole.
+    chunked: ClassVar[bool] = False
 
     samples: np.ndarray
     lights: np.ndarray
@@ -371,6 +374,14 @@ class SampleStack(PerTexel):
         if self.encoding == "linear":
             return band
         return SRGB8_TO_LINEAR[band]
+
+    def take(self, views, lights, rows: slice = slice(None)) -> np.ndarray:
+        """The stored samples ``[v, l, h, W, C]`` of the given view and light indices (and rows), a new array."""
+        return self.samples[:, :, rows][np.ix_(np.asarray(views, int), np.asarray(lights, int))]
+
+    def in_memory(self) -> "SampleStack":
+        """This stack with its samples in one array (itself, unless it is read from a store)."""
+        return self
 
     def image(self, view: int, light: int) -> np.ndarray:
         """Linear float32 radiance ``[H, W, C]`` of one view and light."""

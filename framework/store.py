@@ -103,3 +103,96 @@ def store_summary(path: str | os.PathLike) -> dict[str, Any]:
             "views": array.shape[0], "lights": array.shape[1], "texels": list(array.shape[2:4]),
             "channels": meta["channels"], "encoding": meta["encoding"], "chunk": list(array.chunks),
             "size_bytes": size, "compression_ratio": round(raw / max(size, 1), 2)}
+
+
+# ----------------------------------------------------------------------------------------------- lazy stacks
+
+import dataclasses  # noqa: E402  (kept beside the class that needs it)
+from typing import ClassVar, Mapping  # noqa: E402
+
+from .buffers import SampleStack, unit_directions, upper_hemisphere  # noqa: E402
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class StoredSampleStack(SampleStack):
+    """A :class:`~btforge.buffers.SampleStack` whose samples stay in a chunked store and are read on demand.
+
+    ``samples`` is the store's zarr array: slicing it (``linear(rows)``, ``row_bands``, ``image``, ``take``)
+    decompresses only the chunks a band touches, so stages that work band by band stream the capture.  Its
+    content key is the store's content digest, so a cache entry refers to the store instead of copying it; a
+    store that changed since is refused when such an entry is read back.
+    """
+
+    type_name: ClassVar[str] = "StoredSampleStack"
+    chunked: ClassVar[bool] = True
+
+    store: str = ""
+    digest: str = ""
+
+    def __post_init__(self):
+        owner = f"StoredSampleStack {self.store}"
+        shape = tuple(self.samples.shape)
+        want = {"srgb8": np.uint8, "linear": np.float32}.get(self.encoding)
+        if want is None or np.dtype(self.samples.dtype) != want:
+            raise BtforgeInputError(owner, f"expected uint8 samples for encoding 'srgb8' or float32 for 'linear', "
+                                    f"found {self.samples.dtype} with {self.encoding!r}", "import the capture again")
+        lights = upper_hemisphere("lights", unit_directions("lights", self.lights, owner=owner), owner)
+        views = upper_hemisphere("views", unit_directions("views", self.views, owner=owner), owner)
+        if len(shape) != 5 or lights.shape[0] != shape[1] or views.shape[0] != shape[0] \
+                or len(self.channels) != shape[4] or (self.names and len(self.names) != shape[1]):
+            raise BtforgeInputError(owner, f"samples {shape} do not match {lights.shape[0]} lights, {views.shape[0]} "
+                                    f"views and channels {tuple(self.channels)}", "the store is damaged; import it again")
+        for name, value in (("lights", lights), ("views", views)):
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "channels", tuple(self.channels))
+        object.__setattr__(self, "names", tuple(self.names))
+
+    def payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return ({"store": self.store, "digest": self.digest, "channels": list(self.channels),
+                 "encoding": self.encoding, "names": list(self.names), "shape": list(self.samples.shape)},
+                {"lights": self.lights, "views": self.views})
+
+    @classmethod
+    def from_payload(cls, meta: dict[str, Any], arrays: Mapping[str, np.ndarray]) -> "StoredSampleStack":
+        stack = open_stored_stack(meta["store"])
+        if stack.digest != meta["digest"]:
+            raise BtforgeInputError(meta["store"], "changed since this result was cached",
+                                    "run again: the nodes reading the store re-run when its contents change")
+        return stack
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.samples.shape)) * self.samples.dtype.itemsize
+
+    def take(self, views, lights, rows: slice = slice(None)) -> np.ndarray:
+        return np.asarray(self.samples.oindex[np.asarray(views, int), np.asarray(lights, int), rows])
+
+    def in_memory(self) -> SampleStack:
+        samples = np.empty(self.samples.shape, self.samples.dtype)
+        step = self.samples.chunks[2]
+        for r0 in range(0, samples.shape[2], step):
+            samples[:, :, r0:r0 + step] = read_samples(self.samples, slice(r0, r0 + step))
+        return SampleStack(samples, self.lights, self.views, self.channels, self.encoding, self.names)
+
+    def remap(self, *args, **kwargs):
+        return self.in_memory().remap(*args, **kwargs)
+
+    def row_bands(self, budget_bytes: int = 128 << 20):
+        """Bands of whole chunk rows within ``budget_bytes`` of linear samples (at least one chunk row)."""
+        step = self.samples.chunks[2]
+        row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
+        rows = max(1, budget_bytes // max(row_bytes * step, 1)) * step
+        for start in range(0, self.height, rows):
+            yield slice(start, min(self.height, start + rows))
+
+
+def open_stored_stack(path: str | os.PathLike) -> StoredSampleStack:
+    """The stack of a store, read lazily (its content digest computed once, remembered by the node cache)."""
+    from .backend import default_cache_root
+    from .cache import file_digest
+    array, meta = open_store(path)
+    digest = file_digest(Path(path).resolve(), default_cache_root() / "nodes" / "files")
+    return StoredSampleStack(array, np.asarray(meta["lights"]), np.asarray(meta["views"]), tuple(meta["channels"]),
+                             meta["encoding"], tuple(meta.get("names") or ()), store=str(Path(path).resolve()),
+                             digest=digest)

@@ -111,3 +111,44 @@ def test_bad_stores_and_archives_are_refused(tmp_path):
         from btforge.store import create_store
         create_store(tmp_path / "folder", (1, 1, 1, 1, 1), np.uint8, lights=[[0, 0, 1]], views=[[0, 0, 1]],
                      channels=("Y",), encoding="srgb8")
+
+
+def _stored(tmp_path, stack, block=(5, 4)):
+    write_stack(stack, tmp_path / "cap", fmt="exr")
+    import_capture(tmp_path / "cap" / ("lights.lvp" if stack.n_view > 1 else "lights.lp"), tmp_path / "s.zarr",
+                   block=block)
+    return btforge.stage("stack.read")(path=str(tmp_path / "s.zarr"))["stack"]
+
+
+def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
+    stack = btforge.stage("demo.btf")(size=[11, 9], lights=10, views=3, seed=4)["stack"]
+    stored = _stored(tmp_path, stack)
+    assert stored.chunked and not stack.chunked and type(stored).__name__ == "StoredSampleStack"
+    assert not isinstance(stored.samples, np.ndarray)  # nothing was read yet
+    np.testing.assert_array_equal(stored.linear(slice(5, 10)), stack.linear(slice(5, 10)))
+    sh_memory = btforge.stage("sh.fit")(stack=stack, light_order=2, view_order=2)["model"]
+    sh_stored = btforge.stage("sh.fit")(stack=stored, light_order=2, view_order=2)["model"]
+    np.testing.assert_allclose(sh_stored.coeffs, sh_memory.coeffs, rtol=1e-5, atol=1e-6)
+    picked = btforge.stage("stack.select")(stack=stored, views=[2], lights=[9, 0])["stack"]
+    np.testing.assert_array_equal(picked.samples, stack.samples[[2]][:, [9, 0]])
+    top = _stored(tmp_path / "top", btforge.stage("stack.select")(stack=stack, views=[0])["stack"])
+    for variant in ("rgb", "lrgb"):
+        memory = btforge.stage("ptm.fit")(stack=top.in_memory(), variant=variant)["model"]
+        streamed = btforge.stage("ptm.fit")(stack=top, variant=variant)["model"]
+        np.testing.assert_array_equal(streamed.coeffs, memory.coeffs)
+        np.testing.assert_array_equal(streamed.albedo, memory.albedo)
+
+
+def test_a_cached_stored_stack_refers_to_the_store_and_refuses_a_changed_one(tmp_path):
+    stack = btforge.stage("demo.material")(size=[6, 6], lights=6)["stack"]
+    stored = _stored(tmp_path, stack, block=(3, 3))
+    assert len(stored.to_bytes()) < 4000  # the cache entry holds the store's path and digest, not its samples
+    from btforge.registry import default_registry
+    from btforge.buffers import Buffer
+    (tmp_path / "entry.npz").write_bytes(stored.to_bytes())
+    back = Buffer.from_file(tmp_path / "entry.npz", default_registry().types)
+    assert back.content_key == stored.content_key
+    import zarr
+    zarr.open_array(str(tmp_path / "s.zarr" / "samples"), mode="r+")[0, 0, 0, 0, 0] = 0.25
+    with pytest.raises(BtforgeInputError, match="changed since"):
+        Buffer.from_file(tmp_path / "entry.npz", default_registry().types)

@@ -248,21 +248,19 @@ def resolve_space(stack: SampleStack, space: str) -> str:
 
 
 def _kernel_input(stack: SampleStack, space: str):
-    """The samples as ``[L, H*W, C]`` (a view of the stack), how the kernel reads them, and a converter if needed.
+    """How the kernel reads the samples: ``(lut, byte_scale, convert)``.
 
-    Returns ``(samples, lut, byte_scale, convert)``.  An 8-bit capture is fitted in place: in display space its
-    bytes are numbers scaled by ``byte_scale = 1 / 255`` (folded into the weights), in linear space they are
-    decoded by a 256-entry table (``lut``) inside the kernel.  Only a linear stack fitted in display space needs
-    its values converted, band by band.
+    An 8-bit capture is fitted in place: in display space its bytes are numbers scaled by ``byte_scale = 1 / 255``
+    (folded into the weights), in linear space they are decoded by a 256-entry table (``lut``) inside the kernel.
+    Only a linear stack fitted in display space needs its values converted, band by band.
     """
-    samples = stack.samples[0].reshape(stack.n_light, stack.height * stack.width, stack.n_channel)
     if stack.encoding == "srgb8":
         if space == "srgb":
-            return samples, None, 1.0 / 255.0, None
-        return samples, np.ascontiguousarray(SRGB8_TO_LINEAR, np.float32), 1.0, None
+            return None, 1.0 / 255.0, None
+        return np.ascontiguousarray(SRGB8_TO_LINEAR, np.float32), 1.0, None
     if space == "linear":
-        return samples, None, 1.0, None
-    return samples, None, 1.0, lambda band: linear_to_srgb(band).astype(np.float32)
+        return None, 1.0, None
+    return None, 1.0, lambda band: linear_to_srgb(band).astype(np.float32)
 
 
 BYTE_LEVELS = (np.arange(256, dtype=np.float32) / 255.0)
@@ -377,12 +375,38 @@ class PTMProjection:
         return self.coeffs, self.albedo
 
 
+def _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coeffs, albedo, budget_bytes) -> None:
+    """Fit ``samples [L, N, C]`` into ``coeffs [N, K, 6]`` and ``albedo [N, C or 0]``."""
+    n_light, n_texel, c = samples.shape
+    if engine == "numpy":
+        reference_lut = BYTE_LEVELS if byte_scale != 1.0 else lut  # the twin reads bytes through a table
+        for texels in _chunks(n_texel, n_light * c * 8, budget_bytes):  # the reference works in float64
+            band = samples[:, texels]
+            coeffs[texels], albedo[texels] = fit_ptm_numpy(convert(band) if convert else band, reference_lut,
+                                                           solver, variant)
+    elif convert is None and variant == "rgb":
+        projection = PTMProjection(n_texel, c, variant, solver, lut, coeffs, albedo, byte_scale)
+        projection.add(samples)  # all texels in one launch, read in place
+        projection.finish()
+    else:  # bands of texels: a converted band is a copy, an lrgb band keeps 6 sums per channel until finished
+        per_texel = n_light * c * 8 if convert else c * N_TERMS * 16
+        for texels in _chunks(n_texel, per_texel, budget_bytes):
+            projection = PTMProjection(texels.stop - texels.start, c, variant, solver, lut, coeffs[texels],
+                                       albedo[texels], byte_scale)
+            if convert:
+                projection.add(np.ascontiguousarray(convert(samples[:, texels])))
+            else:
+                projection.add(samples, texel_offset=texels.start)
+            projection.finish()
+
+
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
             rcond: float = DEFAULT_RCOND, budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
     """Least-squares PTM fit of a single-view stack.
 
     The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
-    result, so memory stays near the stack plus its coefficients; other paths go band by band.
+    result, so memory stays near the stack plus its coefficients; other paths go band by band, and so does a
+    stack read from a store (``stack.chunked``), one band of chunk rows at a time.
     """
     if stack.n_view != 1:
         raise BtforgeInputError(
@@ -398,27 +422,16 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     k = 1 if variant == "lrgb" else c
     coeffs = np.empty((h * w, k, N_TERMS), np.float32)
     albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
-    samples, lut, byte_scale, convert = _kernel_input(stack, space)
-    if engine == "numpy":
-        reference_lut = BYTE_LEVELS if byte_scale != 1.0 else lut  # the twin reads bytes through a table
-        for texels in _chunks(h * w, stack.n_light * c * 8, budget_bytes):  # the reference works in float64
-            band = samples[:, texels]
-            coeffs[texels], albedo[texels] = fit_ptm_numpy(convert(band) if convert else band, reference_lut,
-                                                           solver, variant)
-    elif convert is None and variant == "rgb":
-        projection = PTMProjection(h * w, c, variant, solver, lut, coeffs, albedo, byte_scale)
-        projection.add(samples)  # the whole capture, read in place
-        projection.finish()
-    else:  # bands of texels: a converted band is a copy, an lrgb band keeps 6 sums per channel until finished
-        per_texel = stack.n_light * c * 8 if convert else c * N_TERMS * 16
-        for texels in _chunks(h * w, per_texel, budget_bytes):
-            projection = PTMProjection(texels.stop - texels.start, c, variant, solver, lut, coeffs[texels],
-                                       albedo[texels], byte_scale)
-            if convert:
-                projection.add(np.ascontiguousarray(convert(samples[:, texels])))
-            else:
-                projection.add(samples, texel_offset=texels.start)
-            projection.finish()
+    lut, byte_scale, convert = _kernel_input(stack, space)
+    if stack.chunked:  # a store: one band of chunk rows at a time, each fitted like a whole stack
+        for rows in stack.row_bands(budget_bytes):
+            texels = slice(rows.start * w, rows.stop * w)
+            part = np.ascontiguousarray(stack.samples[0, :, rows]).reshape(stack.n_light, -1, c)
+            _fit_texels(part, variant, solver, lut, byte_scale, convert, engine, coeffs[texels], albedo[texels],
+                        budget_bytes)
+    else:
+        samples = stack.samples[0].reshape(stack.n_light, h * w, c)  # a view of the capture, read in place
+        _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coeffs, albedo, budget_bytes)
     model = PTMModel(coeffs.reshape(h, w, k, N_TERMS), albedo.reshape(h, w, albedo.shape[1]), variant, space,
                      stack.channels)
     return model, solver
@@ -447,7 +460,7 @@ def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, tr
     solver = ptm_solver(reader.lights, rcond)
     probe = SampleStack(np.zeros((1, 1, 1, 1, c), reader.dtype), reader.lights[:1], reader.views, reader.channels,
                         reader.encoding)
-    _, lut, byte_scale, convert = _kernel_input(probe, space)
+    lut, byte_scale, convert = _kernel_input(probe, space)
     batch_size = max(1, min(reader.n_light, batch_bytes // max(1, h * w * c * reader.dtype.itemsize)))
     batch = np.empty((batch_size, h * w, c), reader.dtype)
     projection = PTMProjection(h * w, c, variant, solver, lut, byte_scale=byte_scale)

@@ -42,12 +42,11 @@ def stack_read(ctx, *, path, transfer):
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
     8-bit in memory (decoded to linear on use), a quarter of the float size.
     """
-    from btforge.store import is_store
+    from btforge.store import is_store, open_stored_stack
 
     from .images import load_stack
-    from .importer import load_store_stack
     source = ctx.paths.input(path)
-    stack = load_store_stack(source) if is_store(source) else load_stack(source, transfer=transfer)
+    stack = open_stored_stack(source) if is_store(source) else load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
     ctx.note("size", [stack.height, stack.width])
     return {"stack": stack}
@@ -130,7 +129,8 @@ def stack_split(ctx, stack, *, every):
     def part(mask):
         idx = np.flatnonzero(mask)
         names = tuple(stack.names[i] for i in idx) if stack.names else ()
-        return SampleStack(stack.samples[:, idx], stack.lights[idx], stack.views, stack.channels, stack.encoding, names)
+        return SampleStack(stack.take(range(stack.n_view), idx), stack.lights[idx], stack.views, stack.channels,
+                           stack.encoding, names)
 
     ctx.note("fit_lights", int((~held).sum()))
     ctx.note("test_lights", int(held.sum()))
@@ -159,14 +159,16 @@ def stack_import(ctx, *, path, store, block, transfer):
     Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
     them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
     store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  The output
-    is the stack read back from the store.  ``btforge info NAME.zarr`` describes a store.
+    is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info NAME.zarr`` describes a store.
     """
-    from .importer import import_capture, load_store_stack
+    from btforge.store import open_stored_stack
+
+    from .importer import import_capture
     target = ctx.paths.output(store)
     array = import_capture(ctx.paths.input(path), target, transfer=transfer, block=tuple(block))
     ctx.note("written", str(target))
     ctx.note("chunk", list(array.chunks))
-    return {"stack": load_store_stack(target)}
+    return {"stack": open_stored_stack(target)}
 
 
 def _selection_precheck(params, paths):
@@ -225,6 +227,12 @@ def _describe_exr(path):
 @hookimpl
 def btforge_stages():
     return [stack_read, stack_import, stack_write, contact_sheet, stack_split, stack_select]
+
+
+@hookimpl
+def btforge_buffer_types():
+    from btforge.store import StoredSampleStack
+    return [StoredSampleStack]
 
 
 @hookimpl

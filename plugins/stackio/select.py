@@ -91,7 +91,7 @@ def select(stack: SampleStack, views: Sequence[int | str] = (), lights: Sequence
     """The stack restricted to ``views`` and ``lights`` in the order given (all of an empty list)."""
     view_index = resolve(views, stack.views, (), "view")
     light_index = resolve(lights, stack.lights, stack.names, "light")
-    samples = stack.samples[np.ix_(view_index, light_index)] if (views or lights) else stack.samples
+    samples = stack.take(view_index, light_index) if (views or lights) else stack.in_memory().samples
     names = tuple(stack.names[i] for i in light_index) if stack.names else ()
     return SampleStack(samples, stack.lights[light_index], stack.views[view_index], stack.channels, stack.encoding,
                        names)
