@@ -179,10 +179,12 @@ class StoredSampleStack(SampleStack):
         return self.in_memory().remap(*args, **kwargs)
 
     def row_bands(self, budget_bytes: int = 128 << 20):
-        """Bands of whole chunk rows within ``budget_bytes`` of linear samples (at least one chunk row)."""
+        """Bands of rows within ``budget_bytes`` of linear samples: whole chunk rows where one fits, else a
+        divisor of the chunk height (each chunk is then decompressed once per band that crosses it)."""
         step = self.samples.chunks[2]
         row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4
-        rows = max(1, budget_bytes // max(row_bytes * step, 1)) * step
+        fit = max(1, budget_bytes // max(row_bytes, 1))
+        rows = (fit // step) * step if fit >= step else max(d for d in range(1, step + 1) if step % d == 0 and d <= fit)
         for start in range(0, self.height, rows):
             yield slice(start, min(self.height, start + rows))
 

@@ -152,3 +152,15 @@ def test_a_cached_stored_stack_refers_to_the_store_and_refuses_a_changed_one(tmp
     zarr.open_array(str(tmp_path / "s.zarr" / "samples"), mode="r+")[0, 0, 0, 0, 0] = 0.25
     with pytest.raises(BtforgeInputError, match="changed since"):
         Buffer.from_file(tmp_path / "entry.npz", default_registry().types)
+
+
+def test_demo_btf_renders_chunk_by_chunk_into_a_store(tmp_path):
+    from btforge.buffers import linear_to_srgb8
+    memory = btforge.stage("demo.btf")(size=[10, 7], lights=5, views=3, seed=1)["stack"]
+    stored = btforge.stage("demo.btf")(size=[10, 7], lights=5, views=3, seed=1, store=str(tmp_path / "b.zarr"),
+                                      block=[4, 3])["stack"]
+    assert stored.chunked and stored.encoding == "srgb8" and stored.samples.chunks == (3, 5, 4, 3, 3)
+    np.testing.assert_array_equal(stored.in_memory().samples, linear_to_srgb8(memory.samples))
+    np.testing.assert_allclose(stored.lights, memory.lights, atol=1e-7)
+    bands = list(stored.row_bands(budget_bytes=3 * 5 * 7 * 3 * 4 * 2))  # two rows fit: half a chunk row
+    assert [(b.start, b.stop) for b in bands] == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
