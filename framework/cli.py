@@ -43,7 +43,7 @@ def _print_report(result, stream) -> None:
 def cmd_run(args) -> int:
     from .runner import run
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
-                 use_cache=not args.no_cache, quiet=False, report_path=args.report)
+                 use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)
     _print_report(result, sys.stderr)
     return 0
 
@@ -168,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="FILE.json", help="write the per-node report as JSON")
     p.add_argument("--cache", help="cache folder (default: $BTFORGE_CACHE_DIR/nodes or ~/.cache/btforge/nodes)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the node cache")
+    p.add_argument("--scheduler", default="local", metavar="local|dask|tcp://HOST:PORT",
+                   help="where per-texel stages on stored stacks run: this process (default), a 2-worker local "
+                        "dask cluster, or a running dask scheduler")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("validate", help="check a graph without running it")

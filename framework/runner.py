@@ -88,7 +88,7 @@ class _Lazy:
 
 def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry: Registry | None = None,
                 out_dir: Path | None = None, cache_dir: Path | None = None, use_cache: bool = True,
-                quiet: bool = False) -> RunResult:
+                quiet: bool = False, scheduler: str = "local") -> RunResult:
     registry = registry or default_registry()
     paths = RunPaths(graph.spec.graph_dir, Path(out_dir) if out_dir else DEFAULT_OUT)
     cache = NodeCache(cache_dir or default_cache_root() / "nodes")
@@ -118,7 +118,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             start = time.perf_counter()
             with _PeakMemory() as mem:
                 try:
-                    outputs = st.fn(ctx, **inputs, **params)
+                    outputs = _execute(st, ctx, inputs, params, scheduler, registry)
                 except BtforgeInputError as exc:
                     raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
                 except BtforgeError:
@@ -148,6 +148,20 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     return result
 
 
+def _execute(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[str, Any], scheduler: str,
+             registry: Registry):
+    """Run one node: in this process, or - a per-texel stage on a stored stack with a distributed scheduler -
+    as dask tasks over bands of texels (``framework/scheduler.py``)."""
+    if scheduler != "local":
+        from .scheduler import distributable, run_distributed
+        port = distributable(st, params, inputs)
+        if port is not None:
+            outputs, notes = run_distributed(scheduler, st, port, inputs[port], params, registry.types)
+            ctx.notes.update(notes)
+            return outputs
+    return st.fn(ctx, **inputs, **params)
+
+
 def _key_of(value: Any) -> str:
     return value.content_key
 
@@ -172,7 +186,7 @@ def _check_outputs(name: str, st, outputs: Mapping[str, Any], inputs: Mapping[st
 def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = None, *,
         out_dir: str | os.PathLike | None = None, cache_dir: str | os.PathLike | None = None,
         use_cache: bool = True, quiet: bool = True, registry: Registry | None = None,
-        report_path: str | os.PathLike | None = None) -> RunResult:
+        report_path: str | os.PathLike | None = None, scheduler: str = "local") -> RunResult:
     """Check and run a graph (a YAML path or a mapping); return the outputs of the requested nodes.
 
     Parameters
@@ -185,13 +199,20 @@ def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = No
         Parameter overrides ``{"node.param": value}``.
     out_dir, cache_dir
         Where output paths resolve (default: ``out`` in the current folder) and where node outputs are cached.
+    scheduler
+        ``local`` (this process), ``dask`` (a 2-worker LocalCluster) or ``tcp://HOST:PORT`` (a running dask
+        scheduler): where per-texel stages on stored stacks run.  Results do not depend on it.
     """
     registry = registry or default_registry()
+    if scheduler != "local":
+        from .scheduler import check_scheduler
+        check_scheduler(scheduler)
     spec = load_graph(graph, set)
     out = Path(out_dir) if out_dir else DEFAULT_OUT
     checked = check_graph(spec, registry, out)
     result = run_checked(checked, only=list(only) if only else None, registry=registry, out_dir=out,
-                         cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet)
+                         cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet,
+                         scheduler=scheduler)
     if report_path:
         atomic_write_text(report_path, json.dumps(result.report_dict(), indent=2, default=str))
     return result

@@ -153,6 +153,12 @@ class Stage:
     precheck: Callable[[Mapping[str, Any], "RunPaths"], Iterable[Path] | None] | None = None
     plugin: str = ""
     dynamic_inputs: Callable[[Mapping[str, Any], "RunPaths"], Mapping[str, str]] | None = None
+    per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
+
+    def is_per_texel(self, params: Mapping[str, Any]) -> bool:
+        """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
+        run on blocks of texels anywhere and the blocks be joined: ``--scheduler dask``)."""
+        return bool(self.per_texel(params) if callable(self.per_texel) else self.per_texel)
 
     @property
     def doc(self) -> str:
@@ -218,6 +224,7 @@ def declare_stage(
     side_effects: bool = False,
     precheck: Callable | None = None,
     dynamic_inputs: Callable | None = None,
+    per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -231,6 +238,8 @@ def declare_stage(
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
     has one port per material its scene names); the function then takes them as ``**kwargs``.
+    ``per_texel`` (or ``per_texel(params) -> bool``) declares that each texel's outputs depend only on that
+    texel's inputs, so a distributed scheduler may run the stage on blocks of texels and join the results.
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -245,7 +254,7 @@ def declare_stage(
         return Stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
-            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs,
+            precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, per_texel=per_texel,
         )
 
     return wrap

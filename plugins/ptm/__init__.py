@@ -28,6 +28,7 @@ FIT_PARAMS = (
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
     params=list(FIT_PARAMS),
+    per_texel=True,
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
