@@ -79,28 +79,43 @@ def _run_band(samples: np.ndarray, stage_name: str, meta: dict, port: str, param
             "notes": ctx.notes}
 
 
-def _join(parts: list[tuple[str, dict, dict]], types: Mapping[str, type[Buffer]]) -> Buffer:
-    """One buffer from the bands' payloads, texel fields concatenated along the rows of the texel grid."""
-    type_name, meta, _ = parts[0]
-    cls = types[type_name]
-    if not issubclass(cls, PerTexel):
-        raise BtforgeInputError(type_name, "is not a per-texel buffer, so bands of it cannot be joined",
-                                "declare the stage per_texel only if its outputs are per-texel buffers")
-    for _, other, _ in parts[1:]:
-        if other != meta:
+class _Joiner:
+    """Assembles one output port from bands of texels as they arrive, in any order: texel fields are copied into
+    their rows of one array (allocated on the first band, filled band by band, so the bands are not held twice);
+    every other field must be the same in every band."""
+
+    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
+        self.types, self.starts, self.height = types, starts, height
+        self.type_name = self.meta = None
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def add(self, band: int, part: tuple[str, dict, dict]) -> None:
+        type_name, meta, arrays = part
+        if self.type_name is None:
+            self.type_name, self.meta = type_name, meta
+            self.cls = self.types[type_name]
+            if not issubclass(self.cls, PerTexel):
+                raise BtforgeInputError(type_name, "is not a per-texel buffer, so bands of it cannot be joined",
+                                        "declare the stage per_texel only if its outputs are per-texel buffers")
+        if meta != self.meta:
             raise BtforgeInputError(type_name, "bands disagree on parameters that are not per-texel",
                                     "a bug in the stage's per_texel declaration")
-    arrays = {}
-    for name in parts[0][2]:
-        pieces = [p[2][name] for p in parts]
-        if name in cls.texel_fields:
-            arrays[name] = np.concatenate(pieces, axis=cls.texel_axis)
-        else:
-            if any(not np.array_equal(pieces[0], p) for p in pieces[1:]):
-                raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
-                                        "a bug in the stage's per_texel declaration")
-            arrays[name] = pieces[0]
-    return cls.from_payload(meta, arrays)
+        axis = self.cls.texel_axis
+        for name, piece in arrays.items():
+            if name not in self.cls.texel_fields:
+                known = self.arrays.setdefault(name, piece)
+                if not np.array_equal(known, piece):
+                    raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
+                                            "a bug in the stage's per_texel declaration")
+                continue
+            if name not in self.arrays:
+                shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
+                self.arrays[name] = np.empty(shape, piece.dtype)
+            index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
+            self.arrays[name][index] = piece
+
+    def buffer(self) -> Buffer:
+        return self.cls.from_payload(self.meta, self.arrays)
 
 
 def run_distributed(scheduler: str, stage, port: str, stack, params: Mapping[str, Any],
@@ -118,9 +133,22 @@ def run_distributed(scheduler: str, stage, port: str, stack, params: Mapping[str
     run = dask.delayed(_run_band, pure=True)
     tasks = [run(block, stage.name, meta, port, dict(params)) for block in blocks]
     graph_tasks = len(dask.delayed(list)(tasks).__dask_graph__())
-    results = dask.compute(*tasks, scheduler=client.get)
-    outputs = {name: _join([r["outputs"][name] for r in results], types) for name in results[0]["outputs"]}
-    moved = sum(sum(a.nbytes for a in r["outputs"][name][2].values()) for r in results for name in r["outputs"])
+    from dask.distributed import as_completed
+    futures = client.compute(tasks)
+    band_of = {future.key: band for band, future in enumerate(futures)}
+    starts = list(np.cumsum([0] + rows[:-1]))
+    joiners: dict[str, _Joiner] = {}
+    moved, band_notes = 0, {}
+    for future, result in as_completed(futures, with_results=True):  # joined as they come: held once
+        band = band_of[future.key]
+        for name, part in result["outputs"].items():
+            joiners.setdefault(name, _Joiner(types, starts, stack.height)).add(band, part)
+            moved += sum(a.nbytes for a in part[2].values())
+        band_notes[band] = result["notes"]
+        del result
+    futures.clear()
+    outputs = {name: joiner.buffer() for name, joiner in joiners.items()}
+    results = [{"notes": band_notes[band]} for band in sorted(band_notes)]
     notes = dict(results[0]["notes"])
     warnings = sorted({w for r in results for w in r["notes"].get("warnings", [])})
     if warnings:
