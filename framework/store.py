@@ -15,14 +15,16 @@ by the digest of its contents (``framework/cache.py``), as it keys files.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
+from .buffers import SampleStack, unit_directions, upper_hemisphere
 from .errors import BtforgeInputError
 
 FORMAT = "btforge.samples"
@@ -106,12 +108,6 @@ def store_summary(path: str | os.PathLike) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------------------------- lazy stacks
-
-import dataclasses  # noqa: E402  (kept beside the class that needs it)
-from typing import ClassVar, Mapping  # noqa: E402
-
-from .buffers import SampleStack, unit_directions, upper_hemisphere  # noqa: E402
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class StoredSampleStack(SampleStack):

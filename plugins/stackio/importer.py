@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.buffers import SampleStack
-from btforge.errors import BtforgeInputError
-from btforge.store import create_store, is_store, open_store, read_samples
+from btforge.store import create_store, open_stored_stack
 
 from .images import CaptureReader
 
@@ -60,17 +59,8 @@ def import_capture(path: str | os.PathLike, store: str | os.PathLike, *, transfe
 
 
 def load_store_stack(path: str | os.PathLike) -> SampleStack:
-    """The stack a store holds, read chunk band by chunk band into one array (no temporary copies)."""
-    array, meta = open_store(path)
-    samples = np.empty(array.shape, array.dtype)
-    step = array.chunks[2]
-    for r0 in range(0, array.shape[2], step):
-        samples[:, :, r0:r0 + step] = read_samples(array, slice(r0, r0 + step))
-    try:
-        return SampleStack(samples, np.asarray(meta["lights"]), np.asarray(meta["views"]), tuple(meta["channels"]),
-                           meta["encoding"], tuple(meta.get("names") or ()))
-    except BtforgeInputError as exc:
-        raise BtforgeInputError(str(path), f"holds a stack btforge refuses: {exc.problem}", exc.hint) from None
+    """The stack a store holds, read into memory one band of chunk rows at a time."""
+    return open_stored_stack(path).in_memory()
 
 
-__all__ = ["import_capture", "load_store_stack", "is_store"]
+__all__ = ["import_capture", "load_store_stack"]
