@@ -195,7 +195,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _unmap_large_blocks() -> None:
+    """Serve allocations of 1 MB and more (bands of samples, temporaries) by their own mappings, returned to the
+    system when freed.  glibc otherwise raises that threshold as large blocks are freed and keeps later ones on
+    its heap, which fragments: a streamed SH fit of a stored BTF peaked 85 MB higher that way."""
+    import ctypes
+    import ctypes.util
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c")).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError, TypeError):  # not glibc: its allocator decides
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    _unmap_large_blocks()
     parser = build_parser()
     args = parser.parse_args(argv)
 
