@@ -68,10 +68,16 @@ __kernel void ptm_project(__global const SAMPLE_T *samples_all, __constant float
     } else {
         for (int k = 0; k < 6; ++k) acc[k] = (float8)(0.f);
     }
-    for (int b = 0; b < n_batch; ++b) {
-        const float8 y = load8(samples + b * sample_stride, lut);
-        __constant float *w = weights_t + (light_offset + b) * 6;
-        for (int k = 0; k < 6; ++k) acc[k] += w[k] * y;
+    __global const SAMPLE_T *row = samples;
+    __constant float *w = weights_t + light_offset * 6;
+    for (int b = 0; b < n_batch; ++b, row += sample_stride, w += 6) {
+        const float8 y = load8(row, lut);
+        acc[0] += w[0] * y;
+        acc[1] += w[1] * y;
+        acc[2] += w[2] * y;
+        acc[3] += w[3] * y;
+        acc[4] += w[4] * y;
+        acc[5] += w[5] * y;
     }
     vstore8((float8)(acc[0].s0, acc[1].s0, acc[2].s0, acc[3].s0, acc[4].s0, acc[5].s0, acc[0].s1, acc[1].s1), 0, o);
     vstore8((float8)(acc[2].s1, acc[3].s1, acc[4].s1, acc[5].s1, acc[0].s2, acc[1].s2, acc[2].s2, acc[3].s2), 1, o);
