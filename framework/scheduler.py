@@ -44,7 +44,12 @@ def client_for(name: str):
                                    dashboard_address=None)
             _clients[name] = Client(cluster)
         else:
-            _clients[name] = Client(name, timeout="20s")
+            try:
+                _clients[name] = Client(name, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise BtforgeInputError(f"--scheduler {name}", f"cannot reach the dask scheduler ({exc})",
+                                        "start one with `dask scheduler` and workers with `dask worker "
+                                        f"{name} --nthreads 1`, or use --scheduler dask for a local cluster") from None
     return _clients[name]
 
 
@@ -149,12 +154,12 @@ def run_distributed(scheduler: str, stage, port: str, stack, params: Mapping[str
     futures.clear()
     outputs = {name: joiner.buffer() for name, joiner in joiners.items()}
     results = [{"notes": band_notes[band]} for band in sorted(band_notes)]
-    notes = dict(results[0]["notes"])
+    notes = {"scheduler": scheduler, "tasks": graph_tasks, "bands": len(tasks),
+             "workers": len(client.scheduler_info()["workers"]), "bytes_to_client": int(moved)}
+    notes.update(results[0]["notes"])
     warnings = sorted({w for r in results for w in r["notes"].get("warnings", [])})
     if warnings:
         notes["warnings"] = warnings
-    notes.update({"scheduler": scheduler, "tasks": graph_tasks, "bands": len(tasks),
-                  "workers": len(client.scheduler_info()["workers"]), "bytes_to_client": int(moved)})
     if len(results) > 1:
         notes["notes_from"] = "the first band of texels (each band reports its own)"
     return outputs, notes

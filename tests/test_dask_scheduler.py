@@ -41,3 +41,16 @@ def test_dask_run_equals_the_single_process_run(tmp_path, cluster_run, monkeypat
 def test_unknown_scheduler_is_a_clear_error(tmp_path):
     with pytest.raises(BtforgeInputError, match="local, dask or tcp://HOST:PORT"):
         btforge.run({"nodes": {"m": {"stage": "demo.material"}}}, out_dir=tmp_path, scheduler="dusk")
+
+
+def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
+    import btforge.scheduler
+    monkeypatch.setattr(btforge.scheduler, "_clients", {})
+
+    def refuse(address, timeout):
+        raise OSError(f"Timed out trying to connect to {address}")
+    import dask.distributed
+    monkeypatch.setattr(dask.distributed, "Client", refuse)
+    with pytest.raises(BtforgeInputError, match="cannot reach the dask scheduler") as info:
+        btforge.scheduler.client_for("tcp://127.0.0.1:9")
+    assert "dask worker tcp://127.0.0.1:9 --nthreads 1" in info.value.hint
