@@ -40,7 +40,8 @@ def stack_read(ctx, *, path, transfer):
 
     Light directions are normalised; one a hair below the horizon (within 1 degree) is clamped with a warning;
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
-    8-bit in memory (decoded to linear on use), a quarter of the float size.
+    8-bit in memory (decoded to linear on use), a quarter of the float size.  A store made by ``stack.import``
+    is opened lazily: its samples are read band by band as stages need them.
     """
     from btforge.store import is_store, open_stored_stack
 
@@ -159,7 +160,8 @@ def stack_import(ctx, *, path, store, block, transfer):
     Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
     them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
     store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  The output
-    is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info NAME.zarr`` describes a store.
+    is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info
+    NAME.zarr`` describes a store.
     """
     from btforge.store import open_stored_stack
 
@@ -195,8 +197,8 @@ def stack_select(ctx, stack, *, views, lights):
 
     Use it to fit a single-view representation (a PTM) to one view of a BTF, or to hold lights out.  A name
     is matched exactly against the image names, or as angles (``tl45_pl120``, ``tv30_pv90``, in degrees) to the
-    direction within 0.75 degrees (whole-degree names); unknown or ambiguous names and out-of-range indices are all reported at
-    once.
+    direction within 0.75 degrees (names round to whole degrees); unknown or ambiguous names and out-of-range
+    indices are all reported at once.
     """
     from .select import check_selection, select
     for name, value in (("views", views), ("lights", lights)):
