@@ -83,9 +83,9 @@ def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
     """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``
     in the memory of the coefficients alone.
 
-    The fit is linear in the samples, so each batch of decoded images (about 16 MB) is projected onto the light
-    set's pseudo-inverse on OpenCL and added onto the sums of the lights before it, in light order; the images
-    are then dropped.  Images decode two at a time (simplejpeg for JPEG where installed, else Pillow).  The
+    The fit is linear in the samples, so images are decoded into two 8 MB batches in turn: while one decodes,
+    the other is projected onto the light set's pseudo-inverse on OpenCL and added onto the sums of the lights
+    before it, in light order.  Images decode two at a time (simplejpeg for JPEG where installed, else Pillow).  The
     model equals ``ptm.fit`` of ``stack.read`` with the same parameters (the same regularised estimator; for
     rgb the same float operations in the same order).  For a 1024 x 1024, 49-light JPEG capture the whole
     process peaks near the size of the coefficients plus the interpreter (README, Benchmarks).

@@ -340,21 +340,32 @@ class PTMProjection:
         flags = backend.cl.mem_flags
         self._sums = backend.cl.Buffer(backend.context, flags.READ_WRITE | flags.USE_HOST_PTR, hostbuf=self.sums)
 
-    def add(self, samples: np.ndarray, texel_offset: int = 0) -> None:
+    def add(self, samples: np.ndarray, texel_offset: int = 0, *, wait: bool = True):
         """Add the next lights' ``samples [B, T, C]`` (uint8 or float32, C-contiguous); texels
-        ``texel_offset .. texel_offset + n_texel`` of them are this projection's."""
+        ``texel_offset .. texel_offset + n_texel`` of them are this projection's.
+
+        With ``wait=False`` the kernel is only queued: ``samples`` must then stay untouched until the returned
+        :meth:`done` callable has been called (launches run in order, so sums still add up in light order).
+        """
         backend = self._backend
         options = (f"-DSAMPLE_T={'uchar' if samples.dtype == np.uint8 else 'float'}",) + (
             ("-DUSE_LUT",) if self.lut is not None else ())
         kernel = backend.kernel(KERNELS, "ptm_project", options)
         n_batch, n_sample_texel, n_channel = samples.shape
         n_element = self.n_texel * n_channel
-        backend.run(kernel, (-(-n_element // 8),), backend.host_input(samples), self._lut, self._weights,
-                    np.int32(n_batch), np.int32(self.lights_added), np.int64(n_sample_texel * n_channel),
-                    np.int64(texel_offset * n_channel), np.int64(n_element), np.int32(self.lights_added > 0),
-                    self._sums)
-        backend.queue.finish()
+        device_samples = backend.host_input(samples)
+        kernel.set_args(device_samples, self._lut, self._weights, np.int32(n_batch), np.int32(self.lights_added),
+                        np.int64(n_sample_texel * n_channel), np.int64(texel_offset * n_channel),
+                        np.int64(n_element), np.int32(self.lights_added > 0), self._sums)
+        event = backend.cl.enqueue_nd_range_kernel(backend.queue, kernel, (-(-n_element // 8),), None)
         self.lights_added += n_batch
+
+        def done() -> None:
+            event.wait()
+            device_samples.release()
+        if wait:
+            done()
+        return done
 
     def finish(self) -> tuple[np.ndarray, np.ndarray]:
         if self.lights_added != self.solver.solve.shape[1]:
@@ -442,9 +453,9 @@ def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, tr
                     threads: int = 2) -> tuple[PTMModel, PTMSolve]:
     """The PTM fit of a capture's light file, accumulated as its images decode: the capture is never held whole.
 
-    Images are decoded ``threads`` at a time into a batch of about ``batch_bytes`` and projected onto the
-    pseudo-inverse (kernel ``ptm_project``), the batch adding onto the sums of the lights before it, in light
-    order.  The result is the one of ``fit_ptm(load_stack(light_file))``: the same regularised estimator and,
+    Images are decoded ``threads`` at a time into one of two batches of about ``batch_bytes / 2`` while the
+    kernel (``ptm_project``) projects the other onto the pseudo-inverse, each batch adding onto the sums of the
+    lights before it, in light order.  The result is the one of ``fit_ptm(load_stack(light_file))``: the same regularised estimator and,
     for rgb, the same float operations in the same order.  Peak memory is the coefficients plus one batch.
     """
     from btforge.plugins.stackio.images import CaptureReader
@@ -461,15 +472,23 @@ def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, tr
     probe = SampleStack(np.zeros((1, 1, 1, 1, c), reader.dtype), reader.lights[:1], reader.views, reader.channels,
                         reader.encoding)
     lut, byte_scale, convert = _kernel_input(probe, space)
-    batch_size = max(1, min(reader.n_light, batch_bytes // max(1, h * w * c * reader.dtype.itemsize)))
-    batch = np.empty((batch_size, h * w, c), reader.dtype)
+    # Two half-size batches: the images of one decode while the kernel sums the other.
+    batch_size = max(1, min(reader.n_light, batch_bytes // 2 // max(1, h * w * c * reader.dtype.itemsize)))
+    batches = [np.empty((batch_size, h * w, c), reader.dtype) for _ in range(2)]
+    pending: list = [None, None]
     projection = PTMProjection(h * w, c, variant, solver, lut, byte_scale=byte_scale)
-    for start in range(0, reader.n_light, batch_size):
+    for index, start in enumerate(range(0, reader.n_light, batch_size)):
         lights = range(start, min(reader.n_light, start + batch_size))
-        part = batch[:len(lights)]
+        slot = index % 2
+        if pending[slot] is not None:
+            pending[slot]()  # the kernel that read this batch has finished
+        part = batches[slot][:len(lights)]
         reader.read_into([(0, light) for light in lights], part.reshape(len(lights), h, w, c), threads=threads)
-        projection.add(np.ascontiguousarray(convert(part)) if convert else part)
-    del batch, part
+        pending[slot] = projection.add(np.ascontiguousarray(convert(part)) if convert else part, wait=False)
+    for done in pending:
+        if done is not None:
+            done()
+    del batches, part
     coeffs, albedo = projection.finish()
     model = PTMModel(coeffs.reshape(h, w, coeffs.shape[1], N_TERMS), albedo.reshape(h, w, albedo.shape[1]),
                      variant, space, reader.channels)
