@@ -60,7 +60,8 @@ def check_array(
                     ok = False
     if not ok:
         raise BtforgeInputError(what, f"'{name}' must be {want}, got {got}")
-    if finite and value.dtype.kind == "f" and not np.isfinite(value).all():
+    # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the array
+    if finite and value.dtype.kind == "f" and value.size and not (np.isfinite(value.min()) and np.isfinite(value.max())):
         bad = int((~np.isfinite(value)).sum())
         raise BtforgeInputError(what, f"'{name}' must be finite, found {bad} NaN/Inf values",
                                 "mask or repair the bad samples before building the buffer")
@@ -336,6 +337,9 @@ class SampleStack(PerTexel):
     type_name: ClassVar[str] = "SampleStack"
     texel_fields: ClassVar[tuple[str, ...]] = ("samples",)
     texel_axis: ClassVar[int] = 2
+    # True for a stack read lazily from a chunked store (btforge.store.StoredSampleStack): stages then read it by
+    # row bands (linear, row_bands, take) instead of holding ``samples`` whole.
+    chunked: ClassVar[bool] = False
 
     samples: np.ndarray
     lights: np.ndarray
@@ -352,7 +356,7 @@ class SampleStack(PerTexel):
         if isinstance(samples, np.ndarray) and samples.ndim == 4:
             samples = samples[None]
         check_array("samples", samples, ("V", "L", "H", "W", "C"), dtype, owner="SampleStack")
-        if self.encoding == "linear" and not np.isfinite(samples).all():
+        if self.encoding == "linear" and samples.size and not (np.isfinite(samples.min()) and np.isfinite(samples.max())):
             v, l, y, x, c = np.argwhere(~np.isfinite(samples))[0]
             where = f"light {l}" + (f" ({self.names[l]})" if l < len(self.names) else "")
             raise BtforgeInputError(
@@ -392,6 +396,14 @@ class SampleStack(PerTexel):
         if self.encoding == "linear":
             return band
         return SRGB8_TO_LINEAR[band]
+
+    def take(self, views, lights, rows: slice = slice(None)) -> np.ndarray:
+        """The stored samples ``[v, l, h, W, C]`` of the given view and light indices (and rows), a new array."""
+        return self.samples[:, :, rows][np.ix_(np.asarray(views, int), np.asarray(lights, int))]
+
+    def in_memory(self) -> "SampleStack":
+        """This stack with its samples in one array (itself, unless it is read from a store)."""
+        return self
 
     def image(self, view: int, light: int) -> np.ndarray:
         """Linear float32 radiance ``[H, W, C]`` of one view and light."""

@@ -63,7 +63,8 @@ def remember_digest(path: Path, digest: str, memo: Path) -> None:
 
 
 def file_digest(path: Path, memo: Path | None = None) -> str | None:
-    """BLAKE2 digest of a file's contents (of a folder: its sorted entry names), None if it does not exist.
+    """BLAKE2 digest of a file's contents (of a zarr store folder: of every file in it; of another folder: its
+    sorted entry names), None if it does not exist.
 
     With ``memo`` (a folder), digests are remembered per (path, size, inode, mtime, ctime) and reused.
     """
@@ -72,6 +73,9 @@ def file_digest(path: Path, memo: Path | None = None) -> str | None:
     except FileNotFoundError:
         return None
     if path.is_dir():
+        if (path / "zarr.json").is_file():  # a chunked store: keyed by its contents, chunk by chunk
+            files = sorted(p for p in path.rglob("*") if p.is_file())
+            return _hash("\n".join(f"{p.relative_to(path)} {file_digest(p, memo)}" for p in files))
         return _hash("\n".join(sorted(os.listdir(path))))
     memo_file = None
     if memo is not None:

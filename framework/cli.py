@@ -43,7 +43,7 @@ def _print_report(result, stream) -> None:
 def cmd_run(args) -> int:
     from .runner import run
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
-                 use_cache=not args.no_cache, quiet=False, report_path=args.report)
+                 use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)
     _print_report(result, sys.stderr)
     if args.profile:
         from .profile import format_profile
@@ -175,6 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the node cache")
     p.add_argument("--profile", action="store_true", help="print where the process spent its time: interpreter and "
                    "imports, plugins, device start, kernel builds (cached or not), each node")
+    p.add_argument("--scheduler", default="local", metavar="local|dask|tcp://HOST:PORT",
+                   help="where per-texel stages on stored stacks run: this process (default), a 2-worker local "
+                        "dask cluster, or a running dask scheduler")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("validate", help="check a graph without running it")
@@ -213,12 +216,31 @@ def _add_plugin_commands(sub) -> None:
         p.set_defaults(func=run_command)
 
 
+def _unmap_large_blocks() -> None:
+    """Serve allocations of 1 MB and more (bands of samples, temporaries) by their own mappings, returned to the
+    system when freed.  glibc otherwise raises that threshold as large blocks are freed and keeps later ones on
+    its heap, which fragments: a streamed SH fit of a stored BTF peaked 85 MB higher that way."""
+    import ctypes
+    import ctypes.util
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c")).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError, TypeError):  # not glibc: its allocator decides
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     from .profile import record_phase, seconds_since_process_start
     started = seconds_since_process_start()
     if started is not None:
         record_phase("interpreter_and_imports_s", started)
-    parser = build_parser()
+    _unmap_large_blocks()
+    try:
+        parser = build_parser()  # loads the plugins (their commands are subcommands): a bad plugin stops here
+    except BtforgeInputError as exc:
+        if argv is not None and "--debug" in argv or argv is None and "--debug" in sys.argv[1:]:
+            raise
+        print(f"error: {exc.render()}", file=sys.stderr)
+        return exc.exit_code
     args = parser.parse_args(argv)
 
     def show_warning(message, category, filename, lineno, file=None, line=None):

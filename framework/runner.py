@@ -105,7 +105,7 @@ class _Deferred:
 
 def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry: Registry | None = None,
                 out_dir: Path | None = None, cache_dir: Path | None = None, use_cache: bool = True,
-                quiet: bool = False) -> RunResult:
+                quiet: bool = False, scheduler: str = "local") -> RunResult:
     registry = registry or default_registry()
     paths = RunPaths(graph.spec.graph_dir, Path(out_dir) if out_dir else DEFAULT_OUT)
     cache = NodeCache(cache_dir or default_cache_root() / "nodes")
@@ -132,12 +132,13 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         elif cacheable and not st.cache_outputs:  # cheaper to recompute than to store: run only if data is needed
             sources = {port: values[src][src_port] for port, (src, src_port) in wired.items()}
             run_node = functools.cache(lambda name=name, sources=sources: _evaluate(
-                graph, name, {p: _materialize(sources, p) for p in sources}, paths, reports[name], registry, quiet))
+                graph, name, {p: _materialize(sources, p) for p in sources}, paths, reports[name], registry, quiet,
+                scheduler))
             values[name] = {port: _Deferred(run_node, key, port) for port in st.outputs}
             report.status = "deferred"
         else:
             inputs = {port: _materialize(values[src], src_port) for port, (src, src_port) in wired.items()}
-            values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet)
+            values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet, scheduler)
             if cacheable:
                 started = time.perf_counter()
                 cache.store(key, values[name], report.notes)
@@ -175,14 +176,14 @@ def _node_key(graph: CheckedGraph, name: str, values: Mapping[str, Mapping[str, 
 
 
 def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], paths: RunPaths, report: NodeReport,
-              registry: Registry, quiet: bool) -> dict[str, Buffer]:
+              registry: Registry, quiet: bool, scheduler: str = "local") -> dict[str, Buffer]:
     """Run one node's stage; fill its report (time, peak memory, notes and every warning raised meanwhile)."""
     st = graph.stages[name]
     ctx = StageContext(node=name, paths=paths, quiet=quiet)
     start = time.perf_counter()
     with _PeakMemory() as mem, collect_warnings() as raised:
         try:
-            outputs = st.fn(ctx, **inputs, **graph.params[name])
+            outputs = _execute(st, ctx, inputs, graph.params[name], scheduler, registry)
         except BtforgeInputError as exc:
             raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
         except BtforgeError:
@@ -221,6 +222,20 @@ def _cached_manifest(cache: NodeCache, key: str, name: str, st) -> dict[str, Any
         return None
 
 
+def _execute(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[str, Any], scheduler: str,
+             registry: Registry):
+    """Run one node: in this process, or - a per-texel stage on a stored stack with a distributed scheduler -
+    as dask tasks over bands of texels (``framework/scheduler.py``)."""
+    if scheduler != "local":
+        from .scheduler import distributable, run_distributed
+        port = distributable(st, params, inputs)
+        if port is not None:
+            outputs, notes = run_distributed(scheduler, st, port, inputs[port], params, registry.types)
+            ctx.notes.update(notes)
+            return outputs
+    return st.fn(ctx, **inputs, **params)
+
+
 def _key_of(value: Any) -> str:
     return value.content_key
 
@@ -245,7 +260,7 @@ def _check_outputs(name: str, st, outputs: Mapping[str, Any], inputs: Mapping[st
 def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = None, *,
         out_dir: str | os.PathLike | None = None, cache_dir: str | os.PathLike | None = None,
         use_cache: bool = True, quiet: bool = True, registry: Registry | None = None,
-        report_path: str | os.PathLike | None = None) -> RunResult:
+        report_path: str | os.PathLike | None = None, scheduler: str = "local") -> RunResult:
     """Check and run a graph (a YAML path or a mapping); return the outputs of the requested nodes.
 
     Parameters
@@ -258,15 +273,22 @@ def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = No
         Parameter overrides ``{"node.param": value}``.
     out_dir, cache_dir
         Where output paths resolve (default: ``out`` in the current folder) and where node outputs are cached.
+    scheduler
+        ``local`` (this process), ``dask`` (a 2-worker LocalCluster) or ``tcp://HOST:PORT`` (a running dask
+        scheduler): where per-texel stages on stored stacks run.  Results do not depend on it.
     """
     registry = registry or default_registry()
     start = time.perf_counter()
+    if scheduler != "local":
+        from .scheduler import check_scheduler
+        check_scheduler(scheduler)
     spec = load_graph(graph, set)
     out = Path(out_dir) if out_dir else DEFAULT_OUT
     checked = check_graph(spec, registry, out)
     profile.record_phase("graph_check_s", time.perf_counter() - start)
     result = run_checked(checked, only=list(only) if only else None, registry=registry, out_dir=out,
-                         cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet)
+                         cache_dir=Path(cache_dir) if cache_dir else None, use_cache=use_cache, quiet=quiet,
+                         scheduler=scheduler)
     result.startup = profile.startup()
     process_s = profile.seconds_since_process_start()
     if process_s is not None:

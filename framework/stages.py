@@ -156,6 +156,12 @@ class Stage:
     role: str = ""
     sweep: tuple[Mapping[str, Any], ...] = ()
     cache_outputs: bool = True
+    per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
+
+    def is_per_texel(self, params: Mapping[str, Any]) -> bool:
+        """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
+        run on blocks of texels anywhere and the blocks be joined: ``--scheduler dask``)."""
+        return bool(self.per_texel(params) if callable(self.per_texel) else self.per_texel)
 
     @property
     def doc(self) -> str:
@@ -224,6 +230,7 @@ def declare_stage(
     role: str = "",
     sweep: Sequence[Mapping[str, Any]] = (),
     cache_outputs: bool = True,
+    per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -245,6 +252,8 @@ def declare_stage(
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
     has one port per material its scene names); the function then takes them as ``**kwargs``.
+    ``per_texel`` (or ``per_texel(params) -> bool``) declares that each texel's outputs depend only on that
+    texel's inputs, so a distributed scheduler may run the stage on blocks of texels and join the results.
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -260,7 +269,7 @@ def declare_stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
-            sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs,
+            sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
         )
 
     return wrap

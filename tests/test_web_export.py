@@ -1,4 +1,4 @@
-"""relight's web layout (model.export_web, ptm.read / model.read of info.json) and HSH .rti files."""
+"""relight's web layout (model.export_web, ptm.read / web.read of info.json) and HSH .rti files."""
 from __future__ import annotations
 
 import json
@@ -40,7 +40,7 @@ def display_psnr(a: SampleStack, b: SampleStack) -> float:
     return float(10 * np.log10(1.0 / max(np.mean((x - y) ** 2), 1e-20)))
 
 
-def round_trip(model, tmp_path, reader="model.read"):
+def round_trip(model, tmp_path, reader="web.read"):
     btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "web"))
     again = btforge.stage(reader)(path=str(tmp_path / "web" / "info.json"))["model"]
     relight = btforge.stage("relight")
@@ -96,7 +96,7 @@ def test_hsh_rti_and_web_round_trip(tmp_path):
     coeffs[..., 0] += 1.0
     model = HSHModel(coeffs)
     write_rti(tmp_path / "m.rti", model)
-    back = btforge.stage("model.read")(path=str(tmp_path / "m.rti"))["model"]
+    back = btforge.stage("web.read")(path=str(tmp_path / "m.rti"))["model"]
     step = (coeffs.max(axis=(0, 1, 2)) - coeffs.min(axis=(0, 1, 2))) / 510
     assert np.all(np.abs(back.coeffs - coeffs) <= step + 1e-6)
     before, after, again = round_trip(model, tmp_path)
@@ -118,7 +118,7 @@ def test_bad_layouts_are_named(tmp_path):
         read_web(tmp_path / "w")
     sh_dir = tmp_path / "sh"
     write_web(HSHModel(np.ones((2, 2, 3, 4), np.float32)), sh_dir)
-    with pytest.raises(BtforgeInputError, match="model.read"):
+    with pytest.raises(BtforgeInputError, match="web.read"):
         btforge.stage("ptm.read").precheck({"path": str(sh_dir / "info.json")},
                                            btforge.stages.RunPaths(tmp_path, tmp_path))
 

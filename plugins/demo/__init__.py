@@ -48,14 +48,21 @@ def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shado
         Param("shininess", "float", 40.0, "Blinn-Phong exponent of the glossy lobe", low=1.0, high=10000.0),
         Param("bump_height", "float", 3.0, "bump height in texel widths", low=0.0),
         Param("seed", "int", 0, "random seed of the material"),
+        Param("store", "outpath", "", "render chunk by chunk into this zarr store (8-bit sRGB, like a measured BTF) "
+              "instead of memory; '' keeps the linear float32 stack in memory"),
+        Param("block", "ints", (32, 32), "texels per chunk [rows, columns] of the store", length=2, low=1, high=4096),
     ],
+    side_effects=True,  # with a store it writes one; without, rendering is as cheap as reading a cache entry
 )
-def demo_btf(ctx, *, size, lights, views, specular, shininess, bump_height, seed):
-    """Render a procedural glossy material under many lights and views: a small synthetic BTF.
+def demo_btf(ctx, *, size, lights, views, specular, shininess, bump_height, seed, store, block):
+    """Render a procedural glossy material under many lights and views: a synthetic BTF.
 
     Each texel reflects ``albedo + specular * max(0, n.h)^shininess`` times ``max(0, n.l)``, with h the half
     vector of light and view, and cast shadows from the height field (the OpenCL renderer of
-    ``demo.material``).  Views share one light set, as in measured BTFs; parallax is not simulated.
+    ``demo.material``).  Views share one light set, as in measured BTFs; parallax is not simulated.  With
+    ``store``, the BTF is rendered one chunk (all views and lights of a block of texels) at a time into a zarr
+    store and returned read lazily from it, so a BTF far larger than memory can be made (256 x 256 x 81 x 81 is
+    1.29 GB as 8-bit).
     """
     from .procedural import hemisphere_lights, make_material, render_lights
     material = make_material(size[0], size[1], bump_height=bump_height, seed=seed)
@@ -65,10 +72,30 @@ def demo_btf(ctx, *, size, lights, views, specular, shininess, bump_height, seed
     lit = render_lights(white, light_dirs)[..., 0]                       # max(0, n.l) x visibility, [L, H, W]
     half = light_dirs[None, :, :] + view_dirs[:, None, :]
     half /= np.linalg.norm(half, axis=2, keepdims=True)                    # [V, L, 3]
-    n_dot_h = np.clip(np.einsum("hwc,vlc->vlhw", material.normals, half), 0.0, 1.0)
-    glossy = specular * n_dot_h ** shininess                               # [V, L, H, W]
-    radiance = lit[None, :, :, :, None] * (material.albedo[None, None] + glossy[..., None])
-    return {"stack": SampleStack(radiance.astype(np.float32), light_dirs, view_dirs)}
+
+    def radiance(rows: slice, cols: slice, views: slice = slice(None)) -> np.ndarray:   # [v, L, h, w, 3] float32
+        n_dot_h = np.clip(np.einsum("hwc,vlc->vlhw", material.normals[rows, cols], half[views]), 0.0, 1.0)
+        glossy = specular * n_dot_h ** shininess
+        band = lit[None, :, rows, cols, None] * (material.albedo[None, None, rows, cols] + glossy[..., None])
+        return band.astype(np.float32)
+
+    if not store:
+        return {"stack": SampleStack(radiance(slice(None), slice(None)), light_dirs, view_dirs)}
+    from btforge.buffers import linear_to_srgb8
+    from btforge.store import create_store, open_stored_stack
+    target = ctx.paths.output(store)
+    array = create_store(target, (views, lights, size[0], size[1], 3), np.uint8, lights=light_dirs, views=view_dirs,
+                         channels=("R", "G", "B"), encoding="srgb8", block=block)
+    step_r, step_c = array.chunks[2], array.chunks[3]
+    for r0 in range(0, size[0], step_r):
+        for c0 in range(0, size[1], step_c):
+            rows, cols = slice(r0, r0 + step_r), slice(c0, c0 + step_c)
+            chunk = np.empty((views, lights) + material.normals[rows, cols].shape, np.uint8)
+            for v in range(views):  # one view at a time: the float working set stays a few MB
+                chunk[v:v + 1] = linear_to_srgb8(radiance(rows, cols, slice(v, v + 1)))
+            array[:, :, rows, cols] = chunk
+    ctx.note("written", str(target))
+    return {"stack": open_stored_stack(target)}
 
 
 @hookimpl

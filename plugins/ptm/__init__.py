@@ -6,11 +6,25 @@ from pathlib import Path
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
+from btforge.plugins.stackio import light_file_precheck
+
 from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
+
+FIT_PARAMS = (
+    Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
+          choices=("rgb", "lrgb")),
+    Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
+          ".ptm files hold; auto: for an 8-bit capture the one that predicts held-out lights of a sample of "
+          "texels better, linear otherwise", choices=("auto", "linear", "srgb")),
+    Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
+          "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
+    Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
+          "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
+)
 
 
 @declare_stage(
@@ -19,25 +33,17 @@ POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noi
     sweep=[{"variant": v} for v in ("lrgb", "rgb")],
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
-    params=[
-        Param("variant", "choice", "rgb", "rgb: 6 coefficients per channel; lrgb: 6 luminance coefficients + a colour",
-              choices=("rgb", "lrgb")),
-        Param("space", "choice", "auto", "what the polynomial fits: linear radiance, or sRGB display values as "
-              ".ptm files hold; auto: for an 8-bit capture the one that predicts held-out lights of a sample of "
-              "texels better, linear otherwise",
-              choices=("auto", "linear", "srgb")),
-        Param("basis", "choice", "raw", "raw: the PTM terms (lu^2, lv^2, lu*lv, lu, lv, 1); orthonormal: 2D Legendre "
-              "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
-        Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
-              "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
-    ],
+    params=list(FIT_PARAMS),
+    # auto judges its space on a sample of the whole stack; a band alone could choose another
+    per_texel=lambda params: params["space"] != "auto",
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
-    matrix.  The kernel reads an 8-bit capture in place (decoding bytes through a table) and writes straight
-    into the result, so memory stays near the stack plus its coefficients.  A light set whose
+    matrix.  The kernel reads an 8-bit capture in place (bytes as numbers for display values, through a table
+    for linear radiance) and writes straight into the result, so memory stays near the stack plus its
+    coefficients; ``ptm.fit_capture`` fits while reading, without the stack.  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
     singular values (the minimum-norm solution), with a warning naming the condition number.
 
@@ -47,7 +53,10 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
         ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
     """
     model, solver = fit_ptm(stack, variant, space, rcond=rcond)
-    model = model.with_basis(basis)
+    return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
+
+
+def _report_fit(ctx, model, solver, rcond):
     ctx.note("condition_number", round(solver.condition_number, 3))
     ctx.note("space", model.space)
     if solver.clamped:
@@ -57,7 +66,41 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     elif solver.condition_number > POOR_CONDITION:
         ctx.warn(f"light directions are poorly conditioned for a PTM (condition number {solver.condition_number:.3g}): "
                  "noise in the samples is amplified up to that factor; lights at more elevations would help")
-    return {"model": model}
+    return model
+
+
+def _capture_precheck(params, paths):
+    from btforge.store import is_store
+    if is_store(paths.input(params["path"])):
+        raise BtforgeInputError(f"param 'path' ({params['path']})", "is a chunked store, not a light file",
+                                "read a store with stack.read and fit it with ptm.fit")
+    return light_file_precheck(params, paths)
+
+
+@declare_stage(
+    "ptm.fit_capture",
+    outputs={"model": "PTMModel"},
+    params=[Param("path", "path", REQUIRED, "the capture's .lp light file (a single view)"),
+            Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+                  choices=("auto", "srgb", "linear")),
+            *FIT_PARAMS],
+    precheck=_capture_precheck,
+)
+def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
+    """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``
+    in the memory of the coefficients alone.
+
+    The fit is linear in the samples, so images are decoded into two 8 MB batches in turn: while one decodes,
+    the other is projected onto the light set's pseudo-inverse on OpenCL and added onto the sums of the lights
+    before it, in light order.  Images decode two at a time (simplejpeg for JPEG where installed, else Pillow).  The
+    model equals ``ptm.fit`` of ``stack.read`` with the same parameters (the same regularised estimator; for
+    rgb the same float operations in the same order).  For a 1024 x 1024, 49-light JPEG capture the whole
+    process peaks near the size of the coefficients plus the interpreter (README, Benchmarks).
+    """
+    from .model import fit_ptm_capture
+    model, solver = fit_ptm_capture(ctx.paths.input(path), variant, space, transfer=transfer, rcond=rcond)
+    ctx.note("lights", int(solver.solve.shape[1]))
+    return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
 
 
 @declare_stage("ptm.basis", inputs={"model": "PTMModel"}, outputs={"model": "PTMModel"},
@@ -82,7 +125,7 @@ def _ptm_file_precheck(params, paths):
         info = read_info(path)
         if info["type"] != "ptm":
             raise BtforgeInputError(str(path), f"holds a {info['type']} model, not a PTM",
-                                    "read it with stage model.read")
+                                    "read it with stage web.read")
         folder = Path(info["_folder"])
         return [folder / "info.json"] + sorted(folder.glob(f"plane_*.{info.get('format', 'jpg')}"))
     describe_ptm(path)
@@ -150,7 +193,7 @@ def _describe_ptm(path):
 
 @hookimpl
 def btforge_stages():
-    return [ptm_fit, ptm_basis, ptm_read, ptm_write]
+    return [ptm_fit, ptm_fit_capture, ptm_basis, ptm_read, ptm_write]
 
 
 @hookimpl
@@ -166,4 +209,5 @@ def btforge_info_readers():
 @hookimpl
 def btforge_bench_commands():
     from .bench import bench_ptm
-    return {"ptm": bench_ptm}
+    from .bench_stream import bench_ptm_stream
+    return {"ptm": bench_ptm, "ptm-stream": bench_ptm_stream}

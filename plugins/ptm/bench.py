@@ -45,7 +45,7 @@ def _child_read_fit(lp: str, variant: str) -> dict:
     from btforge.backend import get_backend
     from btforge.plugins.stackio.images import load_stack
 
-    get_backend().kernel(ptm_model.KERNELS, "ptm_fit", ("-DSAMPLE_T=uchar", "-DUSE_LUT"))  # compile outside the timing
+    get_backend().kernel(ptm_model.KERNELS, "ptm_project", ("-DSAMPLE_T=uchar",))  # compile outside the timing
     baseline = peak_rss_mb()
     start = time.perf_counter()
     stack = load_stack(Path(lp))

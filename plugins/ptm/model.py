@@ -269,12 +269,23 @@ def held_out_space(stack: SampleStack, predict) -> str:
         return "linear"
     if stack.n_light < AUTO_MIN_LIGHTS:
         return "srgb"
-    step = max(1, math.ceil(math.sqrt(stack.height * stack.width / AUTO_TEXELS)))
-    grid = stack.samples[:, :, ::step, ::step]
-    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
-    fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels, "srgb8")
+    step = auto_grid_step(stack.height, stack.width)
+    return space_from_grid(np.ascontiguousarray(stack.samples[:, :, ::step, ::step]), stack, predict)
+
+
+def auto_grid_step(height: int, width: int) -> int:
+    """The stride of the texel grid ``auto`` judges on: at most about ``AUTO_TEXELS`` texels."""
+    return max(1, math.ceil(math.sqrt(height * width / AUTO_TEXELS)))
+
+
+def space_from_grid(grid: np.ndarray, like: SampleStack, predict) -> str:
+    """:func:`held_out_space` on 8-bit samples ``[V, L, h, w, C]`` of a texel grid (lights, views and channels
+    those of ``like``): whoever read the grid - a whole stack, or a pass over a capture's images - gets the
+    same answer."""
+    held = np.arange(like.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
+    fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), like.lights[~held], like.views, like.channels, "srgb8")
     target = grid[:, held].astype(np.float64) / 255.0
-    errors = {space: float(np.mean((linear_to_srgb(predict(fit, space, stack.lights[held], stack.views)) - target) ** 2))
+    errors = {space: float(np.mean((linear_to_srgb(predict(fit, space, like.lights[held], like.views)) - target) ** 2))
               for space in ("srgb", "linear")}
     return min(errors, key=errors.get)
 
@@ -290,19 +301,22 @@ def resolve_space(stack: SampleStack, space: str, predict=None) -> str:
 
 
 def _kernel_input(stack: SampleStack, space: str):
-    """The samples as ``[L, H*W, C]`` (a view of the stack), the byte-decoding table, and a converter if needed.
+    """How the kernel reads the samples: ``(lut, byte_scale, convert)``.
 
-    Bytes are decoded by a 256-entry table inside the kernel (identity/255 for display space, the sRGB curve
-    for linear space), so an 8-bit capture is fitted in place.  Only a linear stack fitted in display space
-    needs its values converted, band by band.
+    An 8-bit capture is fitted in place: in display space its bytes are numbers scaled by ``byte_scale = 1 / 255``
+    (folded into the weights), in linear space they are decoded by a 256-entry table (``lut``) inside the kernel.
+    Only a linear stack fitted in display space needs its values converted, band by band.
     """
-    samples = stack.samples[0].reshape(stack.n_light, stack.height * stack.width, stack.n_channel)
     if stack.encoding == "srgb8":
-        lut = (np.arange(256, dtype=np.float32) / 255.0) if space == "srgb" else SRGB8_TO_LINEAR
-        return samples, np.ascontiguousarray(lut, np.float32), None
+        if space == "srgb":
+            return None, 1.0 / 255.0, None
+        return np.ascontiguousarray(SRGB8_TO_LINEAR, np.float32), 1.0, None
     if space == "linear":
-        return samples, None, None
-    return samples, None, lambda band: linear_to_srgb(band).astype(np.float32)
+        return None, 1.0, None
+    return None, 1.0, lambda band: linear_to_srgb(band).astype(np.float32)
+
+
+BYTE_LEVELS = (np.arange(256, dtype=np.float32) / 255.0)
 
 
 def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str):
@@ -324,27 +338,130 @@ def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve,
     return coeffs.astype(np.float32), albedo.astype(np.float32)
 
 
-def fit_ptm_opencl(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, variant: str,
-                   coeffs: np.ndarray, albedo: np.ndarray) -> None:
-    """Fit ``samples [L, N, C]`` into the preallocated ``coeffs [N, K, 6]`` and ``albedo [N, C or 0]``.
+def project_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve, light_offset: int = 0) -> np.ndarray:
+    """Twin of kernel ``ptm_project``: ``samples [B, N, C]`` of lights ``light_offset ..`` -> ``[N, C, 6]`` float32,
+    the projections ``sum_l solve[k, l] * y[l, n, c]``."""
+    values = (lut[samples] if lut is not None else samples).astype(np.float64)
+    solve = solver.solve[:, light_offset:light_offset + len(samples)].astype(np.float64)
+    return np.einsum("kl,lnc->nck", solve, values).astype(np.float32)
 
-    Inputs and outputs are handed to the device without copies where it shares host memory (PoCL on a CPU).
+
+def finish_lrgb(sums: np.ndarray, solver: PTMSolve) -> tuple[np.ndarray, np.ndarray]:
+    """Twin of kernel ``ptm_finish_lrgb`` (float64): an lrgb PTM from the per-channel projections ``sums [N, C, 6]``: ``(coeffs [N, 1, 6], albedo [N, C])``.
+
+    The luminance polynomial ``a`` is the channel mean of the projections (the fit is linear), and with the Gram
+    matrix ``G = D^T D`` of the design ``D`` its energy over the lights is ``a^T G a`` and its correlation with
+    channel ``c`` is ``a^T G s_c`` - the sums the kernel of the whole stack forms over every light, without the
+    samples.  (``a`` lies in the span the regularised solve keeps, so ``G`` loses nothing there.)  The colour is
+    then the non-negative least-squares scale per channel, kept in [0, 1] by moving any excess into ``a``.
     """
-    backend = get_backend()
-    sample_type = "uchar" if samples.dtype == np.uint8 else "float"
-    options = (f"-DSAMPLE_T={sample_type}",) + (("-DUSE_LUT",) if lut is not None else ())
-    kernel = backend.kernel(KERNELS, "ptm_fit", options)
-    n_light, n_texel, n_channel = samples.shape
-    albedo_target = albedo if albedo.size else np.zeros(1, np.float32)
-    s_dev = backend.host_input(samples)
-    c_dev = backend.host_output(coeffs)
-    a_dev = backend.host_output(albedo_target)
-    backend.run(kernel, (n_texel,), s_dev, backend.to_device(lut if lut is not None else np.zeros(1, np.float32)),
-                backend.to_device(solver.solve), backend.to_device(solver.design), np.int32(n_light),
-                np.int32(n_texel), np.int32(0), np.int32(n_texel), np.int32(n_channel), np.int32(variant == "lrgb"),
-                c_dev, a_dev)
-    backend.finish_output(c_dev, coeffs)
-    backend.finish_output(a_dev, albedo_target)
+    gram = solver.design.astype(np.float64).T @ solver.design.astype(np.float64)
+    s64 = sums.astype(np.float64)
+    luminance = s64.mean(axis=1)                                          # [N, 6]
+    g_lum = luminance @ gram
+    pp = (luminance * g_lum).sum(axis=1)                                  # [N]
+    cross = np.einsum("nck,nk->nc", s64, g_lum)
+    scale = np.where(pp[:, None] > 1e-20, np.maximum(cross / np.where(pp > 1e-20, pp, 1.0)[:, None], 0.0), 1.0)
+    norm = np.maximum(scale.max(axis=1), 1.0)
+    return (luminance * norm[:, None])[:, None, :].astype(np.float32), (scale / norm[:, None]).astype(np.float32)
+
+
+class PTMProjection:
+    """Sums of the PTM projections of ``n_texel`` texels, added a batch of lights at a time, then finished.
+
+    ``add`` takes the samples of consecutive lights (an image or a few, as they decode, or a whole stack at once)
+    and runs kernel ``ptm_project`` on them; the samples can be dropped afterwards.  An rgb PTM sums straight into
+    its coefficients.  ``finish`` returns ``(coeffs [N, K, 6], albedo [N, C or 0])``.  ``lut`` decodes bytes to
+    the fitted values; ``byte_scale`` (instead of a table) multiplies the weights, so bytes are read as numbers
+    (display space: ``1 / 255``), which the kernel does several times faster than table lookups.
+    """
+
+    def __init__(self, n_texel: int, n_channel: int, variant: str, solver: PTMSolve, lut: np.ndarray | None,
+                 coeffs: np.ndarray | None = None, albedo: np.ndarray | None = None, byte_scale: float = 1.0):
+        self.variant, self.solver, self.lut = variant, solver, lut
+        self.n_texel, self.n_channel = n_texel, n_channel
+        k = 1 if variant == "lrgb" else n_channel
+        self.coeffs = coeffs if coeffs is not None else np.empty((n_texel, k, N_TERMS), np.float32)
+        self.albedo = albedo if albedo is not None else np.empty((n_texel, n_channel if variant == "lrgb" else 0),
+                                                                 np.float32)
+        self.sums = self.coeffs if variant == "rgb" else np.empty((n_texel, n_channel, N_TERMS), np.float32)
+        self.lights_added = 0
+        backend = self._backend = get_backend()
+        weights = (solver.solve.T.astype(np.float64) * byte_scale).astype(np.float32)
+        self._weights = backend.to_device(np.ascontiguousarray(weights))
+        self._lut = backend.to_device(lut if lut is not None else np.zeros(1, np.float32))
+        flags = backend.cl.mem_flags
+        self._sums = backend.cl.Buffer(backend.context, flags.READ_WRITE | flags.USE_HOST_PTR, hostbuf=self.sums)
+
+    def add(self, samples: np.ndarray, texel_offset: int = 0, *, wait: bool = True):
+        """Add the next lights' ``samples [B, T, C]`` (uint8 or float32, C-contiguous); texels
+        ``texel_offset .. texel_offset + n_texel`` of them are this projection's.
+
+        With ``wait=False`` the kernel is only queued: ``samples`` must then stay untouched until the returned
+        :meth:`done` callable has been called (launches run in order, so sums still add up in light order).
+        """
+        backend = self._backend
+        options = (f"-DSAMPLE_T={'uchar' if samples.dtype == np.uint8 else 'float'}",) + (
+            ("-DUSE_LUT",) if self.lut is not None else ())
+        kernel = backend.kernel(KERNELS, "ptm_project", options)
+        n_batch, n_sample_texel, n_channel = samples.shape
+        n_element = self.n_texel * n_channel
+        device_samples = backend.host_input(samples)
+        kernel.set_args(device_samples, self._lut, self._weights, np.int32(n_batch), np.int32(self.lights_added),
+                        np.int64(n_sample_texel * n_channel), np.int64(texel_offset * n_channel),
+                        np.int64(n_element), np.int32(self.lights_added > 0), self._sums)
+        event = backend.cl.enqueue_nd_range_kernel(backend.queue, kernel, (-(-n_element // 8),), None)
+        self.lights_added += n_batch
+
+        def done() -> None:
+            event.wait()
+            device_samples.release()
+        if wait:
+            done()
+        return done
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.lights_added != self.solver.solve.shape[1]:
+            raise BtforgeInputError("ptm.fit", f"expected samples of {self.solver.solve.shape[1]} lights, "
+                                    f"found {self.lights_added}", "a bug in the caller: add every light once")
+        backend = self._backend
+        if self.variant == "lrgb":
+            gram = self.solver.design.astype(np.float64).T @ self.solver.design.astype(np.float64)
+            c_dev, a_dev = backend.host_output(self.coeffs), backend.host_output(self.albedo)
+            backend.run(backend.kernel(KERNELS, "ptm_finish_lrgb"), (self.n_texel,), self._sums,
+                        backend.to_device(gram.astype(np.float32)), np.int32(self.n_texel), np.int32(self.n_channel),
+                        c_dev, a_dev)
+            backend.finish_output(c_dev, self.coeffs)
+            backend.finish_output(a_dev, self.albedo)
+            self._sums = self.sums = None
+        else:
+            backend.finish_output(self._sums, self.sums)
+        return self.coeffs, self.albedo
+
+
+def _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coeffs, albedo, budget_bytes) -> None:
+    """Fit ``samples [L, N, C]`` into ``coeffs [N, K, 6]`` and ``albedo [N, C or 0]``."""
+    n_light, n_texel, c = samples.shape
+    if engine == "numpy":
+        reference_lut = BYTE_LEVELS if byte_scale != 1.0 else lut  # the twin reads bytes through a table
+        for texels in texel_chunks(n_texel, n_light * c * 8, budget_bytes):  # the reference works in float64
+            band = samples[:, texels]
+            coeffs[texels], albedo[texels] = fit_ptm_numpy(convert(band) if convert else band, reference_lut,
+                                                           solver, variant)
+    elif convert is None and variant == "rgb":
+        projection = PTMProjection(n_texel, c, variant, solver, lut, coeffs, albedo, byte_scale)
+        projection.add(samples)  # all texels in one launch, read in place
+        projection.finish()
+    else:  # bands of texels: a converted band is a copy, an lrgb band keeps 6 sums per channel until finished
+        per_texel = n_light * c * 8 if convert else c * N_TERMS * 16
+        for texels in texel_chunks(n_texel, per_texel, budget_bytes):
+            projection = PTMProjection(texels.stop - texels.start, c, variant, solver, lut, coeffs[texels],
+                                       albedo[texels], byte_scale)
+            if convert:
+                projection.add(np.ascontiguousarray(convert(samples[:, texels])))
+            else:
+                projection.add(samples, texel_offset=texels.start)
+            projection.finish()
 
 
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
@@ -352,12 +469,15 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     """Least-squares PTM fit of a single-view stack.
 
     The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
-    result, so memory stays near the stack plus its coefficients; other paths go band by band.
+    result, so memory stays near the stack plus its coefficients; other paths go band by band, and so does a
+    stack read from a store (``stack.chunked``), one band of chunk rows at a time.
     """
     if stack.n_view != 1:
         raise BtforgeInputError(
             "ptm.fit 'stack'", f"expected a single-view stack (a PTM depends on the light only), found {stack.n_view} views",
-            "select one view, or fit a view-dependent representation")
+            "pick one view with a stack.select node before the fit, e.g. `pick: {stage: stack.select, params: "
+            "{views: [0]}, inputs: {stack: NODE.stack}}` (or a view by its angles, views: ['tv0_pv0']), or fit a "
+            "view-dependent representation such as sh.fit or lafortune.fit")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
     space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_ptm(
@@ -367,18 +487,81 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     k = 1 if variant == "lrgb" else c
     coeffs = np.empty((h * w, k, N_TERMS), np.float32)
     albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
-    samples, lut, convert = _kernel_input(stack, space)
-    if engine == "opencl" and convert is None:
-        fit_ptm_opencl(samples, lut, solver, variant, coeffs, albedo)
+    lut, byte_scale, convert = _kernel_input(stack, space)
+    if stack.chunked:  # a store: one band of chunk rows at a time, each fitted like a whole stack
+        for rows in stack.row_bands(budget_bytes):
+            texels = slice(rows.start * w, rows.stop * w)
+            part = np.ascontiguousarray(stack.samples[0, :, rows]).reshape(stack.n_light, -1, c)
+            _fit_texels(part, variant, solver, lut, byte_scale, convert, engine, coeffs[texels], albedo[texels],
+                        budget_bytes)
     else:
-        per_texel = stack.n_light * c * 8  # the reference works in float64
-        for texels in texel_chunks(h * w, per_texel, budget_bytes):
-            band = samples[:, texels]
-            band = convert(band) if convert else band
-            if engine == "numpy":
-                coeffs[texels], albedo[texels] = fit_ptm_numpy(band, lut, solver, variant)
-            else:
-                fit_ptm_opencl(np.ascontiguousarray(band), lut, solver, variant, coeffs[texels], albedo[texels])
+        samples = stack.samples[0].reshape(stack.n_light, h * w, c)  # a view of the capture, read in place
+        _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coeffs, albedo, budget_bytes)
     model = PTMModel(coeffs.reshape(h, w, k, N_TERMS), albedo.reshape(h, w, albedo.shape[1]), variant, space,
                      stack.channels)
+    return model, solver
+
+
+def _capture_space(reader, probe: SampleStack, variant: str, rcond: float) -> str:
+    """``auto``'s choice for a capture fitted while reading: the texel grid ``fit_ptm`` would judge on, read in a
+    first pass over the images (one image held at a time), so both paths choose the same space.  This pass
+    decodes every image once more; an explicit ``space`` skips it."""
+    if reader.encoding != "srgb8" or reader.n_light < AUTO_MIN_LIGHTS:
+        return held_out_space(probe, None)
+    h, w, c = reader.shape
+    step = auto_grid_step(h, w)
+    image = np.empty((1, h, w, c), reader.dtype)
+    grid = np.empty((1, reader.n_light, len(range(0, h, step)), len(range(0, w, step)), c), reader.dtype)
+    for light in range(reader.n_light):
+        reader.read_into([(0, light)], image, threads=1)
+        grid[0, light] = image[0, ::step, ::step]
+    return space_from_grid(grid, probe, lambda fit, sp, lights, views: fit_ptm(
+        fit, variant, sp, rcond=rcond)[0].evaluate(lights))
+
+
+def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, transfer: str = "auto",
+                    rcond: float = DEFAULT_RCOND, batch_bytes: int = 16 << 20,
+                    threads: int = 2) -> tuple[PTMModel, PTMSolve]:
+    """The PTM fit of a capture's light file, accumulated as its images decode: the capture is never held whole.
+
+    Images are decoded ``threads`` at a time into one of two batches of about ``batch_bytes / 2`` while the
+    kernel (``ptm_project``) projects the other onto the pseudo-inverse, each batch adding onto the sums of the
+    lights before it, in light order.  The result is the one of ``fit_ptm(load_stack(light_file))``: the same regularised estimator and,
+    for rgb, the same float operations in the same order.  Peak memory is the coefficients plus one batch.
+    """
+    from btforge.plugins.stackio.images import CaptureReader
+    reader = CaptureReader(light_file, transfer=transfer)
+    if reader.n_view != 1:
+        raise BtforgeInputError(
+            f"{light_file}", f"expected a single-view capture (a PTM depends on the light only), found {reader.n_view} "
+            "views", "read it with stack.read and pick one view with stack.select before ptm.fit")
+    h, w, c = reader.shape
+    if c > MAX_CHANNELS:
+        raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {c}")
+    probe = SampleStack(np.zeros((1, reader.n_light, 1, 1, c), reader.dtype), reader.lights, reader.views,
+                        reader.channels, reader.encoding)
+    if space == "auto":
+        space = _capture_space(reader, probe, variant, rcond)
+    solver = ptm_solver(reader.lights, rcond)
+    lut, byte_scale, convert = _kernel_input(probe, space)
+    # Two half-size batches: the images of one decode while the kernel sums the other.
+    batch_size = max(1, min(reader.n_light, batch_bytes // 2 // max(1, h * w * c * reader.dtype.itemsize)))
+    batches = [np.empty((batch_size, h * w, c), reader.dtype) for _ in range(2)]
+    pending: list = [None, None]
+    projection = PTMProjection(h * w, c, variant, solver, lut, byte_scale=byte_scale)
+    for index, start in enumerate(range(0, reader.n_light, batch_size)):
+        lights = range(start, min(reader.n_light, start + batch_size))
+        slot = index % 2
+        if pending[slot] is not None:
+            pending[slot]()  # the kernel that read this batch has finished
+        part = batches[slot][:len(lights)]
+        reader.read_into([(0, light) for light in lights], part.reshape(len(lights), h, w, c), threads=threads)
+        pending[slot] = projection.add(np.ascontiguousarray(convert(part)) if convert else part, wait=False)
+    for done in pending:
+        if done is not None:
+            done()
+    del batches, part
+    coeffs, albedo = projection.finish()
+    model = PTMModel(coeffs.reshape(h, w, coeffs.shape[1], N_TERMS), albedo.reshape(h, w, albedo.shape[1]),
+                     variant, space, reader.channels)
     return model, solver

@@ -16,60 +16,115 @@ inline float load_sample(__global const SAMPLE_T *s, size_t i, __constant float 
 #endif
 }
 
-// samples: [L, n_texel, C] ; solve: [6, L] (pseudo-inverse of the design matrix) ; design: [L, 6]
-// coeffs out: [n_texel, K, 6] with K = C (rgb) or 1 (lrgb) ; albedo out: [n_texel, C] (lrgb only)
-// Work-item t handles texel t of the outputs and texel (texel_offset + t) of the samples, so a launch can cover
-// one band of a whole capture that is read in place.
-__kernel void ptm_fit(__global const SAMPLE_T *samples_all, __constant float *lut,
-                      __constant float *solve, __constant float *design,
-                      const int n_light, const int sample_stride, const int texel_offset, const int n_texel,
-                      const int n_channel, const int luminance,
-                      __global float *coeffs, __global float *albedo)
+// The linear half of every PTM fit: for each texel and channel ("element", texel-major), the 6 projections
+// sum_l weights[l, k] * y[l, e] of its samples onto the rows of the (regularised) pseudo-inverse.  An rgb PTM is
+// these projections; an lrgb PTM is finished from them on the host.  A launch covers a batch of lights, so a
+// capture can be fitted as its images decode: with accumulate != 0 the batch adds onto the sums already there,
+// in light order - the same float operations in the same order as one launch over all lights.
+// samples: [n_batch, sample_stride] elements from element_offset on, lights light_offset .. + n_batch - 1
+// weights_t: [L, 6] (the pseudo-inverse, transposed; pre-scaled by 1/255 for bytes read without a table)
+// sums: [n_element, 6], i.e. [texel, channel, 6]
+// Each work-item does 8 consecutive elements as float8, so every byte is read once with vector loads and the
+// 48 sums stay in registers; a table lookup (linear radiance from sRGB bytes) costs gathers and is slower.
+inline float8 load8(__global const SAMPLE_T *p, __constant float *lut) {
+#ifdef USE_LUT
+    return (float8)(lut[p[0]], lut[p[1]], lut[p[2]], lut[p[3]], lut[p[4]], lut[p[5]], lut[p[6]], lut[p[7]]);
+#else
+    return convert_float8(vload8(0, p));
+#endif
+}
+
+__kernel void ptm_project(__global const SAMPLE_T *samples_all, __constant float *lut, __constant float *weights_t,
+                          const int n_batch, const int light_offset, const long sample_stride,
+                          const long element_offset, const long n_element, const int accumulate,
+                          __global float *sums)
 {
-    const int t = get_global_id(0);
-    if (t >= n_texel) return;
-    // Index samples as [L, sample_stride, C] from the band's first texel.
-    __global const SAMPLE_T *samples = samples_all + (size_t)texel_offset * n_channel;
-    if (!luminance) {
-        for (int c = 0; c < n_channel; ++c) {
-            float acc[6] = {0.f, 0.f, 0.f, 0.f, 0.f, 0.f};
-            for (int l = 0; l < n_light; ++l) {
-                const float y = load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
-                for (int k = 0; k < 6; ++k) acc[k] += solve[k * n_light + l] * y;
+    const long e0 = (long)get_global_id(0) * 8;
+    if (e0 >= n_element) return;
+    __global const SAMPLE_T *samples = samples_all + element_offset + e0;
+    __global float *o = sums + e0 * 6;
+    if (e0 + 8 > n_element) {  // the last few elements, one at a time
+        for (long e = 0; e < n_element - e0; ++e) {
+            float acc[6];
+            for (int k = 0; k < 6; ++k) acc[k] = accumulate ? o[e * 6 + k] : 0.f;
+            for (int b = 0; b < n_batch; ++b) {
+                const float y = load_sample(samples, (size_t)(b * sample_stride + e), lut);
+                for (int k = 0; k < 6; ++k) acc[k] += weights_t[(light_offset + b) * 6 + k] * y;
             }
-            for (int k = 0; k < 6; ++k) coeffs[((size_t)t * n_channel + c) * 6 + k] = acc[k];
+            for (int k = 0; k < 6; ++k) o[e * 6 + k] = acc[k];
         }
         return;
     }
-    // LRGB: fit the channel mean, then the least-squares colour scale of each channel against that polynomial.
-    float acc[6] = {0.f, 0.f, 0.f, 0.f, 0.f, 0.f};
+    float8 acc[6];
+    if (accumulate) {
+        const float8 a = vload8(0, o), b = vload8(1, o), c = vload8(2, o);
+        const float8 d = vload8(3, o), f = vload8(4, o), g = vload8(5, o);
+        acc[0] = (float8)(a.s0, a.s6, b.s4, c.s2, d.s0, d.s6, f.s4, g.s2);
+        acc[1] = (float8)(a.s1, a.s7, b.s5, c.s3, d.s1, d.s7, f.s5, g.s3);
+        acc[2] = (float8)(a.s2, b.s0, b.s6, c.s4, d.s2, f.s0, f.s6, g.s4);
+        acc[3] = (float8)(a.s3, b.s1, b.s7, c.s5, d.s3, f.s1, f.s7, g.s5);
+        acc[4] = (float8)(a.s4, b.s2, c.s0, c.s6, d.s4, f.s2, g.s0, g.s6);
+        acc[5] = (float8)(a.s5, b.s3, c.s1, c.s7, d.s5, f.s3, g.s1, g.s7);
+    } else {
+        for (int k = 0; k < 6; ++k) acc[k] = (float8)(0.f);
+    }
+    __global const SAMPLE_T *row = samples;
+    __constant float *w = weights_t + light_offset * 6;
+    for (int b = 0; b < n_batch; ++b, row += sample_stride, w += 6) {
+        const float8 y = load8(row, lut);
+        acc[0] += w[0] * y;
+        acc[1] += w[1] * y;
+        acc[2] += w[2] * y;
+        acc[3] += w[3] * y;
+        acc[4] += w[4] * y;
+        acc[5] += w[5] * y;
+    }
+    vstore8((float8)(acc[0].s0, acc[1].s0, acc[2].s0, acc[3].s0, acc[4].s0, acc[5].s0, acc[0].s1, acc[1].s1), 0, o);
+    vstore8((float8)(acc[2].s1, acc[3].s1, acc[4].s1, acc[5].s1, acc[0].s2, acc[1].s2, acc[2].s2, acc[3].s2), 1, o);
+    vstore8((float8)(acc[4].s2, acc[5].s2, acc[0].s3, acc[1].s3, acc[2].s3, acc[3].s3, acc[4].s3, acc[5].s3), 2, o);
+    vstore8((float8)(acc[0].s4, acc[1].s4, acc[2].s4, acc[3].s4, acc[4].s4, acc[5].s4, acc[0].s5, acc[1].s5), 3, o);
+    vstore8((float8)(acc[2].s5, acc[3].s5, acc[4].s5, acc[5].s5, acc[0].s6, acc[1].s6, acc[2].s6, acc[3].s6), 4, o);
+    vstore8((float8)(acc[4].s6, acc[5].s6, acc[0].s7, acc[1].s7, acc[2].s7, acc[3].s7, acc[4].s7, acc[5].s7), 5, o);
+}
+
+// An lrgb PTM from the per-channel projections (kernel ptm_project): the luminance polynomial a is their channel
+// mean, its energy over the lights a^T G a and its correlation with channel c a^T G s_c, with G = D^T D the Gram
+// matrix of the design.  The colour is the non-negative least-squares scale per channel, kept in [0, 1] by
+// moving any excess into the polynomial.  NumPy twin: finish_lrgb in model.py.
+// sums: [n_texel, n_channel, 6] ; gram: [6, 6] ; coeffs out: [n_texel, 6] ; albedo out: [n_texel, n_channel]
+__kernel void ptm_finish_lrgb(__global const float *sums, __constant float *gram, const int n_texel,
+                              const int n_channel, __global float *coeffs, __global float *albedo)
+{
+    const int t = get_global_id(0);
+    if (t >= n_texel) return;
+    __global const float *s = sums + (size_t)t * n_channel * 6;
+    float a[6], ga[6];
     const float inv_c = 1.0f / (float)n_channel;
-    for (int l = 0; l < n_light; ++l) {
-        float y = 0.f;
-        for (int c = 0; c < n_channel; ++c) y += load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
-        y *= inv_c;
-        for (int k = 0; k < 6; ++k) acc[k] += solve[k * n_light + l] * y;
+    for (int k = 0; k < 6; ++k) {
+        float m = 0.f;
+        for (int c = 0; c < n_channel; ++c) m += s[c * 6 + k];
+        a[k] = m * inv_c;
     }
     float pp = 0.f;
-    float cross[4] = {0.f, 0.f, 0.f, 0.f};  // channels beyond 4 are not supported by lrgb (checked on the host)
-    for (int l = 0; l < n_light; ++l) {
-        float p = 0.f;
-        for (int k = 0; k < 6; ++k) p += design[l * 6 + k] * acc[k];
-        pp += p * p;
-        for (int c = 0; c < n_channel; ++c) cross[c] += p * load_sample(samples, ((size_t)l * sample_stride + t) * n_channel + c, lut);
+    for (int k = 0; k < 6; ++k) {
+        float g = 0.f;
+        for (int j = 0; j < 6; ++j) g += gram[j * 6 + k] * a[j];
+        ga[k] = g;
+        pp += a[k] * g;
     }
-    float scale[4];
+    float scale[4];  // lrgb takes at most 4 channels (checked on the host)
     float top = 0.f;
     for (int c = 0; c < n_channel; ++c) {
+        float cross = 0.f;
+        for (int k = 0; k < 6; ++k) cross += s[c * 6 + k] * ga[k];
         // A channel anti-correlated with the luminance polynomial (sparse highlights) would get a negative
         // colour, which no file format stores: the best non-negative scale is then 0.
-        scale[c] = pp > 1e-20f ? fmax(cross[c] / pp, 0.0f) : 1.0f;
+        scale[c] = pp > 1e-20f ? fmax(cross / pp, 0.0f) : 1.0f;
         top = fmax(top, scale[c]);
     }
-    // Keep the colour in [0, 1] (as file formats require) by moving any excess into the polynomial.
     const float norm = top > 1.0f ? top : 1.0f;
     for (int c = 0; c < n_channel; ++c) albedo[(size_t)t * n_channel + c] = scale[c] / norm;
-    for (int k = 0; k < 6; ++k) coeffs[(size_t)t * 6 + k] = acc[k] * norm;
+    for (int k = 0; k < 6; ++k) coeffs[(size_t)t * 6 + k] = a[k] * norm;
 }
 
 // The sRGB curve sampled at SRGB_TABLE_STEPS + 1 points and interpolated: pow() costs more than the whole

@@ -200,7 +200,8 @@ def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = Tru
             f"expected float [H, W, {channels}, 6] for variant '{variant}', found {coeffs.shape} {coeffs.dtype}",
             "lrgb models have one luminance polynomial per pixel (K = 1), rgb models one per channel (K = 3)")
     height, width = coeffs.shape[:2]
-    if check_values and not np.isfinite(coeffs).all():
+    # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the model
+    if check_values and not (np.isfinite(coeffs.min()) and np.isfinite(coeffs.max())):
         bad = np.argwhere(~np.isfinite(coeffs))[0]
         raise BtforgeInputError(f"{owner} 'coeffs'",
                                 f"expected finite values, found NaN/Inf at row {bad[0]}, column {bad[1]}",
@@ -713,40 +714,81 @@ def _grid_quantization(values: np.ndarray) -> tuple[float, int, np.ndarray] | No
     return scale, bias, (indices + bias).astype(np.uint8).reshape(values.shape)
 
 
-def _range_quantization(values: np.ndarray) -> tuple[float, int, np.ndarray]:
-    """Scale, bias and bytes spreading the 256 levels over ``[min(lo, 0), max(hi, 0)]``.
+def _range_plan(low: float, high: float) -> tuple[float, int, float]:
+    """Scale, bias and step spreading the 256 levels over ``[min(lo, 0), max(hi, 0)]``.
 
     The integer bias in 0..255 puts zero on every representable grid, so the levels must span zero too.
     With ``step = span / 255`` and ``bias = round(-lo / step)`` every value maps into ``[-0.5, 255.5]``
     before rounding, so rounding to nearest never needs clamping beyond half a step.
     """
-    low = min(float(values.min()), 0.0)
-    high = max(float(values.max()), 0.0)
+    low, high = min(low, 0.0), max(high, 0.0)
     span = high - low
     if span == 0.0:  # an all-zero coefficient: any positive scale decodes it exactly
-        return 1.0, 0, np.zeros(values.shape, dtype=np.uint8)
+        return 1.0, 0, 0.0
     scale = float(f"{span:.9g}")  # a short header number; the levels are computed with exactly this value
     step = scale / 255.0
     if not (math.isfinite(span) and step > 0):
         raise BtforgeInputError("write_ptm 'coeffs'",
                                 f"expected a coefficient range a float can resolve, found [{low:g}, {high:g}]",
                                 "rescale the model")
-    bias = int(min(255, max(0, round(-low / step))))
-    levels = np.clip(np.rint(values / step + bias), 0, 255).astype(np.uint8)
-    return scale, bias, levels
+    return scale, int(min(255, max(0, round(-low / step)))), step
 
 
-def _quantize(coeffs: np.ndarray) -> tuple[list[float], list[int], np.ndarray]:
-    """Per-coefficient scale, bias and the byte array ``[H, W, K, 6]``."""
-    scales, biases = [], []
-    levels = np.empty(coeffs.shape, dtype=np.uint8)
-    for i in range(N_COEFFS):
-        values = np.ascontiguousarray(coeffs[..., i], dtype=np.float64)
-        quantized = _grid_quantization(values) or _range_quantization(values)
-        scale, bias, levels[..., i] = quantized
-        scales.append(scale)
-        biases.append(bias)
-    return scales, biases, levels
+def _range_levels(values: np.ndarray, bias: int, step: float) -> np.ndarray:
+    if step == 0.0:
+        return np.zeros(values.shape, dtype=np.uint8)
+    return np.clip(np.rint(values.astype(np.float64) / step + bias), 0, 255).astype(np.uint8)
+
+
+def _grid_possible(sample: np.ndarray, low: float, high: float) -> bool:
+    """Whether values with this sample, minimum and maximum might lie on a byte grid - the first test of
+    :func:`_grid_quantization`, on the sample alone: dense float data answers no at once."""
+    gaps = np.diff(np.unique(sample.astype(np.float64)))
+    gaps = gaps[gaps > 0]
+    span = max(high, 0.0) - min(low, 0.0)
+    return bool(gaps.size) and span > 0 and int(255 * (1 + 1e-3) * float(gaps.min()) / span) >= 1
+
+
+class _Quantizer:
+    """Per-coefficient scale and bias over a whole model ``coeffs [H, W, K, 6]``, and the bytes of any band of it.
+
+    Coefficients that may lie on a byte grid (a model read from an 8-bit PTM) are checked whole, as
+    :func:`_grid_quantization` needs; dense float coefficients are encoded band by band, so writing a large
+    model takes no copy of it.
+    """
+
+    def __init__(self, coeffs: np.ndarray):
+        self.coeffs = coeffs
+        flat = coeffs.reshape(-1, N_COEFFS)
+        stride = max(1, flat.shape[0] // GRID_SAMPLE)
+        self.scales, self.biases, self.steps, self.whole = [], [], [], {}
+        for i in range(N_COEFFS):
+            low, high = float(flat[:, i].min()), float(flat[:, i].max())
+            quantized = None
+            if _grid_possible(flat[::stride, i], low, high):
+                quantized = _grid_quantization(np.ascontiguousarray(coeffs[..., i], dtype=np.float64))
+            if quantized is not None:
+                scale, bias, self.whole[i] = quantized
+                step = 0.0
+            else:
+                scale, bias, step = _range_plan(low, high)
+            self.scales.append(scale)
+            self.biases.append(bias)
+            self.steps.append(step)
+
+    def levels(self, rows: slice, channel: int) -> np.ndarray:
+        """Bytes ``[rows, W, 6]`` of channel ``channel``'s coefficients."""
+        band = self.coeffs[rows, :, channel, :]
+        out = np.empty(band.shape, dtype=np.uint8)
+        for i in range(N_COEFFS):
+            if i in self.whole:
+                out[..., i] = self.whole[i][rows, :, channel]
+            else:
+                out[..., i] = _range_levels(band[..., i], self.biases[i], self.steps[i])
+        return out
+
+
+WRITE_BAND_BYTES = 4 << 20  # float64 working set of one band of rows while writing
 
 
 def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None) -> None:
@@ -770,23 +812,25 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
     """
     coeffs, albedo = _checked_model("write_ptm", variant, coeffs, albedo)
     height, width = coeffs.shape[:2]
-    scales, biases, levels = _quantize(coeffs)
+    quantizer = _Quantizer(coeffs)
     header = "\n".join([
         PTM_VERSION,
         WRITE_FORMAT[variant],
         str(width),
         str(height),  # width and height on separate lines: some readers insist on it
-        " ".join(_scale_text(s) for s in scales),
-        " ".join(str(b) for b in biases),
+        " ".join(_scale_text(s) for s in quantizer.scales),
+        " ".join(str(b) for b in quantizer.biases),
     ]) + "\n"
-    # Files store the bottom row first.
-    bottom_up = levels[::-1]
-    if variant == "lrgb":
-        rgb = np.clip(np.rint(albedo[::-1].astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-        blocks = [np.ascontiguousarray(bottom_up[:, :, 0, :]), np.ascontiguousarray(rgb)]
-    else:
-        blocks = [np.ascontiguousarray(bottom_up.transpose(2, 0, 1, 3))]
+    rows_per_band = max(1, WRITE_BAND_BYTES // (width * N_COEFFS * 8))
     with atomic_write(path, "wb") as handle:
         handle.write(header.encode("ascii"))
-        for block in blocks:
-            handle.write(memoryview(block).cast("B"))
+        # Files store the bottom row first; an rgb file holds each channel's plane in turn, then lrgb its colours.
+        for channel in range(coeffs.shape[2]):
+            for stop in range(height, 0, -rows_per_band):
+                band = quantizer.levels(slice(max(0, stop - rows_per_band), stop), channel)
+                handle.write(memoryview(np.ascontiguousarray(band[::-1])).cast("B"))
+        if variant == "lrgb":
+            for stop in range(height, 0, -rows_per_band):
+                rows = albedo[max(0, stop - rows_per_band):stop][::-1]
+                rgb = np.clip(np.rint(rows.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+                handle.write(memoryview(np.ascontiguousarray(rgb)).cast("B"))

@@ -28,6 +28,8 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
     ],
+    # quantization scales over all texels, and auto judges its space on a sample of all of them
+    per_texel=lambda params: not params["quantize"] and params["space"] != "auto",
 )
 def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.

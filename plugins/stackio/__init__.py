@@ -11,10 +11,17 @@ from btforge.errors import BtforgeInputError
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
-def _light_file_precheck(params, paths):
-    from .lightfile import image_path, read_capture_index
+def light_file_precheck(params, paths):
+    from btforge.store import is_store, open_store
+
+    from .lightfile import image_path, is_btf_zip, read_capture_index
     path = paths.input(params["path"])
+    if is_store(path):  # the cache keys the folder by its contents
+        open_store(path)
+        return [path]
     entries = read_capture_index(path, require_images=True)
+    if is_btf_zip(path):
+        return [path]
     return [path] + [image_path(path, e.filename) for e in entries]
 
 
@@ -23,12 +30,12 @@ def _light_file_precheck(params, paths):
     outputs={"stack": "SampleStack"},
     params=[
         Param("path", "path", REQUIRED, "the capture: a .lp light file (filename x y z per line after the count), "
-              "a .lvp light-and-view file (filename lx ly lz vx vy vz), or a UBO-style BTF folder whose image "
-              "names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi})"),
+              "a .lvp light-and-view file (filename lx ly lz vx vy vz), a UBO-style BTF folder or UBO2003 zip whose "
+              "image names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi}), or a store made by stack.import"),
         Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
-    precheck=_light_file_precheck,
+    precheck=light_file_precheck,
     cache_outputs=False,
 )
 def stack_read(ctx, *, path, transfer):
@@ -36,10 +43,14 @@ def stack_read(ctx, *, path, transfer):
 
     Light directions are normalised; one a hair below the horizon (within 1 degree) is clamped with a warning;
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
-    8-bit in memory (decoded to linear on use), a quarter of the float size.
+    8-bit in memory (decoded to linear on use), a quarter of the float size.  A store made by ``stack.import``
+    is opened lazily: its samples are read band by band as stages need them.
     """
+    from btforge.store import is_store, open_stored_stack
+
     from .images import load_stack
-    stack = load_stack(ctx.paths.input(path), transfer=transfer)
+    source = ctx.paths.input(path)
+    stack = open_stored_stack(source) if is_store(source) else load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
     ctx.note("size", [stack.height, stack.width])
     return {"stack": stack}
@@ -129,11 +140,83 @@ def stack_split(ctx, stack, *, every):
     def part(mask):
         idx = np.flatnonzero(mask)
         names = tuple(stack.names[i] for i in idx) if stack.names else ()
-        return SampleStack(stack.samples[:, idx], stack.lights[idx], stack.views, stack.channels, stack.encoding, names)
+        return SampleStack(stack.take(range(stack.n_view), idx), stack.lights[idx], stack.views, stack.channels,
+                           stack.encoding, names)
 
     ctx.note("fit_lights", int((~held).sum()))
     ctx.note("test_lights", int(held.sum()))
     return {"fit": part(~held), "test": part(held)}
+
+
+@declare_stage(
+    "stack.import",
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("path", "path", REQUIRED, "the capture: a .lp/.lvp light file, or a Bonn UBO2003 BTF as a zip archive "
+              "or unpacked folder (image names carry the angles, tl15_pl0_tv30_pv120.jpg)"),
+        Param("store", "outpath", REQUIRED, "the zarr v3 store to write, conventionally NAME.zarr (relative paths "
+              "land under --out); an existing store there is replaced"),
+        Param("block", "ints", (32, 32), "texels per chunk [rows, columns]: each chunk holds all samples of one "
+              "block", length=2, low=1, high=4096),
+        Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+              choices=("auto", "srgb", "linear")),
+    ],
+    precheck=light_file_precheck,
+    side_effects=True,
+)
+def stack_import(ctx, *, path, store, block, transfer):
+    """Convert a capture once into a chunked, compressed store (zarr v3) that stack.read opens later.
+
+    Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
+    them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
+    store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  The output
+    is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info
+    NAME.zarr`` describes a store.
+    """
+    from btforge.store import open_stored_stack
+
+    from .importer import import_capture
+    target = ctx.paths.output(store)
+    array = import_capture(ctx.paths.input(path), target, transfer=transfer, block=tuple(block))
+    ctx.note("written", str(target))
+    ctx.note("chunk", list(array.chunks))
+    return {"stack": open_stored_stack(target)}
+
+
+def _selection_precheck(params, paths):
+    from .select import check_selection
+    for name in ("views", "lights"):
+        check_selection(params[name], f"param '{name}'")
+    return []
+
+
+@declare_stage(
+    "stack.select",
+    inputs={"stack": "SampleStack"},
+    outputs={"stack": "SampleStack"},
+    params=[
+        Param("views", "any", (), "views to keep, in this order: 0-based indices or angle names like 'tv30_pv90' "
+              "(degrees from the zenith, azimuth); [] keeps all"),
+        Param("lights", "any", (), "lights to keep, in this order: 0-based indices, image names ('light_003.jpg') "
+              "or angle names like 'tl45_pl120'; [] keeps all"),
+    ],
+    precheck=_selection_precheck,
+)
+def stack_select(ctx, stack, *, views, lights):
+    """Keep some views and lights of a stack, by index or by name, in the order given.
+
+    Use it to fit a single-view representation (a PTM) to one view of a BTF, or to hold lights out.  A name
+    is matched exactly against the image names, or as angles (``tl45_pl120``, ``tv30_pv90``, in degrees) to the
+    direction within 0.75 degrees (names round to whole degrees); unknown or ambiguous names and out-of-range
+    indices are all reported at once.
+    """
+    from .select import check_selection, select
+    for name, value in (("views", views), ("lights", lights)):
+        check_selection(value, f"stack.select '{name}'")
+    picked = select(stack, views, lights)
+    ctx.note("views", picked.n_view)
+    ctx.note("lights", picked.n_light)
+    return {"stack": picked}
 
 
 def _describe_light_file(path):
@@ -156,9 +239,16 @@ def _describe_exr(path):
 
 @hookimpl
 def btforge_stages():
-    return [stack_read, stack_write, contact_sheet, stack_split]
+    return [stack_read, stack_import, stack_write, contact_sheet, stack_split, stack_select]
+
+
+@hookimpl
+def btforge_buffer_types():
+    from btforge.store import StoredSampleStack
+    return [StoredSampleStack]
 
 
 @hookimpl
 def btforge_info_readers():
-    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr}
+    from btforge.store import store_summary
+    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr, ".zarr": store_summary}

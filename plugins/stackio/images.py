@@ -7,7 +7,8 @@ Conventions (the ones RTI tools use in practice):
 * 16-bit images hold linear values in ``[0, 65535]``; float images (OpenEXR, float TIFF) hold linear radiance.
 * Alpha is dropped; an image has 1 (``'Y'``) or 3 (``'R', 'G', 'B'``) channels.
 
-Pillow decodes everything except OpenEXR (official ``OpenEXR`` bindings) and the 16-bit colour layouts Pillow
+JPEG is decoded by simplejpeg when it is installed (the same pixels as Pillow, faster).  Pillow decodes everything
+else except OpenEXR (official ``OpenEXR`` bindings) and the 16-bit colour layouts Pillow
 would silently cut to 8 bits: 16-bit colour PNG is decoded losslessly through Pillow's own PNG decoder (see
 :func:`_read_png16_colour`), other such files (16-bit or float colour TIFF) go to ``imageio`` when it is
 installed, and otherwise stop with an error rather than lose precision.
@@ -15,10 +16,12 @@ installed, and otherwise stop with an error rather than lose precision.
 from __future__ import annotations
 
 import concurrent.futures
+import io
 import os
 import re
 import struct
 import threading
+import zipfile
 import zlib
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -29,7 +32,7 @@ from btforge.atomic import atomic_output_path, atomic_write
 from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb8, srgb_to_linear
 from btforge.errors import BtforgeInputError
 
-from .lightfile import LightFileEntry, image_path, read_capture_index, write_light_file
+from .lightfile import LightFileEntry, image_path, is_btf_zip, read_capture_index, write_light_file
 
 __all__ = ["read_image", "read_exr", "load_stack", "write_stack", "write_exr", "write_png"]
 
@@ -112,6 +115,8 @@ def _read_png16_colour(path: str, rawmode: str) -> np.ndarray:
     from PIL import Image
 
     def decode(new_rawmode: str) -> np.ndarray:
+        if hasattr(path, "seek"):
+            path.seek(0)
         with Image.open(path) as image:
             image.tile = [image.tile[0]._replace(args=new_rawmode)]
             image.load()
@@ -169,11 +174,12 @@ def _normalised(array: np.ndarray, path: str) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def _read_pillow(path: str) -> np.ndarray:
+def _read_pillow(path, label: str | None = None) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
+    source, path = path, label or str(path)  # messages name the file; an in-memory file is read from 'source'
     try:
-        with Image.open(path) as image:
+        with Image.open(source) as image:
             mode, rawmode, fmt = image.mode, _rawmode(image), image.format
             high_depth_colour = bool(re.search(r";16", rawmode)) and mode in ("RGB", "RGBA", "LA")
             if not high_depth_colour:
@@ -198,14 +204,63 @@ def _read_pillow(path: str) -> np.ndarray:
 
     if fmt == "PNG" and rawmode in ("RGB;16B", "RGBA;16B", "LA;16B"):
         try:
-            return _read_png16_colour(path, rawmode)
+            return _read_png16_colour(source, rawmode)
         except (ValueError, OSError, AttributeError, IndexError):
             pass  # a Pillow without these unpackers: let imageio try
     return _read_with_imageio(path, f"16-bit colour {fmt or 'image'} ({rawmode})")
 
 
-def read_image(path: str | os.PathLike) -> tuple[np.ndarray, str]:
-    """Read one image of a capture.
+def _contents(source) -> bytes:
+    """The bytes of an image file: a path, or an in-memory file (a member of a zip archive)."""
+    if hasattr(source, "getvalue"):
+        return source.getvalue()
+    with open(source, "rb") as handle:
+        return handle.read()
+
+
+def _jpeg_turbo_into(path, out: np.ndarray) -> bool:
+    """Decode a JPEG with simplejpeg straight into ``out`` (C-contiguous uint8 ``[H, W, C]``); False (and ``out``
+    untouched) when the file is not such a JPEG of exactly that shape, so the caller decodes it the usual way."""
+    try:
+        import simplejpeg
+    except ImportError:
+        return False
+    try:
+        data = _contents(path)
+        height, width, colourspace, _ = simplejpeg.decode_jpeg_header(data)
+        channels = 1 if colourspace == "Gray" else 3
+        if colourspace not in ("Gray", "YCbCr", "RGB") or (height, width, channels) != out.shape \
+                or not out.flags.c_contiguous:
+            return False
+        simplejpeg.decode_jpeg(data, colorspace="GRAY" if channels == 1 else "RGB", buffer=out)
+        return True
+    except (OSError, ValueError):
+        return False
+
+
+def _read_jpeg_turbo(path) -> np.ndarray | None:
+    """A grey or colour JPEG decoded by simplejpeg (libjpeg-turbo), or None to let Pillow decode the file.
+
+    Same pixels as Pillow (both use libjpeg-turbo's accurate integer DCT and smooth upsampling), in 30-40 %
+    less time on this machine (README, Benchmarks).  CMYK and YCCK files, damaged files and a missing simplejpeg
+    are left to Pillow, which has the clearer messages.
+    """
+    try:
+        import simplejpeg
+    except ImportError:
+        return None
+    try:
+        data = _contents(path)
+        colourspace = simplejpeg.decode_jpeg_header(data)[2]
+        if colourspace not in ("Gray", "YCbCr", "RGB"):
+            return None
+        return simplejpeg.decode_jpeg(data, colorspace="GRAY" if colourspace == "Gray" else "RGB")
+    except (OSError, ValueError):
+        return None
+
+
+def read_image(path, name: str | None = None) -> tuple[np.ndarray, str]:
+    """Read one image of a capture: a file, or an in-memory file (``io.BytesIO``) called ``name``.
 
     Returns
     -------
@@ -215,11 +270,18 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, str]:
     transfer
         ``'srgb'`` for 8-bit data (camera-encoded), ``'linear'`` for 16-bit and float data.
     """
-    path_text = str(path)
-    if Path(path).suffix.lower() == ".exr":
+    in_memory = hasattr(path, "getvalue")
+    path_text = name or str(path)
+    suffix = Path(path_text).suffix.lower()
+    if suffix == ".exr":
+        if in_memory:
+            raise BtforgeInputError(path_text, "OpenEXR images inside a zip archive cannot be read",
+                                    "unpack the archive and read the folder")
         array = read_exr(path)
     else:
-        array = _read_pillow(path_text)
+        array = (_read_jpeg_turbo(path) if suffix in (".jpg", ".jpeg") else None)
+        if array is None:
+            array = _read_pillow(path if in_memory else path_text, path_text)
     array = _normalised(array, path_text)
     return array, ("srgb" if array.dtype == np.uint8 else "linear")
 
@@ -285,6 +347,118 @@ def _group_views(entries: Sequence[LightFileEntry], path_text: str) -> tuple[np.
     return np.asarray(views, dtype=np.float64), grid
 
 
+class CaptureReader:
+    """The images of a capture, decoded on demand into slots the caller provides.
+
+    Opening reads the light file and decodes the first image, which fixes the size, the channels and the bit
+    depth (every other image must match it).  :meth:`read_into` decodes any set of (view, light) images in
+    parallel straight into an array, so a caller can hold the whole stack (:func:`load_stack`) or only a batch of
+    images at a time (a fit that accumulates as it reads).  The attributes describe the stack: ``n_view``,
+    ``n_light``, ``shape`` ``(H, W, C)``, ``dtype`` of the samples, ``encoding``, ``lights``, ``views``,
+    ``channels`` and ``names`` as a :class:`~btforge.buffers.SampleStack` would hold them.
+    """
+
+    def __init__(self, light_file: str | os.PathLike, *, transfer: str = "auto"):
+        if transfer not in TRANSFERS:
+            raise BtforgeInputError("load_stack 'transfer'", f"expected one of {TRANSFERS}, found {transfer!r}")
+        self.light_file, self.transfer, self.path_text = light_file, transfer, str(light_file)
+        self.entries = read_capture_index(light_file, require_images=True)
+        self._archive = zipfile.ZipFile(light_file) if is_btf_zip(light_file) else None  # UBO2003 download
+        if self.entries[0].view is None:
+            views, self.grid = np.array([[0.0, 0.0, 1.0]]), [list(range(len(self.entries)))]
+        else:
+            views, self.grid = _group_views(self.entries, self.path_text)
+        self.first_index = self.grid[0][0]
+        self._first = self._decode(self.first_index)
+        first = self._first
+        self.shape = first.shape
+        self.dtype = np.dtype(np.uint8 if first.dtype == np.uint8 and transfer != "linear" else np.float32)
+        self._convert = _converter(first.dtype, transfer)
+        # 8-bit JPEG kept as bytes: the decoder can write into the caller's slot (same pixels, checked shape).
+        self._bytes_as_decoded = first.dtype == np.uint8 and self.dtype == np.uint8
+        self.n_view, self.n_light = len(self.grid), len(self.grid[0])
+        self.encoding = "srgb8" if self.dtype == np.uint8 else "linear"
+        self.lights = np.asarray([self.entries[index].light for index in self.grid[0]], dtype=np.float32)
+        self.views = views.astype(np.float32)
+        self.channels = ("Y",) if first.shape[2] == 1 else ("R", "G", "B")
+        self.names = tuple(self.entries[index].filename for index in self.grid[0])
+
+    def _image(self, index: int):
+        """The image file of entry ``index``: a path, or the member's bytes in a zip archive."""
+        name = self.entries[index].filename
+        if self._archive is not None:
+            return io.BytesIO(self._archive.read(name))
+        return image_path(self.light_file, name)
+
+    def _decode(self, index: int) -> np.ndarray:
+        entry = self.entries[index]
+        where = f"{self.path_text}, line {entry.line}"
+        try:
+            array, _ = read_image(self._image(index), name=entry.filename if self._archive is not None else None)
+        except BtforgeInputError as exc:
+            # The light file line locates the image better than its full path; keep the name in the problem.
+            raise BtforgeInputError(where, f"image {entry.filename!r}: {exc.problem}", exc.hint) from None
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            rows, cols, _ = np.nonzero(~np.isfinite(array))
+            raise BtforgeInputError(
+                where, f"expected finite radiance in {entry.filename!r}, found {rows.size} NaN/Inf values "
+                f"(first at row {rows[0]}, column {cols[0]})", "repair or re-render the image")
+        return array
+
+    def _check(self, index: int, array: np.ndarray) -> None:
+        entry, first, first_entry = self.entries[index], self._first, self.entries[self.first_index]
+        where = f"{self.path_text}, line {entry.line}"
+        like = f"like {first_entry.filename!r} on line {first_entry.line}"
+        if array.shape[:2] != first.shape[:2]:
+            raise BtforgeInputError(
+                where, f"expected {first.shape[1]} x {first.shape[0]} pixels (width x height) {like}, found "
+                f"{array.shape[1]} x {array.shape[0]} in {entry.filename!r}",
+                "all images of a capture must have the same size; re-export or crop them consistently")
+        if array.shape[2] != first.shape[2]:
+            raise BtforgeInputError(
+                where, f"expected {first.shape[2]} channel(s) {like}, found {array.shape[2]} in {entry.filename!r}",
+                "save all images of a capture either in colour or in grey")
+        if array.dtype != first.dtype:
+            raise BtforgeInputError(
+                where, f"expected {_bit_depth(first.dtype)} samples {like}, found {_bit_depth(array.dtype)} in "
+                f"{entry.filename!r}", "export all images of a capture with the same bit depth")
+
+    def read_into(self, slots: Sequence[tuple[int, int]], out: np.ndarray, *, threads: int = 2) -> None:
+        """Decode the images of ``slots`` ((view, light) pairs) into ``out[i]`` (``[len(slots), H, W, C]`` of
+        :attr:`dtype`), ``threads`` at once.  The error reported is always the one of the earliest line."""
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise BtforgeInputError("load_stack 'threads'", f"expected a positive integer, found {threads!r}")
+        failed = threading.Event()
+
+        def load_one(i: int) -> None:
+            if failed.is_set():  # another image already failed; do not spend time on the rest
+                return
+            view, light = slots[i]
+            index = self.grid[view][light]
+            if self._bytes_as_decoded and index != self.first_index and _jpeg_turbo_into(self._image(index), out[i]):
+                return  # decoded in its slot: no image-sized buffer, no copy
+            array = self._first if index == self.first_index else self._decode(index)
+            self._check(index, array)
+            self._convert(array, out[i])
+
+        jobs = sorted(range(len(slots)), key=lambda i: self.entries[self.grid[slots[i][0]][slots[i][1]]].line)
+        if threads == 1 or len(jobs) < 2:
+            for i in jobs:
+                load_one(i)
+            return
+        with concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="btforge-decode") as pool:
+            futures = [pool.submit(load_one, i) for i in jobs]
+            try:
+                # In line order, so the error reported is always the one of the earliest line.
+                for future in futures:
+                    future.result()
+            except BaseException:
+                failed.set()
+                for future in futures:
+                    future.cancel()
+                raise
+
+
 def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads: int = 2) -> SampleStack:
     """Decode the images listed in a light file into one :class:`~btforge.buffers.SampleStack`.
 
@@ -312,97 +486,14 @@ def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads
         Naming the light file line, for any problem of the light file, an unreadable image, an image whose size,
         channel count or bit depth differs from the first, or NaN/Inf pixels.
     """
-    if transfer not in TRANSFERS:
-        raise BtforgeInputError("load_stack 'transfer'", f"expected one of {TRANSFERS}, found {transfer!r}")
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise BtforgeInputError("load_stack 'threads'", f"expected a positive integer, found {threads!r}")
-    path_text = str(light_file)
-    entries = read_capture_index(light_file, require_images=True)
-    if entries[0].view is None:
-        views, grid = np.array([[0.0, 0.0, 1.0]]), [list(range(len(entries)))]
-    else:
-        views, grid = _group_views(entries, path_text)
-    slots = {index: (v, l) for v, row in enumerate(grid) for l, index in enumerate(row)}
-
-    def decode(index: int) -> np.ndarray:
-        entry = entries[index]
-        where = f"{path_text}, line {entry.line}"
-        try:
-            array, _ = read_image(image_path(light_file, entry.filename))
-        except BtforgeInputError as exc:
-            # The light file line locates the image better than its full path; keep the name in the problem.
-            raise BtforgeInputError(where, f"image {entry.filename!r}: {exc.problem}", exc.hint) from None
-        if array.dtype.kind == "f" and not np.isfinite(array).all():
-            rows, cols, _ = np.nonzero(~np.isfinite(array))
-            raise BtforgeInputError(
-                where, f"expected finite radiance in {entry.filename!r}, found {rows.size} NaN/Inf values "
-                f"(first at row {rows[0]}, column {cols[0]})", "repair or re-render the image")
-        return array
-
-    # The first image fixes size, channels and bit depth; everything else must match it.
-    first_index = grid[0][0]
-    first = decode(first_index)
-    first_entry = entries[first_index]
-    out_dtype = np.uint8 if first.dtype == np.uint8 and transfer != "linear" else np.float32
-    samples = np.empty((len(grid), len(grid[0])) + first.shape, dtype=out_dtype)
-    convert = _converter(first.dtype, transfer)
-    convert(first, samples[slots[first_index]])
-
-    def check(index: int, array: np.ndarray) -> None:
-        entry = entries[index]
-        like = f"like {first_entry.filename!r} on line {first_entry.line}"
-        if array.shape[:2] != first.shape[:2]:
-            raise BtforgeInputError(
-                f"{path_text}, line {entry.line}",
-                f"expected {first.shape[1]} x {first.shape[0]} pixels (width x height) {like}, found "
-                f"{array.shape[1]} x {array.shape[0]} in {entry.filename!r}",
-                "all images of a capture must have the same size; re-export or crop them consistently")
-        if array.shape[2] != first.shape[2]:
-            raise BtforgeInputError(
-                f"{path_text}, line {entry.line}",
-                f"expected {first.shape[2]} channel(s) {like}, found {array.shape[2]} in {entry.filename!r}",
-                "save all images of a capture either in colour or in grey")
-        if array.dtype != first.dtype:
-            raise BtforgeInputError(
-                f"{path_text}, line {entry.line}",
-                f"expected {_bit_depth(first.dtype)} samples {like}, found {_bit_depth(array.dtype)} in "
-                f"{entry.filename!r}", "export all images of a capture with the same bit depth")
-
-    failed = threading.Event()
-
-    def load_one(index: int) -> None:
-        if failed.is_set():  # another image already failed; do not spend time on the rest
-            return
-        array = decode(index)
-        check(index, array)
-        convert(array, samples[slots[index]])
-
-    rest = [index for index in range(len(entries)) if index != first_index]
-    if threads == 1:
-        for index in rest:
-            load_one(index)
-    else:
-        with concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="btforge-decode") as pool:
-            futures = [pool.submit(load_one, index) for index in rest]
-            try:
-                # In submission order, so the error reported is always the one of the earliest line.
-                for future in futures:
-                    future.result()
-            except BaseException:
-                failed.set()
-                for future in futures:
-                    future.cancel()
-                raise
-
-    lights = np.asarray([entries[index].light for index in grid[0]], dtype=np.float32)
-    return SampleStack(
-        samples=samples,
-        lights=lights,
-        views=views.astype(np.float32),
-        channels=("Y",) if first.shape[2] == 1 else ("R", "G", "B"),
-        encoding="srgb8" if out_dtype == np.uint8 else "linear",
-        names=tuple(entries[index].filename for index in grid[0]),
-    )
+    reader = CaptureReader(light_file, transfer=transfer)
+    samples = np.empty((reader.n_view, reader.n_light) + reader.shape, dtype=reader.dtype)
+    slots = [(v, l) for v in range(reader.n_view) for l in range(reader.n_light)]
+    reader.read_into(slots, samples.reshape((-1,) + reader.shape), threads=threads)
+    return SampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
+                       encoding=reader.encoding, names=reader.names)
 
 
 # ----------------------------------------------------------------------------------------------- writing

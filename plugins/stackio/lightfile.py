@@ -98,29 +98,50 @@ def read_btf_folder(folder: str | os.PathLike) -> list[LightFileEntry]:
     lists its lights in the same order; ``line`` is the position in that order.
     """
     folder = Path(folder)
+    return btf_entries([path.name for path in sorted(folder.iterdir())], str(folder))
+
+
+def btf_entries(names: Iterable[str], where: str) -> list[LightFileEntry]:
+    """Entries for the image ``names`` (of a folder, or of a UBO2003 zip archive, paths inside it allowed)
+    whose names carry the angles; other names are ignored.  Ordered by view, then light."""
     found = []
-    for path in sorted(folder.iterdir()):
-        if path.suffix.lower() not in IMAGE_SUFFIXES:
+    for name in names:
+        stem, suffix = os.path.splitext(name)
+        if suffix.lower() not in IMAGE_SUFFIXES:
             continue
-        match = _UBO_NAME.search(path.stem)
+        match = _UBO_NAME.search(os.path.basename(stem))
         if match is None:
             continue
         angles = {k: float(v) for k, v in match.groupdict().items()}
-        what = f"{folder}/{path.name}"
+        what = f"{where}/{name}"
         light = _checked_direction(_from_angles(angles["tl"], angles["pl"]), what, "light")
         view = _checked_direction(_from_angles(angles["tv"], angles["pv"]), what, "view")
-        found.append(((angles["tv"], angles["pv"], angles["tl"], angles["pl"]), path.name, light, view))
+        found.append(((angles["tv"], angles["pv"], angles["tl"], angles["pl"]), name, light, view))
     if not found:
-        raise BtforgeInputError(str(folder), "expected images named like tl15_pl0_tv30_pv120.png (a UBO-style BTF "
-                                "folder), found none", "give a .lp/.lvp light file, or a folder of such images")
+        raise BtforgeInputError(where, "expected images named like tl15_pl0_tv30_pv120.png (a UBO-style BTF "
+                                "folder or zip), found none", "give a .lp/.lvp light file, or a folder or zip of such images")
     found.sort(key=lambda item: item[0])
     return [LightFileEntry(i, name, light, view) for i, (_, name, light, view) in enumerate(found, 1)]
 
 
+def is_btf_zip(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a zip archive (the Bonn UBO2003 download layout) rather than a light file."""
+    return Path(path).suffix.lower() == ".zip"
+
+
 def read_capture_index(path: str | os.PathLike, *, require_images: bool = True) -> list[LightFileEntry]:
-    """The entries of a capture: a ``.lp``/``.lvp`` light file, or a UBO-style BTF folder."""
+    """The entries of a capture: a ``.lp``/``.lvp`` light file, or a UBO-style BTF folder or zip archive."""
     if Path(path).is_dir():
         return read_btf_folder(path)
+    if is_btf_zip(path):
+        import zipfile
+        try:
+            with zipfile.ZipFile(path) as archive:
+                names = [info.filename for info in archive.infolist() if not info.is_dir()]
+        except (OSError, zipfile.BadZipFile) as exc:
+            raise BtforgeInputError(str(path), f"cannot read the zip archive ({exc})",
+                                    "the download may be incomplete; fetch it again") from None
+        return btf_entries(names, str(path))
     return read_light_file(path, require_images=require_images)
 
 

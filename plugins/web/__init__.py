@@ -49,11 +49,11 @@ def _model_precheck(params, paths):
     return [folder / "info.json"] + sorted(folder.glob(f"plane_*.{info.get('format', 'jpg')}"))
 
 
-@declare_stage("model.read", outputs={"model": "ReflectanceModel"},
+@declare_stage("web.read", outputs={"model": "ReflectanceModel"},
                params=[Param("path", "path", REQUIRED, "a web layout (its folder or info.json: ptm, hsh or sh) "
                              "or an HSH .rti file")],
                precheck=_model_precheck)
-def model_read(ctx, *, path):
+def web_read(ctx, *, path):
     """Read a model saved for viewers: relight's web layout (PTM, HSH, SH) or an RTIBuilder HSH ``.rti`` file.
 
     Outputs
@@ -76,7 +76,7 @@ def _describe_rti(path):
 
 @hookimpl
 def btforge_stages():
-    return [export_web, model_read]
+    return [export_web, web_read]
 
 
 @hookimpl

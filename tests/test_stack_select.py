@@ -1,0 +1,70 @@
+"""stack.select: views and lights by index or name; ptm.fit on a BTF points to it."""
+import numpy as np
+import pytest
+
+import btforge
+from btforge import BtforgeInputError
+from btforge.runner import run
+
+
+def _btf():
+    return btforge.stage("demo.btf")(size=[6, 5], lights=7, views=3)["stack"]
+
+
+def test_select_by_index_keeps_order_and_samples():
+    stack = _btf()
+    out = btforge.stage("stack.select")(stack=stack, views=[2, 0], lights=[6, 1, 3])["stack"]
+    assert out.samples.shape == (2, 3, 6, 5, 3)
+    np.testing.assert_array_equal(out.samples[0, 1], stack.samples[2, 1])
+    np.testing.assert_array_equal(out.samples[1, 0], stack.samples[0, 6])
+    np.testing.assert_array_equal(out.lights, stack.lights[[6, 1, 3]])
+    np.testing.assert_array_equal(out.views, stack.views[[2, 0]])
+
+
+def test_select_by_angle_names_and_image_names():
+    from btforge.plugins.stackio.select import angle_label
+    stack = _btf()
+    label_v = angle_label(stack.views[1], "view")
+    label_l = angle_label(stack.lights[4], "light")
+    out = btforge.stage("stack.select")(stack=stack, views=[label_v], lights=[label_l])["stack"]
+    np.testing.assert_array_equal(out.samples[0, 0], stack.samples[1, 4])
+    named = btforge.stage("demo.material")(size=[4, 4], lights=8)["stack"]
+    out = btforge.stage("stack.select")(stack=named, lights=["light_005", 2])["stack"]
+    assert out.names == ("light_005", "light_002")
+    np.testing.assert_array_equal(out.samples[0, 0], named.samples[0, 5])
+
+
+def test_empty_lists_keep_everything():
+    stack = _btf()
+    out = btforge.stage("stack.select")(stack=stack)["stack"]
+    np.testing.assert_array_equal(out.samples, stack.samples)
+
+
+def test_bad_selections_are_reported_together():
+    stack = _btf()
+    with pytest.raises(BtforgeInputError) as info:
+        btforge.stage("stack.select")(stack=stack, lights=[9, "tl1_pl1", "nope"])
+    text = str(info.value)
+    assert "index 9 is out of range" in text and "'tl1_pl1'" in text and "'nope'" in text
+    with pytest.raises(BtforgeInputError, match="twice"):
+        btforge.stage("stack.select")(stack=stack, views=[0, 0])
+    with pytest.raises(BtforgeInputError, match="indices >= 0 or names"):
+        btforge.stage("stack.select")(stack=stack, views=[-1])
+
+
+def test_bad_selection_is_refused_before_a_run(tmp_path):
+    graph = {"nodes": {"btf": {"stage": "demo.btf", "params": {"size": [4, 4], "lights": 6, "views": 2}},
+                       "pick": {"stage": "stack.select", "params": {"views": 0}, "inputs": {"stack": "btf.stack"}}}}
+    with pytest.raises(BtforgeInputError, match="expected a list of indices or names"):
+        run(graph, out_dir=tmp_path)
+
+
+def test_ptm_on_a_btf_points_to_stack_select_and_works_after_it(tmp_path):
+    nodes = {"btf": {"stage": "demo.btf", "params": {"size": [4, 4], "lights": 8, "views": 2}},
+             "fit": {"stage": "ptm.fit", "inputs": {"stack": "btf.stack"}}}
+    with pytest.raises(BtforgeInputError, match="stack.select"):
+        run({"nodes": nodes}, out_dir=tmp_path)
+    nodes["pick"] = {"stage": "stack.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}}
+    nodes["fit"]["inputs"] = {"stack": "pick.stack"}
+    model = run({"nodes": nodes}, out_dir=tmp_path)["fit"]["model"]
+    assert model.coeffs.shape == (4, 4, 3, 6)
