@@ -169,7 +169,7 @@ def test_a_model_that_fails_to_load_shows_a_message(served, browser):
 
 def test_ptm_and_rti_files_are_exported_for_the_page(tmp_path):
     from btforge.plugins.web.hsh import write_rti
-    model = btforge.stage("ptm.fit")(stack=capture(size=(8, 10)))["model"]
+    model = btforge.stage("ptm.fit")(stack=capture(size=(8, 10)), space="srgb")["model"]
     btforge.stage("ptm.write")(model=model, path=str(tmp_path / "a.ptm"))
     write_rti(tmp_path / "b.rti", HSHModel(np.ones((6, 5, 3, 9), np.float32)))
     server, thread, scratch = start([tmp_path / "a.ptm", tmp_path / "b.rti"], 0)

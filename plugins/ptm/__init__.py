@@ -171,7 +171,8 @@ def ptm_write(ctx, model, *, path):
     from .ptmfile import write_ptm
     if model.space != "srgb":
         raise BtforgeInputError("ptm.write 'model'", "expected a PTM of sRGB display values (space: srgb), found a linear one",
-                                "fit with `space: srgb` (the default for 8-bit captures) to write .ptm files")
+                                "fit with `space: srgb` to write .ptm files (`auto` fits linear radiance where that predicts held-out "
+                                "lights better), or save any model with model.write")
     if len(model.channel_names) != 3:
         raise BtforgeInputError("ptm.write 'model'", f"expected 3 colour channels, found {len(model.channel_names)}")
     target = ctx.paths.output(path)
