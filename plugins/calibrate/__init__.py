@@ -106,7 +106,8 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, appl
     files = image_list(images, base)
     spheres = [parse_sphere(s, "param 'sphere'") for s in sphere.split(";") if s.strip()] or None
     centre = _principal_of(principal, focal, "param 'principal'")
-    result = calibrate(files, spheres, focal or None, centre).excluding(n.strip() for n in exclude.split(",") if n.strip())
+    result = calibrate(files, spheres, focal or None, centre)
+    result = result.excluding(n.strip() for n in exclude.split(",") if n.strip())
     later = image_list(apply_to, base) if apply_to else None
     target = ctx.paths.output(out)
     target.parent.mkdir(parents=True, exist_ok=True)

@@ -352,8 +352,8 @@ def _cone_of_outline(distance: float, radius: float, focal: float) -> tuple[floa
     Under perspective the outline is the image of the cone tangent to the sphere, an ellipse stretched along the
     line through the principal point: its centre lies farther out than the axis, with semi-axes
     ``a = f (tan(t + s) - tan(t - s)) / 2`` along that line and ``b = f sin s / sqrt(cos^2 t - sin^2 s)`` across
-    it.  A circle fitted to the whole outline has about its centre and the mean radius ``(a + b) / 2``; taking
-    the circle's radius for ``a`` costs about a degree at a 12 degree tilt.
+    it.  A circle fitted to the whole outline has about its centre and the mean radius ``(a + b) / 2`` (taking
+    the circle's radius for ``a`` instead: 0.87 degrees mean instead of 0.55 on a render tilted 15 degrees).
     """
     from scipy.optimize import fsolve
 
@@ -364,7 +364,7 @@ def _cone_of_outline(distance: float, radius: float, focal: float) -> tuple[floa
         return [focal * (near + far) / 2 - distance, focal * ((far - near) / 2 + across) / 2 - radius]
 
     start = [math.atan2(distance, focal), math.atan2(radius, math.hypot(distance, focal))]
-    (tilt, alpha), info, ok, _ = fsolve(mismatch, start, full_output=True, xtol=1e-12)
+    (tilt, alpha), _, ok, _ = fsolve(mismatch, start, full_output=True, xtol=1e-12)
     if ok != 1 or not (0.0 < alpha < math.pi / 2 and abs(tilt) + alpha < math.pi / 2):
         return start[0], start[1]  # an outline perspective cannot explain: keep the first guess
     return float(tilt), float(alpha)
