@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from btforge.cli import main
+from btforge.plugins.calibrate.bench import implied_sphere
 from btforge.plugins.calibrate.lights import calibrate, image_list
 from btforge.plugins.calibrate.synthetic import fibonacci_lights, render_capture
 from btforge.plugins.calibrate.sphere import Circle
@@ -44,6 +45,25 @@ def test_perspective_with_focal(tmp_path):
     ortho = angles_deg(calibrate(image_list(tmp_path)).lights, lights)
     persp = angles_deg(calibrate(image_list(tmp_path), focal=400.0).lights, lights)
     assert persp.mean() <= 1.0 and persp.mean() < ortho.mean(), (persp.mean(), ortho.mean())
+
+
+def test_perspective_with_an_off_centre_principal_point(tmp_path):
+    """A cropped photograph: the principal point is far from the image centre, and assuming the centre costs."""
+    lights = fibonacci_lights(10, seed=4)
+    render_capture(tmp_path, lights, [(200, 80, 40)], focal=400.0, principal=(230.0, 180.0))
+    centred = angles_deg(calibrate(image_list(tmp_path), focal=400.0).lights, lights)
+    given = angles_deg(calibrate(image_list(tmp_path), focal=400.0, principal=(230.0, 180.0)).lights, lights)
+    assert given.mean() <= 1.0 and centred.mean() > 4.0, (given.mean(), centred.mean())
+
+
+def test_principal_point_option_is_checked(tmp_path, capsys):
+    render_capture(tmp_path, fibonacci_lights(3), [(120, 100, 45)])
+    out = str(tmp_path / "a.lp")
+    assert main(["calibrate", str(tmp_path), "--out", out, "--focal", "300", "--principal", "1"]) == 2
+    assert "X,Y" in capsys.readouterr().err
+    assert main(["calibrate", str(tmp_path), "--out", out, "--principal", "100,90"]) == 2
+    assert "needs a focal length" in capsys.readouterr().err
+    assert main(["calibrate", str(tmp_path), "--out", out, "--focal", "300", "--principal", "160,120"]) == 0
 
 
 def test_missing_highlight_named_and_left_out(tmp_path, capsys):
@@ -98,8 +118,21 @@ def test_psm_uw_chrome_sphere():
     result = calibrate(image_list(folder / "chrome"))
     truth = np.loadtxt(folder / "lights.txt", skiprows=1)
     error = angles_deg(result.lights, truth)
-    # Measured: 2.67 mean, 7.95 worst (the issue's goal is 2.5 / 6; see README, "Light calibration").
-    assert error.mean() <= 2.8 and error.max() <= 8.5, error.round(2)
+    # Measured: 2.67 mean, 7.95 worst; the issue's goal of 2.5 / 6 is not reached (README, "The RTI user's day":
+    # lights.txt implies a sphere 13% larger than the visible ball, or a camera whose focal length is unknown).
+    assert error.mean() <= 2.7 and error.max() <= 8.0, error.round(2)
+    # The highlights themselves agree with lights.txt: the sphere those lights imply places them within 1.4 px.
+    xy = np.array([[h.x, h.y] for h in result.highlights[0]])
+    implied, rms = implied_sphere(xy, truth)
+    assert rms <= 1.4 and implied.r > 1.1 * result.spheres[0].r, (implied, rms)
+
+
+def test_implied_sphere_of_rendered_spheres_is_the_sphere(tmp_path):
+    lights = fibonacci_lights(12, seed=6)
+    render_capture(tmp_path, lights, [(150, 110, 50)])
+    result = calibrate(image_list(tmp_path))
+    implied, rms = implied_sphere(np.array([[h.x, h.y] for h in result.highlights[0]]), lights)
+    assert rms < 0.5 and math.hypot(implied.x - 150, implied.y - 110) < 0.5 and abs(implied.r - 50) < 0.5, implied
 
 
 def test_stage_in_a_graph_writes_the_light_file_and_report(tmp_path):
@@ -132,8 +165,8 @@ def test_a_wrong_light_can_be_deleted(tmp_path, capsys):
 
 @settings(max_examples=30, deadline=None)
 @given(elevation=st.floats(0.5, 90.0), azimuth=st.floats(0.0, 360.0), radius=st.floats(3.0, 2000.0),
-       focal=st.sampled_from([None, 200.0, 5000.0]))
-def test_reflection_inverts_the_mirror_geometry(elevation, azimuth, radius, focal):
+       focal=st.sampled_from([None, 200.0, 5000.0]), principal=st.sampled_from([None, (0.0, 0.0), (790.0, 20.0)]))
+def test_reflection_inverts_the_mirror_geometry(elevation, azimuth, radius, focal, principal):
     """Grazing and overhead lights, tiny and huge spheres: the direction of a highlight placed by the mirror law
     comes back, finite and unit length (orthographic exactly; perspective through the same ray geometry)."""
     from btforge.plugins.calibrate.sphere import reflect
@@ -150,7 +183,7 @@ def test_reflection_inverts_the_mirror_geometry(elevation, azimuth, radius, foca
         rho = rng.uniform(0, 0.999, 5)
         phi = rng.uniform(0, 2 * np.pi, 5)
         xy = np.stack([circle.x + radius * rho * np.cos(phi), circle.y + radius * rho * np.sin(phi)], 1)
-        got = reflect(xy, circle, (600, 800), focal)
+        got = reflect(xy, circle, (600, 800), focal, principal)
     assert np.isfinite(got).all()
     np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-9)
 

@@ -10,7 +10,8 @@ import numpy as np
 from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
-from .lights import calibrate, image_list, parse_sphere, report_picture, summary_lines, write_calibration
+from .lights import (calibrate, image_list, parse_principal, parse_sphere, report_picture, summary_lines,
+                     write_calibration)
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -39,6 +40,8 @@ def _calibrate_precheck(params, paths):
         checks.append(lambda: files.extend(image_list(params["apply_to"], paths.graph_dir)))
     spheres = [t for t in (params.get("sphere") or "").split(";") if t.strip()]
     checks += [lambda t=t: parse_sphere(t, "param 'sphere'") for t in spheres]
+    if params.get("principal"):
+        checks.append(lambda: _principal_of(params["principal"], params.get("focal"), "param 'principal'"))
     for check in checks:
         try:
             check()
@@ -47,6 +50,16 @@ def _calibrate_precheck(params, paths):
     if problems:
         raise BtforgeInputError("lights.calibrate", "; ".join(problems))
     return files
+
+
+def _principal_of(text, focal, where):
+    """The principal point given as 'X,Y', or None; one without a focal length is an error (it means nothing)."""
+    if not text:
+        return None
+    if not focal:
+        raise BtforgeInputError(f"{where} {text}", "a principal point needs a focal length",
+                                "give the focal length in pixels too, or leave the principal point out")
+    return parse_principal(text, where)
 
 
 @declare_stage(
@@ -59,6 +72,8 @@ def _calibrate_precheck(params, paths):
         Param("report", "outpath", "calibration.png", "the picture of the sphere(s) with every highlight numbered"),
         Param("sphere", "str", "", "the sphere as 'X,Y,R' in pixels (several: 'X,Y,R;X,Y,R'); empty: find them"),
         Param("focal", "float", 0.0, "focal length in pixels for a perspective camera; 0: orthographic", low=0.0),
+        Param("principal", "str", "", "the perspective camera's principal point as 'X,Y' in pixels (a cropped "
+              "photograph's is not its centre); empty: the image centre"),
         Param("apply_to", "str", "", "a later capture (folder or glob) shot with the same lights in the same order: "
               "the light file and the stack then list its images"),
         Param("exclude", "str", "", "image file names to leave out (comma-separated): delete a wrong light"),
@@ -66,7 +81,7 @@ def _calibrate_precheck(params, paths):
     side_effects=True,
     precheck=_calibrate_precheck,
 )
-def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to, exclude):
+def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, apply_to, exclude):
     """Find the light direction of every photograph from the highlights on mirror spheres in view.
 
     The spheres are found automatically (a circle fitted to the outline in the capture's maximum and median
@@ -74,7 +89,7 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to, exclu
     small share of the sphere is lit and a weighted centroid refined in a shrinking window; highlights that are too
     dim or too large are rejected and the image is reported by name (it is left out of the light file: no light
     is ever shifted onto another image).  Directions follow from reflection on the sphere (orthographic, or
-    perspective with ``focal``) and are averaged over the spheres, weighted by their uncertainty.
+    perspective with ``focal`` and ``principal``) and are averaged over the spheres, weighted by their uncertainty.
 
     Outputs
     -------
@@ -90,7 +105,9 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, apply_to, exclu
     base = ctx.paths.graph_dir
     files = image_list(images, base)
     spheres = [parse_sphere(s, "param 'sphere'") for s in sphere.split(";") if s.strip()] or None
-    result = calibrate(files, spheres, focal or None).excluding(n.strip() for n in exclude.split(",") if n.strip())
+    centre = _principal_of(principal, focal, "param 'principal'")
+    result = calibrate(files, spheres, focal or None, centre)
+    result = result.excluding(n.strip() for n in exclude.split(",") if n.strip())
     later = image_list(apply_to, base) if apply_to else None
     target = ctx.paths.output(out)
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -116,6 +133,8 @@ def _calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sphere", action="append", metavar="X,Y,R",
                         help="a sphere's centre column, row and radius in pixels (repeatable); default: found")
     parser.add_argument("--focal", type=float, metavar="PIXELS", help="perspective camera focal length in pixels")
+    parser.add_argument("--principal", metavar="X,Y", help="the perspective camera's principal point in pixels "
+                        "(default: the image centre; a cropped photograph's lies elsewhere)")
     parser.add_argument("--report", metavar="FILE.png", help="the picture of the highlights (default: beside --out)")
     parser.add_argument("--apply-to", nargs="+", metavar="IMAGE",
                         help="write the lights for a later capture's images (same lights, same order) instead")
@@ -133,7 +152,8 @@ def _calibrate_run(args) -> int:
         raise BtforgeInputError(f"--focal {args.focal}", "expected a positive focal length in pixels")
     files = image_list(args.images)
     spheres = [parse_sphere(s) for s in args.sphere] if args.sphere else None
-    result = calibrate(files, spheres, args.focal).excluding(args.exclude)
+    principal = _principal_of(args.principal, args.focal, "--principal")
+    result = calibrate(files, spheres, args.focal, principal).excluding(args.exclude)
     out = Path(args.out)
     if out.suffix.lower() != ".lp":
         raise BtforgeInputError(f"--out {args.out}", "expected a .lp file name")

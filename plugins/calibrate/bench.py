@@ -8,12 +8,32 @@ from pathlib import Path
 
 import numpy as np
 
-from .lights import calibrate, image_list
+from .lights import calibrate, image_list, parse_principal
+from .sphere import Circle, reflect
 from .synthetic import fibonacci_lights, render_capture
 
 
 def _angles(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+def implied_sphere(highlights_xy: np.ndarray, lights: np.ndarray) -> tuple[Circle, float]:
+    """The orthographic mirror sphere that best places known ``lights`` [N, 3] at the highlights [N, 2] (column,
+    row), and the RMS distance in pixels of the highlights from where that sphere puts them.
+
+    A light ``l`` shines at the normal ``n = (l + v) / |l + v|`` (view ``v = (0, 0, 1)``), seen at column
+    ``x + r n_x`` and row ``y - r n_y``: linear in the centre and radius.  Comparing this circle with the one the
+    outline gives separates the error of the highlights from that of the sphere's circle (or of the lights' frame).
+    """
+    normal = lights / np.linalg.norm(lights, axis=1, keepdims=True) + [0.0, 0.0, 1.0]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    n = len(normal)
+    design = np.block([[np.ones((n, 1)), np.zeros((n, 1)), normal[:, :1]],
+                       [np.zeros((n, 1)), np.ones((n, 1)), -normal[:, 1:2]]])
+    target = np.concatenate([highlights_xy[:, 0], highlights_xy[:, 1]])
+    (x, y, r), *_ = np.linalg.lstsq(design, target, rcond=None)
+    rms = float(np.sqrt(np.mean((design @ [x, y, r] - target) ** 2)))
+    return Circle(float(x), float(y), float(r)), rms
 
 
 def bench_calibrate(args: list[str]) -> int:
@@ -23,7 +43,8 @@ def bench_calibrate(args: list[str]) -> int:
     parser.add_argument("--truth", help="known lights: a text file with a count line, then one 'x y z' row per image")
     parser.add_argument("--synthetic", type=int, metavar="N", help="render N lights on two spheres (JPEG q80)")
     parser.add_argument("--width", type=int, default=320, help="rendered image width (height: 3/4 of it)")
-    parser.add_argument("--focal", type=float)
+    parser.add_argument("--focal", type=float, help="perspective camera focal length in pixels")
+    parser.add_argument("--principal", metavar="X,Y", help="its principal point (default: the image centre)")
     opts = parser.parse_args(args)
     with tempfile.TemporaryDirectory() as scratch:
         if opts.synthetic:
@@ -36,7 +57,8 @@ def bench_calibrate(args: list[str]) -> int:
             files = image_list(opts.images)
             truth = np.loadtxt(opts.truth, skiprows=1) if opts.truth else None
         start = time.perf_counter()
-        result = calibrate(files, focal=opts.focal)
+        principal = parse_principal(opts.principal) if opts.principal else None
+        result = calibrate(files, focal=opts.focal, principal=principal)
         seconds = time.perf_counter() - start
     size = f"{len(files)} images of {result.shape[1]} x {result.shape[0]}"
     print(f"spheres: " + "; ".join(f"({c.x:.1f}, {c.y:.1f}) r {c.r:.1f}" for c in result.spheres))
@@ -45,4 +67,20 @@ def bench_calibrate(args: list[str]) -> int:
         error = _angles(result.lights, truth / np.linalg.norm(truth, axis=1, keepdims=True))
         print("error per image (deg): " + " ".join(f"{e:.2f}" for e in error))
         print(f"mean {np.nanmean(error):.2f} deg, worst {np.nanmax(error):.2f} deg")
+        _print_implied_spheres(result, truth)
     return 0
+
+
+def _print_implied_spheres(result, truth) -> None:
+    """Per sphere: the circle the known lights imply for the highlights found, and the error that circle gives."""
+    truth = truth / np.linalg.norm(truth, axis=1, keepdims=True)
+    for s, (circle, highlights) in enumerate(zip(result.spheres, result.highlights)):
+        found = np.array([h.found for h in highlights])
+        if found.sum() < 3:
+            continue
+        xy = np.array([[h.x, h.y] for h in highlights])[found]
+        implied, rms = implied_sphere(xy, truth[found])
+        error = _angles(reflect(xy, implied, result.shape), truth[found])
+        print(f"sphere {s + 1}: the known lights imply ({implied.x:.1f}, {implied.y:.1f}) r {implied.r:.1f} "
+              f"(found ({circle.x:.1f}, {circle.y:.1f}) r {circle.r:.1f}); highlights {rms:.2f} px RMS from it; "
+              f"with it: mean {error.mean():.2f} deg, worst {error.max():.2f} deg")

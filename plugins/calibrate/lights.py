@@ -107,8 +107,10 @@ def load_luminance(images: Sequence[Path]) -> np.ndarray:
     return np.stack(frames)
 
 
-def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, focal: float | None = None) -> Calibration:
-    """Find the spheres (unless given), every image's highlight on each, and the light directions.
+def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, focal: float | None = None,
+              principal: tuple[float, float] | None = None) -> Calibration:
+    """Find the spheres (unless given), every image's highlight on each, and the light directions (orthographic,
+    or a pinhole camera with ``focal`` pixels and the principal point ``principal``, default the image centre).
 
     With several spheres each image's direction is the confidence-weighted mean of the spheres' directions; a
     sphere without a highlight in an image is left out of that image's mean.
@@ -136,7 +138,7 @@ def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, f
             h = highlights[i]
             if not h.found:
                 continue
-            dirs.append(reflect(np.array([[h.x, h.y]]), circle, shape, focal)[0])
+            dirs.append(reflect(np.array([[h.x, h.y]]), circle, shape, focal, principal)[0])
             sigma = angular_uncertainty_deg(h, circle)
             weights.append(1.0 / sigma ** 2)
             spreads.append(sigma)
@@ -154,18 +156,35 @@ def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, f
     return Calibration(tuple(images), tuple(spheres), per_sphere, lights, uncertainty, confidence, tuple(shape))
 
 
+def _numbers(text: str, names: str, meaning: str, example: str, where: str) -> list[float]:
+    """The comma-separated finite numbers ``names`` (e.g. 'X,Y,R') of an option or parameter ``where``."""
+    parts = [p for p in str(text).replace(" ", "").split(",") if p]
+    count = len(names.split(","))
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != count:
+        raise BtforgeInputError(f"{where} {text}", f"expected {count} numbers {names} ({meaning})", f"e.g. {example}")
+    if not all(math.isfinite(v) for v in values):
+        raise BtforgeInputError(f"{where} {text}", f"expected finite numbers, found {parts}")
+    return values
+
+
 def parse_sphere(text: str, where: str = "--sphere") -> Circle:
     """``'X,Y,R'`` (centre column, centre row, radius, in pixels) -> a :class:`Circle`; ``where`` names the
     option or parameter in messages."""
-    parts = [p for p in str(text).replace(" ", "").split(",") if p]
-    try:
-        x, y, r = (float(p) for p in parts)
-    except ValueError:
-        raise BtforgeInputError(f"{where} {text}", "expected three numbers X,Y,R (centre column, row, radius in "
-                                "pixels)", "e.g. 253.5,148,119.5") from None
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(r)) or r <= 0:
-        raise BtforgeInputError(f"{where} {text}", f"expected finite numbers and a positive radius, found {parts}")
+    x, y, r = _numbers(text, "X,Y,R", "centre column, row, radius in pixels", "253.5,148,119.5", where)
+    if r <= 0:
+        raise BtforgeInputError(f"{where} {text}", f"expected a positive radius, found {r}")
     return Circle(x, y, r)
+
+
+def parse_principal(text: str, where: str = "--principal") -> tuple[float, float]:
+    """``'X,Y'`` (the principal point's column and row in pixels) -> ``(x, y)``; ``where`` names the option."""
+    x, y = _numbers(text, "X,Y", "the principal point's column and row in pixels", "255.5,169.5; leave it out "
+                    "for the image centre", where)
+    return x, y
 
 
 def _relative_name(image: Path, folder: Path) -> str:

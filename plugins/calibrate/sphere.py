@@ -304,11 +304,13 @@ def _component(mask: np.ndarray, row: int, col: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------- directions
 
 
-def reflect(highlight_xy: np.ndarray, circle: Circle, shape, focal: float | None = None) -> np.ndarray:
+def reflect(highlight_xy: np.ndarray, circle: Circle, shape, focal: float | None = None,
+            principal: tuple[float, float] | None = None) -> np.ndarray:
     """Light directions ``[N, 3]`` (x right, y up, z toward the camera) for highlights ``[N, 2]`` (column, row).
 
     Orthographic when ``focal`` is None (the view is (0, 0, 1) everywhere); otherwise a pinhole camera with that
-    focal length in pixels and the principal point at the image centre.
+    focal length in pixels and the principal point ``principal`` (column, row; default the image centre: a
+    cropped photograph has it elsewhere).
     """
     xy = np.asarray(highlight_xy, np.float64)
     if focal is None:
@@ -319,21 +321,17 @@ def reflect(highlight_xy: np.ndarray, circle: Circle, shape, focal: float | None
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
         view = np.array([0.0, 0.0, 1.0])
     else:
-        px, py = (shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0
+        px, py = principal if principal is not None else ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
 
         def ray(u, v):
             d = np.stack([(u - px) / focal, -(v - py) / focal, -np.ones_like(u)], axis=-1)
             return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
-        # Under perspective the outline is the image of a cone tangent to the sphere: its two ends along the line
-        # through the principal point see the sphere's axis as their bisector and its angular radius as half
-        # the angle between them.
         offset = np.array([circle.x - px, circle.y - py])
-        radial = offset / np.linalg.norm(offset) if np.linalg.norm(offset) > 1e-9 else np.array([1.0, 0.0])
-        ends = np.array([[circle.x, circle.y]]) + np.outer([-circle.r, circle.r], radial)
-        rays = ray(ends[:, 0], ends[:, 1])
-        axis = rays.sum(axis=0) / np.linalg.norm(rays.sum(axis=0))
-        alpha = 0.5 * math.acos(float(np.clip(rays[0] @ rays[1], -1.0, 1.0)))
+        distance = float(np.linalg.norm(offset))
+        radial = offset / distance if distance > 1e-9 else np.array([1.0, 0.0])
+        tilt, alpha = _cone_of_outline(distance, circle.r, focal)
+        axis = np.array([math.sin(tilt) * radial[0], -math.sin(tilt) * radial[1], -math.cos(tilt)])
         centre = axis / math.sin(alpha)                      # unit sphere radius, distance 1 / sin(alpha)
         d = ray(xy[:, 0], xy[:, 1])
         b = d @ centre
@@ -345,6 +343,31 @@ def reflect(highlight_xy: np.ndarray, circle: Circle, shape, focal: float | None
     cos = np.sum(normal * view, axis=-1, keepdims=True)
     light = 2.0 * cos * normal - view
     return light / np.linalg.norm(light, axis=1, keepdims=True)
+
+
+def _cone_of_outline(distance: float, radius: float, focal: float) -> tuple[float, float]:
+    """The tilt of a sphere's axis from the optical axis and its angular radius (radians), from the circle fitted
+    to its outline: ``distance`` of the circle's centre from the principal point and its ``radius`` (pixels).
+
+    Under perspective the outline is the image of the cone tangent to the sphere, an ellipse stretched along the
+    line through the principal point: its centre lies farther out than the axis, with semi-axes
+    ``a = f (tan(t + s) - tan(t - s)) / 2`` along that line and ``b = f sin s / sqrt(cos^2 t - sin^2 s)`` across
+    it.  A circle fitted to the whole outline has about its centre and the mean radius ``(a + b) / 2`` (taking
+    the circle's radius for ``a`` instead: 0.87 degrees mean instead of 0.55 on a render tilted 15 degrees).
+    """
+    from scipy.optimize import fsolve
+
+    def mismatch(p):
+        tilt, alpha = p
+        near, far = math.tan(tilt - alpha), math.tan(tilt + alpha)
+        across = math.sin(alpha) / math.sqrt(max(math.cos(tilt) ** 2 - math.sin(alpha) ** 2, 1e-12))
+        return [focal * (near + far) / 2 - distance, focal * ((far - near) / 2 + across) / 2 - radius]
+
+    start = [math.atan2(distance, focal), math.atan2(radius, math.hypot(distance, focal))]
+    (tilt, alpha), _, ok, _ = fsolve(mismatch, start, full_output=True, xtol=1e-12)
+    if ok != 1 or not (0.0 < alpha < math.pi / 2 and abs(tilt) + alpha < math.pi / 2):
+        return start[0], start[1]  # an outline perspective cannot explain: keep the first guess
+    return float(tilt), float(alpha)
 
 
 def angular_uncertainty_deg(highlight: Highlight, circle: Circle) -> float:

@@ -20,9 +20,10 @@ def fibonacci_lights(n: int, min_elevation_deg: float = 20.0, seed: int = 0) -> 
 
 
 def render_capture(folder: Path, lights: np.ndarray, spheres, size=(240, 320), focal=None, lamp_deg=1.5,
-                   dark=(), seed=1, quality: int = 80) -> list[Path]:
+                   dark=(), seed=1, quality: int = 80, principal=None) -> list[Path]:
     """JPEG q80 photographs of mirror spheres ``(x, y, r)`` on a textured background with a bright matte card,
-    lit by a small lamp in each of ``lights``; images listed in ``dark`` have the lamp off."""
+    lit by a small lamp in each of ``lights``; images listed in ``dark`` have the lamp off.  With ``focal`` the
+    camera is a pinhole with its principal point at ``principal`` (column, row; default the image centre)."""
     h, w = size
     rng = np.random.default_rng(seed)
     texture = ndimage.gaussian_filter(rng.random((h, w)), 2.0)
@@ -41,7 +42,7 @@ def render_capture(folder: Path, lights: np.ndarray, spheres, size=(240, 320), f
                 normal = np.stack([nx, ny, nz], -1)
                 view = np.broadcast_to([0.0, 0.0, 1.0], normal.shape)
             else:
-                px, py = (w - 1) / 2, (h - 1) / 2
+                px, py = principal if principal is not None else ((w - 1) / 2, (h - 1) / 2)
                 d = np.stack([(cols - px) / focal, -(rows - py) / focal, -np.ones_like(cols)], -1)
                 d /= np.linalg.norm(d, axis=-1, keepdims=True)
                 axis = np.array([(sx - px) / focal, -(sy - py) / focal, -1.0])
