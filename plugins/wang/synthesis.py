@@ -10,8 +10,8 @@ corner half and is split between them by a cut.
 
 1. **Corner sampling**: one ``h x h`` exemplar patch per corner sample, chosen among the patches nearest a random
    reference patch of typical contrast (candidate search by the shared exact :func:`search.knn`) so that every
-   pair meeting in a quadrant differs little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
-   cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
+   pair meeting in a quadrant differs little; then the cut of every (quadrant, horizontal colour, vertical colour)
+   combination is computed once and cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
    kept.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
    and vertical-strip pixels along the other border, so both borders see one continuous strip right up to the
    vertex; the two pieces meet only inside the quadrant.
@@ -43,15 +43,13 @@ from btforge.plugins.synth.search import knn
 from .cuts import grid_edges, min_cut, min_cut_edges
 from .placement import PlacementSearch
 
-PICK_BEST = 4          # with one candidate, the placement is drawn among this many best ones
-CANDIDATES = 1         # placements tried per patch by their actual cut (the best kept); 1: one drawn, uncut
+PICK_BEST = 4          # a placement is drawn among this many best ones
 THRESHOLD = 0.5        # per-pixel error threshold, times the exemplar's median neighbouring-texel distance
 SEARCH_STRIDE = 2      # placements are searched on every second texel, then refined among their neighbours ...
 STRIDE_FROM = 96       # ... in exemplars at least this large
 REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
-VARIETY = 0.0          # weight of the reward for corner samples that look unlike each other (cell means)
 CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
 TYPICAL = (30, 70)     # percentiles of window contrast corner samples are drawn between
 CENTRE = 2             # the central CENTRE x CENTRE texels of corner patches ...
@@ -150,9 +148,7 @@ class Filler:
         k = int(self.rng.integers(len(ys)))
         return ys[k], xs[k]
 
-    def _placements(self, coords, y0, x0, window) -> list[tuple[int, int]]:
-        """Candidate exemplar origins for the patch at ``(y0, x0)``: with ``CANDIDATES == 1`` one drawn among the
-        PICK_BEST best matches of its known pixels, else the CANDIDATES best (each refined when strided)."""
+    def _placement(self, coords, y0, x0, window):
         ph, pw = window
         part = coords[y0:y0 + ph, x0:x0 + pw]
         known = part[..., 0] >= 0
@@ -161,41 +157,13 @@ class Filler:
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
         flat = errors.ravel()
-        k = min(max(PICK_BEST, CANDIDATES), flat.size)
+        k = min(PICK_BEST, flat.size)
         best = np.argpartition(flat, k - 1)[:k]
         best = best[np.argsort(flat[best], kind="stable")]
-        picks = best[:CANDIDATES] if CANDIDATES > 1 else best[self.rng.integers(min(PICK_BEST, k)):][:1]
-        found = []
-        for pick in picks:
-            gy, gx = divmod(int(pick), errors.shape[1])
-            if stride > 1:
-                gy, gx = self.search.refine(offsets, target, window, gy * stride, gx * stride, stride - 1)
-            if (gy, gx) not in found:
-                found.append((gy, gx))
-        return found
-
-    def _trial(self, coords, region, y0, x0, py, px, rim):
-        """``coords`` with the patch from exemplar origin ``(py, px)`` cut in at ``(y0, x0)``, and its errors."""
-        ph, pw = rim.shape
-        clock = time.perf_counter()
-        dy, dx = np.mgrid[0:ph, 0:pw]
-        new = np.stack([py + dy, px + dx], -1).astype(np.int32)
-        old = coords[y0:y0 + ph, x0:x0 + pw]
-        inside = region[y0:y0 + ph, x0:x0 + pw]
-        filled = old[..., 0] >= 0
-        take = inside & ~filled
-        if self.cut == "graph" and filled.any():
-            keep = filled & (~inside | rim)
-            mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
-        else:
-            mask = take if take.any() else inside & ~rim
-        self.seconds["cut"] += time.perf_counter() - clock
-        clock = time.perf_counter()
-        trial = coords.copy()
-        trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
-        trial_err = pixel_errors(trial, self.feats)
-        self.seconds["bookkeeping"] += time.perf_counter() - clock
-        return trial, trial_err, _region_cost(trial_err, region)
+        gy, gx = divmod(int(best[self.rng.integers(k)]), errors.shape[1])
+        if stride == 1:
+            return gy, gx
+        return self.search.refine(offsets, target, window, gy * stride, gx * stride, stride - 1)
 
     def _edge_costs(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
         """Per neighbour pair of the window, what a seam between old and new content there would show:
@@ -237,12 +205,28 @@ class Filler:
             y0 = int(np.clip(ty - ph // 2, 0, coords.shape[0] - ph))
             x0 = int(np.clip(tx - pw // 2, 0, coords.shape[1] - pw))
             clock = time.perf_counter()
-            candidates = self._placements(coords, y0, x0, (ph, pw))
+            py, px = self._placement(coords, y0, x0, (ph, pw))
             self.placed += 1
             self.seconds["search"] += time.perf_counter() - clock
-            # Kept is the candidate whose cut leaves the region least unfilled, then with the least error.
-            trial, trial_err, after = min((self._trial(coords, region, y0, x0, py, px, rim) for py, px in candidates),
-                                          key=lambda tried: tried[2])
+            clock = time.perf_counter()
+            dy, dx = np.mgrid[0:ph, 0:pw]
+            new = np.stack([py + dy, px + dx], -1).astype(np.int32)
+            old = coords[y0:y0 + ph, x0:x0 + pw]
+            inside = region[y0:y0 + ph, x0:x0 + pw]
+            filled = old[..., 0] >= 0
+            take = inside & ~filled
+            if self.cut == "graph" and filled.any():
+                keep = filled & (~inside | rim)
+                mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
+            else:
+                mask = take if take.any() else inside & ~rim
+            self.seconds["cut"] += time.perf_counter() - clock
+            clock = time.perf_counter()
+            trial = coords.copy()
+            trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
+            trial_err = pixel_errors(trial, self.feats)
+            self.seconds["bookkeeping"] += time.perf_counter() - clock
+            after = _region_cost(trial_err, region)
             if after[0] < n_unfilled or (after[0] == n_unfilled and after[1] < total - 1e-9):
                 coords[...] = trial
                 err = trial_err
@@ -437,21 +421,12 @@ class Corners:
             total += CENTRE_WEIGHT * self.h * centre.sum()
             if other[0] == partner:
                 total += np.linalg.norm(mine - theirs, axis=-1).sum() / 4
-            # Samples that look alike make every vertex of every tiling look alike: reward unlike cell means.
-            total -= VARIETY * self.h * self.h * np.linalg.norm(self._cells(y, x) - self._cells(py, px))
         for name, (hs, vs, _, _, _) in QUADRANTS.items():
             if kind == hs:
                 total += sum(self._difference(name, slot, f"{vs}{c}", positions).sum() for c in range(self.n_v))
             elif kind == vs:
                 total += sum(self._difference(name, f"{hs}{a}", slot, positions).sum() for a in range(self.n_h))
         return total
-
-    def _cells(self, y: int, x: int) -> np.ndarray:
-        """The DESCRIPTOR_CELLS^2 cell means of the patch at ``(y, x)``: how it looks from afar."""
-        cells = max(1, min(DESCRIPTOR_CELLS, self.h))
-        step = self.h // cells
-        patch = self.feats[y:y + step * cells, x:x + step * cells].astype(np.float64)
-        return patch.reshape(cells, step, cells, step, -1).mean(axis=(1, 3))
 
     def _descend(self, positions: dict, slots: list[str], sweeps: int = 2) -> dict:
         """Coordinate descent on the summed quadrant differences, each slot on a distinct pool patch."""
