@@ -592,8 +592,8 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
               high=1.0),
     ],
 )
-def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch, scales, seed, block, wrap, domain, projections,
-          samples, consistency_patch, tolerance, verbatim_area, consistency_threshold):
+def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch, scales, seed, block, wrap, domain,
+          projections, samples, consistency_patch, tolerance, verbatim_area, consistency_threshold):
     """Measure synthesis quality: patch statistics, copying, seams and cross-light consistency.
 
     Both textures are relit at each light (a stack must hold the lights asked for, and its view nearest the

@@ -9,9 +9,9 @@ one above its bottom corner ``B``.  Each quadrant of the square is covered by on
 corner half and is split between them by a cut.
 
 1. **Corner sampling**: one ``h x h`` exemplar patch per corner sample, chosen among the patches nearest a random
-   reference patch of typical contrast (candidate search by the shared exact :func:`search.knn`) so that every
-   pair meeting in a quadrant differs little; then the cut of every (quadrant, horizontal colour, vertical colour)
-   combination is computed once and cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
+   reference patch of typical contrast (candidate search by the shared :func:`search.knn`) so that every pair meeting in a quadrant
+   differs little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
+   cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
    kept.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
    and vertical-strip pixels along the other border, so both borders see one continuous strip right up to the
    vertex; the two pieces meet only inside the quadrant.
