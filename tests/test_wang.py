@@ -10,11 +10,12 @@ from hypothesis import given, settings, strategies as st
 from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
 from btforge.errors import BtforgeInputError
-from btforge.plugins.wang import build_tile_set, tiling_ids, wang_score, wang_tiles, wang_tiling
+from btforge.plugins.synth.scoring import score
+from btforge.plugins.wang import build_tile_set, wang_tiles, wang_tiling
 from btforge.plugins.wang.bench import procedural_exemplar
 from btforge.plugins.wang.cuts import min_cut
 from btforge.plugins.wang.placement import placement_errors_numpy, placement_errors_opencl
-from btforge.plugins.wang.seams import corner_configurations, tiling_report
+from btforge.plugins.wang.seams import corner_configurations, tiling_ids, tiling_report
 from btforge.plugins.wang.synthesis import quadrant_ties, synthesize_tiles
 from btforge.plugins.wang.tileset import TileSet, describe, read_tile_set
 from btforge.plugins.wang.tiling import glue_mismatches, is_periodic, mesh_tiling, plane_tiling
@@ -186,11 +187,28 @@ def test_plane_tiling_is_valid_aperiodic_and_uses_every_tile(procedural):
     report = ctx.notes["tiling"]
     assert report["mismatches"] == 0 and report["tiles_used"] == 16
     assert not is_periodic(ids)
-    scores = wang_score(tiles=tiles, exemplar=stack, coords=coords)["scores"].values
+    scores = score(tiles=tiles, exemplar=stack, coords=coords)["scores"].values
     assert scores["tiling_mismatches"] == 0 and scores["tiling_periodic"] is False
+    assert scores["tiling_tiles_used"] == 16 and scores["seam_worst_mean_ratio"] > 0
     periodic = plane_tiling(tiles, 6, 6, True, 1)
     assert tiling_report(periodic, tiles.tile_colors, 16, True)["mismatches"] == 0
     assert is_periodic(np.tile(np.arange(4).reshape(2, 2), (4, 4)))
+
+
+def test_score_measures_a_tile_set_and_its_tiling_through_the_buffers_capability(procedural):
+    stack, tiles, _, ratios = procedural
+    alone = score(tiles=tiles, exemplar=stack)["scores"].values
+    assert alone["seam_worst_p99_ratio"] == pytest.approx(ratios["worst_p99_ratio"])
+    assert alone["tiles"] == 16 and 0 < alone["btfel_share"] <= 1 and "swd" not in alone
+    coords = wang_tiling(tiles=tiles, rows=2, cols=2, seed=1)["coords"]
+    both = score(output=coords.apply(stack), exemplar=stack, coords=coords, tiles=tiles, samples=64)["scores"].values
+    assert {k: both[k] for k in alone} == alone and "swd" in both and both["tiling_mismatches"] == 0
+    with pytest.raises(BtforgeInputError, match="has no seam scores"):
+        score(tiles=stack, exemplar=stack)
+    with pytest.raises(BtforgeInputError, match="found neither"):
+        score(exemplar=stack)
+    with pytest.raises(BtforgeInputError, match="whole 32 x 32 tiles"):
+        score(tiles=tiles, exemplar=stack, coords=CoordMap(np.zeros((40, 40, 2), np.int32), tiles.source_size))
 
 
 @pytest.mark.parametrize("primitive,cells", [("plane", (8, 8)), ("cube", (3, 3)), ("torus", (8, 4)),

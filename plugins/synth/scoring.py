@@ -561,8 +561,8 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
 
 @declare_stage(
     "score",
-    inputs={"output": "PerTexel", "exemplar": "PerTexel", "coords": "CoordMap"},
-    optional_inputs=("coords",),
+    inputs={"output": "PerTexel", "exemplar": "PerTexel", "coords": "CoordMap", "tiles": "Buffer"},
+    optional_inputs=("output", "coords", "tiles"),
     outputs={"scores": "Scores"},
     params=[
         Param("lights", "lights", None, "lights to compare at, as [[x, y, z], ...] or a .lp file; leave out to use "
@@ -592,8 +592,8 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
               high=1.0),
     ],
 )
-def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, block, wrap, domain, projections,
-          samples, consistency_patch, tolerance, verbatim_area, consistency_threshold):
+def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch, scales, seed, block, wrap, domain,
+          projections, samples, consistency_patch, tolerance, verbatim_area, consistency_threshold):
     """Measure synthesis quality: patch statistics, copying, seams and cross-light consistency.
 
     Both textures are relit at each light (a stack must hold the lights asked for, and its view nearest the
@@ -604,13 +604,18 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
 
     Inputs
     ------
-    output : PerTexel
-        The synthesized texture: a SampleStack or any ReflectanceModel.
+    output : PerTexel, optional
+        The synthesized texture: a SampleStack or any ReflectanceModel.  Needed unless ``tiles`` is wired.
     exemplar : PerTexel
         The texture it was synthesized from, with the same number of channels.
     coords : CoordMap, optional
         The synthesis result that produced ``output``; makes the verbatim share, the seams and the consistency
-        exact instead of estimated.
+        exact instead of estimated.  In tile-set mode, a layout of ``tiles`` (a tiling of it), also measured.
+    tiles : Buffer, optional
+        Tile-set mode: a set of pieces that textures are laid out from, measured by its class's own
+        ``seam_scores(exemplar, coords)`` (a Wang-tile set: seam ratios over every valid adjacency and 2 x 2
+        corner configuration, BTFel statistics, and for a tiling wired to ``coords`` its colour mismatches, tile
+        use and periodicity).  Those figures join the scores; without ``output`` they are the scores.
 
     Outputs
     -------
@@ -671,6 +676,13 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
 
     Everything is also noted in the run report, with the lights, the domain and how each figure was found.
     """
+    layout = tiles.seam_scores(exemplar, coords) if tiles is not None else {}
+    if output is None:
+        if tiles is None:
+            raise BtforgeInputError("score", "expected 'output' (a synthesized texture) or 'tiles' (a tile set) "
+                                    "wired, found neither", "wire the texture to measure to 'output', or a tile "
+                                    "set to 'tiles'")
+        return _noted(ctx, layout)
     if wrap is None:
         wrap = bool(coords.wrap) if coords is not None else False
     n_channel, out_channel = len(_channels(exemplar)), len(_channels(output))
@@ -759,7 +771,12 @@ def score(ctx, output, exemplar, coords=None, *, lights, patch, scales, seed, bl
         "wrap": bool(wrap),
         "scales_used": len(swd_per_level),
         "sampled_patches": int(len(out_positions)),
+        **layout,
     }
+    return _noted(ctx, values)
+
+
+def _noted(ctx, values: dict) -> dict:
     for key, value in values.items():
         ctx.note(key, value)
     return {"scores": Scores(values)}

@@ -2,9 +2,10 @@
 stochastic tilings of planes and of meshes' UV grids.
 
 Stages: ``wang.tiles`` (exemplar -> ``TileSet``), ``wang.tiling`` (``TileSet`` -> ``CoordMap`` of a plane tiling,
-replayed by ``materialize`` and ``render``'s ``coord_map``), ``wang.score`` (seam ratios over every valid
-adjacency and 2 x 2 configuration, colour mismatches and tile use of a tiling), ``tiles.write`` / ``tiles.read``
-(the ``.wang`` archive, see :mod:`.tileset`).  The renderer dresses meshes with a ``TileSet`` directly (scene key
+replayed by ``materialize`` and ``render``'s ``coord_map``), ``tiles.write`` / ``tiles.read`` (the ``.wang``
+archive, see :mod:`.tileset`).  ``score`` measures a ``TileSet`` wired to its ``tiles`` port through
+:meth:`TileSet.seam_scores` (seam ratios over every valid adjacency and 2 x 2 configuration, colour mismatches
+and tile use of a tiling).  The renderer dresses meshes with a ``TileSet`` directly (scene key
 ``tiles: true``).
 """
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
-from btforge.buffers import CoordMap, Scores
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
 from .tileset import TileSet
@@ -114,64 +115,6 @@ def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
     return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic)}
 
 
-def tiling_ids(tiles: TileSet, coords: CoordMap) -> np.ndarray:
-    """The tile index of every ``w x w`` block of a tiling's map (refuses blocks that are no tile)."""
-    w = tiles.tile
-    if coords.height % w or coords.width % w or coords.source_size != tiles.source_size:
-        raise BtforgeInputError("wang.score 'coords'", f"expected a map of whole {w} x {w} tiles into the "
-                                f"{tiles.source_size[0]} x {tiles.source_size[1]} exemplar, found "
-                                f"{coords.height} x {coords.width} into {coords.source_size}",
-                                "wire the coords of a wang.tiling of this tile set")
-    known = {tiles.tile_coords[t].tobytes(): t for t in range(tiles.n_tiles)}
-    rows, cols = coords.height // w, coords.width // w
-    ids = np.empty((rows, cols), np.int64)
-    for i in range(rows):
-        for j in range(cols):
-            block = np.ascontiguousarray(coords.coords[i * w:(i + 1) * w, j * w:(j + 1) * w]).tobytes()
-            if block not in known:
-                raise BtforgeInputError("wang.score 'coords'", f"block ({i}, {j}) is not a tile of the set",
-                                        "wire the coords of a wang.tiling of this tile set")
-            ids[i, j] = known[block]
-    return ids
-
-
-@declare_stage(
-    "wang.score",
-    inputs={"tiles": "TileSet", "exemplar": "PerTexel", "coords": "CoordMap"},
-    optional_inputs=("coords",),
-    outputs={"scores": "Scores"},
-)
-def wang_score(ctx, tiles, exemplar, coords=None):
-    """Seam scores of a tile set (and of a tiling of it): the tile-set mode of ``score``.
-
-    Over every valid adjacency (horizontal and vertical) and every valid 2 x 2 configuration, the distances
-    between texels facing each other across tile borders, as mean and 99th-percentile ratios to the distances
-    between neighbouring texels inside the exemplar (in its appearance features).  With ``coords`` (a
-    ``wang.tiling``), also the colour mismatches on its shared edges, tile use and whether its tile IDs repeat
-    periodically.  Plus the BTFel statistics.
-    """
-    from . import seams
-    from .features import appearance_features
-    from .tiling import is_periodic
-    if (exemplar.height, exemplar.width) != tiles.source_size:
-        raise BtforgeInputError("wang.score 'exemplar'", f"expected the {tiles.source_size[0]} x "
-                                f"{tiles.source_size[1]} exemplar of the tile set, found {exemplar.height} x "
-                                f"{exemplar.width}", "wire the buffer the tile set was synthesized from")
-    full = appearance_features(exemplar)
-    ratios = seams.seam_ratios(seams.tile_set_seams(tiles.tile_coords, tiles.tile_colors, full, tiles.edge),
-                               seams.exemplar_reference(full))
-    values = {f"seam_{k}": v for k, v in ratios.items()}
-    stats = tiles.statistics()
-    values.update({"btfel_share": stats["referenced_share"], "btfel_bytes": stats["total_bytes"],
-                   "tiles": stats["tiles"]})
-    if coords is not None:
-        ids = tiling_ids(tiles, coords)
-        report = seams.tiling_report(ids, tiles.tile_colors, tiles.n_tiles, coords.wrap)
-        values.update({f"tiling_{k}": v for k, v in report.items()})
-        values["tiling_periodic"] = bool(is_periodic(ids))
-    return {"scores": Scores(values)}
-
-
 @declare_stage("tiles.write", inputs={"tiles": "TileSet"},
                params=[Param("path", "outpath", REQUIRED, "the .wang archive to write (relative to --out)")],
                side_effects=True)
@@ -233,7 +176,7 @@ def tiles_sheet(ctx, tiles, exemplar, *, path, light, columns):
 
 @hookimpl
 def btforge_stages():
-    return [wang_tiles, wang_tiling, wang_score, tiles_write, tiles_read, tiles_sheet]
+    return [wang_tiles, wang_tiling, tiles_write, tiles_read, tiles_sheet]
 
 
 @hookimpl

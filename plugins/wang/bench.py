@@ -75,5 +75,37 @@ def bench_wang(args: list[str]) -> int:
     print("  seam ratios: " + ", ".join(f"{k} {v:.3f}" for k, v in ratios.items()))
     print(f"  seams: worst mean ratio {ratios['worst_mean_ratio']:.3f}, worst p99 ratio "
           f"{ratios['worst_p99_ratio']:.3f}; pixels over threshold {synthesis.unresolved}")
+    print("  " + interior_report(tiles, exemplar, synthesis))
     print(f"  peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     return 0
+
+
+def interior_report(tiles, exemplar, synthesis) -> str:
+    """How visible the tiles' inner patch seams are, and how far apart in the exemplar the corner samples lie."""
+    from .features import appearance_features
+    from .seams import cut_distances
+    from .synthesis import neighbour_distances
+    full = appearance_features(exemplar)
+    cuts = cut_distances(tiles.tile_coords, full)
+    reference = float(np.mean(neighbour_distances(full)))
+    inner = np.concatenate([cuts["cut_h"], cuts["cut_v"]])
+    local = np.concatenate([cuts["cut_h_local"], cuts["cut_v_local"]])
+    corners = np.array(list(synthesis.corner_positions.values()), np.int64).reshape(-1, 2)
+    spread = corner_variety(full, corners, tiles.edge)
+    return (f"interior cuts: mean distance {inner.mean() / reference:.3f}x the exemplar's mean neighbour distance, "
+            f"{inner.mean() / max(local.mean(), 1e-30):.3f}x the same texels' own ({100 * cuts['cut_share']:.1f}% "
+            f"of neighbour pairs); corner samples' variety {spread:.3f}")
+
+
+def corner_variety(feats: np.ndarray, origins: np.ndarray, h: int, seed: int = 0) -> float:
+    """How unlike each other the corner samples (``h x h`` patches at ``origins``) look: their mean pairwise
+    texel distance over that of random pairs of ``h x h`` exemplar patches (1: as varied as the exemplar)."""
+    def mean_pair_distance(a: np.ndarray, b: np.ndarray) -> float:
+        dy, dx = np.mgrid[0:h, 0:h]
+        pa, pb = feats[a[:, None, None, 0] + dy, a[:, None, None, 1] + dx], feats[b[:, None, None, 0] + dy,
+                                                                                   b[:, None, None, 1] + dx]
+        return float(np.linalg.norm(pa.astype(np.float64) - pb, axis=-1).mean())
+    i, j = np.triu_indices(len(origins), 1)
+    rng = np.random.default_rng(seed)
+    random = rng.integers(0, np.array(feats.shape[:2]) - h + 1, size=(2, 512, 2))
+    return mean_pair_distance(origins[i], origins[j]) / max(mean_pair_distance(random[0], random[1]), 1e-30)

@@ -1,4 +1,4 @@
-"""Appearance features for Wang-tile synthesis, and the candidate search over them.
+"""Appearance features for Wang-tile synthesis.
 
 Distances between tiles' texels are taken in each representation's compressed domain, through per-texel vectors
 whose Euclidean distance is the L2 distance of the texels' reflectance functions:
@@ -70,19 +70,3 @@ def search_features(full: np.ndarray, dims: int, seed: int = 0) -> np.ndarray:
         return np.ascontiguousarray(full, np.float32)
     return pca_reduce(full, dims, seed)
 
-
-def knn(exemplar: np.ndarray, queries: np.ndarray, k: int, *, engine: str = "fast") -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` nearest rows of ``exemplar [N, D]`` to each of ``queries [M, D]``, nearest first.
-
-    Returns ``(indices [M, k] int64, squared_distances [M, k] float32)``.  The signature of the shared search of
-    issue 10 (``plugins/synth/search.py``), which replaces this k-d tree at merge; ``engine`` is accepted for
-    that signature (both engines are exact here).
-    """
-    from scipy.spatial import cKDTree
-    exemplar = np.ascontiguousarray(exemplar, np.float32)
-    queries = np.ascontiguousarray(queries, np.float32)
-    k = int(min(k, len(exemplar)))
-    distances, indices = cKDTree(exemplar).query(queries, k=k)
-    indices = np.asarray(indices, np.int64).reshape(len(queries), k)
-    distances = np.asarray(distances, np.float64).reshape(len(queries), k)
-    return indices, (distances ** 2).astype(np.float32)

@@ -134,12 +134,14 @@ def tiling_report(tile_ids: np.ndarray, colors: np.ndarray, n_tiles: int, period
 
 def cut_distances(tile_coords: np.ndarray, feats: np.ndarray) -> dict:
     """Inside the tiles: distances of the neighbour pairs copied from different exemplar places (the cuts'
-    seams), horizontally and vertically, with their share of all pairs."""
+    seams), horizontally and vertically, with the same texels' distances to their own exemplar neighbours in that
+    direction (``cut_*_local``, as :func:`seam_ratios` compares) and the cuts' share of all pairs."""
     out, total, cut = {}, 0, 0
     for name, a, b, step in (("h", tile_coords[:, :, :-1], tile_coords[:, :, 1:], (0, 1)),
                              ("v", tile_coords[:, :-1], tile_coords[:, 1:], (1, 0))):
         seam = np.any(b != a + np.array(step), axis=-1)
         out[f"cut_{name}"] = _distances(feats, a[seam], b[seam])
+        out[f"cut_{name}_local"] = _local_reference(feats, a[seam], b[seam], step)
         total += seam.size
         cut += int(seam.sum())
     out["cut_share"] = cut / max(total, 1)
@@ -175,3 +177,52 @@ def mesh_seams(tiling, tile_coords: np.ndarray, feats: np.ndarray) -> dict:
             out[f"{kind}_p99_ratio"] = float(np.percentile(v, 99)) / max(float(np.percentile(
                 neighbour_distances(feats), 99)), 1e-30)
     return out
+
+
+def tiling_ids(tiles, coords) -> np.ndarray:
+    """The tile index of every ``w x w`` block of a tiling's map (refuses blocks that are no tile)."""
+    from btforge.errors import BtforgeInputError
+    w = tiles.tile
+    if coords.height % w or coords.width % w or coords.source_size != tiles.source_size:
+        raise BtforgeInputError("score 'coords'", f"expected a map of whole {w} x {w} tiles into the "
+                                f"{tiles.source_size[0]} x {tiles.source_size[1]} exemplar, found "
+                                f"{coords.height} x {coords.width} into {coords.source_size}",
+                                "wire the coords of a wang.tiling of the tile set wired to 'tiles'")
+    known = {tiles.tile_coords[t].tobytes(): t for t in range(tiles.n_tiles)}
+    rows, cols = coords.height // w, coords.width // w
+    ids = np.empty((rows, cols), np.int64)
+    for i in range(rows):
+        for j in range(cols):
+            block = np.ascontiguousarray(coords.coords[i * w:(i + 1) * w, j * w:(j + 1) * w]).tobytes()
+            if block not in known:
+                raise BtforgeInputError("score 'coords'", f"block ({i}, {j}) is not a tile of the set",
+                                        "wire the coords of a wang.tiling of the tile set wired to 'tiles'")
+            ids[i, j] = known[block]
+    return ids
+
+
+def tile_set_scores(tiles, exemplar, coords=None) -> dict:
+    """What ``score`` reports for a tile set: ``seam_*`` (:func:`seam_ratios` over every valid adjacency and
+    2 x 2 configuration, in the exemplar's appearance features), ``btfel_share``, ``btfel_bytes``, ``tiles``, and
+    with ``coords`` (a tiling of the set) ``tiling_*`` (:func:`tiling_report`) and ``tiling_periodic``."""
+    from btforge.errors import BtforgeInputError
+
+    from .features import appearance_features
+    from .tiling import is_periodic
+    if (exemplar.height, exemplar.width) != tiles.source_size:
+        raise BtforgeInputError("score 'exemplar'", f"expected the {tiles.source_size[0]} x {tiles.source_size[1]} "
+                                f"exemplar of the tile set, found {exemplar.height} x {exemplar.width}",
+                                "wire the buffer the tile set was synthesized from")
+    full = appearance_features(exemplar)
+    ratios = seam_ratios(tile_set_seams(tiles.tile_coords, tiles.tile_colors, full, tiles.edge),
+                         exemplar_reference(full))
+    values = {f"seam_{k}": v for k, v in ratios.items()}
+    stats = tiles.statistics()
+    values.update({"btfel_share": stats["referenced_share"], "btfel_bytes": stats["total_bytes"],
+                   "tiles": stats["tiles"]})
+    if coords is not None:
+        ids = tiling_ids(tiles, coords)
+        values.update({f"tiling_{k}": v for k, v in tiling_report(ids, tiles.tile_colors, tiles.n_tiles,
+                                                                  coords.wrap).items()})
+        values["tiling_periodic"] = bool(is_periodic(ids))
+    return values

@@ -9,8 +9,8 @@ one above its bottom corner ``B``.  Each quadrant of the square is covered by on
 corner half and is split between them by a cut.
 
 1. **Corner sampling**: one ``h x h`` exemplar patch per corner sample, chosen among the patches nearest a random
-   reference patch of typical contrast (candidate search by :func:`features.knn`) so that every pair meeting in a quadrant differs
-   little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
+   reference patch of typical contrast (candidate search by the shared :func:`search.knn`) so that every pair meeting in a quadrant
+   differs little; then the cut of every (quadrant, horizontal colour, vertical colour) combination is computed once and
    cached.  Of ``CORNER_TRIALS`` such samplings, the one whose assembled vertex squares show the least seam is
    kept.  A quadrant's cut keeps horizontal-strip pixels along the tile border the horizontal strip straddles
    and vertical-strip pixels along the other border, so both borders see one continuous strip right up to the
@@ -38,9 +38,9 @@ import time
 import numpy as np
 
 from btforge.errors import BtforgeInputError
+from btforge.plugins.synth.search import knn
 
 from .cuts import grid_edges, min_cut, min_cut_edges
-from .features import knn
 from .placement import PlacementSearch
 
 PICK_BEST = 4          # a placement is drawn among this many best ones
@@ -334,7 +334,7 @@ class Corners:
         typical = np.flatnonzero(_typical_windows(feats, h))
         reference = int(typical[rng.integers(len(typical))])
         k = min(len(typical), 64 * len(slots))
-        order, _ = knn(desc[typical], desc[reference:reference + 1], k)
+        order, _ = knn(desc[typical], desc[reference:reference + 1], k, engine="exact")
         order = typical[order]
         pool = _diverse(order[0], n_cols, max(1, self.q), max(CORNER_CANDIDATES, len(slots)))
         if len(pool) < len(slots):

@@ -134,6 +134,13 @@ class TileSet(Buffer):
                 "total_bytes": int(table_bytes + self.indices.size * index_bytes),
                 "texels_as_copies_bytes": int(self.indices.size * self.texel_bytes)}
 
+    def seam_scores(self, exemplar, coords: CoordMap | None = None) -> dict:
+        """The tile-set mode of ``score``: seam ratios over every valid adjacency and 2 x 2 configuration, the
+        BTFel statistics, and with ``coords`` (a ``wang.tiling`` of this set) its colour mismatches, tile use and
+        whether its tile IDs repeat periodically (keys in :func:`btforge.plugins.wang.seams.tile_set_scores`)."""
+        from .seams import tile_set_scores
+        return tile_set_scores(self, exemplar, coords)
+
     # -- files -----------------------------------------------------------------------------------------
     def manifest(self) -> dict:
         return {"format": FORMAT, "version": VERSION, "colors_h": self.colors_h, "colors_v": self.colors_v,
