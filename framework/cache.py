@@ -109,8 +109,8 @@ def code_files(module: ModuleType) -> list[Path]:
     return sorted({p.resolve() for p in found if p.is_file()})
 
 
-_IMPORT = re.compile(r"^[ \t]*(?:import[ \t]+([\w., \t]+)|from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*))",
-                     re.MULTILINE)
+_IMPORT = re.compile(r"^[ \t]*(?:import[ \t]+([\w., \t]+)"
+                     r"|from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*))", re.MULTILINE)
 
 
 def imported_modules(path: Path, package: str) -> set[str]:

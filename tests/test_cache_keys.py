@@ -151,7 +151,8 @@ def test_editing_a_plugin_another_imports_changes_the_importers_digest(tmp_path,
         "@declare_stage('user.stage', outputs={})\n"
         "def user_stage(ctx):\n    \"\"\"Use the reader.\"\"\"\n    return {}\n\n"
         "@hookimpl\ndef btforge_stages():\n    return [user_stage]\n"),
-        "steps.py": "def helper():\n    from readerfam.parse import parse  # imported where used\n    return parse()\n"})
+        "steps.py": "def helper():\n    from readerfam.parse import parse  # imported where used\n"
+                    "    return parse()\n"})
     monkeypatch.syspath_prepend(str(tmp_path))
     modules = [importlib.import_module(name) for name in ("userfam", "readerfam")]
 

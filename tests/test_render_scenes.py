@@ -239,8 +239,12 @@ def test_meshes_are_built_once_per_run_without_point_lights(tmp_path, monkeypatc
     from btforge.plugins.render import geometry, renderer
     built = []
     original = geometry.build_mesh
+
+    def counted(spec, scene=None):
+        built.append(spec.name)
+        return original(spec, scene)
     for module in (geometry, renderer):  # the renderer holds its own name for it
-        monkeypatch.setattr(module, "build_mesh", lambda spec, scene=None: built.append(spec.name) or original(spec, scene))
+        monkeypatch.setattr(module, "build_mesh", counted)
     btforge.run(graph_with(tmp_path, GOOD), cache_dir=None, out_dir=tmp_path)
     assert built == ["ground"]
     built.clear()
