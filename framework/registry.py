@@ -168,8 +168,8 @@ class Registry:
 
         Its own: the source and ``.cl`` files of the plugin package that provides it (and of the module defining
         its function, if that lies elsewhere).  Besides those, every module of a registered plugin that the
-        stage's module imports, transitively and also inside functions (relight reads light files with stackio's
-        reader), with the ``.cl`` files beside it, and the engine's own files (its buffers remap, blend and
+        stage's module imports, transitively and also inside functions (a plugin may use another's file reader),
+        with the ``.cl`` files beside it, and the engine's own files (its buffers remap, blend and
         validate data too).
         """
         plugin = _module_of(self._stage_sources[name])
