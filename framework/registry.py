@@ -18,7 +18,7 @@ from typing import Any, Iterable
 import pluggy
 
 from . import buffers, hookspecs, profile
-from .cache import code_digest, code_files
+from .cache import code_digest, code_files, imported_modules
 from .errors import BtforgeInputError
 from .stages import Stage
 
@@ -90,6 +90,7 @@ class Registry:
         self.stages: dict[str, Stage] = {}
         self._stage_sources: dict[str, Any] = {}  # stage name -> the plugin object that provided it
         self._code_digests: dict[str, str] = {}
+        self._imports: dict[tuple[Path, str], set[str]] = {}  # what each source file imports
         for impl in self.pm.hook.btforge_stages.get_hookimpls():
             plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
             for st in impl.function() or ():
@@ -148,22 +149,59 @@ class Registry:
                                     did_you_mean(name, self.stages)) from None
 
     def code_digest(self, name: str, memo: Path | None = None) -> str:
-        """Digest of the code behind stage ``name``: the source and ``.cl`` files of the plugin package that
-        provides it (and of the module defining its function, if that lies elsewhere), and the engine's own (its
-        buffers remap, blend and validate data too).  Part of every node's cache key, so editing or upgrading a
-        plugin re-runs exactly its nodes and what depends on them; upgrading btforge re-runs everything."""
+        """Digest of the code behind stage ``name`` (its :meth:`code_files`).  Part of every node's cache key, so
+        editing or upgrading a plugin re-runs exactly its nodes, those of plugins importing it, and what depends on
+        them; upgrading btforge re-runs everything."""
         digest = self._code_digests.get(name)
         if digest is None:
-            plugin = _module_of(self._stage_sources[name])
-            defining = sys.modules.get(self.stages[name].fn.__module__)
-            own = set(code_files(plugin)) | (set(code_files(defining)) if defining is not None else set())
-            files = own | set(code_files(sys.modules[__package__]))
+            files, own = self.code_files(name)
             digest = code_digest(files, memo)
             if not own:  # no readable source (a zipped install): the distribution's version and RECORD instead
-                fingerprint = digest + _distribution_fingerprint(plugin or defining)
+                plugin = _module_of(self._stage_sources[name]) or sys.modules.get(self.stages[name].fn.__module__)
+                fingerprint = digest + _distribution_fingerprint(plugin)
                 digest = hashlib.blake2b(fingerprint.encode(), digest_size=20).hexdigest()
             self._code_digests[name] = digest
         return digest
+
+    def code_files(self, name: str) -> tuple[set[Path], set[Path]]:
+        """The files that decide what stage ``name`` computes, and which of them are its own plugin's.
+
+        Its own: the source and ``.cl`` files of the plugin package that provides it (and of the module defining
+        its function, if that lies elsewhere).  Besides those, every module of a registered plugin that the
+        stage's module imports, transitively and also inside functions (a plugin may use another's file reader),
+        with the ``.cl`` files beside it, and the engine's own files (its buffers remap, blend and
+        validate data too).
+        """
+        plugin = _module_of(self._stage_sources[name])
+        defining = sys.modules.get(self.stages[name].fn.__module__)
+        own = set(code_files(plugin)) | (set(code_files(defining)) if defining is not None else set())
+        files = own | set(code_files(sys.modules[__package__]))
+        if defining is not None and getattr(defining, "__file__", None):
+            for path in self._imported_files(Path(defining.__file__).resolve(), defining.__name__):
+                files |= {path, *path.parent.glob("*.cl")}
+        return files, own
+
+    def _imported_files(self, path: Path, module_name: str) -> set[Path]:
+        """The source files of registered plugins' modules that ``path`` (module ``module_name``) imports,
+        transitively; found by reading the sources, so nothing is imported to find them."""
+        plugins = {m.__name__: m for m in map(_module_of, self.pm.get_plugins()) if m is not None}
+        seen: set[Path] = set()
+        todo = [(path, module_name)]
+        while todo:
+            path, module_name = todo.pop()
+            package = module_name if path.name == "__init__.py" else module_name.rpartition(".")[0]
+            for imported in self._imports_of(path, package):
+                found = _plugin_module_file(imported, plugins)
+                if found is not None and found not in seen:
+                    seen.add(found)
+                    todo.append((found, imported))
+        return seen
+
+    def _imports_of(self, path: Path, package: str) -> set[str]:
+        key = (path, package)
+        if key not in self._imports:
+            self._imports[key] = imported_modules(path, package)
+        return self._imports[key]
 
     def stages_with_role(self, role: str) -> list[Stage]:
         """The stages that declare ``role`` (e.g. ``"fit"``), by name."""
@@ -181,6 +219,23 @@ def _module_of(plugin: Any) -> ModuleType | None:
     if isinstance(plugin, ModuleType):
         return plugin
     return sys.modules.get(getattr(plugin, "__module__", None) or type(plugin).__module__)
+
+
+def _plugin_module_file(module_name: str, plugins: dict[str, ModuleType]) -> Path | None:
+    """The source file of module ``module_name`` if it lies in a registered plugin package (None otherwise)."""
+    owners = [p for p in plugins if module_name == p or module_name.startswith(p + ".")]
+    if not owners:
+        return None
+    owner = plugins[max(owners, key=len)]
+    if not hasattr(owner, "__path__"):
+        return Path(owner.__file__).resolve() if module_name == owner.__name__ and owner.__file__ else None
+    rest = module_name[len(owner.__name__):].lstrip(".").split(".") if module_name != owner.__name__ else []
+    for folder in owner.__path__:
+        base = Path(folder).joinpath(*rest)
+        for candidate in (base / "__init__.py", base.with_suffix(".py")) if rest else (base / "__init__.py",):
+            if candidate.is_file():
+                return candidate.resolve()
+    return None  # a name imported from a module (``from pkg.mod import function``), not a module
 
 
 def _distribution_fingerprint(module: ModuleType | None) -> str:

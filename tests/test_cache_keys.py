@@ -133,3 +133,46 @@ def test_a_plugin_without_readable_source_is_keyed_by_its_distribution(monkeypat
         return Registry(load_entry_points=False, extra_plugins=[toy_plugin, plugin]).code_digest("zipped.make")
     assert digest("1.0") != digest("1.1")
     assert registry_module._distribution_fingerprint(types.ModuleType("nothing_installed")) == ""
+
+
+def _package(root, name, files):
+    for rel, text in files.items():
+        (root / name / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / name / rel).write_text(text)
+
+
+def test_editing_a_plugin_another_imports_changes_the_importers_digest(tmp_path, monkeypatch):
+    """relight reads light files with stackio's reader: an edit to stackio must re-run relight's nodes too."""
+    plugin = "from btforge import declare_stage, hookimpl\nBTFORGE_PLUGIN_API = 1\n"
+    _package(tmp_path, "readerfam", {"__init__.py": plugin, "parse.py": "def parse():\n    return 1\n",
+                                     "kernels/unused.py": "", "other.py": "def unrelated():\n    return 2\n"})
+    _package(tmp_path, "userfam", {"__init__.py": plugin + (
+        "from .steps import helper\n\n"
+        "@declare_stage('user.stage', outputs={})\n"
+        "def user_stage(ctx):\n    \"\"\"Use the reader.\"\"\"\n    return {}\n\n"
+        "@hookimpl\ndef btforge_stages():\n    return [user_stage]\n"),
+        "steps.py": "def helper():\n    from readerfam.parse import parse  # imported where used\n"
+                    "    return parse()\n"})
+    monkeypatch.syspath_prepend(str(tmp_path))
+    modules = [importlib.import_module(name) for name in ("userfam", "readerfam")]
+
+    def digests():
+        registry = Registry(load_entry_points=False, extra_plugins=[*modules, toy_plugin])
+        return {name: registry.code_digest(name) for name in ("user.stage", "toy.source")}
+    try:
+        before = digests()
+        (tmp_path / "readerfam" / "other.py").write_text("def unrelated():\n    return 3\n")
+        assert digests() == before  # userfam never imports it
+        (tmp_path / "readerfam" / "parse.py").write_text("def parse():\n    return 2\n")
+        after = digests()
+        assert after["user.stage"] != before["user.stage"] and after["toy.source"] == before["toy.source"]
+    finally:
+        for name in [n for n in sys.modules if n.split(".")[0] in ("userfam", "readerfam")]:
+            del sys.modules[name]
+
+
+def test_relight_nodes_follow_the_stackio_reader_they_import():
+    files, own = Registry().code_files("relight")
+    lightfile = REPO / "plugins" / "stackio" / "lightfile.py"
+    assert lightfile.resolve() in files and lightfile.resolve() not in own
+    assert (REPO / "plugins" / "ptm" / "ptm.cl").resolve() not in files

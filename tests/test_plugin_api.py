@@ -22,22 +22,34 @@ def _distribution(site, name: str, module: str):
     (info / "entry_points.txt").write_text(f"[btforge.plugins]\n{name} = {module}\n")
 
 
-def test_a_third_party_representation_shows_up_in_stages_and_the_representations_bench(tmp_path):
+def test_a_third_party_plugin_adds_a_representation_and_a_synthesizer(tmp_path, monkeypatch, capsys):
+    """tests/fixtures/third_party_plugin, installed by entry point, is listed and benched like a built-in family."""
+    import csv
+
+    import btforge.registry
+    from btforge.cli import main
     from btforge.plugins.stackio.images import write_stack
     site = tmp_path / "site"
-    _distribution(site, "lambert", "lambert_plugin")
+    _distribution(site, "thirdparty", "third_party_plugin")
     write_stack(btforge.stage("demo.material")(size=[12, 12], lights=10, bumps=4)["stack"], tmp_path / "cap", fmt="exr")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(FIXTURES)])}
-    listed = subprocess.run([sys.executable, "-m", "btforge.cli", "stages", "lambert.fit"], env=env,
-                            capture_output=True, text=True)
-    assert listed.returncode == 0 and "Fit a Lambertian albedo" in listed.stdout
-    bench = subprocess.run([sys.executable, "-m", "btforge.cli", "bench", "representations", "--stack",
-                            str(tmp_path / "cap" / "lights.lp"), "--out", str(tmp_path / "bench"), "--only", "lambert",
-                            "--only", "ptm"], env=env, capture_output=True, text=True)
-    assert bench.returncode == 0, bench.stderr
-    table = (tmp_path / "bench" / "representations.csv").read_text()
+    monkeypatch.syspath_prepend(str(FIXTURES))
+    monkeypatch.syspath_prepend(str(site))  # where entry points are found, as after `pip install`
+    monkeypatch.setattr(btforge.registry, "_default", None)
+    assert main(["stages", "lambert.fit"]) == 0
+    assert "Fit a Lambertian albedo" in capsys.readouterr().out
+    assert main(["bench", "representations", "--stack", str(tmp_path / "cap" / "lights.lp"), "--out",
+                 str(tmp_path / "reps"), "--only", "lambert", "--only", "ptm"]) == 0
+    table = (tmp_path / "reps" / "representations.csv").read_text()
     assert "\nlambert," in table and "\nptm," in table
-    assert "all 12 x 12 texels" in bench.stderr  # the bench says what size it measured
+    assert "all 12 x 12 texels" in capsys.readouterr().err  # the bench says what size it measured
+    assert main(["bench", "synthesis", "--exemplar", "procedural", "--out", str(tmp_path / "synth"), "--sizes", "24",
+                 "--size", "32", "--only", "thirdparty.offsets", "--lights", "3"]) == 0
+    rows = list(csv.DictReader((tmp_path / "synth" / "synthesis.csv").open()))
+    assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "thirdparty.offsets"]
+    assert float(rows[1]["texture_statistics"]) >= 0 and float(rows[1]["swd"]) >= 0
+    assert float(next(csv.DictReader((tmp_path / "synth" / "search.csv").open()))["recall"]) >= 0.9
+    found = [st.name for st in btforge.registry.default_registry().stages_with_role("synthesizer")]
+    assert {"quilt", "kcoherence", "jumpmap", "thirdparty.offsets"} <= set(found)
 
 
 def _plugin(**attributes):
@@ -96,7 +108,7 @@ def test_capabilities_a_class_lacks_are_clear_errors():
     assert LafortuneModel.evaluates_texels and not LafortuneModel.blendable
     sys.path.insert(0, str(FIXTURES))
     try:
-        from lambert_plugin import LambertModel
+        from third_party_plugin import LambertModel
     finally:
         sys.path.remove(str(FIXTURES))
     model = LambertModel(__import__("numpy").ones((2, 2, 3), "float32"))

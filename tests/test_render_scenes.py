@@ -232,3 +232,21 @@ def test_example_graphs_and_scenes_validate():
     from btforge.plugins.render.bench import bench_scene
     for env in (False, True):
         parse_scene(bench_scene(env), "bench", Path.cwd())
+
+
+def test_meshes_are_built_once_per_run_without_point_lights(tmp_path, monkeypatch):
+    """The graph check and the scene check leave the meshes to the renderer, unless a point light needs them."""
+    from btforge.plugins.render import geometry, renderer
+    built = []
+    original = geometry.build_mesh
+
+    def counted(spec, scene=None):
+        built.append(spec.name)
+        return original(spec, scene)
+    for module in (geometry, renderer):  # the renderer holds its own name for it
+        monkeypatch.setattr(module, "build_mesh", counted)
+    btforge.run(graph_with(tmp_path, GOOD), cache_dir=None, out_dir=tmp_path)
+    assert built == ["ground"]
+    built.clear()
+    validate(graph_with(tmp_path, with_changes(lights=[{"type": "point", "position": [0, 0, 1], "intensity": 1.0}])))
+    assert built == ["ground"]  # the check that a point light is not inside a closed mesh needs the mesh

@@ -16,7 +16,10 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import ndimage
+
+from btforge.lazy import lazy_module
+
+ndimage = lazy_module("scipy.ndimage")
 
 DETECT_MAX_SIDE = 800           # sphere search runs on images scaled down to this longer side
 EDGE_SHARE = 0.06               # the strongest share of gradient pixels that vote for circles

@@ -7,7 +7,10 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from scipy import ndimage
+
+from btforge.lazy import lazy_module
+
+ndimage = lazy_module("scipy.ndimage")
 
 
 def fibonacci_lights(n: int, min_elevation_deg: float = 20.0, seed: int = 0) -> np.ndarray:

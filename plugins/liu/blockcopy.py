@@ -20,9 +20,12 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import ndimage
+
+from btforge.lazy import lazy_module
 
 from .search import knn
+
+ndimage = lazy_module("scipy.ndimage")
 
 BLOCK_SAMPLES = 5      # a block is compared on at most 5 x 5 evenly spaced pixels
 SEARCH_DIMS = 8        # principal components the k-d tree searches

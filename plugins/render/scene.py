@@ -605,21 +605,22 @@ def load_scene(value: Any, paths) -> Scene:
 
 
 def check_scene_geometry(scene: Scene, spec: SceneSpec) -> None:
-    """Checks that need the meshes: UVs where a texture is bound, point lights inside closed meshes."""
+    """Checks that need the meshes: UVs where a texture is bound, point lights inside closed meshes.
+
+    Meshes are built (the renderer builds its own) only for a scene with point lights, the one check that needs them.
+    """
     from .geometry import build_mesh, point_inside
 
     w = _Where(spec.source)
-    built = {}
     for mesh in spec.meshes:
         if mesh.file and mesh.material and scene.file_arrays(mesh.file)["corner_uv"].shape[0] == 0:
             raise w.error(f"meshes.{mesh.name}", f"binds material '{mesh.material}' but its mesh file has no UV "
                           f"coordinates: {Path(mesh.file).name}",
                           "export the mesh with texture coordinates (OBJ 'vt', PLY vertex u/v or s/t), or give it "
                           "a plain 'color' instead of a material")
-        built[mesh.name] = build_mesh(mesh, scene)
-    for light in spec.lights:
-        if light.kind != "point":
-            continue
+    point_lights = [light for light in spec.lights if light.kind == "point"]
+    built = {mesh.name: build_mesh(mesh, scene) for mesh in spec.meshes} if point_lights else {}
+    for light in point_lights:
         for mesh in spec.meshes:
             b = built[mesh.name]
             if b.closed and point_inside(b, np.asarray(light.position)):

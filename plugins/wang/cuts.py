@@ -8,8 +8,11 @@ the *new* one (sink side).  The edge between 4-neighbours ``s, t`` costs Kwatra 
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+
+from btforge.lazy import lazy_module
+
+sparse = lazy_module("scipy.sparse")
+csgraph = lazy_module("scipy.sparse.csgraph")
 
 CAPACITY_SCALE = 1 << 16   # the largest finite edge maps to this many integer units (maximum_flow takes int32)
 TIED = 1 << 30             # the capacity of a terminal tie
@@ -50,13 +53,13 @@ def min_cut_edges(shape: tuple[int, int], cost: np.ndarray, keep: np.ndarray, ta
     rows = [s, t, np.full(keep_flat.sum(), source), np.flatnonzero(take_flat)]
     cols = [t, s, np.flatnonzero(keep_flat), np.full(take_flat.sum(), sink)]
     caps = [cap, cap, np.full(keep_flat.sum(), TIED), np.full(take_flat.sum(), TIED)]
-    graph = csr_matrix((np.concatenate(caps).astype(np.int32), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(n + 2, n + 2))
-    flow = maximum_flow(graph, source, sink).flow
+    graph = sparse.csr_matrix((np.concatenate(caps).astype(np.int32), (np.concatenate(rows), np.concatenate(cols))),
+                              shape=(n + 2, n + 2))
+    flow = csgraph.maximum_flow(graph, source, sink).flow
     residual = (graph - flow).tocsr()
     residual.data = np.where(residual.data > 0, 1, 0).astype(np.int32)
     residual.eliminate_zeros()
-    reached = breadth_first_order(residual, source, directed=True, return_predecessors=False)
+    reached = csgraph.breadth_first_order(residual, source, directed=True, return_predecessors=False)
     old = np.zeros(n + 2, bool)
     old[reached] = True
     new = ~old[:n]
