@@ -25,8 +25,10 @@ from scipy import ndimage
 from .search import BlockIndex
 
 BLOCK_SAMPLES = 5      # a block is compared on at most 5 x 5 evenly spaced pixels
-SEARCH_DIMS = 8        # principal components the k-d tree searches
-RERANK = 8             # candidates re-ranked by the full block distance
+SEARCH_DIMS = 8        # principal components the k-d tree searches for blocks of more than FULL_DIMS values
+RERANK = 8             # candidates re-ranked by the full block distance (when the tree sees fewer dimensions)
+FULL_DIMS = 9          # blocks of at most this many compared values are searched without projection
+PCA_ROWS = 4096        # blocks the principal axes are estimated from
 MAX_POSITIONS = 30000  # reference block positions per size (a coarser position grid beyond)
 HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
@@ -106,9 +108,12 @@ def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: st
     dr, dc = np.meshgrid(off, off, indexing="ij")
     vectors = grey[centres[:, :1] + dr.ravel()[None], centres[:, 1:] + dc.ravel()[None]].astype(np.float32)
     mean = vectors.mean(0)
-    centred = (vectors - mean).astype(np.float64)
-    _, axes = np.linalg.eigh(centred.T @ centred)
-    axes = axes[:, ::-1][:, :min(SEARCH_DIMS, vectors.shape[1])].astype(np.float32)
+    if vectors.shape[1] <= FULL_DIMS:     # small blocks: the tree searches the blocks themselves, exactly
+        axes = np.eye(vectors.shape[1], dtype=np.float32)
+    else:
+        sample = vectors[::max(1, len(vectors) // PCA_ROWS)] - mean
+        _, axes = np.linalg.eigh(sample.T.astype(np.float64) @ sample)
+        axes = np.ascontiguousarray(axes[:, ::-1][:, :SEARCH_DIMS], np.float32)
     return _Index(size, centres, vectors, mean, axes, BlockIndex((vectors - mean) @ axes, engine))
 
 
@@ -120,7 +125,8 @@ def _template_vectors(padded: np.ndarray, pad: int, pixels: np.ndarray, size: in
 
 def _match(index: _Index, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Best reference centre ``[M, 2]`` and normalised SSD ``[M]`` for template block vectors ``[M, D]``."""
-    idx, _ = index.search.query((queries - index.mean) @ index.axes, RERANK)
+    lossless = index.axes.shape[0] == index.axes.shape[1]
+    idx, _ = index.search.query((queries - index.mean) @ index.axes, 1 if lossless else RERANK)
     full = ((index.vectors[idx] - queries[:, None]) ** 2).sum(-1)
     best = full.argmin(1)
     chosen = idx[np.arange(len(idx)), best]
@@ -136,35 +142,6 @@ class BlockCopy:
     mean_ssd: float
     queries: int = 0       # block searches made (one per fitting size per block centre, plus one per hole pixel)
     rounds: int = 0
-
-
-class _Coverage:
-    """Which pixels are covered, with a summed-area table so block overlap tests cost four lookups."""
-
-    def __init__(self, shape):
-        self.mask = np.zeros(shape, bool)
-        self.table = np.zeros((shape[0] + 1, shape[1] + 1), np.int32)
-
-    def refresh(self):
-        self.table[1:, 1:] = self.mask.cumsum(0, dtype=np.int32).cumsum(1, dtype=np.int32)
-
-    def fits(self, rows: np.ndarray, cols: np.ndarray, size: int) -> np.ndarray:
-        """Whether the ``size x size`` block (clipped at the image edge) at each pixel overlaps no covered one."""
-        H, W = self.mask.shape
-        r = size // 2
-        r0, r1 = np.clip(rows - r, 0, H), np.clip(rows + r + 1, 0, H)
-        c0, c1 = np.clip(cols - r, 0, W), np.clip(cols + r + 1, 0, W)
-        t = self.table
-        return t[r1, c1] - t[r0, c1] - t[r1, c0] + t[r0, c0] == 0
-
-    def fits_everywhere(self, size: int) -> np.ndarray:
-        """:meth:`fits` at every pixel ``[H, W]`` (outer gathers of the table, no per-pixel indexing)."""
-        H, W = self.mask.shape
-        r = size // 2
-        r0, r1 = np.clip(np.arange(H) - r, 0, H), np.clip(np.arange(H) + r + 1, 0, H)
-        c0, c1 = np.clip(np.arange(W) - r, 0, W), np.clip(np.arange(W) + r + 1, 0, W)
-        lo, hi = self.table[r0], self.table[r1]
-        return hi[:, c1] - lo[:, c1] - hi[:, c0] + lo[:, c0] == 0
 
 
 def _ready(rank: np.ndarray, done: np.ndarray, reach: int) -> np.ndarray:
@@ -212,13 +189,10 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
     """
     H, W = rank.shape
     reach = 2 * (max(sizes) // 2)
-    coverage = _Coverage((H, W))
+    covered = np.zeros((H, W), bool)
     done = np.zeros((H, W), bool)
     parts, queries, rounds = [], 0, 0
     while len(sizes):
-        coverage.refresh()
-        # covered only grows: where not even the smallest block fits, none ever will
-        done |= coverage.mask | ~coverage.fits_everywhere(sizes[-1])
         pixels = _ready(rank, done, reach)
         if len(pixels) == 0:
             break
@@ -226,16 +200,20 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
         costs = np.full((len(sizes), len(pixels)), np.inf)
         centres = np.zeros((len(sizes), len(pixels), 2), np.int64)
         for s, size in enumerate(sizes):
-            here = coverage.fits(pixels[:, 0], pixels[:, 1], size)
+            here = _fits(covered, pixels, size)
             if here.any():
                 costs[s, here], centres[s, here] = cost(s, pixels[here])
                 queries += int(here.sum())
         best = costs.argmin(0)
+        placed = np.isfinite(costs.min(0))
         for s, size in enumerate(sizes):
-            _cover(coverage.mask, pixels[best == s], size)
+            chosen = pixels[placed & (best == s)]
+            _mark(covered, chosen, size)
+            # covered only grows: where not even the smallest block fits now, none ever will
+            _mark(done, chosen, size + 2 * (sizes[-1] // 2))
         done[pixels[:, 0], pixels[:, 1]] = True
-        picked = np.arange(len(pixels))
-        parts.append((pixels, best, centres[best, picked], costs[best, picked]))
+        picked = np.flatnonzero(placed)
+        parts.append((pixels[picked], best[picked], centres[best[picked], picked], costs[best[picked], picked]))
     if not parts:
         return Placement(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int64),
                          np.zeros(0), queries, rounds)
@@ -252,9 +230,15 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
     return rows[inside], cols[inside], owner[inside]
 
 
-def _cover(mask, pixels, size):
+def _mark(mask, pixels, size):
     rows, cols, _ = _block_cells(pixels, size, mask.shape)
     mask[rows, cols] = True
+
+
+def _fits(covered: np.ndarray, pixels: np.ndarray, size: int) -> np.ndarray:
+    """Whether the ``size x size`` block (clipped at the edge) at each of ``pixels`` overlaps no covered pixel."""
+    rows, cols, owner = _block_cells(pixels, size, covered.shape)
+    return np.bincount(owner[covered[rows, cols]], minlength=len(pixels)) == 0
 
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
