@@ -17,6 +17,7 @@ re-ranked by their full sub-sampled SSD.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -144,26 +145,36 @@ class BlockCopy:
     rounds: int = 0
 
 
-def _ready(rank: np.ndarray, done: np.ndarray, reach: int) -> np.ndarray:
-    """Pending pixels ``[n, 2]`` ranked above every other pending pixel within ``reach`` (Chebyshev): nothing
-    processed before them in rank order can still change what fits at them, and no two of them can touch.
+class _Pending:
+    """The pixels not yet done, and which of them are ready: ranked above every other pending pixel within
+    ``reach`` (Chebyshev), so nothing processed before them in rank order can still change what fits at them,
+    and no two of them can touch.
 
-    Tested on tiles: the image is cut into tiles of side ``t = ceil(reach / 2)``; a tile's best pending pixel is
-    ready when it beats the best of the 5 x 5 tiles around, a window (at least ``reach`` every way) a little
-    larger than needed, which costs a few rounds and saves a full-resolution maximum filter per round.
+    Tested on tiles of side ``t = ceil(reach / 2)``: a tile's best pending pixel is ready when it beats the best
+    of the 5 x 5 tiles around, a window (at least ``reach`` every way) a little larger than needed, which costs
+    a few rounds and saves a full-resolution maximum filter per round.  Ranks must be distinct.
     """
-    H, W = rank.shape
-    t = max(1, -(-reach // 2))
-    th, tw = -(-H // t), -(-W // t)
-    pending = np.full((th * t, tw * t), -1, rank.dtype)
-    pending[:H, :W] = np.where(done, -1, rank)
-    tiles = pending.reshape(th, t, tw, t).transpose(0, 2, 1, 3).reshape(th, tw, t * t)
-    best = tiles.argmax(2)
-    tile_max = np.take_along_axis(tiles, best[..., None], 2)[..., 0]
-    around = ndimage.maximum_filter(tile_max, size=5, mode="constant", cval=-1)
-    ti, tj = np.nonzero((tile_max >= 0) & (tile_max == around))
-    b = best[ti, tj]
-    return np.column_stack([ti * t + b // t, tj * t + b % t])
+
+    def __init__(self, rank: np.ndarray, reach: int):
+        H, W = self.shape = rank.shape
+        self.t = t = max(1, -(-reach // 2))
+        order = np.argsort(rank, axis=None, kind="stable")
+        self.position = np.concatenate([[-1], order])           # dense rank (1 = lowest) -> flat pixel
+        self.rank = np.full((-(-H // t) * t, -(-W // t) * t), -1, np.int64)
+        dense = np.empty(H * W, np.int64)
+        dense[order] = np.arange(1, H * W + 1)
+        self.rank[:H, :W] = dense.reshape(H, W)
+
+    def done(self, rows: np.ndarray, cols: np.ndarray) -> None:
+        self.rank[rows, cols] = -1
+
+    def ready(self) -> np.ndarray:
+        t = self.t   # maxima of strided slices: ~30x faster than a reduction over a tiled 4-D view
+        columns = functools.reduce(np.maximum, (self.rank[:, i::t] for i in range(t)))
+        tile_max = functools.reduce(np.maximum, (columns[i::t] for i in range(t)))
+        around = ndimage.maximum_filter(tile_max, size=5, mode="constant", cval=-1)
+        flat = self.position[tile_max[(tile_max > 0) & (tile_max == around)]]
+        return np.column_stack(np.divmod(flat, self.shape[1]))
 
 
 @dataclasses.dataclass
@@ -190,10 +201,10 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
     H, W = rank.shape
     reach = 2 * (max(sizes) // 2)
     covered = np.zeros((H, W), bool)
-    done = np.zeros((H, W), bool)
+    pending = _Pending(rank, reach)
     parts, queries, rounds = [], 0, 0
     while len(sizes):
-        pixels = _ready(rank, done, reach)
+        pixels = pending.ready()
         if len(pixels) == 0:
             break
         rounds += 1
@@ -210,8 +221,8 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
             chosen = pixels[placed & (best == s)]
             _mark(covered, chosen, size)
             # covered only grows: where not even the smallest block fits now, none ever will
-            _mark(done, chosen, size + 2 * (sizes[-1] // 2))
-        done[pixels[:, 0], pixels[:, 1]] = True
+            pending.done(*_block_cells(chosen, size + 2 * (sizes[-1] // 2), (H, W))[:2])
+        pending.done(pixels[:, 0], pixels[:, 1])
         picked = np.flatnonzero(placed)
         parts.append((pixels[picked], best[picked], centres[best[picked], picked], costs[best[picked], picked]))
     if not parts:
@@ -231,8 +242,7 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
 
 
 def _mark(mask, pixels, size):
-    rows, cols, _ = _block_cells(pixels, size, mask.shape)
-    mask[rows, cols] = True
+    mask[_block_cells(pixels, size, mask.shape)[:2]] = True
 
 
 def _fits(covered: np.ndarray, pixels: np.ndarray, size: int) -> np.ndarray:
