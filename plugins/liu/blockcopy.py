@@ -8,11 +8,13 @@ resampling about the image centres.  Where the rotated image has no data the val
 Block copy.  The template is histogram-matched to the grey reference; its pixels are visited in order of Harris
 corner response; at each uncovered pixel, every block size whose square would not overlap an earlier block is
 matched against the reference (normalised SSD, i.e. SSD per compared pixel) and the best block is copied in
-colour.  Remaining holes are filled with the smallest blocks, which may overlap: each hole pixel is matched
+colour.  That greedy pass runs in rounds (:func:`place_blocks`), each round's pixels searched in one batch per
+size.  Remaining holes are filled with the smallest blocks, which may overlap: each hole pixel is matched
 with the ``hole_size`` block centred on it (overlapping its neighbours) and takes that block's centre, so the
-fill is one batched search and every pixel ends up covered.  Blocks are compared on a sub-sampled grid of at most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels,
-and the search (:class:`.search.BlockIndex`) runs on their leading principal components, the ``RERANK`` nearest then
-re-ranked by their full sub-sampled SSD.
+fill is one batched search and every pixel ends up covered.  Blocks are compared on a sub-sampled grid of at
+most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels; the search (:class:`.search.BlockIndex`) runs on all their
+values when there are at most ``FULL_DIMS``, else on their leading principal components, the ``RERANK``
+nearest then re-ranked by their full sub-sampled SSD.
 """
 from __future__ import annotations
 
