@@ -11,7 +11,7 @@ from btforge import SampleStack, stage
 from btforge.errors import BtforgeInputError
 from btforge.plugins.height.field import HeightField
 from btforge.plugins.liu import blockcopy, settings, template
-from btforge.plugins.liu.search import knn
+from btforge.plugins.liu.search import BlockIndex
 
 angles = st.floats(0, 360, allow_nan=False)
 tilts = st.floats(0, 85, allow_nan=False)
@@ -97,14 +97,53 @@ def test_block_copy_reproduces_a_reference_used_as_its_own_template():
     assert np.abs(result.image - image).mean() < 0.1 * image.mean()
 
 
-def test_knn_engines_agree():
+def test_block_index_engines_agree():
     rng = np.random.default_rng(0)
     x, q = rng.normal(size=(300, 5)).astype(np.float32), rng.normal(size=(40, 5)).astype(np.float32)
-    i_exact, d_exact = knn(x, q, 3, engine="exact")
+    i_exact, d_exact = BlockIndex(x, "exact").query(q, 3)
     truth = ((q[:, None] - x[None]) ** 2).sum(-1)
     np.testing.assert_array_equal(i_exact[:, 0], truth.argmin(1))
-    _, d_fast = knn(x, q, 3, engine="fast")
+    _, d_fast = BlockIndex(x, "fast").query(q, 3)
     assert (d_fast[:, 0] <= d_exact[:, 0] * 4 + 1e-6).all()  # (1 + eps)^2-approximate
+
+
+def _place_one_by_one(rank, sizes, cost):
+    """The greedy pass as written in the paper: visit pixels in rank order, one at a time."""
+    H, W = rank.shape
+    covered = np.zeros((H, W), bool)
+    placed = []
+    for flat in np.argsort(-rank, axis=None):
+        r, c = divmod(int(flat), W)
+        if covered[r, c]:
+            continue
+        options = []
+        for s, size in enumerate(sizes):
+            k = size // 2
+            box = (slice(max(r - k, 0), r + k + 1), slice(max(c - k, 0), c + k + 1))
+            if not covered[box].any():
+                options.append((cost(s, np.array([[r, c]]))[0][0], s, box))
+        if options:
+            _, s, box = min(options, key=lambda o: (o[0], o[1]))
+            covered[box] = True
+            placed.append((r, c, s))
+    return placed
+
+
+@hsettings(max_examples=8, deadline=None)
+@given(st.integers(0, 2**16), st.integers(1, 40), st.integers(1, 40),
+       st.sampled_from([(3,), (5, 3), (9, 5, 3), (7, 3)]))
+def test_placement_in_rounds_equals_the_one_by_one_greedy_pass(seed, h, w, sizes):
+    rng = np.random.default_rng(seed)
+    rank = rng.permutation(h * w).reshape(h, w) + 1
+    table = rng.random((len(sizes), h, w))     # a fixed cost per (size, pixel), so both passes see the same costs
+
+    def cost(s, pixels):
+        return table[s, pixels[:, 0], pixels[:, 1]], pixels.copy()
+
+    placed = blockcopy.place_blocks(rank, list(sizes), cost)
+    got = sorted(zip(placed.pixels[:, 0].tolist(), placed.pixels[:, 1].tolist(), placed.size_index.tolist()))
+    assert got == sorted(_place_one_by_one(rank, sizes, cost))
+    assert placed.queries <= len(sizes) * len(placed.pixels)   # only pixels that become blocks are costed
 
 
 # ----------------------------------------------------------------------------------------------- templates

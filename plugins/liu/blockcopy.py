@@ -8,30 +8,34 @@ resampling about the image centres.  Where the rotated image has no data the val
 Block copy.  The template is histogram-matched to the grey reference; its pixels are visited in order of Harris
 corner response; at each uncovered pixel, every block size whose square would not overlap an earlier block is
 matched against the reference (normalised SSD, i.e. SSD per compared pixel) and the best block is copied in
-colour.  Remaining holes are filled with the smallest blocks, which may overlap: each hole pixel is matched
+colour.  That greedy pass runs in rounds (:func:`place_blocks`), each round's pixels searched in one batch per
+size.  Remaining holes are filled with the smallest blocks, which may overlap: each hole pixel is matched
 with the ``hole_size`` block centred on it (overlapping its neighbours) and takes that block's centre, so the
-fill is one batched search and every pixel ends up covered.  Blocks are compared on a sub-sampled grid of at most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels,
-and the search (:func:`.search.knn`) runs on their leading principal components, the ``RERANK`` nearest then
-re-ranked by their full sub-sampled SSD.
+fill is one batched search and every pixel ends up covered.  Blocks are compared on a sub-sampled grid of at
+most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels; the search (:class:`.search.BlockIndex`) runs on all their
+values when there are at most ``FULL_DIMS``, else on their leading principal components, the ``RERANK``
+nearest then re-ranked by their full sub-sampled SSD.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
 
 from btforge.lazy import lazy_module
 
-from .search import knn
+from .search import BlockIndex
 
 ndimage = lazy_module("scipy.ndimage")
 
 BLOCK_SAMPLES = 5      # a block is compared on at most 5 x 5 evenly spaced pixels
-SEARCH_DIMS = 8        # principal components the k-d tree searches
-RERANK = 8             # candidates re-ranked by the full block distance
+SEARCH_DIMS = 8        # principal components the k-d tree searches for blocks of more than FULL_DIMS values
+RERANK = 8             # candidates re-ranked by the full block distance (when the tree sees fewer dimensions)
+FULL_DIMS = 9          # blocks of at most this many compared values are searched without projection
+PCA_ROWS = 4096        # blocks the principal axes are estimated from
 MAX_POSITIONS = 30000  # reference block positions per size (a coarser position grid beyond)
-BATCH = 2048           # Harris-ordered pixels of the first batch matched at once (one search per size)
 HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
 
@@ -91,10 +95,10 @@ class _Index:
     vectors: np.ndarray    # [N, D]
     mean: np.ndarray
     axes: np.ndarray       # [D, d]
-    projected: np.ndarray  # [N, d]
+    search: BlockIndex     # over the projected vectors [N, d]
 
 
-def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng) -> _Index | None:
+def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: str) -> _Index | None:
     h, w = grey.shape
     r = size // 2
     if h < size or w < size:
@@ -110,10 +114,13 @@ def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng) -> _Index 
     dr, dc = np.meshgrid(off, off, indexing="ij")
     vectors = grey[centres[:, :1] + dr.ravel()[None], centres[:, 1:] + dc.ravel()[None]].astype(np.float32)
     mean = vectors.mean(0)
-    centred = (vectors - mean).astype(np.float64)
-    _, axes = np.linalg.eigh(centred.T @ centred)
-    axes = axes[:, ::-1][:, :min(SEARCH_DIMS, vectors.shape[1])].astype(np.float32)
-    return _Index(size, centres, vectors, mean, axes, (vectors - mean) @ axes)
+    if vectors.shape[1] <= FULL_DIMS:     # small blocks: the tree searches the blocks themselves, exactly
+        axes = np.eye(vectors.shape[1], dtype=np.float32)
+    else:
+        sample = vectors[::max(1, len(vectors) // PCA_ROWS)] - mean
+        _, axes = np.linalg.eigh(sample.T.astype(np.float64) @ sample)
+        axes = np.ascontiguousarray(axes[:, ::-1][:, :SEARCH_DIMS], np.float32)
+    return _Index(size, centres, vectors, mean, axes, BlockIndex((vectors - mean) @ axes, engine))
 
 
 def _template_vectors(padded: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.ndarray:
@@ -122,9 +129,10 @@ def _template_vectors(padded: np.ndarray, pad: int, pixels: np.ndarray, size: in
     return padded[pixels[:, :1] + pad + dr.ravel()[None], pixels[:, 1:] + pad + dc.ravel()[None]].astype(np.float32)
 
 
-def _match(index: _Index, queries: np.ndarray, engine: str) -> tuple[np.ndarray, np.ndarray]:
+def _match(index: _Index, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Best reference centre ``[M, 2]`` and normalised SSD ``[M]`` for template block vectors ``[M, D]``."""
-    idx, _ = knn(index.projected, (queries - index.mean) @ index.axes, RERANK, engine=engine)
+    lossless = index.axes.shape[0] == index.axes.shape[1]
+    idx, _ = index.search.query((queries - index.mean) @ index.axes, 1 if lossless else RERANK)
     full = ((index.vectors[idx] - queries[:, None]) ** 2).sum(-1)
     best = full.argmin(1)
     chosen = idx[np.arange(len(idx)), best]
@@ -138,18 +146,128 @@ class BlockCopy:
     blocks: int
     hole_pixels: int       # pixels filled by hole filling
     mean_ssd: float
+    queries: int = 0       # block searches made (one per fitting size per block centre, plus one per hole pixel)
+    rounds: int = 0
+
+
+class _Pending:
+    """The pixels not yet done, and which of them are ready: ranked above every other pending pixel within
+    ``reach`` (Chebyshev), so nothing processed before them in rank order can still change what fits at them,
+    and no two of them can touch.
+
+    Tested on tiles of side ``t = ceil(reach / 2)``: a tile's best pending pixel is ready when it beats the best
+    of the 5 x 5 tiles around, a window (at least ``reach`` every way) a little larger than needed, which costs
+    a few rounds and saves a full-resolution maximum filter per round.  Ranks must be distinct.
+    """
+
+    def __init__(self, rank: np.ndarray, reach: int):
+        H, W = self.shape = rank.shape
+        self.t = t = max(1, -(-reach // 2))
+        order = np.argsort(rank, axis=None, kind="stable")
+        self.position = np.concatenate([[-1], order])           # dense rank (1 = lowest) -> flat pixel
+        self.rank = np.full((-(-H // t) * t, -(-W // t) * t), -1, np.int64)
+        dense = np.empty(H * W, np.int64)
+        dense[order] = np.arange(1, H * W + 1)
+        self.rank[:H, :W] = dense.reshape(H, W)
+
+    def done(self, rows: np.ndarray, cols: np.ndarray) -> None:
+        self.rank[rows, cols] = -1
+
+    def ready(self) -> np.ndarray:
+        t = self.t   # maxima of strided slices: ~30x faster than a reduction over a tiled 4-D view
+        columns = functools.reduce(np.maximum, (self.rank[:, i::t] for i in range(t)))
+        tile_max = functools.reduce(np.maximum, (columns[i::t] for i in range(t)))
+        around = ndimage.maximum_filter(tile_max, size=5, mode="constant", cval=-1)
+        flat = self.position[tile_max[(tile_max > 0) & (tile_max == around)]]
+        return np.column_stack(np.divmod(flat, self.shape[1]))
+
+
+@dataclasses.dataclass
+class Placement:
+    """The non-overlapping blocks of the greedy pass, in processing order."""
+
+    pixels: np.ndarray      # [n, 2] block centres in the output
+    size_index: np.ndarray  # [n] index into the sizes
+    centres: np.ndarray     # [n, 2] the matched reference centres
+    costs: np.ndarray       # [n]
+    queries: int
+    rounds: int
+
+
+def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
+    """The sequential greedy pass over ``rank [H, W]`` (highest first): each pixel that is still uncovered takes,
+    of the ``sizes`` (descending) whose block (clipped at the edge) overlaps no earlier block, the one of lowest
+    ``cost(size_index, pixels [n, 2]) -> (costs [n], centres [n, 2])``.
+
+    Computed in rounds: a pixel is processed once every higher-ranked pixel near enough to interact with it is
+    done, so one round's pixels are costed in one batch per size, and only pixels still uncovered at their turn
+    are costed at all.  The result is that of visiting the pixels one by one in rank order.
+    """
+    H, W = rank.shape
+    reach = 2 * (max(sizes) // 2)
+    covered = np.zeros((H, W), bool)
+    pending = _Pending(rank, reach)
+    parts, queries, rounds = [], 0, 0
+    while len(sizes):
+        pixels = pending.ready()
+        if len(pixels) == 0:
+            break
+        rounds += 1
+        costs = np.full((len(sizes), len(pixels)), np.inf)
+        centres = np.zeros((len(sizes), len(pixels), 2), np.int64)
+        for s, size in enumerate(sizes):
+            here = _fits(covered, pixels, size)
+            if here.any():
+                costs[s, here], centres[s, here] = cost(s, pixels[here])
+                queries += int(here.sum())
+        best = costs.argmin(0)
+        placed = np.isfinite(costs.min(0))
+        for s, size in enumerate(sizes):
+            chosen = pixels[placed & (best == s)]
+            _mark(covered, chosen, size)
+            # covered only grows: where not even the smallest block fits now, none ever will
+            pending.done(*_block_cells(chosen, size + 2 * (sizes[-1] // 2), (H, W))[:2])
+        pending.done(pixels[:, 0], pixels[:, 1])
+        picked = np.flatnonzero(placed)
+        parts.append((pixels[picked], best[picked], centres[best[picked], picked], costs[best[picked], picked]))
+    if not parts:
+        return Placement(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int64),
+                         np.zeros(0), queries, rounds)
+    return Placement(*(np.concatenate(column) for column in zip(*parts)), queries, rounds)
+
+
+def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns and owning block of every cell of the ``size x size`` blocks at ``pixels``, inside ``shape``."""
+    r = size // 2
+    dr, dc = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
+    rows, cols = pixels[:, :1] + dr.ravel()[None], pixels[:, 1:] + dc.ravel()[None]
+    owner = np.broadcast_to(np.arange(len(pixels))[:, None], rows.shape)
+    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+    return rows[inside], cols[inside], owner[inside]
+
+
+def _mark(mask, pixels, size):
+    mask[_block_cells(pixels, size, mask.shape)[:2]] = True
+
+
+def _fits(covered: np.ndarray, pixels: np.ndarray, size: int) -> np.ndarray:
+    """Whether the ``size x size`` block (clipped at the edge) at each of ``pixels`` overlaps no covered pixel."""
+    rows, cols, owner = _block_cells(pixels, size, covered.shape)
+    return np.bincount(owner[covered[rows, cols]], minlength=len(pixels)) == 0
 
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
                hole_size: int = 3, seed: int = 0, engine: str = "fast") -> BlockCopy:
-    """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module)."""
+    """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module;
+    the greedy pass is :func:`place_blocks`)."""
     rng = np.random.default_rng(seed)
     H, W = template.shape
     grey = reference.mean(axis=2)
     guide = histogram_match(template, grey[valid] if valid.any() else grey)
-    sizes = sorted({int(s) | 1 for s in block_sizes}, reverse=True)
-    indexes = [i for i in (_block_index(grey, valid, s, rng) for s in sizes) if i is not None]
-    hole_index = _block_index(grey, valid, hole_size | 1, rng) or (indexes[-1] if indexes else None)
+    sizes = sorted({int(s) | 1 for s in block_sizes} | {hole_size | 1}, reverse=True)
+    built = {s: _block_index(grey, valid, s, rng, engine) for s in sizes}
+    hole_index = built[hole_size | 1] or next((built[s] for s in sizes[::-1] if built[s] is not None), None)
+    indexes = [built[s] for s in sorted({int(s) | 1 for s in block_sizes}, reverse=True) if built[s] is not None]
     if hole_index is None:
         from btforge.errors import BtforgeInputError
         raise BtforgeInputError("liu.synthesize 'references'", f"a warped reference has no valid "
@@ -157,67 +275,39 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     pad = max([i.size for i in indexes] + [hole_index.size]) // 2
     padded = np.pad(guide, pad, mode="reflect")
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
-    order = np.argsort(-response, axis=None, kind="stable")
-    pixels_in_order = np.column_stack(np.unravel_index(order, (H, W)))
+    rank = np.empty(H * W, np.int64)
+    rank[np.argsort(-response, axis=None, kind="stable")] = np.arange(H * W, 0, -1)
+    rank = rank.reshape(H, W)
 
+    def cost(s, pixels):
+        centres, ssd = _match(indexes[s], _template_vectors(padded, pad, pixels, indexes[s].size))
+        return ssd, centres
+
+    placed = place_blocks(rank, [ix.size for ix in indexes], cost)
     out = np.zeros((H, W, reference.shape[2]), np.float32)
     source = np.zeros((H, W, 2), np.int32)
     covered = np.zeros((H, W), bool)
-    blocks, ssd_sum = 0, 0.0
-    start, step = 0, BATCH
-    while start < len(pixels_in_order):
-        # batches grow geometrically: late pixels are mostly covered already, and every batch rebuilds the trees
-        batch = pixels_in_order[start:start + step]
-        start, step = start + step, step * 2
-        # a size is matched only at pixels where its block still fits; pixels where none fits wait for hole filling
-        fits = [~ndimage.maximum_filter(covered, size=ix.size, mode="constant", cval=False)[batch[:, 0], batch[:, 1]]
-                for ix in indexes]
-        keep = np.logical_or.reduce(fits)
-        batch, fits = batch[keep], [f[keep] for f in fits]
-        if len(batch) == 0:
-            continue
-        matches = []
-        for ix, fit in zip(indexes, fits):
-            centres = np.zeros((len(batch), 2), np.int64)
-            cost = np.full(len(batch), np.inf)
-            if fit.any():
-                centres[fit], cost[fit] = _match(ix, _template_vectors(padded, pad, batch[fit], ix.size), engine)
-            matches.append((centres, cost))
-        for j, (r, c) in enumerate(batch):
-            if covered[r, c]:
-                continue
-            best = None
-            for ix, (centres, cost) in zip(indexes, matches):
-                if not np.isfinite(cost[j]):
-                    continue
-                k = ix.size // 2
-                r0, r1, c0, c1 = max(r - k, 0), min(r + k + 1, H), max(c - k, 0), min(c + k + 1, W)
-                if covered[r0:r1, c0:c1].any():
-                    continue
-                if best is None or cost[j] < best[0]:
-                    best = (cost[j], centres[j], (r0, r1, c0, c1))
-            if best is None:
-                continue
-            cost, (sr, sc), (r0, r1, c0, c1) = best
-            _paste(out, source, covered, reference, r, c, sr, sc, (r0, r1, c0, c1))
-            blocks += 1
-            ssd_sum += float(cost)
+    for s, ix in enumerate(indexes):
+        chosen = placed.size_index == s
+        _paste(out, source, covered, reference, placed.pixels[chosen], placed.centres[chosen], ix.size)
+    queries = placed.queries
     hole_pixels = int((~covered).sum())
     if hole_pixels:
         pixels = np.argwhere(~covered)
-        centres, _ = _match(hole_index, _template_vectors(padded, pad, pixels, hole_index.size), engine)
+        centres, _ = _match(hole_index, _template_vectors(padded, pad, pixels, hole_index.size))
         out[pixels[:, 0], pixels[:, 1]] = reference[centres[:, 0], centres[:, 1]]
         source[pixels[:, 0], pixels[:, 1]] = centres
         covered[pixels[:, 0], pixels[:, 1]] = True
-    return BlockCopy(out, source, blocks, hole_pixels, ssd_sum / max(blocks, 1))
+        queries += len(pixels)
+    mean_ssd = float(placed.costs.mean()) if len(placed.costs) else 0.0
+    return BlockCopy(out, source, len(placed.pixels), hole_pixels, mean_ssd, queries, placed.rounds)
 
 
-def _paste(out, source, covered, reference, r, c, sr, sc, box):
-    r0, r1, c0, c1 = box
-    rows = slice(sr + r0 - r, sr + r1 - r)
-    cols = slice(sc + c0 - c, sc + c1 - c)
-    where = (slice(r0, r1), slice(c0, c1))
-    out[where] = reference[rows, cols]
-    source[where + (0,)] = np.arange(rows.start, rows.stop)[:, None]
-    source[where + (1,)] = np.arange(cols.start, cols.stop)[None, :]
-    covered[where] = True
+def _paste(out, source, covered, reference, pixels, centres, size):
+    """Copy the ``size x size`` reference blocks at ``centres [n, 2]`` to ``pixels [n, 2]``, clipped at the edge."""
+    rows, cols, owner = _block_cells(pixels, size, covered.shape)
+    src_rows = rows - pixels[owner, 0] + centres[owner, 0]
+    src_cols = cols - pixels[owner, 1] + centres[owner, 1]
+    out[rows, cols] = reference[src_rows, src_cols]
+    source[rows, cols, 0], source[rows, cols, 1] = src_rows, src_cols
+    covered[rows, cols] = True
