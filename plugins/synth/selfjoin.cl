@@ -2,7 +2,7 @@
 // H x W image keeps a list of the TOPK texels whose neighbourhood vectors are nearest its own, and improves it
 // from candidates that image coherence makes likely:
 //   - propagation: texel q = p + delta (the 8 around p) matched j, so p may match j - delta;
-//   - neighbours of neighbours: what p's matches matched;
+//   - neighbours of neighbours: what p's NN nearest matches matched (their NN nearest);
 //   - n_random texels drawn by an integer hash of (seed, step, p, r), so every part of the image is reached.
 // Lists are read from the previous step (idx_in / d_in) and written to idx_out / d_out, so the result does not
 // depend on the order work-items run.  A candidate enters when it is allowed, more than `exclude` texels
@@ -11,7 +11,8 @@
 // improve_numpy) forms by sorting.  Distances: t = a - b, acc += t * t over the dimensions in order, without
 // contraction (as search.cl).  Missing entries are index -1, distance INFINITY, and sort after every texel.
 //
-// Build options: -DDIM=<vector dimension>, -DTOPK=<list length>.
+// Build options: -DDIM=<vector dimension>, -DTOPK=<list length>, -DNN=<entries of p's list, and of theirs,
+// whose matches are tried>.
 #pragma OPENCL FP_CONTRACT OFF
 
 #ifndef DIM
@@ -19,6 +20,9 @@
 #endif
 #ifndef TOPK
 #define TOPK 1
+#endif
+#ifndef NN
+#define NN TOPK
 #endif
 
 uint mix_hash(uint h)
@@ -51,7 +55,7 @@ __kernel void selfjoin_step(__global const float *vectors, const int h, const in
     float d[TOPK];
     int id[TOPK];
     for (int j = 0; j < TOPK; ++j) { d[j] = d_in[(size_t)p * TOPK + j]; id[j] = idx_in[(size_t)p * TOPK + j]; }
-    const int n_prop = 8 * TOPK, n_nn = TOPK * TOPK;
+    const int n_prop = 8 * TOPK, n_nn = NN * NN;
     for (int c_i = 0; c_i < n_prop + n_nn + n_random; ++c_i) {
         int c = -1;
         if (c_i < n_prop) {                         // propagation from the 8 neighbours
@@ -67,8 +71,8 @@ __kernel void selfjoin_step(__global const float *vectors, const int h, const in
                 }
             }
         } else if (c_i < n_prop + n_nn) {           // neighbours of neighbours
-            const int m = idx_in[(size_t)p * TOPK + (c_i - n_prop) / TOPK];
-            if (m >= 0) c = idx_in[(size_t)m * TOPK + (c_i - n_prop) % TOPK];
+            const int m = idx_in[(size_t)p * TOPK + (c_i - n_prop) / NN];
+            if (m >= 0) c = idx_in[(size_t)m * TOPK + (c_i - n_prop) % NN];
         } else {                                    // random texels
             const uint r = (uint)(c_i - n_prop - n_nn);
             c = (int)(mix_hash(seed ^ mix_hash((uint)p * 0x9e3779b1u ^ mix_hash(step * 0x10001u + r))) % (uint)n);

@@ -21,11 +21,12 @@ from btforge.backend import get_backend
 from .search import candidate_distances_opencl, principal_projection
 
 KERNELS = Path(__file__).with_name("selfjoin.cl")
-STEPS = 6                #: improvement steps after the first
+STEPS = 8                #: improvement steps after the first
 FIRST_RANDOM = 24        #: random candidates per texel in the first step (the lists start empty)
 STEP_RANDOM = 4          #: random candidates per texel in every later step
 LIST_FACTOR = 2          #: lists kept during the steps, per entry asked for (re-ranked at full dimension)
 MIN_LIST = 8
+NN = 4                   #: nearest entries of a texel's list whose own nearest NN entries are tried
 REDUCED_DIMS = 16        #: principal axes the steps compare (at most; fewer if they keep the variance)
 SAMPLE = 4096            #: vectors the principal axes are fitted on
 SEED = 0x5eed
@@ -43,7 +44,8 @@ def mix_hash(h: np.ndarray) -> np.ndarray:
     return h ^ (h >> _U32(16))
 
 
-def candidates_numpy(idx: np.ndarray, h: int, w: int, seed: int, step: int, n_random: int) -> np.ndarray:
+def candidates_numpy(idx: np.ndarray, h: int, w: int, seed: int, step: int, n_random: int,
+                     nn: int = NN) -> np.ndarray:
     """Every texel's candidates ``[N, C]`` (-1: none) in the kernel's order: propagation, neighbours of
     neighbours, random texels."""
     n, top = idx.shape
@@ -59,8 +61,10 @@ def candidates_numpy(idx: np.ndarray, h: int, w: int, seed: int, step: int, n_ra
         cy, cx = jy - dy, jx - dx
         ok = (j >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
         parts.append(np.where(ok, cy * w + cx, -1))
-    matched = idx[np.maximum(idx, 0)]                                   # [N, top, top]
-    parts.append(np.where((idx >= 0)[:, :, None], matched, -1).reshape(n, top * top))
+    nn = min(nn, top)
+    own = idx[:, :nn]
+    matched = idx[np.maximum(own, 0)][:, :, :nn]                        # [N, nn, nn]
+    parts.append(np.where((own >= 0)[:, :, None], matched, -1).reshape(n, nn * nn))
     if n_random:
         r = np.arange(n_random, dtype=_U32)[None, :]
         p = np.arange(n, dtype=_U32)[:, None]
@@ -70,11 +74,11 @@ def candidates_numpy(idx: np.ndarray, h: int, w: int, seed: int, step: int, n_ra
 
 
 def improve_numpy(vectors: np.ndarray, h: int, w: int, exclude: int, allowed: np.ndarray, idx: np.ndarray,
-                  dist: np.ndarray, seed: int, step: int, n_random: int) -> tuple[np.ndarray, np.ndarray]:
+                  dist: np.ndarray, seed: int, step: int, n_random: int, nn: int = NN) -> tuple[np.ndarray, np.ndarray]:
     """Twin of ``selfjoin_step``: the ``TOPK`` smallest (distance, index) of the old list and the admissible
     candidates, distances summed in float32 one dimension after the other."""
     n, top = idx.shape
-    cand = candidates_numpy(idx, h, w, seed, step, n_random)
+    cand = candidates_numpy(idx, h, w, seed, step, n_random, nn)
     ys, xs = np.divmod(np.arange(n), w)
     cy, cx = np.divmod(np.maximum(cand, 0), w)
     near = np.maximum(np.abs(cy - ys[:, None]), np.abs(cx - xs[:, None])) <= exclude
@@ -104,11 +108,13 @@ def improve_numpy(vectors: np.ndarray, h: int, w: int, exclude: int, allowed: np
 class _Steps:
     """``selfjoin_step`` over one image's vectors, the lists kept on the device between launches."""
 
-    def __init__(self, vectors: np.ndarray, h: int, w: int, exclude: int, allowed: np.ndarray, top: int):
+    def __init__(self, vectors: np.ndarray, h: int, w: int, exclude: int, allowed: np.ndarray, top: int,
+                 nn: int = NN):
         self.backend = get_backend()
         cl = self.backend.cl
         self.n, self.h, self.w, self.exclude, self.top = len(vectors), h, w, exclude, top
-        self.kernel = self.backend.kernel(KERNELS, "selfjoin_step", (f"-DDIM={vectors.shape[1]}", f"-DTOPK={top}"))
+        self.kernel = self.backend.kernel(KERNELS, "selfjoin_step", (f"-DDIM={vectors.shape[1]}", f"-DTOPK={top}",
+                                                                      f"-DNN={min(nn, top)}"))
         self.vectors = self.backend.host_input(np.ascontiguousarray(vectors, np.float32))
         self.allowed = self.backend.host_input(np.ascontiguousarray(allowed, np.uint8))
         mf = cl.mem_flags
@@ -133,9 +139,9 @@ class _Steps:
                 self.backend.from_device(d_dev, (self.n, self.top), np.float32))
 
 
-def improve_opencl(vectors, h, w, exclude, allowed, idx, dist, seed, step, n_random):
+def improve_opencl(vectors, h, w, exclude, allowed, idx, dist, seed, step, n_random, nn=NN):
     """One ``selfjoin_step`` launch (the twin's signature): the improved lists."""
-    steps = _Steps(vectors, h, w, exclude, allowed, idx.shape[1])
+    steps = _Steps(vectors, h, w, exclude, allowed, idx.shape[1], nn)
     steps.load(idx, dist)
     steps.step(seed, step, n_random)
     return steps.read()
