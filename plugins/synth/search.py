@@ -319,10 +319,12 @@ def leading_eigenpairs(matrix: np.ndarray, count: int, *, seed: int = 0) -> tupl
     if d <= 2 * count:
         values, vectors = np.linalg.eigh(matrix)
         return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
+    # the thin products go through einsum's own loops: threaded BLAS waits for busy cores (28 ms against
+    # 0.4 ms for 225 x 225 by 225 x 24 under load)
     block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
     for _ in range(SUBSPACE_ITERATIONS):
-        block = np.linalg.qr(matrix @ block)[0]
-    values, vectors = np.linalg.eigh(block.T @ matrix @ block)
+        block = np.linalg.qr(np.einsum("ij,jk->ik", matrix, block))[0]
+    values, vectors = np.linalg.eigh(np.einsum("ji,jk->ik", block, np.einsum("ij,jk->ik", matrix, block)))
     return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
 
 

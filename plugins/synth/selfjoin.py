@@ -28,7 +28,7 @@ LIST_FACTOR = 2          #: lists kept during the steps, per entry asked for (re
 MIN_LIST = 8
 NN = 4                   #: nearest entries of a texel's list whose own nearest NN entries are tried
 REDUCED_DIMS = 16        #: principal axes the steps compare (at most; fewer if they keep the variance)
-SAMPLE = 4096            #: vectors the principal axes are fitted on
+SAMPLE = 2048            #: vectors the principal axes are fitted on
 SEED = 0x5eed
 
 _U32 = np.uint32
