@@ -227,9 +227,9 @@ def test_selfjoin_kernel_matches_numpy_twin(case):
     v = _selfjoin_case(case, rng, h * w)
     allowed = rng.random(h * w) < 0.8
     lists = {dev: (np.full((h * w, 6), -1, np.int32), np.full((h * w, 6), np.inf, np.float32)) for dev in "nc"}
-    for step, n_random in [(0, 9), (1, 3), (2, 3)]:
-        lists["n"] = selfjoin.improve_numpy(v, h, w, 1, allowed, *lists["n"], 7, step, n_random)
-        lists["c"] = selfjoin.improve_opencl(v, h, w, 1, allowed, *lists["c"], 7, step, n_random)
+    for step, n_random, spread in [(0, 9, 1), (1, 3, 4), (2, 3, 1)]:
+        lists["n"] = selfjoin.improve_numpy(v, h, w, 1, allowed, *lists["n"], 7, step, n_random, 4, spread)
+        lists["c"] = selfjoin.improve_opencl(v, h, w, 1, allowed, *lists["c"], 7, step, n_random, 4, spread)
         np.testing.assert_array_equal(lists["c"][0], lists["n"][0])
         np.testing.assert_array_equal(lists["c"][1], lists["n"][1])
     idx, dist = lists["c"]
@@ -244,13 +244,13 @@ def test_selfjoin_kernel_matches_numpy_twin(case):
 
 
 def test_selfjoin_recall_meets_the_floor():
-    # 48 x 48 texels: more than the fast engine searches exactly, so similar_texels runs the self-join
+    # 48 x 48 texels: more than are searched exactly, so similar_texels runs the self-join
     features = normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
-    fast_idx, fast_d = search.similar_texels(features, 5, 5, exclude=1, search="fast")
+    fast_idx, fast_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent")
     true_idx, true_d = search.similar_texels(features, 5, 5, exclude=1, search="exact")
     assert search.recall(fast_idx, true_idx) >= search.FAST_RECALL_FLOOR
     assert search.distance_ratio(fast_d, true_d) <= 1.05
     assert (fast_d[:, -1] >= true_d[:, -1]).all()
-    twin_idx, twin_d = search.similar_texels(features, 5, 5, exclude=1, search="fast", device="numpy")
+    twin_idx, twin_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent", device="numpy")
     np.testing.assert_array_equal(twin_idx, fast_idx)
     np.testing.assert_allclose(twin_d, fast_d, rtol=1e-6)

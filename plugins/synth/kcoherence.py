@@ -331,7 +331,7 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
 
 @declare_synthesizer(
     "kcoherence",
-    version="2",  # 2: the fast search became the coherence-propagated self-join
+    version="2",  # 2: principal axes by einsum products (rounding can change the fast lists)
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",

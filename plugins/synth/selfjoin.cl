@@ -1,7 +1,8 @@
 // One improvement step of the coherence-propagated self-join (PatchMatch with NN-descent): every texel p of an
 // H x W image keeps a list of the TOPK texels whose neighbourhood vectors are nearest its own, and improves it
 // from candidates that image coherence makes likely:
-//   - propagation: texel q = p + delta (the 8 around p) matched j, so p may match j - delta;
+//   - propagation: texel q = p + spread * delta (delta: the 8 around p) matched j, so p may match
+//     j - spread * delta (spreads that halve from step to step carry a match across the image in log steps);
 //   - neighbours of neighbours: what p's NN nearest matches matched (their NN nearest);
 //   - n_random texels drawn by an integer hash of (seed, step, p, r), so every part of the image is reached.
 // Lists are read from the previous step (idx_in / d_in) and written to idx_out / d_out, so the result does not
@@ -45,7 +46,7 @@ int before(const float d, const int i, const float e, const int j)
 __kernel void selfjoin_step(__global const float *vectors, const int h, const int w, const int exclude,
                             __global const uchar *allowed, __global const int *idx_in, __global const float *d_in,
                             __global int *idx_out, __global float *d_out, const uint seed, const uint step,
-                            const int n_random)
+                            const int n_random, const int spread)
 {
     const int p = get_global_id(0);
     const int n = h * w;
@@ -61,7 +62,7 @@ __kernel void selfjoin_step(__global const float *vectors, const int h, const in
         if (c_i < n_prop) {                         // propagation from the 8 neighbours
             int o = c_i / TOPK;
             o += o >= 4;                            // skip the centre of the 3 x 3 offsets
-            const int dy = o / 3 - 1, dx = o % 3 - 1;
+            const int dy = spread * (o / 3 - 1), dx = spread * (o % 3 - 1);
             const int qy = py + dy, qx = px + dx;
             if (qy >= 0 && qy < h && qx >= 0 && qx < w) {
                 const int j = idx_in[(size_t)(qy * w + qx) * TOPK + c_i % TOPK];
