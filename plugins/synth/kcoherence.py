@@ -435,8 +435,8 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
     """
     from btforge.context import StageContext
 
-    exemplar = benchmark_exemplar(exemplar_size)
     from .search import clear_caches
+    exemplar = benchmark_exemplar(exemplar_size)
     params = dict(size=[size, size], k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
                   search=search)
     kcoherence(exemplar=exemplar, **{**params, "size": [16, 16]})  # warm-up: kernel builds
@@ -454,7 +454,8 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
     total = statistics.median(totals)
     return {
         "exemplar": [exemplar_size, exemplar_size], "size": [size, size], "k": k, "neighborhood": neighborhood,
-        "levels": levels, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold, "device": get_backend().description,
+        "levels": levels, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold,
+        "device": get_backend().description,
         "median_s": total, "analysis_median_s": statistics.median(analysis),
         "synthesis_median_s": statistics.median(synthesis),
         "other_median_s": total - statistics.median(analysis) - statistics.median(synthesis),
