@@ -202,3 +202,55 @@ def test_bad_input_is_reported_at_once():
     assert "engine" in text and "[4, 3]" in text and "k:" in text
     with pytest.raises(BtforgeInputError, match="finite"):
         search.knn(np.full((4, 3), np.nan, np.float32), np.zeros((2, 3), np.float32), 1)
+
+
+# --------------------------------------------------------------------------------------------- self-join
+
+
+def _selfjoin_case(case, rng, n):
+    if case == "random":
+        return rng.random((n, 5), dtype=np.float32)
+    if case == "ties":        # two values per dimension: equal distances everywhere, resolved by index
+        return rng.integers(0, 2, (n, 3)).astype(np.float32)
+    if case == "constant":    # every distance 0
+        return np.full((n, 4), 0.5, np.float32)
+    if case == "one-dim":
+        return rng.random((n, 1), dtype=np.float32)
+    raise ValueError(case)
+
+
+@pytest.mark.parametrize("case", ["random", "ties", "constant", "one-dim"])
+def test_selfjoin_kernel_matches_numpy_twin(case):
+    from btforge.plugins.synth import selfjoin
+    rng = np.random.default_rng(11)
+    h, w = 17, 23
+    v = _selfjoin_case(case, rng, h * w)
+    allowed = rng.random(h * w) < 0.8
+    lists = {dev: (np.full((h * w, 6), -1, np.int32), np.full((h * w, 6), np.inf, np.float32)) for dev in "nc"}
+    for step, n_random, spread in [(0, 9, 1), (1, 3, 4), (2, 3, 1)]:
+        lists["n"] = selfjoin.improve_numpy(v, h, w, 1, allowed, *lists["n"], 7, step, n_random, 4, spread)
+        lists["c"] = selfjoin.improve_opencl(v, h, w, 1, allowed, *lists["c"], 7, step, n_random, 4, spread)
+        np.testing.assert_array_equal(lists["c"][0], lists["n"][0])
+        np.testing.assert_array_equal(lists["c"][1], lists["n"][1])
+    idx, dist = lists["c"]
+    ys, xs = np.divmod(np.arange(h * w), w)
+    ty, tx = np.divmod(np.maximum(idx, 0), w)
+    found = idx >= 0
+    assert found[:, 0].all() and allowed[idx[found]].all()
+    assert (np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None]))[found] > 1).all()
+    assert all(len(set(r[r >= 0])) == (r >= 0).sum() for r in idx)          # no texel twice
+    key = np.where(idx < 0, 2 ** 40, idx).astype(np.float64)
+    assert ((np.diff(dist, axis=1) > 0) | ((np.diff(dist, axis=1) == 0) & (np.diff(key, axis=1) > 0))).all()
+
+
+def test_selfjoin_recall_meets_the_floor():
+    # 48 x 48 texels: more than are searched exactly, so similar_texels runs the self-join
+    features = normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
+    fast_idx, fast_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent")
+    true_idx, true_d = search.similar_texels(features, 5, 5, exclude=1, search="exact")
+    assert search.recall(fast_idx, true_idx) >= search.FAST_RECALL_FLOOR
+    assert search.distance_ratio(fast_d, true_d) <= 1.05
+    assert (fast_d[:, -1] >= true_d[:, -1]).all()
+    twin_idx, twin_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent", device="numpy")
+    np.testing.assert_array_equal(twin_idx, fast_idx)
+    np.testing.assert_allclose(twin_d, fast_d, rtol=1e-6)

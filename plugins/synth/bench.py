@@ -99,13 +99,16 @@ def time_synthesizer(st, model, size: int, repeat: int) -> dict:
 
 
 def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
-    """The shared search on the exemplar's 5 x 5 neighbourhoods: fast build/query, exact query, recall at k."""
+    """The shared search on the exemplar's 5 x 5 neighbourhoods: fast build/query, exact query, recall at k; the
+    self-join of every texel (itself left out) and its recall."""
     from . import search
+    from .selfjoin import self_join
     from .features import texel_features
     from .textons import normalise_features
     vectors = search.neighbourhood_vectors(normalise_features(texel_features(model)), search.square_window(5))
     rng = np.random.default_rng(0)
-    sample = vectors[np.sort(rng.choice(len(vectors), min(queries, len(vectors)), replace=False))]
+    rows = np.sort(rng.choice(len(vectors), min(queries, len(vectors)), replace=False))
+    sample = vectors[rows]
     search.knn(vectors[:64], vectors[:4], k, engine="exact")  # kernel build
     search.clear_caches()
     start = time.perf_counter()
@@ -115,13 +118,22 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
     fast_idx, fast_d = index.query(sample, k)
     fast_query = time.perf_counter() - start
     start = time.perf_counter()
-    true_idx, true_d = search.knn(vectors, sample, k, engine="exact")
+    true_idx, true_d = search.knn(vectors, sample, k + 1, engine="exact")
     exact_query = time.perf_counter() - start
+    start = time.perf_counter()
+    join_idx, join_d = self_join(vectors, model.height, model.width, k, exclude=0)
+    join = time.perf_counter() - start
+    # the self-join leaves each texel itself out: its truth is the exact list without the query's own row
+    others = true_idx != rows[:, None]
+    order = np.argsort(~others, axis=1, kind="stable")[:, :k]
     per = 1000.0 / len(sample)
     return {"vectors": list(vectors.shape), "reduced_dims": index.projection.axes.shape[1],
             "fast_build_s": build, "fast_query_s_per_1000": fast_query * per,
             "exact_query_s_per_1000": exact_query * per,
-            "recall": search.recall(fast_idx, true_idx), "distance_ratio": search.distance_ratio(fast_d, true_d)}
+            "recall": search.recall(fast_idx, true_idx[:, :k]),
+            "distance_ratio": search.distance_ratio(fast_d, true_d[:, :k]),
+            "self_join_s": join, "self_join_recall": search.recall(join_idx[rows], np.take_along_axis(true_idx, order, 1)),
+            "self_join_distance_ratio": search.distance_ratio(join_d[rows], np.take_along_axis(true_d, order, 1))}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -154,7 +166,8 @@ def bench_synthesis(args: list[str]) -> int:
         search_rows.append({"exemplar": label, **{k: _round(v) for k, v in found.items()}})
         print(f"{label} search: recall {found['recall']:.3f}, distance ratio {found['distance_ratio']:.4f}, "
               f"fast build {found['fast_build_s']:.2f} s + {found['fast_query_s_per_1000']:.3f} s / 1000 queries, "
-              f"exact {found['exact_query_s_per_1000']:.3f} s / 1000 queries", file=sys.stderr)
+              f"exact {found['exact_query_s_per_1000']:.3f} s / 1000 queries; self-join {found['self_join_s']:.2f} s, "
+              f"recall {found['self_join_recall']:.3f}", file=sys.stderr)
         baseline = score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size)), lights)
         rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
                      **{k: _round(v) for k, v in baseline.items()}})

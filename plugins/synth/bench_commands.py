@@ -31,9 +31,13 @@ def bench_kcoherence(argv: list[str]) -> int:
     p = _parser("kcoherence", bench_kcoherence)
     p.add_argument("--exemplar-size", type=int, default=64, help="exemplar side in texels (default 64)")
     p.add_argument("--repeat", type=positive_count, default=5)
+    p.add_argument("--search", choices=("fast", "exact", "coherent"), default="fast", help="neighbourhood search engine")
+    p.add_argument("--warm", action="store_true",
+                   help="keep the cached analysis between repeats (time re-synthesis only; default: analyse cold)")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     args = p.parse_args(argv)
-    print_figures(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat), args.json)
+    print_figures(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat, search=args.search,
+                                       cold=not args.warm), args.json)
     return 0
 
 
