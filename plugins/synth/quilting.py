@@ -7,16 +7,8 @@ what is already synthesized is compared with the same overlap of every exemplar 
 among those within ``(1 + tolerance)`` of the best, and the blocks are joined by a minimum-error boundary cut or
 by linear blending.
 
-The search (:mod:`.quilt_search`) is the costly part.  ``brute`` computes every candidate's overlap distance on OpenCL.  ``rejection``
-(Hel-Or & Hel-Or 2002) projects every candidate's unfolded overlap vector, once per overlap shape, onto an
-orthonormal basis: the 2D Haar functions of the overlap's rectangles, one feature dimension at a time (piecewise
-constant like Walsh-Hadamard kernels, so each projection of every candidate costs a few summed-area-table reads),
-ordered by their energy over the candidates.  For a query, the sum of squared projected differences over the first
-k functions is a lower bound on the full distance, so a candidate whose bound exceeds ``(1 + tolerance)`` x the
-best full distance known can never be eligible and is dropped; the survivors get full distances computed exactly as
-the brute-force kernel computes them, so both searches see bit-identical distances, the same eligible set and the
-same random pick.  Safety margins on the threshold cover every rounding error involved (see
-:meth:`QuiltSearch._reject`).
+The search (:mod:`.quilt_search`: brute force, or the exact projection-kernel rejection of Hel-Or & Hel-Or
+2002, which keeps the brute force's picks) is the costly part; its module says how it works.
 
 Candidates are all block positions lying wholly inside the exemplar (the exemplar is not treated as periodic).
 """
