@@ -50,7 +50,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.backend import get_backend
-from btforge.numerics import real_sh, texel_chunks
+from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb, scattered_lookup,
                              srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
@@ -81,6 +81,20 @@ def compression_rate(k_l: int, k_v: int, n_light: int, n_view: int) -> float:
 
 
 # ----------------------------------------------------------------------------------------------- model
+
+
+GRAM_QUADRATURE = 4096  # hemisphere directions of the Gram-matrix quadrature
+
+
+def hemisphere_gram_root(order: int, n: int = GRAM_QUADRATURE) -> np.ndarray:
+    """``S`` with ``S S^T = int_H Y_i Y_j`` over the upper hemisphere, for SH bands ``0 .. order-1``.
+
+    The Gram matrix is summed over ``n`` equal-area Fibonacci points (weight ``2 pi / n`` each); ``S`` is its
+    symmetric square root with negative rounding clipped.
+    """
+    y = real_sh(order, fibonacci_directions(n, 0.0, rising=True))
+    values, vectors = np.linalg.eigh((y.T @ y) * (2 * np.pi / n))
+    return vectors * np.sqrt(np.clip(values, 0.0, None))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -164,6 +178,14 @@ class SHModel(ReflectanceModel):
         if not self.quantized:
             return self.coeffs
         return (self.coeffs.astype(np.float32) * self.scale + self.bias).astype(np.float32)
+
+    def appearance_features(self) -> np.ndarray:
+        """``[H, W, C * k_v * k_l]`` float32: the coefficients in a frame orthonormal over the upper hemisphere of
+        lights and of views, so Euclidean distance is the L2 distance of the fitted functions where they were
+        measured (the full-sphere basis's own orthonormality would also count the unmeasured lower half)."""
+        weighted = np.einsum("hwcab,ai,bj->hwcij", self.dequantized().astype(np.float64),
+                             hemisphere_gram_root(self.view_order), hemisphere_gram_root(self.light_order))
+        return np.ascontiguousarray(weighted.reshape(self.height, self.width, -1), np.float32)
 
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
                         views_local: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
