@@ -749,6 +749,20 @@ def _grid_possible(sample: np.ndarray, low: float, high: float) -> bool:
     return bool(gaps.size) and span > 0 and int(255 * (1 + 1e-3) * float(gaps.min()) / span) >= 1
 
 
+def _column_range(flat: np.ndarray, rows_per_block: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column minimum and maximum of ``[N, K]``: reduced over blocks of rows laid side by side, since numpy
+    reduces a narrow array down its long axis several times slower than a wide one."""
+    n, k = flat.shape
+    whole = n - n % rows_per_block
+    wide = flat[:whole].reshape(-1, rows_per_block * k)
+    lows = [wide.min(axis=0).reshape(rows_per_block, k).min(axis=0)] if whole else []
+    highs = [wide.max(axis=0).reshape(rows_per_block, k).max(axis=0)] if whole else []
+    if whole < n:
+        lows.append(flat[whole:].min(axis=0))
+        highs.append(flat[whole:].max(axis=0))
+    return np.min(lows, axis=0), np.max(highs, axis=0)
+
+
 class _Quantizer:
     """Per-coefficient scale and bias over a whole model ``coeffs [H, W, K, 6]``, and the bytes of any band of it.
 
@@ -761,9 +775,10 @@ class _Quantizer:
         self.coeffs = coeffs
         flat = coeffs.reshape(-1, N_COEFFS)
         stride = max(1, flat.shape[0] // GRID_SAMPLE)
+        lows, highs = _column_range(flat)
         self.scales, self.biases, self.steps, self.whole = [], [], [], {}
         for i in range(N_COEFFS):
-            low, high = float(flat[:, i].min()), float(flat[:, i].max())
+            low, high = float(lows[i]), float(highs[i])
             quantized = None
             if _grid_possible(flat[::stride, i], low, high):
                 quantized = _grid_quantization(np.ascontiguousarray(coeffs[..., i], dtype=np.float64))
@@ -778,13 +793,16 @@ class _Quantizer:
 
     def levels(self, rows: slice, channel: int) -> np.ndarray:
         """Bytes ``[rows, W, 6]`` of channel ``channel``'s coefficients."""
-        band = self.coeffs[rows, :, channel, :]
-        out = np.empty(band.shape, dtype=np.uint8)
+        # All six coefficients in one pass (the arithmetic of _range_levels, column by column), then the
+        # coefficients stored on their own grid, or constant zero, put in place.
+        steps = np.array([step or 1.0 for step in self.steps])
+        band = self.coeffs[rows, :, channel, :].astype(np.float64)
+        out = np.clip(np.rint(band / steps + np.array(self.biases, np.float64)), 0, 255).astype(np.uint8)
         for i in range(N_COEFFS):
             if i in self.whole:
                 out[..., i] = self.whole[i][rows, :, channel]
-            else:
-                out[..., i] = _range_levels(band[..., i], self.biases[i], self.steps[i])
+            elif self.steps[i] == 0.0:
+                out[..., i] = 0
         return out
 
 
