@@ -625,3 +625,13 @@ def test_real_lossless_lrgb_leaf_crop_round_trips(tmp_path):
     back = read_ptm(out)
     assert max_relit_change((coeffs, albedo), back, hemisphere_lights(120)) <= ONE_LEVEL + FLOAT_SLACK
     np.testing.assert_array_equal(back.coeffs, coeffs)  # lossless PNG data lies on a byte grid
+
+
+@pytest.mark.parametrize("n", [1, 511, 512, 1030, 4096])
+def test_column_range_equals_numpy_on_any_row_count(n):
+    from btforge.plugins.ptm.ptmfile import _column_range
+    flat = np.random.default_rng(n).normal(size=(n, 6)).astype(np.float32)
+    flat[n // 2, 3] = -1e30  # an extreme value in a block and, for most n, not in the first one
+    lows, highs = _column_range(flat)
+    np.testing.assert_array_equal(lows, flat.min(axis=0))
+    np.testing.assert_array_equal(highs, flat.max(axis=0))
