@@ -797,7 +797,10 @@ class _Quantizer:
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
         band = self.coeffs[rows, :, channel, :].astype(np.float64)
-        out = np.clip(np.rint(band / steps + np.array(self.biases, np.float64)), 0, 255).astype(np.uint8)
+        np.divide(band, steps, out=band)  # in place: the same operations as _range_levels, without temporaries
+        np.add(band, np.array(self.biases, np.float64), out=band)
+        np.rint(band, out=band)
+        out = np.clip(band, 0, 255, out=band).astype(np.uint8)
         for i in range(N_COEFFS):
             if i in self.whole:
                 out[..., i] = self.whole[i][rows, :, channel]
