@@ -54,7 +54,7 @@ from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb, scattered_lookup,
                              srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.plugins.ptm.model import resolve_space
+from btforge.fitspace import resolve_space
 
 KERNELS = Path(__file__).with_name("sh.cl")
 MAX_ORDER = 10
