@@ -33,6 +33,9 @@ BLUR_PIXELS = 25                # ... unless it is no larger than the lens blur 
 MIN_CONTRAST = 8.0              # peak over the noise (median absolute deviation) of the disc
 MIN_PEAK = 0.04                 # peak above the median image, in units of the image's full range
 VALIDATION_IMAGES = 12          # a candidate sphere must show highlights in most of this many images
+LIMB_BAND = 0.05                # the sub-pixel outline is searched within this share of the radius of the circle ...
+LIMB_SECTOR_PIXELS = 6.0        # ... in sectors of about this many pixels of arc ...
+LIMB_CONTRAST = 4.0             # ... whose step between inside and outside is this many times the noise
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +143,99 @@ def _refine(circle: Circle, edges, scale: float, iterations: int = 12) -> Circle
     return Circle(float(x), float(y), float(r), circle.support)
 
 
+def _limb_points(circle: Circle, image: np.ndarray, noise: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel points of the sphere's outline near ``circle`` in one image: columns, rows and the step from
+    inside to outside ``[K]``.
+
+    In each sector of the outline the radial profiles are averaged (the outline of a chrome ball may stand out
+    from a dark background by a level or two, so one ray is too noisy); a sector gives a point where its profile
+    crosses half-way between its inside and outside levels, the edge's position whatever its polarity and blur.
+    Sectors whose step is not clear of the noise give none.
+    """
+    half_width = max(3.0, LIMB_BAND * circle.r)
+    offsets = np.arange(-half_width, half_width + 1e-9, 0.25)
+    sectors = max(36, min(360, int(2 * math.pi * circle.r / LIMB_SECTOR_PIXELS)))
+    rays = max(1, int(round(2 * math.pi * circle.r / sectors)))  # about one ray per pixel of arc
+    angles = (np.arange(sectors * rays) + 0.5) * (2 * math.pi / (sectors * rays))
+    radius = circle.r + offsets
+    cols = circle.x + np.cos(angles)[:, None] * radius[None]
+    rows = circle.y - np.sin(angles)[:, None] * radius[None]
+    values = ndimage.map_coordinates(image, [rows.ravel(), cols.ravel()], order=1, mode="nearest")
+    profiles = values.reshape(sectors, rays, len(offsets)).mean(axis=1)
+    quarter = len(offsets) // 4
+    inside = np.median(profiles[:, :quarter], axis=1)
+    outside = np.median(profiles[:, -quarter:], axis=1)
+    crossing = _half_level_crossing(profiles, inside, outside, offsets)
+    step = outside - inside
+    keep = (np.abs(step) > LIMB_CONTRAST * noise / math.sqrt(rays)) & np.isfinite(crossing)
+    centre_angles = angles.reshape(sectors, rays).mean(axis=1)[keep]
+    r = circle.r + crossing[keep]
+    return circle.x + r * np.cos(centre_angles), circle.y - r * np.sin(centre_angles), step[keep]
+
+
+def _half_level_crossing(profiles, inside, outside, offsets) -> np.ndarray:
+    """Per profile ``[S, P]``, the offset where it crosses the half level between ``inside`` and ``outside`` (linear
+    between samples; the crossing nearest the middle of the profile), or NaN when it never does."""
+    signed = (profiles - ((inside + outside) / 2)[:, None]) * np.sign(outside - inside)[:, None]
+    rising = (signed[:, :-1] < 0) & (signed[:, 1:] >= 0)
+    middle = len(offsets) // 2
+    distance = np.where(rising, np.abs(np.arange(len(offsets) - 1) - middle + 0.5)[None], np.inf)
+    k = np.argmin(distance, axis=1)
+    found = np.isfinite(distance[np.arange(len(k)), k])
+    below, above = signed[np.arange(len(k)), k], signed[np.arange(len(k)), k + 1]
+    fraction = -below / np.where(above - below > 0, above - below, 1.0)
+    at = offsets[k] + fraction * (offsets[1] - offsets[0])
+    return np.where(found, at, np.nan)
+
+
+def _fit_circle(cols: np.ndarray, rows: np.ndarray, start: Circle, iterations: int = 20) -> Circle | None:
+    """Geometric least-squares circle through points, with Tukey weights on their distances from it (a reflection
+    of the room near the rim, or the stand the ball sits on, leaves outliers); None with too few points."""
+    if len(cols) < 12:
+        return None
+    x, y, r = start.x, start.y, start.r
+    weight = np.ones_like(cols)
+    for _ in range(iterations):
+        dx, dy = cols - x, rows - y
+        dist = np.hypot(dx, dy) + 1e-12
+        residual = dist - r
+        scale = max(1.4826 * float(np.median(np.abs(residual))), 0.05)
+        weight = np.clip(1.0 - (residual / (4.685 * scale)) ** 2, 0.0, None) ** 2
+        if weight.sum() < 12:
+            return None
+        jacobian = np.stack([-dx / dist, -dy / dist, -np.ones_like(dist)], axis=1)  # d(residual)/d(x, y, r)
+        sw = np.sqrt(weight)
+        step, *_ = np.linalg.lstsq(jacobian * sw[:, None], -residual * sw, rcond=None)
+        x, y, r = x + step[0], y + step[1], r + step[2]
+        if np.abs(step).max() < 1e-4:
+            break
+    return Circle(float(x), float(y), float(r), start.support)
+
+
+def refine_limb(circle: Circle, images) -> Circle:
+    """The circle through the sub-pixel outline of the sphere in every image of ``images`` (see
+    :func:`_limb_points`; each photograph shows the outline where its light makes the background differ from the
+    ball, so their points are pooled), or ``circle`` unchanged when too little of the outline is clear or the fit
+    moves implausibly far."""
+    points = [_limb_points(circle, image, _noise_level(image)) for image in images]
+    cols, rows, step = (np.concatenate(parts) for parts in zip(*points))
+    # The polarity of most of the outline only (counted, not summed: a bright reflection just inside the rim has a
+    # strong edge of its own).
+    same = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
+    fitted = _fit_circle(cols[same], rows[same], circle)
+    if fitted is None or math.hypot(fitted.x - circle.x, fitted.y - circle.y) + abs(fitted.r - circle.r) \
+            > max(2.0, LIMB_BAND * circle.r):
+        return circle
+    return fitted
+
+
+def _noise_level(image: np.ndarray) -> float:
+    """Per-pixel noise of an image: the median absolute deviation of its differences along rows, and at least
+    one 16-bit level (8-bit quantisation alone is 0.0011)."""
+    difference = np.diff(image[:, ::2], axis=1)
+    return max(1.4826 * float(np.median(np.abs(difference))) / math.sqrt(2), 1.0 / 65535.0, 0.29 / 255.0)
+
+
 def _coverage(circle: Circle, edges, bins: int = 90) -> float:
     """Share of the outline's angular bins holding an edge pixel on the circle whose gradient is radial."""
     rows, cols, ux, uy, _ = edges
@@ -212,7 +308,9 @@ def find_spheres(lum: np.ndarray, max_spheres: int = 4, background: np.ndarray |
         found = sum(find_highlight(frame, background, c).found for frame in sample)
         if found < max(2, 0.5 * len(sample)):
             continue
-        kept.append((dataclasses.replace(c, support=coverage), coverage))
+        # The outline to sub-pixel precision in the median image: the ball as it looks in most shots (the maximum
+        # image also holds every shot's reflections inside the rim, which pull the outline inward).
+        kept.append((dataclasses.replace(refine_limb(c, summaries[1:]), support=coverage), coverage))
     # Best outline first; a larger circle nearly as well covered wins over one inside it (a highlight's blob).
     kept.sort(key=lambda item: -item[1])
     chosen: list[Circle] = []
