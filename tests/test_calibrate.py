@@ -125,6 +125,14 @@ def test_psm_uw_chrome_sphere():
     xy = np.array([[h.x, h.y] for h in result.highlights[0]])
     implied, rms = implied_sphere(xy, truth)
     assert rms <= 1.4 and implied.r > 1.1 * result.spheres[0].r, (implied, rms)
+    # Nor does a camera explain it: the wide lens the lights imply would stretch the outline by over a pixel
+    # toward its principal point; the outline is round to a third of that.
+    from btforge.plugins.calibrate.bench import elongation, implied_camera, measured_elongation
+    from btforge.plugins.calibrate.lights import load_luminance
+    focal, principal = implied_camera(xy, truth / np.linalg.norm(truth, axis=1, keepdims=True), result.spheres[0],
+                                      result.shape)
+    seen, se, _ = measured_elongation(result.spheres[0], np.median(load_luminance(result.images), axis=0))
+    assert elongation(result.spheres[0], focal, principal) > 1.0 and seen + 3 * se < 0.7, (focal, principal, seen)
 
 
 def test_outline_is_found_to_a_tenth_of_a_pixel(tmp_path):
@@ -160,6 +168,27 @@ def test_robust_circle_fit_ignores_outliers():
     fitted = _fit_circle(10 + radius * np.cos(angle), 20 - radius * np.sin(angle), Circle(11, 19, 38))
     assert math.hypot(fitted.x - 10, fitted.y - 20) < 0.05 and abs(fitted.r - 40) < 0.05, fitted
     assert _fit_circle(np.arange(5.0), np.arange(5.0), Circle(0, 0, 1)) is None
+
+
+def test_outline_elongation_and_implied_camera_of_a_perspective_render(tmp_path):
+    """The diagnostics of ``bench calibrate``: a wide lens stretches a sphere's outline toward the principal point
+    by as much as the tangent cone predicts, and the known lights give back the camera."""
+    from btforge.plugins.calibrate.bench import elongation, implied_camera, measured_elongation
+    from btforge.plugins.calibrate.lights import load_luminance
+    lights = fibonacci_lights(10, seed=3)
+    render_capture(tmp_path, lights, [(200, 90, 60)], focal=250)
+    files = image_list(tmp_path)
+    result = calibrate(files, focal=250)
+    (circle,) = result.spheres
+    predicted = elongation(circle, 250, (159.5, 119.5))
+    seen, se, direction = measured_elongation(circle, np.median(load_luminance(files), axis=0))
+    toward = math.degrees(math.atan2(circle.y - 119.5, 159.5 - circle.x)) + 180  # the axis through the point
+    assert 1.0 < predicted < 1.5 and abs(seen - predicted) < 0.15 and se < 0.1, (predicted, seen, se)
+    assert abs(direction - toward) < 8, (direction, toward)
+    xy = np.array([[h.x, h.y] for h in result.highlights[0]])
+    focal, principal = implied_camera(xy, lights, circle, result.shape)
+    assert abs(focal / 250 - 1) < 0.1 and math.hypot(principal[0] - 159.5, principal[1] - 119.5) < 10, \
+        (focal, principal)
 
 
 def test_implied_sphere_of_rendered_spheres_is_the_sphere(tmp_path):

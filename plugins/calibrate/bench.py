@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .lights import calibrate, image_list, parse_principal
-from .sphere import Circle, reflect
+from .lights import calibrate, image_list, load_luminance, parse_principal
+from .sphere import Circle, _cone_of_outline, _fit_circle, _limb_points, _noise_level, reflect
 from .synthetic import fibonacci_lights, render_capture
 
 
@@ -34,6 +34,54 @@ def implied_sphere(highlights_xy: np.ndarray, lights: np.ndarray) -> tuple[Circl
     (x, y, r), *_ = np.linalg.lstsq(design, target, rcond=None)
     rms = float(np.sqrt(np.mean((design @ [x, y, r] - target) ** 2)))
     return Circle(float(x), float(y), float(r)), rms
+
+
+def implied_camera(highlights_xy: np.ndarray, lights: np.ndarray, circle: Circle, shape) -> tuple[float, tuple]:
+    """The pinhole camera (focal length and principal point, pixels) that best turns the highlights on ``circle``
+    into the known ``lights`` [N, 3], from several starting focal lengths."""
+    from scipy.optimize import least_squares
+
+    def mismatch(p):
+        return (reflect(highlights_xy, circle, shape, p[0], (p[1], p[2])) - lights).ravel()
+
+    centre = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
+    fits = [least_squares(mismatch, [f, *centre], bounds=([20.0, -5e3, -5e3], [1e6, 5e3, 5e3]))
+            for f in (0.5 * max(shape), 2.0 * max(shape), 8.0 * max(shape))]
+    best = min(fits, key=lambda fit: fit.cost)
+    return float(best.x[0]), (float(best.x[1]), float(best.x[2]))
+
+
+def elongation(circle: Circle, focal: float, principal) -> float:
+    """How much longer (pixels) the outline's axis toward the principal point is than the one across it, for a
+    sphere seen as ``circle`` by a pinhole camera (see :func:`sphere._cone_of_outline`)."""
+    distance = float(np.hypot(circle.x - principal[0], circle.y - principal[1]))
+    tilt, alpha = _cone_of_outline(distance, circle.r, focal)
+    along = focal * (np.tan(tilt + alpha) - np.tan(tilt - alpha)) / 2
+    across = focal * np.sin(alpha) / np.sqrt(np.cos(tilt) ** 2 - np.sin(alpha) ** 2)
+    return float(along - across)
+
+
+def measured_elongation(circle: Circle, image: np.ndarray) -> tuple[float, float, float]:
+    """The outline's elongation in ``image``: twice the amplitude (pixels) of the second harmonic of its sub-pixel
+    points' distances from the centre (an ellipse of axes a, b has amplitude (a - b) / 2), its standard error, and
+    the long axis's direction (degrees, counter-clockwise from the image's x axis, in [-90, 90)); Tukey-weighted."""
+    cols, rows, step = _limb_points(circle, image, _noise_level(image))
+    keep = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
+    cols, rows = cols[keep], rows[keep]
+    fitted = _fit_circle(cols, rows, circle) or circle
+    angle = np.arctan2(-(rows - fitted.y), cols - fitted.x)
+    design = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)], 1)
+    distance = np.hypot(cols - fitted.x, rows - fitted.y)
+    weight = np.ones_like(distance)
+    for _ in range(10):
+        coef, *_ = np.linalg.lstsq(design * weight[:, None], distance * weight, rcond=None)
+        residual = distance - design @ coef
+        scale = 1.4826 * float(np.median(np.abs(residual))) + 1e-3
+        weight = np.clip(1.0 - (residual / (4.685 * scale)) ** 2, 0.0, None)
+    normal = (design * weight[:, None] ** 2).T @ design
+    se = scale * float(np.sqrt(np.diag(np.linalg.pinv(normal))[3:].mean()))
+    direction = (0.5 * np.degrees(np.arctan2(coef[4], coef[3])) + 90.0) % 180.0 - 90.0
+    return 2.0 * float(np.hypot(coef[3], coef[4])), 2.0 * se, float(direction)
 
 
 def bench_calibrate(args: list[str]) -> int:
@@ -68,6 +116,8 @@ def bench_calibrate(args: list[str]) -> int:
         print("error per image (deg): " + " ".join(f"{e:.2f}" for e in error))
         print(f"mean {np.nanmean(error):.2f} deg, worst {np.nanmax(error):.2f} deg")
         _print_implied_spheres(result, truth)
+        if not opts.synthetic and opts.focal is None:
+            _print_implied_camera(result, truth, files)
     return 0
 
 
@@ -84,3 +134,22 @@ def _print_implied_spheres(result, truth) -> None:
         print(f"sphere {s + 1}: the known lights imply ({implied.x:.1f}, {implied.y:.1f}) r {implied.r:.1f} "
               f"(found ({circle.x:.1f}, {circle.y:.1f}) r {circle.r:.1f}); highlights {rms:.2f} px RMS from it; "
               f"with it: mean {error.mean():.2f} deg, worst {error.max():.2f} deg")
+
+
+def _print_implied_camera(result, truth, files) -> None:
+    """The pinhole camera the known lights imply for the first sphere, and whether its outline could show it."""
+    truth = truth / np.linalg.norm(truth, axis=1, keepdims=True)
+    circle, highlights = result.spheres[0], result.highlights[0]
+    found = np.array([h.found for h in highlights])
+    if found.sum() < 4:
+        return
+    xy = np.array([[h.x, h.y] for h in highlights])[found]
+    focal, principal = implied_camera(xy, truth[found], circle, result.shape)
+    error = _angles(reflect(xy, circle, result.shape, focal, principal), truth[found])
+    median = np.median(load_luminance(files), axis=0)
+    seen, se, direction = measured_elongation(circle, median)
+    toward = (np.degrees(np.arctan2(circle.y - principal[1], principal[0] - circle.x)) + 90.0) % 180.0 - 90.0
+    print(f"sphere 1: the known lights imply a pinhole camera of focal {focal:.0f} px, principal point "
+          f"({principal[0]:.1f}, {principal[1]:.1f}): mean {error.mean():.2f} deg, worst {error.max():.2f} deg; its "
+          f"outline would be {elongation(circle, focal, principal):.2f} px longer along {toward:.0f} deg than "
+          f"across; the median image's outline is {seen:.2f} +- {se:.2f} px longer along {direction:.0f} deg")
