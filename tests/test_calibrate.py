@@ -127,12 +127,15 @@ def test_psm_uw_chrome_sphere():
     assert rms <= 1.4 and implied.r > 1.1 * result.spheres[0].r, (implied, rms)
     # Nor does a camera explain it: the wide lens the lights imply would stretch the outline by over a pixel
     # toward its principal point; the outline is round to a third of that.
-    from btforge.plugins.calibrate.bench import elongation, implied_camera, measured_elongation
+    from btforge.plugins.calibrate.bench import implied_camera
     from btforge.plugins.calibrate.lights import load_luminance
+    from btforge.plugins.calibrate.sphere import measure_stretch, outline_stretch
     focal, principal = implied_camera(xy, truth / np.linalg.norm(truth, axis=1, keepdims=True), result.spheres[0],
                                       result.shape)
-    seen, se, _ = measured_elongation(result.spheres[0], np.median(load_luminance(result.images), axis=0))
-    assert elongation(result.spheres[0], focal, principal) > 1.0 and seen + 3 * se < 0.7, (focal, principal, seen)
+    seen, se, _ = measure_stretch(result.spheres[0], np.median(load_luminance(result.images), axis=0))
+    assert outline_stretch(result.spheres[0], focal, principal) > 1.0 and seen + 3 * se < 0.7, (focal, principal, seen)
+    # So estimating the focal length from the outline keeps the orthographic camera.
+    assert calibrate(image_list(folder / "chrome"), focal="auto").focal is None
 
 
 def test_outline_is_found_to_a_tenth_of_a_pixel(tmp_path):
@@ -170,18 +173,20 @@ def test_robust_circle_fit_ignores_outliers():
     assert _fit_circle(np.arange(5.0), np.arange(5.0), Circle(0, 0, 1)) is None
 
 
-def test_outline_elongation_and_implied_camera_of_a_perspective_render(tmp_path):
-    """The diagnostics of ``bench calibrate``: a wide lens stretches a sphere's outline toward the principal point
-    by as much as the tangent cone predicts, and the known lights give back the camera."""
-    from btforge.plugins.calibrate.bench import elongation, implied_camera, measured_elongation
+def test_outline_stretch_and_implied_camera_of_a_perspective_render(tmp_path):
+    """A wide lens stretches a sphere's outline toward the principal point by as much as the tangent cone
+    predicts; the known lights give back the camera (a diagnostic of ``bench calibrate``), and so does the
+    outline alone (``focal='auto'``)."""
+    from btforge.plugins.calibrate.bench import implied_camera
     from btforge.plugins.calibrate.lights import load_luminance
+    from btforge.plugins.calibrate.sphere import measure_stretch, outline_stretch
     lights = fibonacci_lights(10, seed=3)
     render_capture(tmp_path, lights, [(200, 90, 60)], focal=250)
     files = image_list(tmp_path)
     result = calibrate(files, focal=250)
     (circle,) = result.spheres
-    predicted = elongation(circle, 250, (159.5, 119.5))
-    seen, se, direction = measured_elongation(circle, np.median(load_luminance(files), axis=0))
+    predicted = outline_stretch(circle, 250, (159.5, 119.5))
+    seen, se, direction = measure_stretch(circle, np.median(load_luminance(files), axis=0))
     toward = math.degrees(math.atan2(circle.y - 119.5, 159.5 - circle.x)) + 180  # the axis through the point
     assert 1.0 < predicted < 1.5 and abs(seen - predicted) < 0.15 and se < 0.1, (predicted, seen, se)
     assert abs(direction - toward) < 8, (direction, toward)
@@ -189,6 +194,19 @@ def test_outline_elongation_and_implied_camera_of_a_perspective_render(tmp_path)
     focal, principal = implied_camera(xy, lights, circle, result.shape)
     assert abs(focal / 250 - 1) < 0.1 and math.hypot(principal[0] - 159.5, principal[1] - 119.5) < 10, \
         (focal, principal)
+    estimated = calibrate(files, focal="auto")
+    assert abs(estimated.focal / 250 - 1) < 0.05, estimated.focal_notes
+    assert angles_deg(estimated.lights, lights).mean() < 0.5 and angles_deg(calibrate(files).lights, lights).mean() > 4
+
+
+def test_estimated_focal_stays_orthographic_on_an_orthographic_capture(tmp_path, capsys):
+    render_capture(tmp_path, fibonacci_lights(8, seed=2), [(110, 90, 42), (230, 100, 36)])
+    out = str(tmp_path / "a.lp")
+    assert main(["calibrate", str(tmp_path), "--out", out, "--focal", "auto"]) == 0
+    printed = capsys.readouterr().out
+    assert "camera: orthographic" in printed and printed.count("orthographic") >= 3, printed
+    assert main(["calibrate", str(tmp_path), "--out", out, "--focal", "wide"]) == 2
+    assert "'auto'" in capsys.readouterr().err
 
 
 def test_implied_sphere_of_rendered_spheres_is_the_sphere(tmp_path):
@@ -205,7 +223,8 @@ def test_stage_in_a_graph_writes_the_light_file_and_report(tmp_path):
     (tmp_path / "shots").mkdir()
     render_capture(tmp_path / "shots", lights, [(120, 100, 45)], dark=(2,))
     graph = tmp_path / "g.yaml"
-    graph.write_text("nodes:\n  lights: {stage: lights.calibrate, params: {images: 'shots/*.jpg'}}\n"
+    graph.write_text("nodes:\n  lights: {stage: lights.calibrate,\n"
+                     "           params: {images: 'shots/*.jpg', estimate_focal: true}}\n"
                      "  fit: {stage: ptm.fit, inputs: {stack: lights.stack}}\n")
     with pytest.warns(Warning, match="shot_02.jpg"):
         result = btforge.run(str(graph), only=["lights", "fit"], out_dir=str(tmp_path / "out"), quiet=True)

@@ -10,8 +10,8 @@ import numpy as np
 from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
-from .lights import (calibrate, image_list, parse_principal, parse_sphere, report_picture, summary_lines,
-                     write_calibration)
+from .lights import (calibrate, image_list, parse_focal, parse_principal, parse_sphere, report_picture,
+                     summary_lines, write_calibration)
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -41,7 +41,8 @@ def _calibrate_precheck(params, paths):
     spheres = [t for t in (params.get("sphere") or "").split(";") if t.strip()]
     checks += [lambda t=t: parse_sphere(t, "param 'sphere'") for t in spheres]
     if params.get("principal"):
-        checks.append(lambda: _principal_of(params["principal"], params.get("focal"), "param 'principal'"))
+        checks.append(lambda: _principal_of(params["principal"], params.get("focal") or params.get("estimate_focal"),
+                                            "param 'principal'"))
     for check in checks:
         try:
             check()
@@ -72,6 +73,8 @@ def _principal_of(text, focal, where):
         Param("report", "outpath", "calibration.png", "the picture of the sphere(s) with every highlight numbered"),
         Param("sphere", "str", "", "the sphere as 'X,Y,R' in pixels (several: 'X,Y,R;X,Y,R'); empty: find them"),
         Param("focal", "float", 0.0, "focal length in pixels for a perspective camera; 0: orthographic", low=0.0),
+        Param("estimate_focal", "bool", False, "with focal 0: estimate the focal length from the stretch of the "
+              "spheres' outlines toward the principal point (a wide lens); orthographic when they show none"),
         Param("principal", "str", "", "the perspective camera's principal point as 'X,Y' in pixels (a cropped "
               "photograph's is not its centre); empty: the image centre"),
         Param("apply_to", "str", "", "a later capture (folder or glob) shot with the same lights in the same order: "
@@ -81,7 +84,7 @@ def _principal_of(text, focal, where):
     side_effects=True,
     precheck=_calibrate_precheck,
 )
-def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, apply_to, exclude):
+def lights_calibrate(ctx, *, images, out, report, sphere, focal, estimate_focal, principal, apply_to, exclude):
     """Find the light direction of every photograph from the highlights on mirror spheres in view.
 
     The spheres are found automatically (a circle fitted to the outline in the capture's maximum and median
@@ -89,7 +92,8 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, appl
     small share of the sphere is lit and a weighted centroid refined in a shrinking window; highlights that are too
     dim or too large are rejected and the image is reported by name (it is left out of the light file: no light
     is ever shifted onto another image).  Directions follow from reflection on the sphere (orthographic, or
-    perspective with ``focal`` and ``principal``) and are averaged over the spheres, weighted by their uncertainty.
+    perspective with ``focal`` and ``principal``, or a focal length estimated from the outlines' stretch toward the
+    principal point) and are averaged over the spheres, weighted by their uncertainty.
 
     Outputs
     -------
@@ -98,15 +102,16 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, appl
 
     Notes
     -----
-    ``spheres`` (centre and radius), ``lights_found``, ``left_out`` (image names: no highlight, or excluded),
+    ``spheres`` (centre and radius), ``focal`` (pixels, None: orthographic), ``lights_found``, ``left_out`` (image
+    names: no highlight, or excluded),
     ``uncertainty_deg_median`` and
     ``confidence_min``; the light file and the report picture are written.
     """
     base = ctx.paths.graph_dir
     files = image_list(images, base)
     spheres = [parse_sphere(s, "param 'sphere'") for s in sphere.split(";") if s.strip()] or None
-    centre = _principal_of(principal, focal, "param 'principal'")
-    result = calibrate(files, spheres, focal or None, centre)
+    centre = _principal_of(principal, focal or estimate_focal, "param 'principal'")
+    result = calibrate(files, spheres, focal or ("auto" if estimate_focal else None), centre)
     result = result.excluding(n.strip() for n in exclude.split(",") if n.strip())
     later = image_list(apply_to, base) if apply_to else None
     target = ctx.paths.output(out)
@@ -118,6 +123,9 @@ def lights_calibrate(ctx, *, images, out, report, sphere, focal, principal, appl
     for line in result.problems():
         ctx.warn(line)
     ctx.note("spheres", [[round(c.x, 2), round(c.y, 2), round(c.r, 2)] for c in result.spheres])
+    ctx.note("focal", None if result.focal is None else round(result.focal, 1))
+    for line in result.focal_notes:
+        ctx.note("focal_estimate", line)
     ctx.note("lights_found", int(result.found.sum()))
     ctx.note("left_out", left_out)
     ctx.note("uncertainty_deg_median", round(float(np.nanmedian(result.uncertainty_deg)), 3))
@@ -132,7 +140,8 @@ def _calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="FILE.lp", help="the light file to write")
     parser.add_argument("--sphere", action="append", metavar="X,Y,R",
                         help="a sphere's centre column, row and radius in pixels (repeatable); default: found")
-    parser.add_argument("--focal", type=float, metavar="PIXELS", help="perspective camera focal length in pixels")
+    parser.add_argument("--focal", metavar="PIXELS", help="perspective camera focal length in pixels, or 'auto': "
+                        "estimated from the stretch of the spheres' outlines toward the principal point")
     parser.add_argument("--principal", metavar="X,Y", help="the perspective camera's principal point in pixels "
                         "(default: the image centre; a cropped photograph's lies elsewhere)")
     parser.add_argument("--report", metavar="FILE.png", help="the picture of the highlights (default: beside --out)")
@@ -148,12 +157,11 @@ def _calibrate_run(args) -> int:
     Exits with 0 when every image has a light, 1 when some were left out (they are named), 2 on bad input.
     Images excluded with ``--exclude`` are left out on request and do not count as missing.
     """
-    if args.focal is not None and not args.focal > 0:
-        raise BtforgeInputError(f"--focal {args.focal}", "expected a positive focal length in pixels")
+    focal = parse_focal(args.focal) if args.focal is not None else None
     files = image_list(args.images)
     spheres = [parse_sphere(s) for s in args.sphere] if args.sphere else None
-    principal = _principal_of(args.principal, args.focal, "--principal")
-    result = calibrate(files, spheres, args.focal, principal).excluding(args.exclude)
+    principal = _principal_of(args.principal, focal, "--principal")
+    result = calibrate(files, spheres, focal, principal).excluding(args.exclude)
     out = Path(args.out)
     if out.suffix.lower() != ".lp":
         raise BtforgeInputError(f"--out {args.out}", "expected a .lp file name")
@@ -164,6 +172,9 @@ def _calibrate_run(args) -> int:
     report_picture(result, report)
     for c in result.spheres:
         print(f"sphere: centre ({c.x:.2f}, {c.y:.2f}), radius {c.r:.2f} px, outline support {c.support:.2f}")
+    for line in result.focal_notes:
+        print(f"focal length estimate: {line}")
+    print("camera: " + ("orthographic" if result.focal is None else f"pinhole, focal length {result.focal:.1f} px"))
     print("\n".join(summary_lines(result)))
     print(f"wrote {out} ({int(result.found.sum())} lights) and {report}")
     for line in result.problems():

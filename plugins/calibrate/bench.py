@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .lights import calibrate, image_list, load_luminance, parse_principal
-from .sphere import Circle, _cone_of_outline, _fit_circle, _limb_points, _noise_level, reflect
+from .lights import calibrate, image_list, load_luminance, parse_focal, parse_principal
+from .sphere import Circle, _axis_toward, measure_stretch, outline_stretch, reflect
 from .synthetic import fibonacci_lights, render_capture
 
 
@@ -51,39 +51,6 @@ def implied_camera(highlights_xy: np.ndarray, lights: np.ndarray, circle: Circle
     return float(best.x[0]), (float(best.x[1]), float(best.x[2]))
 
 
-def elongation(circle: Circle, focal: float, principal) -> float:
-    """How much longer (pixels) the outline's axis toward the principal point is than the one across it, for a
-    sphere seen as ``circle`` by a pinhole camera (see :func:`sphere._cone_of_outline`)."""
-    distance = float(np.hypot(circle.x - principal[0], circle.y - principal[1]))
-    tilt, alpha = _cone_of_outline(distance, circle.r, focal)
-    along = focal * (np.tan(tilt + alpha) - np.tan(tilt - alpha)) / 2
-    across = focal * np.sin(alpha) / np.sqrt(np.cos(tilt) ** 2 - np.sin(alpha) ** 2)
-    return float(along - across)
-
-
-def measured_elongation(circle: Circle, image: np.ndarray) -> tuple[float, float, float]:
-    """The outline's elongation in ``image``: twice the amplitude (pixels) of the second harmonic of its sub-pixel
-    points' distances from the centre (an ellipse of axes a, b has amplitude (a - b) / 2), its standard error, and
-    the long axis's direction (degrees, counter-clockwise from the image's x axis, in [-90, 90)); Tukey-weighted."""
-    cols, rows, step = _limb_points(circle, image, _noise_level(image))
-    keep = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
-    cols, rows = cols[keep], rows[keep]
-    fitted = _fit_circle(cols, rows, circle) or circle
-    angle = np.arctan2(-(rows - fitted.y), cols - fitted.x)
-    design = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)], 1)
-    distance = np.hypot(cols - fitted.x, rows - fitted.y)
-    weight = np.ones_like(distance)
-    for _ in range(10):
-        coef, *_ = np.linalg.lstsq(design * weight[:, None], distance * weight, rcond=None)
-        residual = distance - design @ coef
-        scale = 1.4826 * float(np.median(np.abs(residual))) + 1e-3
-        weight = np.clip(1.0 - (residual / (4.685 * scale)) ** 2, 0.0, None)
-    normal = (design * weight[:, None] ** 2).T @ design
-    se = scale * float(np.sqrt(np.diag(np.linalg.pinv(normal))[3:].mean()))
-    direction = (0.5 * np.degrees(np.arctan2(coef[4], coef[3])) + 90.0) % 180.0 - 90.0
-    return 2.0 * float(np.hypot(coef[3], coef[4])), 2.0 * se, float(direction)
-
-
 def bench_calibrate(args: list[str]) -> int:
     """Light calibration accuracy (degrees against known lights) and time, on a capture or rendered spheres."""
     parser = argparse.ArgumentParser(prog="btforge bench calibrate")
@@ -91,7 +58,9 @@ def bench_calibrate(args: list[str]) -> int:
     parser.add_argument("--truth", help="known lights: a text file with a count line, then one 'x y z' row per image")
     parser.add_argument("--synthetic", type=int, metavar="N", help="render N lights on two spheres (JPEG q80)")
     parser.add_argument("--width", type=int, default=320, help="rendered image width (height: 3/4 of it)")
-    parser.add_argument("--focal", type=float, help="perspective camera focal length in pixels")
+    parser.add_argument("--render-focal", type=float, metavar="PIXELS",
+                        help="render through a pinhole of this focal length (principal point at the centre)")
+    parser.add_argument("--focal", type=parse_focal, help="perspective camera focal length in pixels, or 'auto'")
     parser.add_argument("--principal", metavar="X,Y", help="its principal point (default: the image centre)")
     opts = parser.parse_args(args)
     with tempfile.TemporaryDirectory() as scratch:
@@ -99,7 +68,7 @@ def bench_calibrate(args: list[str]) -> int:
             truth = fibonacci_lights(opts.synthetic)
             k = opts.width / 320.0
             render_capture(Path(scratch), truth, [(110 * k, 90 * k, 42 * k), (230 * k, 100 * k, 36 * k)],
-                           size=(opts.width * 3 // 4, opts.width))
+                           size=(opts.width * 3 // 4, opts.width), focal=opts.render_focal)
             files = image_list(scratch)
         else:
             files = image_list(opts.images)
@@ -110,7 +79,8 @@ def bench_calibrate(args: list[str]) -> int:
         seconds = time.perf_counter() - start
     size = f"{len(files)} images of {result.shape[1]} x {result.shape[0]}"
     print(f"spheres: " + "; ".join(f"({c.x:.1f}, {c.y:.1f}) r {c.r:.1f}" for c in result.spheres))
-    print(f"{size}: {seconds:.2f} s, {int(result.found.sum())} lights found")
+    print(f"{size}: {seconds:.2f} s, {int(result.found.sum())} lights found; camera: "
+          + ("orthographic" if result.focal is None else f"pinhole, focal length {result.focal:.1f} px"))
     if truth is not None:
         error = _angles(result.lights, truth / np.linalg.norm(truth, axis=1, keepdims=True))
         print("error per image (deg): " + " ".join(f"{e:.2f}" for e in error))
@@ -147,9 +117,9 @@ def _print_implied_camera(result, truth, files) -> None:
     focal, principal = implied_camera(xy, truth[found], circle, result.shape)
     error = _angles(reflect(xy, circle, result.shape, focal, principal), truth[found])
     median = np.median(load_luminance(files), axis=0)
-    seen, se, direction = measured_elongation(circle, median)
-    toward = (np.degrees(np.arctan2(circle.y - principal[1], principal[0] - circle.x)) + 90.0) % 180.0 - 90.0
+    seen, se, direction = measure_stretch(circle, median)
+    toward = _axis_toward(circle, principal)
     print(f"sphere 1: the known lights imply a pinhole camera of focal {focal:.0f} px, principal point "
           f"({principal[0]:.1f}, {principal[1]:.1f}): mean {error.mean():.2f} deg, worst {error.max():.2f} deg; its "
-          f"outline would be {elongation(circle, focal, principal):.2f} px longer along {toward:.0f} deg than "
+          f"outline would be {outline_stretch(circle, focal, principal):.2f} px longer along {toward:.0f} deg than "
           f"across; the median image's outline is {seen:.2f} +- {se:.2f} px longer along {direction:.0f} deg")

@@ -13,7 +13,8 @@ import numpy as np
 
 from btforge.errors import BtforgeInputError
 
-from .sphere import Circle, Highlight, angular_uncertainty_deg, find_highlight, find_spheres, luminance, reflect
+from .sphere import (Circle, Highlight, angular_uncertainty_deg, estimate_focal, find_highlight, find_spheres,
+                     luminance, reflect)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".tga", ".exr", ".bmp")
 MASK_WORDS = ("mask",)  # e.g. psm_uw's chrome.mask.tga is not a photograph
@@ -23,7 +24,8 @@ REPORT_SUFFIX = "calibration"  # our own report pictures (dirs_calibration.png) 
 @dataclasses.dataclass(frozen=True)
 class Calibration:
     """Result of :func:`calibrate`: for image ``i`` of ``images``, ``lights[i]`` (NaN when not found),
-    ``uncertainty_deg[i]`` and ``confidence[i]`` in [0, 1]; ``highlights[s][i]`` per sphere ``s``."""
+    ``uncertainty_deg[i]`` and ``confidence[i]`` in [0, 1]; ``highlights[s][i]`` per sphere ``s``; the camera's
+    ``focal`` length in pixels (None: orthographic) and, when it was estimated, ``focal_notes`` per sphere."""
 
     images: tuple[Path, ...]
     spheres: tuple[Circle, ...]
@@ -33,6 +35,8 @@ class Calibration:
     confidence: np.ndarray
     shape: tuple[int, int]
     excluded: frozenset[str] = frozenset()
+    focal: float | None = None
+    focal_notes: tuple[str, ...] = ()
 
     @property
     def found(self) -> np.ndarray:
@@ -107,10 +111,14 @@ def load_luminance(images: Sequence[Path]) -> np.ndarray:
     return np.stack(frames)
 
 
-def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, focal: float | None = None,
+def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, focal: float | str | None = None,
               principal: tuple[float, float] | None = None) -> Calibration:
     """Find the spheres (unless given), every image's highlight on each, and the light directions (orthographic,
     or a pinhole camera with ``focal`` pixels and the principal point ``principal``, default the image centre).
+
+    ``focal="auto"`` estimates the focal length from how much each sphere's outline is stretched toward the
+    principal point (:func:`sphere.estimate_focal`; the geometric mean over the spheres that show a stretch), and
+    stays orthographic when none does.
 
     With several spheres each image's direction is the confidence-weighted mean of the spheres' directions; a
     sphere without a highlight in an image is left out of that image's mean.
@@ -127,6 +135,14 @@ def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, f
             raise BtforgeInputError(str(images[0].parent), "found no sphere outline in the images",
                                     "give the sphere with --sphere X,Y,R (centre column, row and radius in pixels)")
     background = np.median(lum, axis=0) if len(images) >= 5 else lum.min(axis=0)
+    notes: tuple[str, ...] = ()
+    if focal == "auto":
+        centre = principal or ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
+        estimates = [estimate_focal(c, np.median(lum, axis=0), centre) for c in spheres]
+        notes = tuple(note for _, note in estimates)
+        found = [f for f, _ in estimates if f is not None]
+        focal = float(np.exp(np.mean(np.log(found)))) if found else None
+        principal = principal if focal is not None else None
     per_sphere = tuple(tuple(find_highlight(frame, background, c) for frame in lum) for c in spheres)
     n = len(images)
     lights = np.full((n, 3), np.nan)
@@ -153,7 +169,8 @@ def calibrate(images: Sequence[Path], spheres: Sequence[Circle] | None = None, f
         uncertainty[i] = sigma
         contrast = min(h.contrast for h in (hs[i] for hs in per_sphere) if h.found)
         confidence[i] = math.exp(-sigma / 2.0) * (1.0 - math.exp(-contrast / (4 * 8.0)))
-    return Calibration(tuple(images), tuple(spheres), per_sphere, lights, uncertainty, confidence, tuple(shape))
+    return Calibration(tuple(images), tuple(spheres), per_sphere, lights, uncertainty, confidence, tuple(shape),
+                       focal=focal, focal_notes=notes)
 
 
 def _numbers(text: str, names: str, meaning: str, example: str, where: str) -> list[float]:
@@ -178,6 +195,20 @@ def parse_sphere(text: str, where: str = "--sphere") -> Circle:
     if r <= 0:
         raise BtforgeInputError(f"{where} {text}", f"expected a positive radius, found {r}")
     return Circle(x, y, r)
+
+
+def parse_focal(text, where: str = "--focal") -> float | str:
+    """A focal length in pixels (a positive number) or ``'auto'`` (estimate it from the spheres' outlines)."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise BtforgeInputError(f"{where} {text}", "expected a positive focal length in pixels, or 'auto'",
+                                "e.g. --focal 4200, or --focal auto to estimate it from the sphere's outline")
+    return value
 
 
 def parse_principal(text: str, where: str = "--principal") -> tuple[float, float]:

@@ -36,6 +36,8 @@ VALIDATION_IMAGES = 12          # a candidate sphere must show highlights in mos
 LIMB_BAND = 0.05                # the sub-pixel outline is searched within this share of the radius of the circle ...
 LIMB_SECTOR_PIXELS = 6.0        # ... in sectors of about this many pixels of arc ...
 LIMB_CONTRAST = 4.0             # ... whose step between inside and outside is this many times the noise
+STRETCH_SIGMAS = 3.0            # a focal length is estimated from an outline stretched this many standard errors ...
+STRETCH_FLOOR = 0.1             # ... and at least this many pixels toward the principal point
 
 
 @dataclasses.dataclass(frozen=True)
@@ -469,6 +471,77 @@ def _cone_of_outline(distance: float, radius: float, focal: float) -> tuple[floa
     if ok != 1 or not (0.0 < alpha < math.pi / 2 and abs(tilt) + alpha < math.pi / 2):
         return start[0], start[1]  # an outline perspective cannot explain: keep the first guess
     return float(tilt), float(alpha)
+
+
+def outline_stretch(circle: Circle, focal: float, principal) -> float:
+    """How much longer (pixels) the outline's axis toward the principal point is than the one across it, for a
+    sphere seen as ``circle`` by a pinhole camera of ``focal`` pixels (see :func:`_cone_of_outline`)."""
+    distance = math.hypot(circle.x - principal[0], circle.y - principal[1])
+    tilt, alpha = _cone_of_outline(distance, circle.r, focal)
+    along = focal * (math.tan(tilt + alpha) - math.tan(tilt - alpha)) / 2
+    across = focal * math.sin(alpha) / math.sqrt(max(math.cos(tilt) ** 2 - math.sin(alpha) ** 2, 1e-12))
+    return along - across
+
+
+def measure_stretch(circle: Circle, image: np.ndarray) -> tuple[float, float, float]:
+    """The outline's stretch in ``image``: twice the amplitude (pixels) of the second harmonic of its sub-pixel
+    points' distances from the centre (an ellipse of axes a, b has amplitude (a - b) / 2), its standard error, and
+    the long axis's direction (degrees, counter-clockwise from the image's x axis, in [-90, 90)); Tukey-weighted.
+    NaN when too little of the outline is clear."""
+    cols, rows, step = _limb_points(circle, image, _noise_level(image))
+    keep = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
+    cols, rows = cols[keep], rows[keep]
+    fitted = _fit_circle(cols, rows, circle)
+    if fitted is None:
+        return math.nan, math.nan, math.nan
+    angle = np.arctan2(-(rows - fitted.y), cols - fitted.x)
+    design = np.stack([np.ones_like(angle), np.cos(angle), np.sin(angle), np.cos(2 * angle), np.sin(2 * angle)], 1)
+    distance = np.hypot(cols - fitted.x, rows - fitted.y)
+    weight = np.ones_like(distance)
+    for _ in range(10):
+        coef, *_ = np.linalg.lstsq(design * weight[:, None], distance * weight, rcond=None)
+        residual = distance - design @ coef
+        scale = 1.4826 * float(np.median(np.abs(residual))) + 1e-3
+        weight = np.clip(1.0 - (residual / (4.685 * scale)) ** 2, 0.0, None)
+    normal = (design * weight[:, None] ** 2).T @ design
+    se = scale * float(np.sqrt(np.diag(np.linalg.pinv(normal))[3:].mean()))
+    direction = (0.5 * math.degrees(math.atan2(coef[4], coef[3])) + 90.0) % 180.0 - 90.0
+    return 2.0 * float(math.hypot(coef[3], coef[4])), 2.0 * se, float(direction)
+
+
+def _axis_toward(circle: Circle, principal) -> float:
+    """The direction (degrees in [-90, 90), counter-clockwise from the x axis) of the line from the circle's
+    centre to the principal point."""
+    return (math.degrees(math.atan2(circle.y - principal[1], principal[0] - circle.x)) + 90.0) % 180.0 - 90.0
+
+
+def estimate_focal(circle: Circle, image: np.ndarray, principal) -> tuple[float | None, str]:
+    """The focal length (pixels) that stretches the sphere's outline in ``image`` as much as measured along the
+    line to the ``principal`` point, or None (orthographic) when the stretch there is not clear of its
+    uncertainty; with the reason in words."""
+    stretch, se, direction = measure_stretch(circle, image)
+    if not math.isfinite(stretch):
+        return None, "too little of the outline is clear"
+    # The measured second harmonic's component along the line to the principal point (perspective stretches
+    # the outline only along it).
+    along = stretch * math.cos(2 * math.radians(direction - _axis_toward(circle, principal)))
+    if along < max(STRETCH_SIGMAS * se, STRETCH_FLOOR):
+        return None, f"outline stretch {along:+.2f} +- {se:.2f} px toward the principal point: orthographic"
+    # The stretch grows as the focal length shrinks, until the sphere no longer fits in front of the camera (where
+    # the tangent cone has no solution): step down from a telephoto until it is reached, then bisect.
+    high, previous = 1e4 * circle.r, 0.0
+    while True:
+        low = high / 1.25
+        stretch_low = outline_stretch(circle, low, principal)
+        if stretch_low >= along:
+            break
+        if stretch_low <= previous or low < 0.2 * circle.r:
+            return None, f"outline stretch {along:.2f} px is more than any pinhole camera gives: orthographic"
+        high, previous = low, stretch_low
+    for _ in range(40):
+        middle = math.sqrt(low * high)
+        low, high = (middle, high) if outline_stretch(circle, middle, principal) > along else (low, middle)
+    return math.sqrt(low * high), f"outline stretch {along:.2f} +- {se:.2f} px toward the principal point"
 
 
 def angular_uncertainty_deg(highlight: Highlight, circle: Circle) -> float:
