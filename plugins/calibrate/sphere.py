@@ -3,7 +3,10 @@
 The outline of a sphere is found in the per-pixel maximum and median images (a static reflection of the room or
 the lamp's moving highlight makes the sphere stand out from the background in one or the other): strong edge
 pixels vote along their gradient for circle centres at every radius (a Hough transform), the best-supported
-circles are kept, and each is refined by a robust least-squares circle fit to the edge pixels near it.
+circles are kept, and each is refined by a robust least-squares circle fit to the edge pixels near it, then by a
+geometric circle fit to the outline located to a fraction of a pixel in the median image (where radial profiles
+cross half-way between the ball and its background).  The same sub-pixel outline measures how much a wide lens
+stretches it toward the principal point, from which the focal length can be estimated.
 
 A highlight is searched for in each image after subtracting the per-pixel median of the capture (so static
 reflections on the ball drop out).  The brightness threshold adapts, from the peak down, until a small share of
@@ -214,17 +217,21 @@ def _fit_circle(cols: np.ndarray, rows: np.ndarray, start: Circle, iterations: i
     return Circle(float(x), float(y), float(r), start.support)
 
 
+def _outline_points(circle: Circle, images) -> tuple[np.ndarray, np.ndarray]:
+    """The sub-pixel outline points of every image (:func:`_limb_points`) whose step has the polarity of most of
+    them (counted, not summed: a bright reflection just inside the rim has a strong edge of its own)."""
+    points = [_limb_points(circle, image, _noise_level(image)) for image in images]
+    cols, rows, step = (np.concatenate(parts) for parts in zip(*points))
+    same = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
+    return cols[same], rows[same]
+
+
 def refine_limb(circle: Circle, images) -> Circle:
     """The circle through the sub-pixel outline of the sphere in every image of ``images`` (see
     :func:`_limb_points`; each photograph shows the outline where its light makes the background differ from the
     ball, so their points are pooled), or ``circle`` unchanged when too little of the outline is clear or the fit
     moves implausibly far."""
-    points = [_limb_points(circle, image, _noise_level(image)) for image in images]
-    cols, rows, step = (np.concatenate(parts) for parts in zip(*points))
-    # The polarity of most of the outline only (counted, not summed: a bright reflection just inside the rim has a
-    # strong edge of its own).
-    same = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
-    fitted = _fit_circle(cols[same], rows[same], circle)
+    fitted = _fit_circle(*_outline_points(circle, images), circle)
     if fitted is None or math.hypot(fitted.x - circle.x, fitted.y - circle.y) + abs(fitted.r - circle.r) \
             > max(2.0, LIMB_BAND * circle.r):
         return circle
@@ -232,10 +239,11 @@ def refine_limb(circle: Circle, images) -> Circle:
 
 
 def _noise_level(image: np.ndarray) -> float:
-    """Per-pixel noise of an image: the median absolute deviation of its differences along rows, and at least
-    one 16-bit level (8-bit quantisation alone is 0.0011)."""
+    """Per-pixel noise of an image in [0, 1]: the median absolute deviation of its differences along rows, and at
+    least the rounding noise of 8 bits (0.29 of a level: most captures are 8-bit, and a flat dark background has
+    no deviation at all)."""
     difference = np.diff(image[:, ::2], axis=1)
-    return max(1.4826 * float(np.median(np.abs(difference))) / math.sqrt(2), 1.0 / 65535.0, 0.29 / 255.0)
+    return max(1.4826 * float(np.median(np.abs(difference))) / math.sqrt(2), 0.29 / 255.0)
 
 
 def _coverage(circle: Circle, edges, bins: int = 90) -> float:
@@ -488,9 +496,7 @@ def measure_stretch(circle: Circle, image: np.ndarray) -> tuple[float, float, fl
     points' distances from the centre (an ellipse of axes a, b has amplitude (a - b) / 2), its standard error, and
     the long axis's direction (degrees, counter-clockwise from the image's x axis, in [-90, 90)); Tukey-weighted.
     NaN when too little of the outline is clear."""
-    cols, rows, step = _limb_points(circle, image, _noise_level(image))
-    keep = np.sign(step) == (1.0 if (step > 0).sum() >= (step < 0).sum() else -1.0)
-    cols, rows = cols[keep], rows[keep]
+    cols, rows = _outline_points(circle, [image])
     fitted = _fit_circle(cols, rows, circle)
     if fitted is None:
         return math.nan, math.nan, math.nan
