@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
+from btforge import REQUIRED, Fact, Param, SampleStack, declare_stage, hookimpl
 from btforge.atomic import atomic_write
 from btforge.buffers import linear_to_srgb8
 from btforge.errors import BtforgeInputError
@@ -12,21 +12,23 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 def light_file_precheck(params, paths):
+    """The files a capture's reader reads, and the number of views of the stack it gives (a :class:`Fact`, so the
+    graph check can tell a single-view stage it will get a BTF)."""
     from btforge.store import is_store, open_store
 
+    from .images import _group_views
     from .lightfile import image_path, is_btf_zip, read_capture_index
     from .ubo2014 import is_dfmf_path, read_dfmf
     path = paths.input(params["path"])
     if is_store(path):  # the cache keys the folder by its contents
-        open_store(path)
-        return [path]
+        return [path, Fact("stack", "views", open_store(path)[0].shape[0], str(path))]
     if is_dfmf_path(path):
-        read_dfmf(path)  # header, directions and matrix sizes checked before anything runs
-        return [path]
+        # header, directions and matrix sizes checked before anything runs
+        return [path, Fact("stack", "views", read_dfmf(path).n_view, str(path))]
     entries = read_capture_index(path, require_images=True)
-    if is_btf_zip(path):
-        return [path]
-    return [path] + [image_path(path, e.filename) for e in entries]
+    views = 1 if entries[0].view is None else len(_group_views(entries, str(path))[1])
+    files = [path] if is_btf_zip(path) else [path] + [image_path(path, e.filename) for e in entries]
+    return files + [Fact("stack", "views", views, str(path))]
 
 
 @declare_stage(
@@ -199,7 +201,8 @@ def _selection_precheck(params, paths):
     from .select import check_selection
     for name in ("views", "lights"):
         check_selection(params[name], f"param '{name}'")
-    return []
+    views = params["views"]
+    return [Fact("stack", "views", len(views), "param 'views'")] if views else []
 
 
 @declare_stage(
