@@ -129,6 +129,8 @@ def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
     sh_memory = btforge.stage("sh.fit")(stack=stack, light_order=2, view_order=2)["model"]
     sh_stored = btforge.stage("sh.fit")(stack=stored, light_order=2, view_order=2)["model"]
     np.testing.assert_allclose(sh_stored.coeffs, sh_memory.coeffs, rtol=1e-5, atol=1e-6)
+    from btforge.spill import is_spilled
+    assert is_spilled(sh_stored.coeffs) and not is_spilled(sh_memory.coeffs)  # a store's fit stays out of memory
     picked = btforge.stage("stack.select")(stack=stored, views=[2], lights=[9, 0])["stack"]
     np.testing.assert_array_equal(picked.samples, stack.samples[[2]][:, [9, 0]])
     top = _stored(tmp_path / "top", btforge.stage("stack.select")(stack=stack, views=[0])["stack"])

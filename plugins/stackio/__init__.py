@@ -273,3 +273,9 @@ def btforge_info_readers():
     from btforge.store import store_summary
     return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr, ".zarr": store_summary,
             ".btf": _describe_dfmf}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_btf_store
+    return {"btf-store": bench_btf_store}
