@@ -3,6 +3,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 import btforge
 from btforge import BtforgeInputError
@@ -160,3 +162,26 @@ def test_other_formats_and_damaged_files_are_refused_at_validation(tmp_path, cas
     with pytest.raises(BtforgeInputError, match=words[0]):
         check_graph(load_graph(graph), default_registry(), tmp_path)
     assert not (tmp_path / "s.zarr").exists()
+
+
+@settings(max_examples=12, deadline=None)
+@given(n_light=st.integers(1, 6), n_view=st.integers(1, 4), height=st.integers(1, 5), width=st.integers(1, 5),
+       components=st.lists(st.integers(1, 4), min_size=3, max_size=3), dtype=st.sampled_from(["<f2", "<f4", "<f8"]),
+       transposed=st.booleans(), seed=st.integers(0, 2**16))
+def test_any_small_file_reads_back_as_the_product_of_its_factors(tmp_path_factory, n_light, n_view, height, width,
+                                                                 components, dtype, transposed, seed):
+    # with as many light-view pairs as texels the two ways round cannot be told apart: read as U = pairs
+    assume(not transposed or n_light * n_view != height * width)
+    rng = np.random.default_rng(seed)
+    lights = np.column_stack([rng.uniform(0, 1.4, n_light), rng.uniform(0, 6.28, n_light)])
+    views = np.column_stack([rng.uniform(0, 1.2, n_view), rng.uniform(0, 6.28, n_view)])
+    path = tmp_path_factory.mktemp("btf") / "m.btf"
+    factors = random_factors(rng, n_light * n_view, height * width, components, transposed)
+    stored = write_dfmf(path, lights, views, width, height, factors, dtype=dtype)
+    btf = read_dfmf(path)
+    assert [f.components for f in btf.factors] == components
+    expected = _reconstruct(stored, transposed).reshape(n_view, n_light, height, width, 3)
+    decoded = btf.decode()
+    assert decoded.dtype == np.float32 and np.isfinite(decoded).all()
+    np.testing.assert_allclose(decoded, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(btf.lights, _unit(lights), atol=1e-12)

@@ -17,7 +17,8 @@ number is little-endian, a ``float`` is 32 bits:
   ``uint32`` components K, ``uint32`` rows, ``uint32`` columns, K singular values, then the left matrix U
   (rows x K) and the right matrix S*V^T stored as columns x K, both row-major.  Rows are the light-view pairs
   (index ``view * lights + light``) and columns the texels (index ``y * width + x``, row 0 first in the file);
-  a file may store the transpose (rows are texels), which is read as well.
+  a file may store the transpose (rows are texels), which is read as well - except when there are as many
+  light-view pairs as texels, where the sizes cannot tell and U is taken as the pairs (as the Bonn readers do).
 
 A channel's value at (light-view pair, texel) is the dot product of their K-vectors; the channels are then
 turned back into RGB by the colour model (:func:`undecorrelate`).  The matrices are memory-mapped, so a band of
