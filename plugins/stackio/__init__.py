@@ -16,7 +16,7 @@ def light_file_precheck(params, paths):
     graph check can tell a single-view stage it will get a BTF)."""
     from btforge.store import is_store, open_store
 
-    from .images import _group_views
+    from .images import group_views
     from .lightfile import image_path, is_btf_zip, read_capture_index
     from .ubo2014 import is_dfmf_path, read_dfmf
     path = paths.input(params["path"])
@@ -26,7 +26,7 @@ def light_file_precheck(params, paths):
         # header, directions and matrix sizes checked before anything runs
         return [path, Fact("stack", "views", read_dfmf(path).n_view, str(path))]
     entries = read_capture_index(path, require_images=True)
-    views = 1 if entries[0].view is None else len(_group_views(entries, str(path))[1])
+    views = 1 if entries[0].view is None else len(group_views(entries, str(path))[1])
     files = [path] if is_btf_zip(path) else [path] + [image_path(path, e.filename) for e in entries]
     return files + [Fact("stack", "views", views, str(path))]
 
