@@ -82,6 +82,27 @@ def write_json(figures: dict, json_path: str | None) -> None:
         atomic_write_text(json_path, json.dumps(figures, indent=2, default=str))
 
 
+def fresh_run(graph, out, *extra: str) -> dict:
+    """One ``btforge run GRAPH --no-cache --out OUT [extra]`` in a fresh process, start-up included: ``seconds``
+    (wall), ``cpu_seconds`` (user + system, of the process and every process it waited for) and ``peak_rss_mb``
+    (of the largest of them)."""
+    import os
+    import subprocess
+    import time
+    start = time.perf_counter()
+    child = subprocess.Popen([sys.executable, "-m", "btforge.cli", "run", str(graph), "--no-cache", "--out", str(out),
+                              *extra], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(child.pid, 0)
+    seconds = time.perf_counter() - start
+    error = child.stderr.read().decode()
+    child.stderr.close()
+    if os.waitstatus_to_exitcode(status) != 0:
+        from .errors import BtforgeError
+        raise BtforgeError(f"btforge run {graph} failed:\n{error[-2000:]}")
+    return {"seconds": round(seconds, 2), "cpu_seconds": round(usage.ru_utime + usage.ru_stime, 2),
+            "peak_rss_mb": round(usage.ru_maxrss / 1024, 1)}
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory (VmHWM: unlike ru_maxrss it is not inherited from the parent)."""
     with open("/proc/self/status") as status:

@@ -16,11 +16,13 @@ import dataclasses
 import hashlib
 import io
 import json
+import zipfile
 from typing import Any, ClassVar, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from .errors import BtforgeInputError
+from .spill import finite_range, pages, write_npy
 
 # ----------------------------------------------------------------------------------------------- validation
 
@@ -61,7 +63,7 @@ def check_array(
     if not ok:
         raise BtforgeInputError(what, f"'{name}' must be {want}, got {got}")
     # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the array
-    if finite and value.dtype.kind == "f" and value.size and not (np.isfinite(value.min()) and np.isfinite(value.max())):
+    if finite and value.dtype.kind == "f" and value.size and not finite_range(value):
         bad = int((~np.isfinite(value)).sum())
         raise BtforgeInputError(what, f"'{name}' must be finite, found {bad} NaN/Inf values",
                                 "mask or repair the bad samples before building the buffer")
@@ -176,8 +178,8 @@ class Buffer:
             for name in sorted(arrays):
                 a = np.ascontiguousarray(arrays[name])
                 h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
-                if a.size:
-                    h.update(a.reshape(-1).view(np.uint8))
+                for part in pages(a) if a.size else ():  # a spilled array is hashed without becoming resident
+                    h.update(part.reshape(-1).view(np.uint8))
             cached = h.hexdigest()
             object.__setattr__(self, "_content_key", cached)
         return cached
@@ -192,7 +194,11 @@ class Buffer:
         """Write the buffer as ``.npz`` to a binary file object (which need not be seekable)."""
         meta, arrays = self.payload()
         header = json.dumps({"type": self.type_name, "meta": meta}, default=str)
-        np.savez(handle, __header__=np.frombuffer(header.encode(), dtype=np.uint8), **arrays)
+        # what np.savez writes, with each array written page by page (a spilled one never becomes resident)
+        with zipfile.ZipFile(handle, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+            for name, array in {"__header__": np.frombuffer(header.encode(), dtype=np.uint8), **arrays}.items():
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    write_npy(member, np.asanyarray(array))
 
     @staticmethod
     def from_file(path, types: Mapping[str, type["Buffer"]]) -> "Buffer":
@@ -435,6 +441,12 @@ class SampleStack(PerTexel):
         step = max(1, min(self.height, budget_bytes // max(row_bytes, 1)))
         for start in range(0, self.height, step):
             yield slice(start, min(self.height, start + step))
+
+    def texel_blocks(self, budget_bytes: int = 128 << 20) -> Iterator[tuple[slice, slice]]:
+        """Blocks ``(rows, cols)`` of texels whose linear float32 samples fit in ``budget_bytes``, for stages whose
+        texels are independent: whole-width :meth:`row_bands` here; a store's blocks follow its chunks."""
+        for rows in self.row_bands(budget_bytes):
+            yield rows, slice(None)
 
 
 # ----------------------------------------------------------------------------------------------- models

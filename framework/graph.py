@@ -17,7 +17,7 @@ import yaml
 
 from .errors import BtforgeInputError, collect_warnings
 from .registry import Registry, did_you_mean
-from .stages import RunPaths, Stage
+from .stages import Fact, RunPaths, Stage
 
 NODE_KEYS = ("stage", "params", "inputs")
 
@@ -301,18 +301,30 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
     # Every node whose own params are sound is prechecked, whatever else failed: all problems in one message.
     files: dict[str, tuple[Path, ...]] = {}
     read_warnings: dict[str, list[str]] = {}
+    facts: dict[tuple[str, str], dict[str, Fact]] = {}  # (node, output port) -> what its precheck learnt
     for name in (n for n in stages if n in params_ok):
         st = stages[name]
         read = [paths.input(value) for p, value in _file_params(st, params[name])]
         if st.precheck is not None:
             with collect_warnings() as caught:
                 try:
-                    read += list(st.precheck(params[name], paths) or ())
+                    for item in st.precheck(params[name], paths) or ():
+                        if isinstance(item, Fact):
+                            facts.setdefault((name, item.port), {})[item.name] = item
+                        else:
+                            read.append(item)
                 except BtforgeInputError as exc:
                     problems.append(exc.located(spec.where(name, spec.nodes[name].line)).one_line())
             if caught:
                 read_warnings[name] = caught
         files[name] = tuple(read)
+    for where, src, src_port, name, port in typed_edges:
+        expect = stages[name].expects.get(port)
+        fact = facts.get((src, src_port), {}).get(expect.name) if expect else None
+        if fact is not None and fact.value != expect.value:
+            source = f" (from {fact.source})" if fact.source else ""
+            problem(where, f"{stages[name].name} expects {expect.name}: {expect.value}, found {fact.value} in "
+                    f"'{src}.{src_port}'{source}", expect.hint.replace("NODE.PORT", f"{src}.{src_port}") or None)
 
     if problems:
         if len(problems) == 1:

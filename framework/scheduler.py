@@ -21,6 +21,7 @@ import numpy as np
 
 from .buffers import Buffer, PerTexel, SampleStack
 from .errors import BtforgeInputError
+from .spill import release, spilled_empty
 
 SCHEDULERS = ("local", "dask")
 BAND_BYTES = 64 << 20
@@ -87,7 +88,8 @@ def _run_band(samples: np.ndarray, stage_name: str, meta: dict, port: str, param
 class _Joiner:
     """Assembles one output port from bands of texels as they arrive, in any order: texel fields are copied into
     their rows of one array (allocated on the first band, filled band by band, so the bands are not held twice);
-    every other field must be the same in every band."""
+    every other field must be the same in every band.  The joined arrays are spilled to a file, as a store's
+    single-process fit is."""
 
     def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
         self.types, self.starts, self.height = types, starts, height
@@ -113,11 +115,12 @@ class _Joiner:
                     raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
                                             "a bug in the stage's per_texel declaration")
                 continue
-            if name not in self.arrays:
+            if name not in self.arrays:  # spilled: the joined result never becomes resident (framework/spill.py)
                 shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
-                self.arrays[name] = np.empty(shape, piece.dtype)
+                self.arrays[name] = spilled_empty(shape, piece.dtype)
             index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
             self.arrays[name][index] = piece
+            release(self.arrays[name][index])
 
     def buffer(self) -> Buffer:
         return self.cls.from_payload(self.meta, self.arrays)

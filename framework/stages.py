@@ -139,6 +139,27 @@ REQUIRED: Any = _Required()
 
 
 @dataclasses.dataclass(frozen=True)
+class Fact:
+    """Something a precheck learnt about one of its node's outputs before anything runs, returned among the files
+    it reads: e.g. ``Fact("stack", "views", 81, "btf.lvp")`` for a stack whose light file lists 81 views."""
+
+    port: str
+    name: str
+    value: Any
+    source: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Expect:
+    """What a stage needs of a fact about a buffer wired into one of its inputs (``declare_stage(expects=...)``):
+    the graph check reports a known fact of another value, with ``hint``, before anything runs."""
+
+    name: str
+    value: Any
+    hint: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
 class Stage:
     """A registered stage: its function plus everything needed to check a graph without running it."""
 
@@ -157,6 +178,7 @@ class Stage:
     sweep: tuple[Mapping[str, Any], ...] = ()
     cache_outputs: bool = True
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
+    expects: Mapping[str, Expect] = dataclasses.field(default_factory=dict)
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
         """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
@@ -231,6 +253,7 @@ def declare_stage(
     sweep: Sequence[Mapping[str, Any]] = (),
     cache_outputs: bool = True,
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
+    expects: Mapping[str, Expect] | None = None,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -247,7 +270,10 @@ def declare_stage(
     ``precheck(params, paths)`` may inspect input files named by parameters and raise ``BtforgeInputError``;
     it runs during validation, before any stage does.  It returns the further files the stage will read (the
     images a light file lists, a scene's meshes): their contents join the node's cache key, so editing one
-    re-runs the node.  Files named directly by ``path``/``lights`` params are included without it.
+    re-runs the node.  Files named directly by ``path``/``lights`` params are included without it.  Among the
+    files a precheck may return :class:`Fact` items about its outputs (a stack's view count read from its
+    header); ``expects={port: Expect(name, value, hint)}`` on a stage makes the graph check compare the fact of
+    the buffer wired into ``port``, where one is known, and report a mismatch naming the node and port.
     An output typed ``"=port"`` has the type of whatever is wired into input ``port`` (a stage that crops or
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
@@ -270,6 +296,7 @@ def declare_stage(
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
+            expects=dict(expects or {}),
         )
 
     return wrap

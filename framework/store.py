@@ -184,6 +184,21 @@ class StoredSampleStack(SampleStack):
         for start in range(0, self.height, rows):
             yield slice(start, min(self.height, start + rows))
 
+    def texel_blocks(self, budget_bytes: int = 128 << 20):
+        """Blocks ``(rows, cols)`` of whole chunks whose linear samples fit in ``budget_bytes`` (at least one
+        chunk): whole chunk rows where they fit, else one chunk row cut into runs of chunks.  Every chunk is
+        decompressed once, where row bands narrower than a chunk decompress it once per band."""
+        step_r, step_c = self.samples.chunks[2:4]
+        texel_bytes = self.n_view * self.n_light * self.n_channel * 4
+        if budget_bytes >= texel_bytes * step_r * self.width:
+            for rows in self.row_bands(budget_bytes):
+                yield rows, slice(None)
+            return
+        cols = step_c * max(1, budget_bytes // (texel_bytes * step_r * step_c))
+        for r0 in range(0, self.height, step_r):
+            for c0 in range(0, self.width, cols):
+                yield slice(r0, min(self.height, r0 + step_r)), slice(c0, min(self.width, c0 + cols))
+
 
 def open_stored_stack(path: str | os.PathLike) -> StoredSampleStack:
     """The stack of a store, read lazily (its content digest computed once, remembered by the node cache)."""

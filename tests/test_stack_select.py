@@ -68,3 +68,48 @@ def test_ptm_on_a_btf_points_to_stack_select_and_works_after_it(tmp_path):
     nodes["fit"]["inputs"] = {"stack": "pick.stack"}
     model = run({"nodes": nodes}, out_dir=tmp_path)["fit"]["model"]
     assert model.coeffs.shape == (4, 4, 3, 6)
+
+
+def _check(tmp_path, nodes):
+    import yaml
+
+    from btforge.graph import check_graph, load_graph
+    from btforge.registry import default_registry
+    graph = tmp_path / "g.yaml"
+    graph.write_text(yaml.safe_dump({"nodes": nodes}))
+    return check_graph(load_graph(graph), default_registry(), tmp_path)
+
+
+@pytest.mark.parametrize("source", ["lvp", "store", "btf", "capture"])
+def test_a_btf_wired_into_a_single_view_fit_is_caught_at_validation(tmp_path, source):
+    from btforge.plugins.stackio.images import write_stack
+    from ubo2014_files import random_factors, write_dfmf
+    if source in ("lvp", "capture"):
+        write_stack(_btf(), tmp_path / "cap", fmt="png")
+        path = str(tmp_path / "cap" / "lights.lvp")
+    elif source == "store":
+        path = str(tmp_path / "s.zarr")
+        run({"nodes": {"btf": {"stage": "demo.btf", "params": {"size": [6, 5], "lights": 7, "views": 3,
+                                                               "store": path}}}}, out_dir=tmp_path)
+    else:
+        path = str(tmp_path / "m.btf")
+        write_dfmf(tmp_path / "m.btf", np.radians([[10, 0], [40, 90], [60, 200]]), np.radians([[0, 0], [30, 0], [50, 90]]),
+                   4, 3, random_factors(np.random.default_rng(0), 9, 12))
+    if source == "capture":
+        nodes = {"fit": {"stage": "ptm.fit_capture", "params": {"path": path}}}
+        with pytest.raises(BtforgeInputError, match="expected a single-view capture.*found 3 views"):
+            _check(tmp_path, nodes)
+        return
+    nodes = {"read": {"stage": "stack.read", "params": {"path": path}},
+             "fit": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}
+    with pytest.raises(BtforgeInputError) as caught:
+        _check(tmp_path, nodes)
+    text = caught.value.render()
+    assert "node 'fit', input 'stack': ptm.fit expects views: 1, found 3 in 'read.stack'" in text
+    assert path in text and "inputs: {stack: read.stack}" in text  # the hint names the port to re-wire
+    nodes["pick"] = {"stage": "stack.select", "params": {"views": [0, 2]}, "inputs": {"stack": "read.stack"}}
+    nodes["fit"]["inputs"] = {"stack": "pick.stack"}
+    with pytest.raises(BtforgeInputError, match="found 2 in 'pick.stack'"):
+        _check(tmp_path, nodes)
+    nodes["pick"]["params"]["views"] = [2]
+    _check(tmp_path, nodes)

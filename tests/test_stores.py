@@ -129,6 +129,8 @@ def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
     sh_memory = btforge.stage("sh.fit")(stack=stack, light_order=2, view_order=2)["model"]
     sh_stored = btforge.stage("sh.fit")(stack=stored, light_order=2, view_order=2)["model"]
     np.testing.assert_allclose(sh_stored.coeffs, sh_memory.coeffs, rtol=1e-5, atol=1e-6)
+    from btforge.spill import is_spilled
+    assert is_spilled(sh_stored.coeffs) and not is_spilled(sh_memory.coeffs)  # a store's fit stays out of memory
     picked = btforge.stage("stack.select")(stack=stored, views=[2], lights=[9, 0])["stack"]
     np.testing.assert_array_equal(picked.samples, stack.samples[[2]][:, [9, 0]])
     top = _stored(tmp_path / "top", btforge.stage("stack.select")(stack=stack, views=[0])["stack"])
@@ -164,3 +166,12 @@ def test_demo_btf_renders_chunk_by_chunk_into_a_store(tmp_path):
     np.testing.assert_allclose(stored.lights, memory.lights, atol=1e-7)
     bands = list(stored.row_bands(budget_bytes=3 * 5 * 7 * 3 * 4 * 2))  # two rows fit: half a chunk row
     assert [(b.start, b.stop) for b in bands] == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
+
+
+def test_btf_store_bench_runs_on_a_small_btf(tmp_path, capsys):
+    from btforge.plugins.stackio.bench import bench_btf_store
+    figures = tmp_path / "f.json"
+    assert bench_btf_store(["--size", "8", "--lights", "9", "--views", "4", "--order", "2", "--json", str(figures)]) == 0
+    written = json.loads(figures.read_text())
+    assert written["render into store"]["peak_rss_mb"] > 0 and written["sh fit, local"]["fit_node_seconds"] > 0
+    assert "sh fit, local" in capsys.readouterr().out

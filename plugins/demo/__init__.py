@@ -5,7 +5,7 @@ import dataclasses
 
 import numpy as np
 
-from btforge import Param, SampleStack, declare_stage, hookimpl
+from btforge import Fact, Param, SampleStack, declare_stage, hookimpl
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -37,6 +37,10 @@ def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shado
     return {"stack": SampleStack(radiance[None], directions, np.array([[0.0, 0.0, 1.0]]), names=names)}
 
 
+def _views_precheck(params, paths):
+    return [Fact("stack", "views", params["views"], "param 'views'")]
+
+
 @declare_stage(
     "demo.btf",
     outputs={"stack": "SampleStack"},
@@ -53,6 +57,7 @@ def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shado
         Param("block", "ints", (32, 32), "texels per chunk [rows, columns] of the store", length=2, low=1, high=4096),
     ],
     side_effects=True,  # with a store it writes one; without, rendering is as cheap as reading a cache entry
+    precheck=_views_precheck,
 )
 def demo_btf(ctx, *, size, lights, views, specular, shininess, bump_height, seed, store, block):
     """Render a procedural glossy material under many lights and views: a synthetic BTF.

@@ -36,6 +36,7 @@ import numpy as np
 from btforge.atomic import atomic_write
 from btforge.buffers import Buffer
 from btforge.errors import BtforgeInputError
+from btforge.spill import pages, write_npy
 
 FORMAT = "btforge.model"
 FORMAT_VERSION = 1
@@ -45,7 +46,8 @@ MANIFEST = "manifest.json"
 
 def _digest(array: np.ndarray) -> str:
     h = hashlib.blake2b(digest_size=20)
-    h.update(np.ascontiguousarray(array).reshape(-1).view(np.uint8))
+    for part in pages(np.ascontiguousarray(array)):  # page by page: a spilled model never becomes resident
+        h.update(part.reshape(-1).view(np.uint8))
     return h.hexdigest()
 
 
@@ -74,7 +76,7 @@ def write_model(path: str | os.PathLike, model: Buffer) -> dict[str, Any]:
             archive.writestr(MANIFEST, json.dumps(manifest, indent=1))
             for name, info in manifest["arrays"].items():
                 with archive.open(info["file"], "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+                    write_npy(member, np.ascontiguousarray(arrays[name]))
     return manifest
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from btforge import REQUIRED, Param, declare_stage, hookimpl
+from btforge import REQUIRED, Expect, Fact, Param, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
 from btforge.plugins.stackio import light_file_precheck
@@ -12,6 +12,9 @@ from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
+SELECT_ONE_VIEW = ("a PTM depends on the light only: insert `pick: {stage: stack.select, params: {views: [0]}, "
+                   "inputs: {stack: NODE.PORT}}` and wire this input to pick.stack (or pick a view by its angles, "
+                   "views: ['tv0_pv0']), or fit a view-dependent representation such as sh.fit or lafortune.fit")
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
 
 FIT_PARAMS = (
@@ -36,6 +39,7 @@ FIT_PARAMS = (
     params=list(FIT_PARAMS),
     # auto judges its space on a sample of the whole stack; a band alone could choose another
     per_texel=lambda params: params["space"] != "auto",
+    expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
@@ -74,7 +78,12 @@ def _capture_precheck(params, paths):
     if is_store(paths.input(params["path"])):
         raise BtforgeInputError(f"param 'path' ({params['path']})", "is a chunked store, not a light file",
                                 "read a store with stack.read and fit it with ptm.fit")
-    return light_file_precheck(params, paths)
+    found = light_file_precheck(params, paths)
+    for fact in (f for f in found if isinstance(f, Fact) and f.name == "views" and f.value != 1):
+        raise BtforgeInputError(f"param 'path' ({params['path']})", f"expected a single-view capture (a PTM depends "
+                                f"on the light only), found {fact.value} views", "read it with stack.read and pick one "
+                                "view with stack.select before ptm.fit")
+    return found
 
 
 @declare_stage(

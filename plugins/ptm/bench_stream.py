@@ -5,10 +5,7 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 # .ptm files hold display values, so both fit them (auto might choose linear radiance)
@@ -23,17 +20,9 @@ GRAPHS = {
 
 def _whole_process(graph: Path, out: Path) -> tuple[float, float]:
     """Seconds and peak resident MB of one fresh ``btforge run`` (start-up, imports and OpenCL included)."""
-    start = time.perf_counter()
-    child = subprocess.Popen([sys.executable, "-m", "btforge.cli", "run", str(graph), "--no-cache", "--out", str(out)],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(child.pid, 0)
-    seconds = time.perf_counter() - start
-    child.returncode = os.waitstatus_to_exitcode(status)
-    if child.returncode != 0:
-        from btforge.errors import BtforgeError
-        raise BtforgeError(f"btforge run {graph} failed:\n{child.stderr.read().decode()[-2000:]}")
-    child.stderr.close()
-    return seconds, usage.ru_maxrss / 1024
+    from btforge.bench import fresh_run
+    figures = fresh_run(graph, out)
+    return figures["seconds"], figures["peak_rss_mb"]
 
 
 def bench_ptm_stream(args: list[str]) -> int:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
+from btforge import REQUIRED, Fact, Param, SampleStack, declare_stage, hookimpl
 from btforge.atomic import atomic_write
 from btforge.buffers import linear_to_srgb8
 from btforge.errors import BtforgeInputError
@@ -12,17 +12,23 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 def light_file_precheck(params, paths):
+    """The files a capture's reader reads, and the number of views of the stack it gives (a :class:`Fact`, so the
+    graph check can tell a single-view stage it will get a BTF)."""
     from btforge.store import is_store, open_store
 
+    from .images import group_views
     from .lightfile import image_path, is_btf_zip, read_capture_index
+    from .ubo2014 import is_dfmf_path, read_dfmf
     path = paths.input(params["path"])
     if is_store(path):  # the cache keys the folder by its contents
-        open_store(path)
-        return [path]
+        return [path, Fact("stack", "views", open_store(path)[0].shape[0], str(path))]
+    if is_dfmf_path(path):
+        # header, directions and matrix sizes checked before anything runs
+        return [path, Fact("stack", "views", read_dfmf(path).n_view, str(path))]
     entries = read_capture_index(path, require_images=True)
-    if is_btf_zip(path):
-        return [path]
-    return [path] + [image_path(path, e.filename) for e in entries]
+    views = 1 if entries[0].view is None else len(group_views(entries, str(path))[1])
+    files = [path] if is_btf_zip(path) else [path] + [image_path(path, e.filename) for e in entries]
+    return files + [Fact("stack", "views", views, str(path))]
 
 
 @declare_stage(
@@ -49,8 +55,13 @@ def stack_read(ctx, *, path, transfer):
     from btforge.store import is_store, open_stored_stack
 
     from .images import load_stack
+    from .importer import load_dfmf_stack
+    from .ubo2014 import is_dfmf_path
     source = ctx.paths.input(path)
-    stack = open_stored_stack(source) if is_store(source) else load_stack(source, transfer=transfer)
+    if is_store(source):
+        stack = open_stored_stack(source)
+    else:
+        stack = load_dfmf_stack(source) if is_dfmf_path(source) else load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
     ctx.note("size", [stack.height, stack.width])
     return {"stack": stack}
@@ -152,8 +163,9 @@ def stack_split(ctx, stack, *, every):
     "stack.import",
     outputs={"stack": "SampleStack"},
     params=[
-        Param("path", "path", REQUIRED, "the capture: a .lp/.lvp light file, or a Bonn UBO2003 BTF as a zip archive "
-              "or unpacked folder (image names carry the angles, tl15_pl0_tv30_pv120.jpg)"),
+        Param("path", "path", REQUIRED, "the capture: a .lp/.lvp light file, a Bonn UBO2003 BTF as a zip archive "
+              "or unpacked folder (image names carry the angles, tl15_pl0_tv30_pv120.jpg), or a Bonn UBO2014 .btf "
+              "file (DFMF: per-channel SVD factors, decoded to linear float32 radiance)"),
         Param("store", "outpath", REQUIRED, "the zarr v3 store to write, conventionally NAME.zarr (relative paths "
               "land under --out); an existing store there is replaced"),
         Param("block", "ints", (32, 32), "texels per chunk [rows, columns]: each chunk holds all samples of one "
@@ -169,7 +181,9 @@ def stack_import(ctx, *, path, store, block, transfer):
 
     Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
     them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
-    store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  The output
+    store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  A UBO2014
+    ``.btf`` (DFMF) is decoded chunk by chunk from its memory-mapped factors into linear float32 radiance (a
+    chunk is views x lights x block x 3 floats: 151 x 151 directions and [16, 16] texels make 70 MB).  The output
     is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info
     NAME.zarr`` describes a store.
     """
@@ -187,7 +201,8 @@ def _selection_precheck(params, paths):
     from .select import check_selection
     for name in ("views", "lights"):
         check_selection(params[name], f"param '{name}'")
-    return []
+    views = params["views"]
+    return [Fact("stack", "views", len(views), "param 'views'")] if views else []
 
 
 @declare_stage(
@@ -230,6 +245,11 @@ def _describe_light_file(path):
             "first": entries[0].filename if entries else None}
 
 
+def _describe_dfmf(path):
+    from .ubo2014 import read_dfmf
+    return read_dfmf(path).summary()
+
+
 def _describe_exr(path):
     from .images import read_exr
     pixels = read_exr(path)
@@ -251,4 +271,11 @@ def btforge_buffer_types():
 @hookimpl
 def btforge_info_readers():
     from btforge.store import store_summary
-    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr, ".zarr": store_summary}
+    return {".lp": _describe_light_file, ".lvp": _describe_light_file, ".exr": _describe_exr, ".zarr": store_summary,
+            ".btf": _describe_dfmf}
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_btf_store
+    return {"btf-store": bench_btf_store}

@@ -316,7 +316,7 @@ def _converter(dtype: np.dtype, transfer: str) -> Callable[[np.ndarray, np.ndarr
     return lambda src, dst: np.copyto(dst, src)
 
 
-def _group_views(entries: Sequence[LightFileEntry], path_text: str) -> tuple[np.ndarray, list[list[int]]]:
+def group_views(entries: Sequence[LightFileEntry], path_text: str) -> tuple[np.ndarray, list[list[int]]]:
     """Rows of a ``.lvp`` file as ``grid[view][light]`` of entry indices, views in order of first appearance."""
     tolerance = 1e-4  # directions are written with 4-9 digits; same view, different rounding
     views: list[np.ndarray] = []
@@ -367,7 +367,7 @@ class CaptureReader:
         if self.entries[0].view is None:
             views, self.grid = np.array([[0.0, 0.0, 1.0]]), [list(range(len(self.entries)))]
         else:
-            views, self.grid = _group_views(self.entries, self.path_text)
+            views, self.grid = group_views(self.entries, self.path_text)
         self.first_index = self.grid[0][0]
         self._first = self._decode(self.first_index)
         first = self._first

@@ -3,7 +3,9 @@
 Every chunk of a store holds all samples of a block of texels, while a capture arrives one image at a time.
 The import therefore decodes the images (in parallel, a batch at a time) into a temporary raw file beside the
 store, then reads it back one band of block rows at a time - every image's rows of that band - and writes the
-band's chunks.  Memory stays at one batch of images plus one band, whatever the capture's size.
+band's chunks.  Memory stays at one batch of images plus one band, whatever the capture's size.  A Bonn UBO2014
+``.btf`` file (DFMF) already holds the BTF as factors any block of texels can be decoded from: it is decoded and
+written one chunk at a time.
 """
 from __future__ import annotations
 
@@ -24,8 +26,11 @@ BAND_BYTES = 64 << 20
 
 def import_capture(path: str | os.PathLike, store: str | os.PathLike, *, transfer: str = "auto",
                    block: tuple[int, int] = (32, 32), threads: int = 2):
-    """Write the capture at ``path`` (a .lp/.lvp light file, a UBO folder or UBO2003 zip) into a store at
-    ``store``; return the store's zarr array."""
+    """Write the capture at ``path`` (a .lp/.lvp light file, a UBO folder or UBO2003 zip, a UBO2014 .btf) into a
+    store at ``store``; return the store's zarr array."""
+    from .ubo2014 import is_dfmf_path
+    if is_dfmf_path(path):
+        return import_dfmf(path, store, block=block)
     reader = CaptureReader(path, transfer=transfer)
     height, width, n_channel = reader.shape
     n_image = reader.n_view * reader.n_light
@@ -58,9 +63,30 @@ def import_capture(path: str | os.PathLike, store: str | os.PathLike, *, transfe
     return array
 
 
+def import_dfmf(path: str | os.PathLike, store: str | os.PathLike, *, block: tuple[int, int] = (32, 32)):
+    """Decode a UBO2014 ``.btf`` file (DFMF) into a store of linear float32 radiance, one chunk at a time."""
+    from .ubo2014 import read_dfmf
+    btf = read_dfmf(path)
+    array = create_store(store, (btf.n_view, btf.n_light, btf.height, btf.width, len(btf.channels)), np.float32,
+                         lights=btf.lights, views=btf.views, channels=btf.channels, encoding="linear", block=block)
+    step_r, step_c = array.chunks[2], array.chunks[3]
+    for r0 in range(0, btf.height, step_r):
+        for c0 in range(0, btf.width, step_c):
+            rows, cols = slice(r0, r0 + step_r), slice(c0, c0 + step_c)
+            array[:, :, rows, cols] = btf.decode(rows, cols)
+    return array
+
+
+def load_dfmf_stack(path: str | os.PathLike) -> SampleStack:
+    """A UBO2014 ``.btf`` file (DFMF) decoded whole into memory (``stack.import`` streams it into a store)."""
+    from .ubo2014 import read_dfmf
+    btf = read_dfmf(path)
+    return SampleStack(btf.decode(), btf.lights, btf.views, btf.channels, "linear")
+
+
 def load_store_stack(path: str | os.PathLike) -> SampleStack:
     """The stack a store holds, read into memory one band of chunk rows at a time."""
     return open_stored_stack(path).in_memory()
 
 
-__all__ = ["import_capture", "load_store_stack"]
+__all__ = ["import_capture", "import_dfmf", "load_dfmf_stack", "load_store_stack"]

@@ -1,0 +1,101 @@
+"""Arrays larger than a process should hold: kept in a file, their pages handed back as soon as they are used.
+
+A fit of a store-backed stack writes its result band by band; held in memory, the result alone can pass the
+memory a user has (double SH 25 x 25 of a 256^2 BTF is 491 MB of coefficients).  :func:`spilled_empty` makes the
+result a memory map of an unlinked file under the cache root (removed by the OS when the last reference goes), and
+:func:`release` drops a written or read part from the process's resident memory: the data stays in the file (and
+the OS's page cache), and is read back on the next access.  :func:`pages` walks any array in parts of a few MB and
+releases each part of a spilled array after use, so checking, hashing and writing one never makes it resident.
+For an ordinary array both are plain iteration and no-ops.
+"""
+from __future__ import annotations
+
+import mmap
+import tempfile
+from typing import Iterator, Sequence
+
+import numpy as np
+
+PAGE_BYTES = 32 << 20
+
+
+def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
+    """An uninitialised array of ``shape`` backed by an unlinked file under the cache root (see the module docs)."""
+    from .backend import default_cache_root
+    shape, dtype = tuple(int(s) for s in shape), np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if nbytes == 0:
+        return np.empty(shape, dtype)
+    root = default_cache_root()
+    root.mkdir(parents=True, exist_ok=True)
+    handle = tempfile.TemporaryFile(prefix="spill-", dir=root)
+    handle.truncate(nbytes)
+    return np.memmap(handle, dtype, "r+", 0, shape)
+
+
+def _shared_map(array: np.ndarray) -> tuple[mmap.mmap, int] | None:
+    """The shared file mapping a view looks into and the address where the mapping starts, if it is one."""
+    root = array
+    while isinstance(root.base, np.ndarray):
+        root = root.base
+    if not (isinstance(root, np.memmap) and isinstance(root.base, mmap.mmap) and root.mode in ("r+", "w+", "r")):
+        return None  # private (copy-on-write) maps would lose what was written: never released
+    return root.base, root.ctypes.data - (root.offset - root.offset // mmap.ALLOCATIONGRANULARITY
+                                          * mmap.ALLOCATIONGRANULARITY)
+
+
+try:
+    from numpy.lib.array_utils import byte_bounds as _byte_bounds
+except ImportError:  # NumPy < 2
+    _byte_bounds = np.byte_bounds
+
+
+def release(array: np.ndarray) -> None:
+    """Drop the pages of ``array`` (a part of a spilled array) from resident memory; no-op for other arrays."""
+    found = _shared_map(array) if isinstance(array, np.ndarray) and array.size else None
+    if found is None:
+        return
+    mapping, start = found
+    low, high = _byte_bounds(array)
+    first = (low - start) // mmap.PAGESIZE * mmap.PAGESIZE
+    last = min(len(mapping), -(-(high - start) // mmap.PAGESIZE) * mmap.PAGESIZE)
+    if last > first:
+        mapping.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+
+def is_spilled(array: np.ndarray) -> bool:
+    return isinstance(array, np.ndarray) and _shared_map(array) is not None
+
+
+def pages(array: np.ndarray, page_bytes: int = PAGE_BYTES) -> Iterator[np.ndarray]:
+    """``array`` in consecutive parts of at most about ``page_bytes`` (flat for a C-contiguous array, else along
+    axis 0); a part of a spilled array is released when the caller asks for the next."""
+    if array.ndim == 0 or array.size == 0:
+        yield array
+        return
+    parts = array.reshape(-1) if array.flags.c_contiguous else array
+    step = max(1, page_bytes // max(1, parts[:1].nbytes))
+    for start in range(0, parts.shape[0], step):
+        part = parts[start:start + step]
+        yield part
+        release(part)
+
+
+def finite_range(array: np.ndarray) -> bool:
+    """Whether every value of a float array is finite, read page by page (min and max see every NaN and Inf)."""
+    return all(np.isfinite(part.min()) and np.isfinite(part.max()) for part in pages(array))
+
+
+def write_npy(handle, array: np.ndarray) -> None:
+    """``array`` as a ``.npy`` file (NumPy's format, what ``np.save`` writes) to a binary file object, page by page."""
+    header = np.lib.format.header_data_from_array_1_0(array)
+    try:
+        np.lib.format.write_array_header_1_0(handle, header)
+    except ValueError:  # a header too long for format 1.0 (huge structured dtypes)
+        np.lib.format.write_array_header_2_0(handle, header)
+    if not array.flags.c_contiguous and array.flags.f_contiguous:
+        array = array.T  # header says fortran_order: the bytes are the transpose's, in C order
+    if array.dtype.hasobject:
+        raise ValueError("write_npy writes numeric arrays only (no pickled objects)")
+    for part in pages(np.ascontiguousarray(array)) if array.size else ():
+        handle.write(memoryview(np.ascontiguousarray(part).reshape(-1).view(np.uint8)))
