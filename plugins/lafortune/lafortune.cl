@@ -4,7 +4,8 @@
 // Model of one signal in a texel frame F (rows t, b, n):  value = max(uz, 0) * (rho + sum_i max(C_i . x, 0)^n_i),
 // x = (ux vx, uy vy, uz vz), u and v the light and view in the frame.  Parameters q: q[0] = rho, lobe i at
 // q[1 + 4i .. 3 + 4i] = (Cx, Cy, Cz) and q[4 + 4i] = ln n_i.
-// Build options: -DNLOBE=k (lobes per fitted signal, 1..7) and model.BUILD_OPTIONS (every constant).
+// Build options: -DNLOBE=k (lobes per fitted signal, 1..7), -DVW=w (samples per vector in the fit: 4, 8 or 16)
+// and model.BUILD_OPTIONS (every constant).
 
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -106,46 +107,86 @@ __kernel void lafortune_eval_scattered(__global const float *diffuse, __global c
 
 #define NS (1 + 5 * NLOBE)
 
-// The host lays out each texel's samples and their geometry contiguously (a texel's fit reads them every pass).
+// Every pass over a texel's samples works on VW samples at once (OpenCL vectors: one work-item per texel leaves
+// the CPU's SIMD lanes idle otherwise).  The host pads each texel's samples to whole blocks of VW with zero
+// geometry and zero values, which add exactly 0 to every sum below.
+#ifndef VW
+#define VW 8
+#endif
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+#define VF CAT(float, VW)
+#define VLOAD CAT(vload, VW)
+
+inline float hsum(const VF v) {
+#if VW == 16
+    const float8 v8 = v.lo + v.hi;
+    const float4 v4 = v8.lo + v8.hi;
+#elif VW == 8
+    const float4 v4 = v.lo + v.hi;
+#else
+    const float4 v4 = v;
+#endif
+    const float2 v2 = v4.lo + v4.hi;
+    return v2.x + v2.y;
+}
+
+inline float hmax(const VF v) {
+#if VW == 16
+    const float8 v8 = fmax(v.lo, v.hi);
+    const float4 v4 = fmax(v8.lo, v8.hi);
+#elif VW == 8
+    const float4 v4 = fmax(v.lo, v.hi);
+#else
+    const float4 v4 = v;
+#endif
+    const float2 v2 = fmax(v4.lo, v4.hi);
+    return fmax(v2.x, v2.y);
+}
+
+// The host lays out each texel's samples and their geometry contiguously, in blocks of VW samples.
 typedef struct {
-    __global const float *samples;   // this texel's [S, C]
-    __global const float *geom;      // this texel's [S, 4]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
-    int n_channel, n_sample, channel;   // channel < 0: the channel mean (luminance)
+    __global const float *samples;   // this texel's [B, C, VW]
+    __global const float *geom;      // this texel's [B, 4, VW]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
+    int n_channel, n_block, channel;   // channel < 0: the channel mean (luminance)
 } Texel;
 
-inline void geometry(const Texel *tx, int s, float *x, float *c) {
-    __global const float *q = tx->geom + 4 * s;
-    x[0] = q[0];
-    x[1] = q[1];
-    x[2] = q[2];
-    *c = q[3];
+inline void geometry(const Texel *tx, int s, VF *x, VF *c) {
+    __global const float *q = tx->geom + 4 * VW * (size_t)s;
+    x[0] = VLOAD(0, q);
+    x[1] = VLOAD(0, q + VW);
+    x[2] = VLOAD(0, q + 2 * VW);
+    *c = VLOAD(0, q + 3 * VW);
 }
 
-inline __global const float *sample_ptr(const Texel *tx, int s) {
-    return tx->samples + (size_t)s * tx->n_channel;
+inline VF channel_values(const Texel *tx, int s, int ch) {
+    return VLOAD(0, tx->samples + ((size_t)s * tx->n_channel + ch) * VW);
 }
 
-inline float load_y(const Texel *tx, int s) {
-    __global const float *p = sample_ptr(tx, s);
-    if (tx->channel >= 0) return p[tx->channel];
-    float acc = 0.0f;
-    for (int ch = 0; ch < tx->n_channel; ++ch) acc += p[ch];
+inline VF load_y(const Texel *tx, int s) {
+    if (tx->channel >= 0) return channel_values(tx, s, tx->channel);
+    VF acc = 0.0f;
+    for (int ch = 0; ch < tx->n_channel; ++ch) acc += channel_values(tx, s, ch);
     return acc / (float)tx->n_channel;
+}
+
+// A lobe exp(alpha + n ln(base)) of the VW bases, 0 where base <= B_MIN (never a negative base to a power).
+inline VF lobe_block(const VF base, float alpha, float n) {
+    const VF safe = select((VF)1.0f, base, base > B_MIN);
+    return select((VF)0.0f, exp(fmin(alpha + n * log(safe), T_CAP)), base > B_MIN);
 }
 
 inline void exponents_of(const float *z, int k, float *nexp) {
     for (int i = 0; i < k; ++i) nexp[i] = exp(z[5 + 5 * i]);
 }
 
-inline float state_lobe(const float *z, int i, float n, const float *x) {
+inline VF state_lobe(const float *z, int i, float n, const VF *x) {
     const float *psi = z + 1 + 5 * i;
-    const float b = (psi[0] * x[0] + psi[1] * x[1]) + psi[2] * x[2];
-    if (!(b > B_MIN)) return 0.0f;
-    return exp(fmin(psi[3] + n * log(b), T_CAP));
+    return lobe_block((psi[0] * x[0] + psi[1] * x[1]) + psi[2] * x[2], psi[3], n);
 }
 
-inline float model_at(const float *z, const float *nexp, int k, const float *x, float c) {
-    float f = z[0];
+inline VF model_at(const float *z, const float *nexp, int k, const VF *x, const VF c) {
+    VF f = z[0];
     for (int i = 0; i < k; ++i) f += state_lobe(z, i, nexp[i], x);
     return c * f;
 }
@@ -197,28 +238,29 @@ float criterion(const Texel *tx, const float *z, int k, float *colour_out) {
     if (tx->channel >= 0) return cost_of(tx, z, k);
     float nexp[NLOBE];
     exponents_of(z, k, nexp);
-    float ff = 0.0f, fy[MAXC], colour[MAXC];
-    for (int ch = 0; ch < MAXC; ++ch) fy[ch] = 0.0f;
-    for (int s = 0; s < tx->n_sample; ++s) {
-        float x[3], c;
+    VF ffv = 0.0f, fyv[MAXC];
+    float colour[MAXC];
+    for (int ch = 0; ch < MAXC; ++ch) fyv[ch] = 0.0f;
+    for (int s = 0; s < tx->n_block; ++s) {
+        VF x[3], c;
         geometry(tx, s, x, &c);
-        const float f = model_at(z, nexp, k, x, c);
-        __global const float *p = sample_ptr(tx, s);
-        ff += f * f;
-        for (int ch = 0; ch < tx->n_channel; ++ch) fy[ch] += f * p[ch];
+        const VF f = model_at(z, nexp, k, x, c);
+        ffv += f * f;
+        for (int ch = 0; ch < tx->n_channel; ++ch) fyv[ch] += f * channel_values(tx, s, ch);
     }
-    for (int ch = 0; ch < tx->n_channel; ++ch) colour[ch] = ff > 1e-30f ? fmax(fy[ch] / ff, 0.0f) : 1.0f;
-    float sse = 0.0f;
-    for (int s = 0; s < tx->n_sample; ++s) {
-        float x[3], c;
+    const float ff = hsum(ffv);
+    for (int ch = 0; ch < tx->n_channel; ++ch) colour[ch] = ff > 1e-30f ? fmax(hsum(fyv[ch]) / ff, 0.0f) : 1.0f;
+    VF ssev = 0.0f;
+    for (int s = 0; s < tx->n_block; ++s) {
+        VF x[3], c;
         geometry(tx, s, x, &c);
-        const float f = model_at(z, nexp, k, x, c);
-        __global const float *p = sample_ptr(tx, s);
+        const VF f = model_at(z, nexp, k, x, c);
         for (int ch = 0; ch < tx->n_channel; ++ch) {
-            const float r = colour[ch] * f - p[ch];
-            sse += r * r;
+            const VF r = colour[ch] * f - channel_values(tx, s, ch);
+            ssev += r * r;
         }
     }
+    const float sse = hsum(ssev);
     if (colour_out)
         for (int ch = 0; ch < tx->n_channel; ++ch) colour_out[ch] = colour[ch];
     return sse;
@@ -259,47 +301,48 @@ inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
 // (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).
 float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g) {
     const int np = 1 + 4 * k;
-    float nexp[NLOBE], full[NS], J[NP];
+    float nexp[NLOBE];
+    VF full[NS], J[NP], Hv[NP * (NP + 1) / 2], gv[NP];
     exponents_of(z, k, nexp);
     if (H) {
-        for (int i = 0; i < np * NP; ++i) H[i] = 0.0f;
-        for (int i = 0; i < np; ++i) g[i] = 0.0f;
+        for (int i = 0; i < np * (np + 1) / 2; ++i) Hv[i] = 0.0f;
+        for (int i = 0; i < np; ++i) gv[i] = 0.0f;
     }
-    float cost = 0.0f;
-    for (int s = 0; s < tx->n_sample; ++s) {
-        float x[3], c;
+    VF cost = 0.0f;
+    for (int s = 0; s < tx->n_block; ++s) {
+        VF x[3], c;
         geometry(tx, s, x, &c);
         full[0] = c;
-        float f = z[0];
+        VF f = z[0];
         for (int i = 0; i < k; ++i) {
             const float *l = z + 1 + 5 * i;
-            const float b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
-            float v = 0.0f, dpsi = 0.0f, da = 0.0f, dp = 0.0f;
-            if (b > B_MIN) {
-                const float lb = log(b);
-                const float e = l[3] + nexp[i] * lb;
-                v = exp(fmin(e, T_CAP));
-                if (e <= T_CAP) {
-                    dpsi = v * nexp[i] / b;
-                    da = v;
-                    dp = v * nexp[i] * lb;
-                }
-            }
+            const VF b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
+            const VF safe = select((VF)1.0f, b, b > B_MIN);
+            const VF lb = log(safe);
+            const VF e = l[3] + nexp[i] * lb;
+            const VF v = select((VF)0.0f, exp(fmin(e, T_CAP)), b > B_MIN);
+            const VF live = select((VF)0.0f, (VF)1.0f, (b > B_MIN) & (e <= T_CAP));   // else no derivative
+            const VF dpsi = live * (v * nexp[i] / safe);
             for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
-            full[4 + 5 * i] = c * da;
-            full[5 + 5 * i] = c * dp;
+            full[4 + 5 * i] = c * (live * v);
+            full[5 + 5 * i] = c * (live * (v * nexp[i] * lb));
             f += v;
         }
-        const float r = load_y(tx, s) - c * f;
+        const VF r = load_y(tx, s) - c * f;
         cost += r * r;
         if (!H) continue;
         for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
-        for (int a = 0; a < np; ++a) {
-            g[a] += J[a] * r;
-            for (int b2 = 0; b2 <= a; ++b2) H[a * NP + b2] += J[a] * J[b2];
+        for (int a = 0, ab = 0; a < np; ++a) {
+            gv[a] += J[a] * r;
+            for (int b2 = 0; b2 <= a; ++b2, ++ab) Hv[ab] += J[a] * J[b2];
         }
     }
-    return cost;
+    if (H)
+        for (int a = 0, ab = 0; a < np; ++a) {
+            g[a] = hsum(gv[a]);
+            for (int b2 = 0; b2 <= a; ++b2, ++ab) H[a * NP + b2] = hsum(Hv[ab]);
+        }
+    return hsum(cost);
 }
 
 // How far free parameter `col` may move by `d` before it leaves its box (rho >= 0, p in [0, P_MAX], alpha <=
@@ -449,13 +492,14 @@ inline float nnls_box(float scc, float sgg, float scg, float sct, float sgt, flo
     return bc;
 }
 
-// samples [n_texel, S, C] (s = view * L + light) ; geom [n_texel, S, 4] (model.fit_geometry).  Work-item
+// samples [n_texel, B, C, VW] (sample s = view * L + light in block s / VW, lane s % VW; zero-padded) ; geom
+// [n_texel, B, 4, VW] (model.fit_geometry, blocked likewise).  Work-item
 // (t, signal): the luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel,
 // signal): diffuse [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse,
 // iterations, not-converged flag [n, n_signal]; colour [n, C] for luminance.
 __kernel void lafortune_fit(__global const float *samples, __global const float *geom,
                             __global const float *CAND_DIRS, __global const float *CAND_EXPS,
-                            const int n_sample, const int n_texel, const int n_channel,
+                            const int n_block, const int n_texel, const int n_channel,
                             const int luminance, const int max_iter, const int n_starts,
                             __global float *diffuse_out, __global float *lobes_out, __global float *expo_out,
                             __global float *colour_out, __global float *sse_out, __global int *iter_out,
@@ -466,29 +510,31 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
     const int n_signal = luminance ? 1 : n_channel;
     if (sig >= n_signal) return;
     Texel tx;
-    tx.samples = samples + (size_t)t * n_sample * n_channel;
-    tx.geom = geom + (size_t)t * n_sample * 4;
+    tx.samples = samples + (size_t)t * n_block * n_channel * VW;
+    tx.geom = geom + (size_t)t * n_block * 4 * VW;
     tx.n_channel = n_channel;
-    tx.n_sample = n_sample;
+    tx.n_block = n_block;
     tx.channel = luminance ? -1 : sig;
 
-    float ymax = 0.0f, energy = 0.0f, scc = 0.0f, scy = 0.0f;
-    for (int s = 0; s < tx.n_sample; ++s) {
-        float x[3], c;
+    VF ymaxv = 0.0f, energyv = 0.0f, sccv = 0.0f, scyv = 0.0f;
+    for (int s = 0; s < tx.n_block; ++s) {
+        VF x[3], c;
         geometry(&tx, s, x, &c);
-        const float y = load_y(&tx, s);
-        ymax = fmax(ymax, fabs(y));
-        energy += y * y;
-        scc += c * c;
-        scy += c * y;
+        const VF y = load_y(&tx, s);
+        ymaxv = fmax(ymaxv, fabs(y));
+        energyv += y * y;
+        sccv += c * c;
+        scyv += c * y;
     }
+    const float ymax = hmax(ymaxv), energy = hsum(energyv), scc = hsum(sccv), scy = hsum(scyv);
     const float log_cap = log(LOBE_CAP * fmax(ymax, 1e-12f));
     const float atol = ATOL * energy, etol = ETOL * energy;
 
     float z[NS], start[NS], best[NS];
     for (int i = 0; i < NS; ++i) z[i] = 0.0f;
     z[0] = scc > 0.0f ? fmax(scy / scc, 0.0f) : 0.0f;
-    float crit = criterion(&tx, z, 0, 0);
+    float colour[MAXC], trial_colour[MAXC];   // the lum colour of the kept fit (criterion's by-product)
+    float crit = criterion(&tx, z, 0, colour);
     int flag = 0, its_total = 0;
     ulong used = 0ul;
 
@@ -497,37 +543,40 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         // Score every start shape against the residual of the earlier lobes (rho and amplitude in closed form).
         float nexp[NLOBE];
         exponents_of(z, j, nexp);
-        float stt = 0.0f, sct = 0.0f;
-        float sgg[N_CAND], scg[N_CAND], sgt[N_CAND], ccost[N_CAND], crho[N_CAND], cw[N_CAND];
+        VF sttv = 0.0f, sctv = 0.0f, sgg[N_CAND], scg[N_CAND], sgt[N_CAND];
+        float ccost[N_CAND], crho[N_CAND], cw[N_CAND];
         for (int ci = 0; ci < N_CAND; ++ci) { sgg[ci] = 0.0f; scg[ci] = 0.0f; sgt[ci] = 0.0f; }
-        for (int s = 0; s < tx.n_sample; ++s) {
-            float x[3], c;
+        for (int s = 0; s < tx.n_block; ++s) {
+            VF x[3], c;
             geometry(&tx, s, x, &c);
-            float prev = 0.0f;
+            VF prev = 0.0f;
             for (int i = 0; i < j; ++i) prev += state_lobe(z, i, nexp[i], x);
-            const float target = load_y(&tx, s) - c * prev;
-            stt += target * target;
-            sct += c * target;
+            const VF target = load_y(&tx, s) - c * prev;
+            sttv += target * target;
+            sctv += c * target;
             for (int di = 0; di < N_DIRS; ++di) {
-                const float b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
-                if (!(b > B_MIN) || c == 0.0f) continue;     // the shape is 0 here (as lobe_value gives)
+                const VF b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
+                // The shape is 0 where b <= B_MIN (as lobe_value gives) or c = 0: those samples add exactly 0.
+                const VF base = select((VF)0.0f, b, (b > B_MIN) & (c != 0.0f));
                 // The exponent ladder 1, 1.5, 2, 3, 4, 6, ... (model.CANDIDATE_EXPONENTS) by squaring alone:
                 // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
-                float even = b, odd = b * sqrt(b);
+                VF even = base, odd = base * sqrt(base);
+#pragma unroll
                 for (int ei = 0; ei < N_EXPS; ++ei) {
                     const int ci = ei * N_DIRS + di;
-                    float power;
+                    VF power;
                     if (ei & 1) { power = odd; odd = odd * odd; }
                     else { power = even; even = even * even; }
-                    const float g = c * power;
+                    const VF g = c * power;
                     sgg[ci] += g * g;
                     scg[ci] += c * g;
                     sgt[ci] += g * target;
                 }
             }
         }
+        const float stt = hsum(sttv), sct = hsum(sctv), wmax = exp(lobe_log_cap(log_cap, j));
         for (int ci = 0; ci < N_CAND; ++ci) {
-            ccost[ci] = nnls_box(scc, sgg[ci], scg[ci], sct, sgt[ci], stt, exp(lobe_log_cap(log_cap, j)), &crho[ci], &cw[ci]);
+            ccost[ci] = nnls_box(scc, hsum(sgg[ci]), hsum(scg[ci]), sct, hsum(sgt[ci]), stt, wmax, &crho[ci], &cw[ci]);
             if ((used >> ci) & 1ul) ccost[ci] = INFINITY;
         }
         // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.
@@ -569,9 +618,10 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             its_total += levenberg_marquardt(&tx, best, k, log_cap, atol, etol, max_iter - RACE_ITER, &best_cost,
                                              &best_conv);
         used |= 1ul << best_ci;
-        const float new_crit = criterion(&tx, best, k, 0);
+        const float new_crit = criterion(&tx, best, k, trial_colour);
         if (new_crit < crit) {                     // else keep k - 1 lobes, this one switched off (psi = 0)
             for (int i = 0; i < NS; ++i) z[i] = best[i];
+            for (int ch = 0; ch < MAXC; ++ch) colour[ch] = trial_colour[ch];
             crit = new_crit;
             flag = !best_conv;
         }
@@ -587,11 +637,8 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         for (int d = 0; d < 3; ++d) lobes_out[k * 3 + d] = scale * l[d];
         expo_out[k] = n;
     }
-    if (luminance) {
-        float colour[MAXC];
-        criterion(&tx, z, NLOBE, colour);
+    if (luminance)
         for (int ch = 0; ch < n_channel; ++ch) colour_out[(size_t)t * n_channel + ch] = colour[ch];
-    }
     sse_out[(size_t)t * n_signal + sig] = crit;
     iter_out[(size_t)t * n_signal + sig] = its_total;
     flag_out[(size_t)t * n_signal + sig] = flag;

@@ -80,6 +80,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 from typing import ClassVar
 
@@ -123,6 +124,7 @@ CANDIDATE_EXPONENTS = np.array([m * 2.0 ** e for e in range(10) for m in (1.0, 1
 DEFAULT_ITERATIONS = 100
 N_STARTS = 2            # the first lobe is fitted from this many start shapes (the best, then the best broader one)
 RACE_ITER = 3           # ... each for this many LM steps; only the better one is refined further
+VECTOR_WIDTH = int(os.environ.get("BTFORGE_LAFORTUNE_VW", "8"))  # samples per OpenCL vector in the fit kernel
 
 
 def _cl_float(value: float) -> str:
@@ -900,17 +902,27 @@ def fit_geometry(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np
     return np.ascontiguousarray(np.concatenate([u * v, np.maximum(u[..., 2:], np.float32(0))], axis=2), np.float32)
 
 
+def _sample_blocks(per_sample: np.ndarray, width: int) -> np.ndarray:
+    """``[n, S, F]`` -> ``[n, B, F, width]`` float32: each texel's samples in blocks of ``width`` (the kernel's
+    vector lanes), the last block padded with zeros."""
+    n, s, f = per_sample.shape
+    blocks = -(-s // width)
+    out = np.zeros((n, blocks * width, f), np.float32)
+    out[:, :s] = per_sample
+    return np.ascontiguousarray(out.reshape(n, blocks, width, f).transpose(0, 1, 3, 2))
+
+
 def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, variant, iterations):
     """OpenCL fit of one band; same results as :func:`fit_band_numpy` (float32 arithmetic)."""
     backend = get_backend()
     s, n, n_channel = values.shape
     n_signal = 1 if variant == "lum" else n_channel
-    kernel = backend.kernel(KERNELS, "lafortune_fit", (f"-DNLOBE={per_fit}",) + BUILD_OPTIONS)
+    kernel = backend.kernel(KERNELS, "lafortune_fit", (f"-DNLOBE={per_fit}", f"-DVW={VECTOR_WIDTH}") + BUILD_OPTIONS)
     dirs_dev = backend.to_device(CANDIDATE_DIRS.astype(np.float32).ravel())
     exps_dev = backend.to_device(CANDIDATE_EXPONENTS.astype(np.float32))
     k_total = per_fit * n_signal
-    s_dev = backend.to_device(np.ascontiguousarray(np.transpose(values, (1, 0, 2)), np.float32))
-    g_dev = backend.to_device(fit_geometry(frames, sample_lights, sample_views))
+    s_dev = backend.to_device(_sample_blocks(np.transpose(values, (1, 0, 2)), VECTOR_WIDTH))
+    g_dev = backend.to_device(_sample_blocks(fit_geometry(frames, sample_lights, sample_views), VECTOR_WIDTH))
     d_dev = backend.empty(n * n_signal * 4)
     c_dev = backend.empty(n * k_total * 3 * 4)
     e_dev = backend.empty(n * k_total * 4)
@@ -918,9 +930,10 @@ def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, varian
     sse_dev = backend.empty(n * n_signal * 4)
     it_dev = backend.empty(n * n_signal * 4)
     fl_dev = backend.empty(n * n_signal * 4)
-    backend.run(kernel, (n, n_signal), s_dev, g_dev, dirs_dev, exps_dev, np.int32(s), np.int32(n), np.int32(n_channel),
+    backend.run(kernel, (n, n_signal), s_dev, g_dev, dirs_dev, exps_dev, np.int32(-(-s // VECTOR_WIDTH)), np.int32(n),
+                np.int32(n_channel),
                 np.int32(variant == "lum"), np.int32(iterations), np.int32(N_STARTS),
-                d_dev, c_dev, e_dev, col_dev, sse_dev, it_dev, fl_dev)
+                d_dev, c_dev, e_dev, col_dev, sse_dev, it_dev, fl_dev, local_size=(1, 1))
     diffuse = backend.from_device(d_dev, (n, n_signal), np.float32)
     lobes = backend.from_device(c_dev, (n, k_total, 3), np.float32)
     exponents = backend.from_device(e_dev, (n, k_total), np.float32)
