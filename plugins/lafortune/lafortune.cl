@@ -144,23 +144,25 @@ inline float hmax(const VF v) {
     return fmax(v2.x, v2.y);
 }
 
-// The host lays out each texel's samples and their geometry contiguously, in blocks of VW samples.
+// The host lays out each texel's samples and their geometry contiguously, each quantity over the texel's
+// S = B x VW (padded) samples in a row: block s of quantity q is at q * S + s * VW.
 typedef struct {
-    __global const float *samples;   // this texel's [B, C, VW]
-    __global const float *geom;      // this texel's [B, 4, VW]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
+    __global const float *samples;   // this texel's [C, S]
+    __global const float *geom;      // this texel's [4, S]: x = (ux vx, uy vy, uz vz) and c = max(uz, 0)
     int n_channel, n_block, channel;   // channel < 0: the channel mean (luminance)
 } Texel;
 
 inline void geometry(const Texel *tx, int s, VF *x, VF *c) {
-    __global const float *q = tx->geom + 4 * VW * (size_t)s;
+    __global const float *q = tx->geom + VW * s;
+    const int stride = VW * tx->n_block;
     x[0] = VLOAD(0, q);
-    x[1] = VLOAD(0, q + VW);
-    x[2] = VLOAD(0, q + 2 * VW);
-    *c = VLOAD(0, q + 3 * VW);
+    x[1] = VLOAD(0, q + stride);
+    x[2] = VLOAD(0, q + 2 * stride);
+    *c = VLOAD(0, q + 3 * stride);
 }
 
 inline VF channel_values(const Texel *tx, int s, int ch) {
-    return VLOAD(0, tx->samples + ((size_t)s * tx->n_channel + ch) * VW);
+    return VLOAD(0, tx->samples + VW * (ch * tx->n_block + s));
 }
 
 inline VF load_y(const Texel *tx, int s) {
@@ -492,8 +494,8 @@ inline float nnls_box(float scc, float sgg, float scg, float sct, float sgt, flo
     return bc;
 }
 
-// samples [n_texel, B, C, VW] (sample s = view * L + light in block s / VW, lane s % VW; zero-padded) ; geom
-// [n_texel, B, 4, VW] (model.fit_geometry, blocked likewise).  Work-item
+// samples [n_texel, C, B x VW] (sample s = view * L + light, zero-padded) ; geom [n_texel, 4, B x VW]
+// (model.fit_geometry).  Work-item
 // (t, signal): the luminance (luminance != 0, one signal) or channel `signal` (rgb).  Outputs per (texel,
 // signal): diffuse [n, n_signal], lobes [n, n_signal * NLOBE, 3], exponents [n, n_signal * NLOBE], sse,
 // iterations, not-converged flag [n, n_signal]; colour [n, C] for luminance.

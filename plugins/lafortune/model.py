@@ -168,9 +168,14 @@ def texel_frames(normals: np.ndarray) -> np.ndarray:
 
 def _local(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """``dirs [D, 3]`` in each frame -> ``[N, D, 3]``, float32 with the kernels' order of operations."""
-    f = frames[:, None, :, :]
-    d = dirs.astype(np.float32)[None, :, None, :]
-    return (f[..., 0] * d[..., 0] + f[..., 1] * d[..., 1]) + f[..., 2] * d[..., 2]
+    return np.stack(_local_rows(frames, dirs), axis=2)
+
+
+def _local_rows(frames: np.ndarray, dirs: np.ndarray) -> list[np.ndarray]:
+    """The three components ``[N, D]`` of :func:`_local`."""
+    d = dirs.astype(np.float32)
+    return [(frames[:, i, 0, None] * d[:, 0] + frames[:, i, 1, None] * d[:, 1]) + frames[:, i, 2, None] * d[:, 2]
+            for i in range(3)]
 
 
 def _local_each(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -402,10 +407,17 @@ PS_TUKEY = 4.685        # Tukey's biweight (1 - (r / (PS_TUKEY s))^2)^2, s = 1.4
 PS_SCALE_FLOOR = 1e-3   # s >= this x the texel's brightest sample (exact data: s = 0 would weight by noise)
 
 
+# The per-texel products below are small ([n, S] x [S, 9]): np.einsum's own loops run them on the calling thread,
+# where `@` hands them to a multi-threaded BLAS whose threads cost more than the products (2-3x the whole
+# normal estimate's CPU time on a busy machine).
+_UPPER = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])   # 3 x 3 symmetric matrix from its 6 upper entries
+
+
 def _solve_normals(weight, lum, ld):
     """Weighted least squares ``lum ~ b . l`` per texel with the tangential ridge -> ``b [n, 3]``."""
-    a = (weight @ (ld[:, :, None] * ld[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
-    rhs = (weight * lum) @ ld
+    rows, cols = np.triu_indices(3)
+    a = np.einsum("ns,sk->nk", weight, ld[:, rows] * ld[:, cols])[:, _UPPER].reshape(-1, 3, 3)
+    rhs = np.einsum("ns,sk->nk", weight * lum, ld)
     trace = np.maximum(np.trace(a, axis1=1, axis2=2), 1e-30)
     a[:, 0, 0] += PS_RIDGE * trace
     a[:, 1, 1] += PS_RIDGE * trace
@@ -431,7 +443,11 @@ def _trimmed_weights(lum):
 
 
 def _tukey_weights(resid, scale):
-    return np.maximum(1.0 - (resid / (PS_TUKEY * scale)) ** 2, 0.0) ** 2
+    u = resid / (PS_TUKEY * scale)
+    u *= u
+    np.subtract(1.0, u, out=u)
+    np.maximum(u, 0.0, out=u)
+    return np.square(u, out=u)
 
 
 def _masked_median(values, mask):
@@ -451,7 +467,7 @@ def _reweighted_normals(b, lum, ld, bright):
     top = lum >= bright[:, None]
     clipped = top & (top.sum(axis=1, keepdims=True) >= 2)
     for _ in range(PS_IRLS_STEPS):
-        pred = b @ ld.T
+        pred = np.einsum("nj,sj->ns", b, ld)
         lit = pred > PS_HORIZON * np.linalg.norm(b, axis=1, keepdims=True)
         resid = lum - pred
         scale = 1.4826 * _masked_median(np.abs(resid), lit)
@@ -464,7 +480,7 @@ def _reweighted_normals(b, lum, ld, bright):
 
 def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     """Robust photometric stereo of ``values [S, n, C]`` lit from ``sample_lights [S, 3]`` -> ``[n, 3]`` float32."""
-    lum = values.astype(np.float64).mean(axis=2).T            # [n, S]
+    lum = np.ascontiguousarray(values.mean(axis=2, dtype=np.float64).T)   # [n, S]
     keep = _trimmed_weights(lum)
     kept_lo = np.where(keep, lum, np.inf).min(axis=1)
     kept_hi = np.where(keep, lum, -np.inf).max(axis=1)
@@ -852,7 +868,7 @@ def _external(z: np.ndarray, k: int):
 
 def _geometry64(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np.ndarray):
     geom = fit_geometry(frames, sample_lights, sample_views).astype(np.float64)   # float32 ops, then widened
-    return geom[..., :3], geom[..., 3]
+    return np.ascontiguousarray(np.transpose(geom[:, :3], (0, 2, 1))), geom[:, 3]
 
 
 def _colour_fit(f: np.ndarray, values: np.ndarray):
@@ -895,21 +911,18 @@ def fit_band_numpy(values, frames, sample_lights, sample_views, per_fit, variant
 # ----------------------------------------------------------------------------------------------- OpenCL fit
 
 
-def fit_geometry(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np.ndarray) -> np.ndarray:
-    """``[n, S, 4]`` float32: per texel and sample ``x = (ux vx, uy vy, uz vz)`` and ``c = max(uz, 0)``, with the
-    light ``u`` and view ``v`` in the texel's frame (the float32 operations the NumPy fit widens)."""
-    u, v = _local(frames, sample_lights), _local(frames, sample_views)
-    return np.ascontiguousarray(np.concatenate([u * v, np.maximum(u[..., 2:], np.float32(0))], axis=2), np.float32)
-
-
-def _sample_blocks(per_sample: np.ndarray, width: int) -> np.ndarray:
-    """``[n, S, F]`` -> ``[n, B, F, width]`` float32: each texel's samples in blocks of ``width`` (the kernel's
-    vector lanes), the last block padded with zeros."""
-    n, s, f = per_sample.shape
-    blocks = -(-s // width)
-    out = np.zeros((n, blocks * width, f), np.float32)
-    out[:, :s] = per_sample
-    return np.ascontiguousarray(out.reshape(n, blocks, width, f).transpose(0, 1, 3, 2))
+def fit_geometry(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np.ndarray,
+                 padded: int | None = None) -> np.ndarray:
+    """``[n, 4, S]`` float32: per texel ``x = (ux vx, uy vy, uz vz)`` and ``c = max(uz, 0)`` of every sample, with
+    the light ``u`` and view ``v`` in the texel's frame (the float32 operations the NumPy fit widens); with
+    ``padded``, zeros after the ``S`` samples up to ``padded``."""
+    u, v = _local_rows(frames, sample_lights), _local_rows(frames, sample_views)
+    n, s = u[0].shape
+    out = np.zeros((n, 4, padded or s), np.float32)
+    for i in range(3):
+        np.multiply(u[i], v[i], out=out[:, i, :s])
+    np.maximum(u[2], np.float32(0), out=out[:, 3, :s])
+    return out
 
 
 def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, variant, iterations):
@@ -921,8 +934,11 @@ def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, varian
     dirs_dev = backend.to_device(CANDIDATE_DIRS.astype(np.float32).ravel())
     exps_dev = backend.to_device(CANDIDATE_EXPONENTS.astype(np.float32))
     k_total = per_fit * n_signal
-    s_dev = backend.to_device(_sample_blocks(np.transpose(values, (1, 0, 2)), VECTOR_WIDTH))
-    g_dev = backend.to_device(_sample_blocks(fit_geometry(frames, sample_lights, sample_views), VECTOR_WIDTH))
+    n_block = -(-s // VECTOR_WIDTH)              # the kernel reads VECTOR_WIDTH samples at once; zeros pad the last
+    blocked = np.zeros((n, n_channel, n_block * VECTOR_WIDTH), np.float32)
+    blocked[:, :, :s] = np.transpose(values, (1, 2, 0))
+    s_dev = backend.to_device(blocked)
+    g_dev = backend.to_device(fit_geometry(frames, sample_lights, sample_views, n_block * VECTOR_WIDTH))
     d_dev = backend.empty(n * n_signal * 4)
     c_dev = backend.empty(n * k_total * 3 * 4)
     e_dev = backend.empty(n * k_total * 4)
@@ -930,7 +946,7 @@ def fit_band_opencl(values, frames, sample_lights, sample_views, per_fit, varian
     sse_dev = backend.empty(n * n_signal * 4)
     it_dev = backend.empty(n * n_signal * 4)
     fl_dev = backend.empty(n * n_signal * 4)
-    backend.run(kernel, (n, n_signal), s_dev, g_dev, dirs_dev, exps_dev, np.int32(-(-s // VECTOR_WIDTH)), np.int32(n),
+    backend.run(kernel, (n, n_signal), s_dev, g_dev, dirs_dev, exps_dev, np.int32(n_block), np.int32(n),
                 np.int32(n_channel),
                 np.int32(variant == "lum"), np.int32(iterations), np.int32(N_STARTS),
                 d_dev, c_dev, e_dev, col_dev, sse_dev, it_dev, fl_dev, local_size=(1, 1))
@@ -952,7 +968,7 @@ def _signal_scale(values: np.ndarray, variant: str) -> np.ndarray:
     its largest sample magnitude (all channels), 0 for a black texel.  A power of two divides the samples
     exactly, so the scaled fit sees the very same digits (texels already peaking in (0.5, 1] are not touched);
     one scale per texel keeps the rgb channels' relative brightness, as the lum colour does."""
-    peak = np.abs(values.astype(np.float64)).max(axis=(0, 2))[:, None]        # [n, 1]
+    peak = np.abs(values).max(axis=(0, 2)).astype(np.float64)[:, None]       # [n, 1]
     mantissa, exponent = np.frexp(peak)                                     # peak = mantissa 2^exponent, in [0.5, 1)
     scale = np.where(peak > 0, np.ldexp(1.0, exponent - (mantissa == 0.5)), 0.0)
     return np.repeat(scale, 1 if variant == "lum" else values.shape[2], axis=1)
@@ -973,7 +989,7 @@ def fit_band(values, frames, sample_lights, sample_views, per_fit, variant, iter
     n = values.shape[1]
     scale = _signal_scale(values, variant)
     scale = np.where(scale > 0, scale, 1.0)
-    normed = (values.astype(np.float64) / scale[None]).astype(np.float32)
+    normed = np.ldexp(values, -np.frexp(scale)[1][None] + 1).astype(np.float32, copy=False)   # exact: x / scale
     if engine == "numpy":
         res = fit_band_numpy(normed, frames, sample_lights, sample_views, per_fit, variant, iterations)
     else:
