@@ -347,19 +347,23 @@ float normal_equations(const Texel *tx, const float *z, int k, const int *cols, 
     return hsum(cost);
 }
 
+// Each lobe's reach exp((cap - alpha) / n) at state z: how far |psi_j| may go before the lobe passes its cap.
+inline void lobe_reach(const float *z, int k, float log_cap, float *reach) {
+    for (int i = 0; i < k; ++i)
+        reach[i] = exp(fmax(lobe_log_cap(log_cap, i) - z[4 + 5 * i], 0.0f) / exp(z[5 + 5 * i]));
+}
+
 // How far free parameter `col` may move by `d` before it leaves its box (rho >= 0, p in [0, P_MAX], alpha <=
-// log_cap, and |psi_j| <= exp((log_cap - alpha) / n): the lobe cap once psi is renormalised into alpha): d
-// itself, or the move that lands it on the bound it would cross.
-inline float clip_move(const float *z, int col, float d, float log_cap) {
+// log_cap, and |psi_j| <= its lobe's reach: the lobe cap once psi is renormalised into alpha): d itself, or the
+// move that lands it on the bound it would cross.
+inline float clip_move(const float *z, int col, float d, float log_cap, const float *reach) {
     if (col == 0) return fmax(d, -z[0]);
     const int slot = (col - 1) % 5;
     if (slot == 4) return clamp(d, -z[col], P_MAX - z[col]);
-    const float cap = lobe_log_cap(log_cap, (col - 1) / 5);
-    if (slot == 3) return fmin(d, cap - z[col]);
-    const int lobe = col - slot;                     // state index of the lobe's psi_x
-    const float reach = exp(fmax(cap - z[lobe + 3], 0.0f) / exp(z[lobe + 4]));
+    if (slot == 3) return fmin(d, lobe_log_cap(log_cap, (col - 1) / 5) - z[col]);
+    const float r = reach[(col - 1) / 5];
     const float to = z[col] + d;
-    return fabs(to) <= reach ? d : copysign(reach, to) - z[col];   // d itself unless it crosses (no rounding)
+    return fabs(to) <= r ? d : copysign(r, to) - z[col];   // d itself unless it crosses (no rounding)
 }
 
 // The damped step (H + lam D) d = g inside the box: a parameter whose step would leave the box moves onto the
@@ -368,7 +372,7 @@ inline float clip_move(const float *z, int col, float d, float log_cap) {
 // other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd (<= 0 when
 // the box leaves no descent), or NaN when a Cholesky factorisation fails.
 float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
-                  int np, float log_cap, float *delta) {
+                  int np, float log_cap, const float *reach, float *delta) {
     float A[NP * NP], rhs[NP];
     int pinned[NP];
     for (int i = 0; i < np; ++i) pinned[i] = 0;
@@ -385,12 +389,12 @@ float damped_step(const float *H, const float *g, const float *dg, float lam, co
         cholesky_solve(A, rhs, delta, np);
         int more = 0;
         for (int i = 0; i < np; ++i) {
-            const float d = clip_move(z, cols[i], delta[i], log_cap);
+            const float d = clip_move(z, cols[i], delta[i], log_cap, reach);
             if (!pinned[i] && d != delta[i]) { pinned[i] = 1; delta[i] = d; more = 1; }
         }
         if (!more) break;
     }
-    for (int i = 0; i < np; ++i) delta[i] = clip_move(z, cols[i], delta[i], log_cap);
+    for (int i = 0; i < np; ++i) delta[i] = clip_move(z, cols[i], delta[i], log_cap, reach);
     float predicted = 0.0f;
     for (int i = 0; i < np; ++i) {
         float hd = 0.0f;
@@ -411,7 +415,7 @@ float damped_step(const float *H, const float *g, const float *dg, float lam, co
 int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float atol, float etol, int max_iter,
                         float *cost_out, int *converged) {
     const int np = 1 + 4 * k;
-    float H[NP * NP], Ht[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS];
+    float H[NP * NP], Ht[NP * NP], g[NP], gt[NP], dg[NP], delta[NP], trial[NS], reach[NLOBE];
     int cols[NP], cols_t[NP];
     free_columns(z, k, cols);
     float cost = normal_equations(tx, z, k, cols, H, g);
@@ -427,12 +431,13 @@ int levenberg_marquardt(const Texel *tx, float *z, int k, float log_cap, float a
             }
             for (int i = 0; i < np; ++i) dg[i] = fmax(H[i * NP + i], D_FLOOR * dmax);
             if (cost <= atol || zero) { conv = 1; break; }
-            const float decrement = damped_step(H, g, dg, LAM_DEC, z, cols, np, log_cap, delta);
+            lobe_reach(z, k, log_cap, reach);
+            const float decrement = damped_step(H, g, dg, LAM_DEC, z, cols, np, log_cap, reach, delta);
             if (decrement >= 0.0f && decrement <= FTOL * cost + etol) { conv = 1; break; }   // NaN compares false
             fresh = 0;
         }
         ++its;
-        const float predicted = damped_step(H, g, dg, lam, z, cols, np, log_cap, delta);
+        const float predicted = damped_step(H, g, dg, lam, z, cols, np, log_cap, reach, delta);
         float trial_cost = INFINITY;
         if (!isnan(predicted)) {
             for (int i = 0; i < 1 + 5 * k; ++i) trial[i] = z[i];
@@ -545,9 +550,12 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
         // Score every start shape against the residual of the earlier lobes (rho and amplitude in closed form).
         float nexp[NLOBE];
         exponents_of(z, j, nexp);
-        VF sttv = 0.0f, sctv = 0.0f, sgg[N_CAND], scg[N_CAND], sgt[N_CAND];
+        // Per start shape g = c b^n: sum g^2 = sum c^2 b^(2n) is the sum c^2 b^n two rungs up the ladder, so
+        // two sums per rung (two more rungs at the top) give all three products the box fit needs.
+        VF sttv = 0.0f, sctv = 0.0f, sccb[N_CAND + 2 * N_DIRS], sctb[N_CAND];
         float ccost[N_CAND], crho[N_CAND], cw[N_CAND];
-        for (int ci = 0; ci < N_CAND; ++ci) { sgg[ci] = 0.0f; scg[ci] = 0.0f; sgt[ci] = 0.0f; }
+        for (int ci = 0; ci < N_CAND + 2 * N_DIRS; ++ci) sccb[ci] = 0.0f;
+        for (int ci = 0; ci < N_CAND; ++ci) sctb[ci] = 0.0f;
         for (int s = 0; s < tx.n_block; ++s) {
             VF x[3], c;
             geometry(&tx, s, x, &c);
@@ -556,6 +564,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             const VF target = load_y(&tx, s) - c * prev;
             sttv += target * target;
             sctv += c * target;
+            const VF cc = c * c, ct = c * target;
             for (int di = 0; di < N_DIRS; ++di) {
                 const VF b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
                 // The shape is 0 where b <= B_MIN (as lobe_value gives) or c = 0: those samples add exactly 0.
@@ -564,21 +573,20 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
                 // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
                 VF even = base, odd = base * sqrt(base);
 #pragma unroll
-                for (int ei = 0; ei < N_EXPS; ++ei) {
+                for (int ei = 0; ei < N_EXPS + 2; ++ei) {
                     const int ci = ei * N_DIRS + di;
                     VF power;
                     if (ei & 1) { power = odd; odd = odd * odd; }
                     else { power = even; even = even * even; }
-                    const VF g = c * power;
-                    sgg[ci] += g * g;
-                    scg[ci] += c * g;
-                    sgt[ci] += g * target;
+                    sccb[ci] += cc * power;
+                    if (ei < N_EXPS) sctb[ci] += ct * power;
                 }
             }
         }
         const float stt = hsum(sttv), sct = hsum(sctv), wmax = exp(lobe_log_cap(log_cap, j));
         for (int ci = 0; ci < N_CAND; ++ci) {
-            ccost[ci] = nnls_box(scc, hsum(sgg[ci]), hsum(scg[ci]), sct, hsum(sgt[ci]), stt, wmax, &crho[ci], &cw[ci]);
+            ccost[ci] = nnls_box(scc, hsum(sccb[ci + 2 * N_DIRS]), hsum(sccb[ci]), sct, hsum(sctb[ci]), stt, wmax,
+                                 &crho[ci], &cw[ci]);
             if ((used >> ci) & 1ul) ccost[ci] = INFINITY;
         }
         // Starts: the best shape not tried yet; after the first, the best broader one (lower exponent) if any.

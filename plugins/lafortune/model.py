@@ -760,14 +760,14 @@ def _lm_numpy(z, k, y, x, c, log_cap, atol, etol, iterations):
     return z, cost, conv, its
 
 
-def _ladder_powers(base: np.ndarray) -> list[np.ndarray]:
-    """``base ^ n`` for every ``n`` of ``CANDIDATE_EXPONENTS`` (1, 1.5, 2, 3, ...) by squaring, as the kernel;
-    0 where ``base <= B_MIN``."""
+def _ladder_powers(base: np.ndarray, extra: int = 0) -> list[np.ndarray]:
+    """``base ^ n`` for every ``n`` of ``CANDIDATE_EXPONENTS`` (1, 1.5, 2, 3, ...) and ``extra`` rungs beyond, by
+    squaring, as the kernel; 0 where ``base <= B_MIN``."""
     pos = base > B_MIN
     even = np.where(pos, base, 0.0)
     odd = even * np.sqrt(even)
     powers = []
-    for ei in range(len(CANDIDATE_EXPONENTS)):
+    for ei in range(len(CANDIDATE_EXPONENTS) + extra):
         if ei % 2:
             powers.append(odd)
             odd = odd * odd
@@ -806,12 +806,16 @@ def _fit_signals_numpy(y, x, c, criterion, n_lobes, iterations):
         stt, sct = (target * target).sum(axis=1), (c * target).sum(axis=1)
         cand_cost = np.empty((m, len(cands)))
         cand_rho, cand_w = np.empty_like(cand_cost), np.empty_like(cand_cost)
+        cc, ct = c * c, c * target
         for di, d in enumerate(CANDIDATE_DIRS):
-            for ei, power in enumerate(_ladder_powers(x @ d)):
+            # g = c b^n: sum g^2 = sum c^2 b^(2n), the sum c^2 b^n two rungs up the ladder (as the kernel)
+            powers = _ladder_powers(x @ d, extra=2)
+            sums = [(cc * power).sum(axis=1) for power in powers]
+            for ei in range(len(CANDIDATE_EXPONENTS)):
                 ci = ei * len(CANDIDATE_DIRS) + di
-                g = c * power
                 cand_rho[:, ci], cand_w[:, ci], cand_cost[:, ci] = _nnls_box(
-                    scc, (g * g).sum(axis=1), (c * g).sum(axis=1), sct, (g * target).sum(axis=1), stt, np.exp(_lobe_log_cap(log_cap, j)))
+                    scc, sums[ei + 2], sums[ei], sct, (ct * powers[ei]).sum(axis=1), stt,
+                    np.exp(_lobe_log_cap(log_cap, j)))
         cand_cost[used] = np.inf
         lowest = np.full(m, np.inf)
         starts = N_STARTS if k == 1 else 1     # later lobes start from one shape: a second one never paid off
