@@ -478,8 +478,24 @@ def _reweighted_normals(b, lum, ld, bright):
     return b, scale
 
 
+PS_THREAD_TEXELS = 4096  # photometric stereo runs on one thread per core for every this many texels (NumPy
+                         # releases the GIL in its array loops; each texel's normal is independent of the others)
+
+
 def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     """Robust photometric stereo of ``values [S, n, C]`` lit from ``sample_lights [S, 3]`` -> ``[n, 3]`` float32."""
+    n = values.shape[1]
+    threads = min(os.cpu_count() or 1, n // PS_THREAD_TEXELS)
+    if threads < 2:
+        return _normals_part(values, sample_lights)
+    from concurrent.futures import ThreadPoolExecutor
+    parts = np.array_split(np.arange(n), threads)
+    with ThreadPoolExecutor(threads) as pool:
+        normals = pool.map(lambda part: _normals_part(values[:, part[0]:part[-1] + 1], sample_lights), parts)
+        return np.concatenate(list(normals))
+
+
+def _normals_part(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     lum = np.ascontiguousarray(values.mean(axis=2, dtype=np.float64).T)   # [n, S]
     keep = _trimmed_weights(lum)
     kept_lo = np.where(keep, lum, np.inf).min(axis=1)
