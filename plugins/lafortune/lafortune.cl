@@ -116,7 +116,12 @@ __kernel void lafortune_eval_scattered(__global const float *diffuse, __global c
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
 #define VF CAT(float, VW)
-#define VLOAD CAT(vload, VW)
+#define VI CAT(int, VW)
+// Blocks are read as whole vectors: every block starts at a multiple of VW floats of a texel's rows, and every
+// texel's rows at a multiple of VW floats of the buffer.  Conditional values are vector ?: (a select) and the
+// exponent clamp a compare, which compile in place where select() and fmin() were calls into PoCL's library.
+#define VLOAD(p) (*(__global const VF *)(p))
+#define CLAMP_T(e) ((e) < T_CAP ? (e) : (VF)T_CAP)                  /* fmin(e, T_CAP), NaN -> T_CAP as fmin */
 
 inline float hsum(const VF v) {
 #if VW == 16
@@ -155,14 +160,14 @@ typedef struct {
 inline void geometry(const Texel *tx, int s, VF *x, VF *c) {
     __global const float *q = tx->geom + VW * s;
     const int stride = VW * tx->n_block;
-    x[0] = VLOAD(0, q);
-    x[1] = VLOAD(0, q + stride);
-    x[2] = VLOAD(0, q + 2 * stride);
-    *c = VLOAD(0, q + 3 * stride);
+    x[0] = VLOAD(q);
+    x[1] = VLOAD(q + stride);
+    x[2] = VLOAD(q + 2 * stride);
+    *c = VLOAD(q + 3 * stride);
 }
 
 inline VF channel_values(const Texel *tx, int s, int ch) {
-    return VLOAD(0, tx->samples + VW * (ch * tx->n_block + s));
+    return VLOAD(tx->samples + VW * (ch * tx->n_block + s));
 }
 
 inline VF load_y(const Texel *tx, int s) {
@@ -174,8 +179,10 @@ inline VF load_y(const Texel *tx, int s) {
 
 // A lobe exp(alpha + n ln(base)) of the VW bases, 0 where base <= B_MIN (never a negative base to a power).
 inline VF lobe_block(const VF base, float alpha, float n) {
-    const VF safe = select((VF)1.0f, base, base > B_MIN);
-    return select((VF)0.0f, exp(fmin(alpha + n * log(safe), T_CAP)), base > B_MIN);
+    const VI pos = base > B_MIN;
+    const VF safe = pos ? base : (VF)1.0f;
+    const VF e = alpha + n * log(safe);
+    return pos ? exp(CLAMP_T(e)) : (VF)0.0f;
 }
 
 inline void exponents_of(const float *z, int k, float *nexp) {
@@ -301,39 +308,50 @@ inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
 
 // One pass over the samples at state z: the cost |y - f(z)|^2 and, with H given, the normal equations H = J'J
 // (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).
-float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g) {
+// One pass with k known: the calls with k = NLOBE and k = 1 (the last and the first lobe stage) are compiled
+// with their loops unrolled.  Each lobe's two free psi columns come straight from the x they multiply (psi_a: x[0] or x[1],
+// psi_b: x[1] or x[2], the components other than the frozen largest), so no Jacobian entry is gathered.
+inline __attribute__((always_inline))
+float normal_equations_k(const Texel *tx, const float *z, const int k, const int *cols, float *H, float *g) {
     const int np = 1 + 4 * k;
     float nexp[NLOBE];
-    VF full[NS], J[NP], Hv[NP * (NP + 1) / 2], gv[NP];
+    int psi_a[NLOBE], psi_b[NLOBE];
+    VF J[NP], Hv[NP * (NP + 1) / 2], gv[NP];
     exponents_of(z, k, nexp);
     if (H) {
         for (int i = 0; i < np * (np + 1) / 2; ++i) Hv[i] = 0.0f;
         for (int i = 0; i < np; ++i) gv[i] = 0.0f;
+        for (int i = 0; i < k; ++i) {
+            psi_a[i] = cols[1 + 4 * i] - (1 + 5 * i);
+            psi_b[i] = cols[2 + 4 * i] - (1 + 5 * i);
+        }
     }
     VF cost = 0.0f;
     for (int s = 0; s < tx->n_block; ++s) {
         VF x[3], c;
         geometry(tx, s, x, &c);
-        full[0] = c;
+        J[0] = c;
         VF f = z[0];
         for (int i = 0; i < k; ++i) {
             const float *l = z + 1 + 5 * i;
             const VF b = (l[0] * x[0] + l[1] * x[1]) + l[2] * x[2];
-            const VF safe = select((VF)1.0f, b, b > B_MIN);
+            const VI pos = b > B_MIN;
+            const VF safe = pos ? b : (VF)1.0f;
             const VF lb = log(safe);
             const VF e = l[3] + nexp[i] * lb;
-            const VF v = select((VF)0.0f, exp(fmin(e, T_CAP)), b > B_MIN);
-            const VF live = select((VF)0.0f, (VF)1.0f, (b > B_MIN) & (e <= T_CAP));   // else no derivative
-            const VF dpsi = live * (v * nexp[i] / safe);
-            for (int j = 0; j < 3; ++j) full[1 + 5 * i + j] = c * (dpsi * x[j]);
-            full[4 + 5 * i] = c * (live * v);
-            full[5 + 5 * i] = c * (live * (v * nexp[i] * lb));
+            const VF v = pos ? exp(CLAMP_T(e)) : (VF)0.0f;
             f += v;
+            if (!H) continue;
+            const VI live = pos & (e <= T_CAP);                   // else no derivative
+            const VF dpsi = live ? v * nexp[i] / safe : (VF)0.0f;
+            J[1 + 4 * i] = c * (dpsi * (psi_a[i] == 0 ? x[0] : x[1]));
+            J[2 + 4 * i] = c * (dpsi * (psi_b[i] == 1 ? x[1] : x[2]));
+            J[3 + 4 * i] = c * (live ? v : (VF)0.0f);
+            J[4 + 4 * i] = c * (live ? v * nexp[i] * lb : (VF)0.0f);
         }
         const VF r = load_y(tx, s) - c * f;
         cost += r * r;
         if (!H) continue;
-        for (int a = 0; a < np; ++a) J[a] = full[cols[a]];
         for (int a = 0, ab = 0; a < np; ++a) {
             gv[a] += J[a] * r;
             for (int b2 = 0; b2 <= a; ++b2, ++ab) Hv[ab] += J[a] * J[b2];
@@ -345,6 +363,12 @@ float normal_equations(const Texel *tx, const float *z, int k, const int *cols, 
             for (int b2 = 0; b2 <= a; ++b2, ++ab) H[a * NP + b2] = hsum(Hv[ab]);
         }
     return hsum(cost);
+}
+
+float normal_equations(const Texel *tx, const float *z, int k, const int *cols, float *H, float *g) {
+    if (k == NLOBE) return normal_equations_k(tx, z, NLOBE, cols, H, g);
+    if (k == 1) return normal_equations_k(tx, z, 1, cols, H, g);
+    return normal_equations_k(tx, z, k, cols, H, g);
 }
 
 // Each lobe's reach exp((cap - alpha) / n) at state z: how far |psi_j| may go before the lobe passes its cap.
@@ -370,16 +394,18 @@ inline float clip_move(const float *z, int col, float d, float log_cap, const fl
 // bound it crosses (a parameter already there stays) and the others are solved again with that move fixed.
 // Clipping the step instead (and projecting) left LM trying ever shorter steps against a bound that the
 // other parameters did not know about.  Returns the gain the quadratic model predicts, 2 d'g - d'Hd (<= 0 when
-// the box leaves no descent), or NaN when a Cholesky factorisation fails.
-float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
-                  int np, float log_cap, const float *reach, float *delta) {
+// the box leaves no descent), or NaN when a Cholesky factorisation fails.  (Compiled with np known for the
+// first and the last lobe stage, so the Cholesky loops unroll.)
+inline __attribute__((always_inline))
+float damped_step_n(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
+                    const int np, float log_cap, const float *reach, float *delta) {
     float A[NP * NP], rhs[NP];
     int pinned[NP];
     for (int i = 0; i < np; ++i) pinned[i] = 0;
     for (int round = 0; round < 2; ++round) {
         for (int i = 0; i < np; ++i) {
             rhs[i] = g[i];
-            for (int j = 0; j < np; ++j)
+            for (int j = 0; round > 0 && j < np; ++j)             // nothing is pinned in the first round
                 if (pinned[j] && j != i) rhs[i] -= (i > j ? H[i * NP + j] : H[j * NP + i]) * delta[j];
             for (int j = 0; j < i; ++j) A[i * NP + j] = (pinned[i] || pinned[j]) ? 0.0f : H[i * NP + j];
             A[i * NP + i] = pinned[i] ? 1.0f : H[i * NP + i] + lam * dg[i];
@@ -402,6 +428,13 @@ float damped_step(const float *H, const float *g, const float *dg, float lam, co
         predicted += delta[i] * (2.0f * g[i] - hd);
     }
     return predicted;
+}
+
+float damped_step(const float *H, const float *g, const float *dg, float lam, const float *z, const int *cols,
+                  int np, float log_cap, const float *reach, float *delta) {
+    if (np == NP) return damped_step_n(H, g, dg, lam, z, cols, NP, log_cap, reach, delta);
+    if (np == 5) return damped_step_n(H, g, dg, lam, z, cols, 5, log_cap, reach, delta);
+    return damped_step_n(H, g, dg, lam, z, cols, np, log_cap, reach, delta);
 }
 
 // Levenberg-Marquardt on the 1 + 4k free parameters of state z; only improving steps are taken.  Damped normal
@@ -568,7 +601,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             for (int di = 0; di < N_DIRS; ++di) {
                 const VF b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
                 // The shape is 0 where b <= B_MIN (as lobe_value gives) or c = 0: those samples add exactly 0.
-                const VF base = select((VF)0.0f, b, (b > B_MIN) & (c != 0.0f));
+                const VF base = (b > B_MIN) & (c != 0.0f) ? b : (VF)0.0f;
                 // The exponent ladder 1, 1.5, 2, 3, 4, 6, ... (model.CANDIDATE_EXPONENTS) by squaring alone:
                 // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
                 VF even = base, odd = base * sqrt(base);
