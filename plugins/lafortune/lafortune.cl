@@ -601,7 +601,7 @@ __kernel void lafortune_fit(__global const float *samples, __global const float 
             for (int di = 0; di < N_DIRS; ++di) {
                 const VF b = (CAND_DIRS[3 * di] * x[0] + CAND_DIRS[3 * di + 1] * x[1]) + CAND_DIRS[3 * di + 2] * x[2];
                 // The shape is 0 where b <= B_MIN (as lobe_value gives) or c = 0: those samples add exactly 0.
-                const VF base = (b > B_MIN) & (c != 0.0f) ? b : (VF)0.0f;
+                const VF base = ((b > B_MIN) & (c != 0.0f)) ? b : (VF)0.0f;
                 // The exponent ladder 1, 1.5, 2, 3, 4, 6, ... (model.CANDIDATE_EXPONENTS) by squaring alone:
                 // b^(2n) = (b^n)^2, so the whole grid costs one sqrt and no exp or log.
                 VF even = base, odd = base * sqrt(base);
