@@ -174,8 +174,13 @@ def _local(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 def _local_rows(frames: np.ndarray, dirs: np.ndarray) -> list[np.ndarray]:
     """The three components ``[N, D]`` of :func:`_local`."""
     d = dirs.astype(np.float32)
-    return [(frames[:, i, 0, None] * d[:, 0] + frames[:, i, 1, None] * d[:, 1]) + frames[:, i, 2, None] * d[:, 2]
-            for i in range(3)]
+    rows = []
+    for i in range(3):
+        row = frames[:, i, 0, None] * d[:, 0]
+        row += frames[:, i, 1, None] * d[:, 1]
+        row += frames[:, i, 2, None] * d[:, 2]
+        rows.append(row)
+    return rows
 
 
 def _local_each(frames: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -936,7 +941,9 @@ def fit_geometry(frames: np.ndarray, sample_lights: np.ndarray, sample_views: np
     """``[n, 4, S]`` float32: per texel ``x = (ux vx, uy vy, uz vz)`` and ``c = max(uz, 0)`` of every sample, with
     the light ``u`` and view ``v`` in the texel's frame (the float32 operations the NumPy fit widens); with
     ``padded``, zeros after the ``S`` samples up to ``padded``."""
-    u, v = _local_rows(frames, sample_lights), _local_rows(frames, sample_views)
+    u = _local_rows(frames, sample_lights)
+    views, which = np.unique(sample_views, axis=0, return_inverse=True)   # a view serves all its lights
+    v = [row[:, which.ravel()] if len(views) > 1 else row for row in _local_rows(frames, views)]
     n, s = u[0].shape
     out = np.zeros((n, 4, padded or s), np.float32)
     for i in range(3):
@@ -988,7 +995,7 @@ def _signal_scale(values: np.ndarray, variant: str) -> np.ndarray:
     its largest sample magnitude (all channels), 0 for a black texel.  A power of two divides the samples
     exactly, so the scaled fit sees the very same digits (texels already peaking in (0.5, 1] are not touched);
     one scale per texel keeps the rgb channels' relative brightness, as the lum colour does."""
-    peak = np.abs(values).max(axis=(0, 2)).astype(np.float64)[:, None]       # [n, 1]
+    peak = np.maximum(values.max(axis=0), -values.min(axis=0)).max(axis=1).astype(np.float64)[:, None]  # [n, 1]
     mantissa, exponent = np.frexp(peak)                                     # peak = mantissa 2^exponent, in [0.5, 1)
     scale = np.where(peak > 0, np.ldexp(1.0, exponent - (mantissa == 0.5)), 0.0)
     return np.repeat(scale, 1 if variant == "lum" else values.shape[2], axis=1)
