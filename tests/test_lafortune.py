@@ -99,6 +99,23 @@ def test_opencl_fit_matches_numpy(variant, lobes, views):
     assert gpu_info["not_converged"] <= ref_info["not_converged"] + 3
 
 
+def test_fit_does_not_depend_on_the_kernels_vector_width(monkeypatch):
+    """The kernel reads a texel's samples VECTOR_WIDTH at a time, zero-padded to whole blocks: 11 lights leave 5
+    padded lanes at width 8 and 1 at width 4, which add exactly nothing, so the fits differ only by the order of
+    float32 sums."""
+    from btforge.plugins.lafortune import model
+    lights = spiral(11)
+    truth = lafortune_truth(5, 6, 1, 12)
+    s = stack_of(truth.evaluate(lights, engine="numpy"), lights)
+    eight, eight_info = fit_lafortune(s, 2)
+    monkeypatch.setattr(model, "VECTOR_WIDTH", 4)
+    four, four_info = fit_lafortune(s, 2)
+    assert abs(four_info["rms"] - eight_info["rms"]) <= 0.01 * eight_info["rms"] + 1e-7
+    a, b = four.evaluate(lights), eight.evaluate(lights)
+    per_texel = np.abs(a - b).max(axis=(0, 1, 4)) / np.abs(b).max()
+    assert np.mean(per_texel < 1e-3) >= 0.9, per_texel
+
+
 def random_model(rng, n_texel, variant, lobes, huge=False):
     channels = 3
     k = lobes if variant == "lum" else 2 * channels
