@@ -275,18 +275,20 @@ float criterion(const Texel *tx, const float *z, int k, float *colour_out) {
     return sse;
 }
 
-// In-place Cholesky of the lower triangle of A (row stride NP); 0 when a pivot is not positive.
+// In-place Cholesky of the lower triangle of A (row stride NP), the reciprocal of each pivot on the diagonal
+// (the solves multiply by it: a division on their critical path costs 3x a multiplication); 0 when a pivot
+// is not positive.
 inline int cholesky(float *A, int n) {
     for (int j = 0; j < n; ++j) {
         float s = A[j * NP + j];
         for (int m = 0; m < j; ++m) s -= A[j * NP + m] * A[j * NP + m];
         if (!(s > 0.0f)) return 0;
-        const float d = sqrt(s);
-        A[j * NP + j] = d;
+        const float inv = 1.0f / sqrt(s);
+        A[j * NP + j] = inv;
         for (int i = j + 1; i < n; ++i) {
             float v = A[i * NP + j];
             for (int m = 0; m < j; ++m) v -= A[i * NP + m] * A[j * NP + m];
-            A[i * NP + j] = v / d;
+            A[i * NP + j] = v * inv;
         }
     }
     return 1;
@@ -297,20 +299,20 @@ inline void cholesky_solve(const float *A, const float *b, float *x, int n) {
     for (int i = 0; i < n; ++i) {
         float v = b[i];
         for (int m = 0; m < i; ++m) v -= A[i * NP + m] * y[m];
-        y[i] = v / A[i * NP + i];
+        y[i] = v * A[i * NP + i];
     }
     for (int i = n - 1; i >= 0; --i) {
         float v = y[i];
         for (int m = i + 1; m < n; ++m) v -= A[m * NP + i] * x[m];
-        x[i] = v / A[i * NP + i];
+        x[i] = v * A[i * NP + i];
     }
 }
 
 // One pass over the samples at state z: the cost |y - f(z)|^2 and, with H given, the normal equations H = J'J
-// (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).
-// One pass with k known: the calls with k = NLOBE and k = 1 (the last and the first lobe stage) are compiled
-// with their loops unrolled.  Each lobe's two free psi columns come straight from the x they multiply (psi_a: x[0] or x[1],
-// psi_b: x[1] or x[2], the components other than the frozen largest), so no Jacobian entry is gathered.
+// (lower triangle) and g = J'r of the 1 + 4k free parameters (their state indices in cols).  The calls with
+// k = NLOBE and k = 1 (the last and the first lobe stage) are compiled with k known.  Each lobe's two free psi
+// columns come straight from the x they multiply (psi_a: x[0] or x[1], psi_b: x[1] or x[2], the components
+// other than the frozen largest), so no Jacobian entry is gathered.
 inline __attribute__((always_inline))
 float normal_equations_k(const Texel *tx, const float *z, const int k, const int *cols, float *H, float *g) {
     const int np = 1 + 4 * k;
