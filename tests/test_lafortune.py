@@ -246,6 +246,18 @@ def test_lambertian_normals_are_estimated():
     assert info["rms"] < 1e-3                                                 # Lambert is rho_d x cosine exactly
 
 
+def test_photometric_stereo_on_threads_equals_one_pass(monkeypatch):
+    """Photometric stereo splits a band's texels over threads (one per core): each texel's normal is its own."""
+    from btforge.plugins.lafortune import model
+    monkeypatch.setattr(model, "PS_THREAD_TEXELS", 40)
+    monkeypatch.setattr(model.os, "cpu_count", lambda: 3)
+    rng = np.random.default_rng(2)
+    values = rng.uniform(0, 1, (20, 130, 3)).astype(np.float32)
+    values[:, :7] = 0.0                                                     # black texels in the first part
+    lights = spiral(20)
+    np.testing.assert_array_equal(model._normals_band(values, lights), model._normals_part(values, lights))
+
+
 def test_photometric_stereo_does_not_depend_on_the_order_of_the_lights():
     lights = spiral(30, min_el=5)
     n = np.array([0.45, -0.3, 0.84]) / np.linalg.norm([0.45, -0.3, 0.84])
