@@ -126,10 +126,13 @@ class Backend:
                 self._kernels[key] = kern
             return kern
 
-    def run(self, kernel: "cl.Kernel", global_size: tuple[int, ...], *args) -> None:
-        """Set the arguments of ``kernel`` and enqueue it over ``global_size`` (work-group size left to the device)."""
+    def run(self, kernel: "cl.Kernel", global_size: tuple[int, ...], *args,
+            local_size: tuple[int, ...] | None = None) -> None:
+        """Set the arguments of ``kernel`` and enqueue it over ``global_size``; the work-group size is left to the
+        device unless ``local_size`` is given (PoCL's CPU device keeps every work-item's private arrays of a
+        work-group on one thread's stack, so a kernel with large private arrays needs small work-groups)."""
         kernel.set_args(*args)
-        self.cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, None)
+        self.cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size)
 
     def host_input(self, array: np.ndarray):
         """A read-only device view of a C-contiguous host array, without a copy where the device shares host memory.

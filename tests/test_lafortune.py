@@ -99,6 +99,23 @@ def test_opencl_fit_matches_numpy(variant, lobes, views):
     assert gpu_info["not_converged"] <= ref_info["not_converged"] + 3
 
 
+def test_fit_does_not_depend_on_the_kernels_vector_width(monkeypatch):
+    """The kernel reads a texel's samples VECTOR_WIDTH at a time, zero-padded to whole blocks: 11 lights leave 5
+    padded lanes at width 8 and 1 at width 4, which add exactly nothing, so the fits differ only by the order of
+    float32 sums."""
+    from btforge.plugins.lafortune import model
+    lights = spiral(11)
+    truth = lafortune_truth(5, 6, 1, 12)
+    s = stack_of(truth.evaluate(lights, engine="numpy"), lights)
+    eight, eight_info = fit_lafortune(s, 2)
+    monkeypatch.setattr(model, "VECTOR_WIDTH", 4)
+    four, four_info = fit_lafortune(s, 2)
+    assert abs(four_info["rms"] - eight_info["rms"]) <= 0.01 * eight_info["rms"] + 1e-7
+    a, b = four.evaluate(lights), eight.evaluate(lights)
+    per_texel = np.abs(a - b).max(axis=(0, 1, 4)) / np.abs(b).max()
+    assert np.mean(per_texel < 1e-3) >= 0.9, per_texel
+
+
 def random_model(rng, n_texel, variant, lobes, huge=False):
     channels = 3
     k = lobes if variant == "lum" else 2 * channels
@@ -227,6 +244,18 @@ def test_lambertian_normals_are_estimated():
     assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) < 0.5
     model, info = fit_lafortune(stack_of(values[None], lights), 1)
     assert info["rms"] < 1e-3                                                 # Lambert is rho_d x cosine exactly
+
+
+def test_photometric_stereo_on_threads_equals_one_pass(monkeypatch):
+    """Photometric stereo splits a band's texels over threads (one per core): each texel's normal is its own."""
+    from btforge.plugins.lafortune import model
+    monkeypatch.setattr(model, "PS_THREAD_TEXELS", 40)
+    monkeypatch.setattr(model.os, "cpu_count", lambda: 3)
+    rng = np.random.default_rng(2)
+    values = rng.uniform(0, 1, (20, 130, 3)).astype(np.float32)
+    values[:, :7] = 0.0                                                     # black texels in the first part
+    lights = spiral(20)
+    np.testing.assert_array_equal(model._normals_band(values, lights), model._normals_part(values, lights))
 
 
 def test_photometric_stereo_does_not_depend_on_the_order_of_the_lights():
@@ -458,6 +487,29 @@ def test_bands_give_the_same_fit():
     banded, _ = fit_lafortune(s, 1, budget_bytes=16 * 4 * 3 * 4 * 2)       # two rows per band
     for name in LafortuneModel.texel_fields:
         np.testing.assert_array_equal(getattr(whole, name), getattr(banded, name))
+
+
+def test_a_stored_stack_gives_the_same_model_as_the_in_memory_one(tmp_path):
+    """lafortune.fit is declared per-texel (``--scheduler dask`` runs it on bands of a store): a chunked store,
+    read band by band, gives exactly the model of the same samples in memory."""
+    from btforge.plugins.stackio.images import write_stack
+    from btforge.plugins.stackio.importer import import_capture
+    fit = btforge.stage("lafortune.fit")
+    assert fit.is_per_texel({"lobes": 2, "variant": "lum", "iterations": 100})
+    truth = lafortune_truth(10, 7, 1, 8)
+    lights = spiral(16)
+    write_stack(stack_of(truth.evaluate(lights, engine="numpy"), lights), tmp_path / "cap", fmt="exr")
+    import_capture(tmp_path / "cap" / "lights.lp", tmp_path / "s.zarr", block=(3, 4))
+    stored = btforge.stage("stack.read")(path=str(tmp_path / "s.zarr"))["stack"]
+    assert stored.chunked
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BtforgeWarning)
+        for variant in ("lum", "rgb"):
+            memory = fit(stack=stored.in_memory(), lobes=1, variant=variant)["model"]
+            streamed, _ = fit_lafortune(stored, 1, variant, budget_bytes=7 * 16 * 3 * 4 * 3)   # 3 rows a band
+            for name in LafortuneModel.texel_fields:
+                np.testing.assert_array_equal(getattr(streamed, name), getattr(memory, name))
+            assert streamed.content_key == fit(stack=stored, lobes=1, variant=variant)["model"].content_key
 
 
 @pytest.mark.parametrize("kwargs,match", [
