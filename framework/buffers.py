@@ -122,7 +122,13 @@ def unit_directions(name: str, dirs: Any, owner: str = "") -> np.ndarray:
     if arr.shape[0] and norms.min() < 1e-9:
         i = int(np.argmin(norms))
         raise BtforgeInputError(f"{owner} '{name}'".strip(), f"direction {i} is zero", "give a non-zero vector")
-    return (arr / norms[:, None]).astype(np.float32)
+    unit = (arr / norms[:, None]).astype(np.float32)
+    # Keep float32 rows that are already unit as they are, so normalising is idempotent: a stack rebuilt from
+    # another stack's lights (a store read into memory, a dask band) sees bit-identical lights.
+    if np.asarray(dirs).dtype == np.float32:
+        already = np.abs(norms - 1.0) <= 4 * np.finfo(np.float32).eps
+        unit[already] = np.asarray(dirs)[already]
+    return unit
 
 
 def upper_hemisphere(name: str, dirs: np.ndarray, owner: str = "SampleStack") -> np.ndarray:

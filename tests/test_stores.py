@@ -5,6 +5,7 @@ import zipfile
 
 import numpy as np
 import pytest
+from hypothesis import given, strategies as st
 from PIL import Image
 
 import btforge
@@ -12,6 +13,7 @@ from btforge import BtforgeInputError
 from btforge.cli import main
 from btforge.plugins.stackio.images import load_stack, write_stack
 from btforge.plugins.stackio.importer import import_capture, load_store_stack
+from btforge.buffers import unit_directions
 from btforge.store import open_store
 
 from lightsets import dome
@@ -139,6 +141,23 @@ def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
         streamed = btforge.stage("ptm.fit")(stack=top, variant=variant)["model"]
         np.testing.assert_array_equal(streamed.coeffs, memory.coeffs)
         np.testing.assert_array_equal(streamed.albedo, memory.albedo)
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_normalising_directions_twice_changes_no_bit(seed):
+    raw = np.random.default_rng(seed).normal(size=(256, 3)) * 10.0
+    raw[:, 2] = np.abs(raw[:, 2]) + 1e-3
+    once = unit_directions("lights", raw)
+    np.testing.assert_array_equal(unit_directions("lights", once), once)
+
+
+def test_a_stored_stack_read_into_memory_keeps_its_lights_bit_for_bit(tmp_path):
+    rng = np.random.default_rng(3)
+    lights = rng.normal(size=(300, 3))
+    lights[:, 2] = np.abs(lights[:, 2]) + 0.05
+    stack = btforge.SampleStack(rng.random((1, 300, 2, 2, 1), dtype=np.float32), lights, [[0.0, 0.0, 1.0]], ("Y",))
+    stored = _stored(tmp_path, stack)
+    np.testing.assert_array_equal(stored.in_memory().lights, stored.lights)
 
 
 def test_a_cached_stored_stack_refers_to_the_store_and_refuses_a_changed_one(tmp_path):
