@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -64,8 +65,10 @@ def test_server_lists_models_and_serves_only_their_files(served):
 def test_cli_prints_its_address(tmp_path):
     model = btforge.stage("ptm.fit")(stack=capture(size=(8, 8)))["model"]
     btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "m"))
+    scratch_root = tmp_path / "tmp"
+    scratch_root.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "btforge.cli", "view", str(tmp_path / "m"), "--port", "0"],
-                            stdout=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, text=True, env={**os.environ, "TMPDIR": str(scratch_root)})
     try:
         line = proc.stdout.readline()
         url = line.split(" at ")[1].split()[0]
@@ -74,6 +77,7 @@ def test_cli_prints_its_address(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+    assert list(scratch_root.iterdir()) == []  # terminated, it still removed its scratch folder
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ import argparse
 import http.server
 import json
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -125,6 +126,11 @@ def view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (0: any free port; default 8765)")
 
 
+def _stop_on_terminate(signum, frame):
+    """A terminated server (kill, a service manager, a test) stops as on Ctrl-C, so its scratch folder goes too."""
+    raise KeyboardInterrupt
+
+
 def view_run(args) -> int:
     """Relight models in the browser: a local page with WebGL shading (drag the light, zoom, pan, snapshot)."""
     if not 0 <= args.port <= 65535:
@@ -136,6 +142,7 @@ def view_run(args) -> int:
                                 "give another --port, or 0 for any free one") from None
     print(f"btforge view: {len(server.folders)} model(s) at {server.url}  (Ctrl-C stops)", flush=True)
     try:
+        signal.signal(signal.SIGTERM, _stop_on_terminate)
         thread.join()
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)
