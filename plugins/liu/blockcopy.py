@@ -80,10 +80,16 @@ def harris_response(image: np.ndarray, sigma: float = 1.5) -> np.ndarray:
     return sxx * syy - sxy * sxy - HARRIS_K * (sxx + syy) ** 2
 
 
+@functools.lru_cache(maxsize=64)
 def _offsets(size: int) -> np.ndarray:
     r = size // 2
     n = min(size, BLOCK_SAMPLES)
-    return np.unique(np.round(np.linspace(-r, r, n)).astype(np.int64))
+    return _frozen(np.unique(np.round(np.linspace(-r, r, n)).astype(np.int64)))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)   # memoised arrays are shared
+    return array
 
 
 @dataclasses.dataclass
@@ -110,29 +116,42 @@ def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: st
         return None
     if len(centres) > MAX_POSITIONS:
         centres = centres[np.sort(rng.choice(len(centres), MAX_POSITIONS, replace=False))]
-    off = _offsets(size)
-    dr, dc = np.meshgrid(off, off, indexing="ij")
-    vectors = grey[centres[:, :1] + dr.ravel()[None], centres[:, 1:] + dc.ravel()[None]].astype(np.float32)
+    vectors = _gather(np.ascontiguousarray(grey, np.float32), 0, centres, size)
     mean = vectors.mean(0)
     if vectors.shape[1] <= FULL_DIMS:     # small blocks: the tree searches the blocks themselves, exactly
         axes = np.eye(vectors.shape[1], dtype=np.float32)
+        projected = vectors - mean
     else:
-        sample = vectors[::max(1, len(vectors) // PCA_ROWS)] - mean
-        _, axes = np.linalg.eigh(sample.T.astype(np.float64) @ sample)
+        sample = (vectors[::max(1, len(vectors) // PCA_ROWS)] - mean).astype(np.float64)
+        _, axes = np.linalg.eigh(sample.T @ sample)
         axes = np.ascontiguousarray(axes[:, ::-1][:, :SEARCH_DIMS], np.float32)
-    return _Index(size, centres, vectors, mean, axes, BlockIndex((vectors - mean) @ axes, engine))
+        projected = (vectors - mean) @ axes
+    return _Index(size, centres, vectors, mean, axes, BlockIndex(projected, engine))
+
+
+@functools.lru_cache(maxsize=64)
+def _sample_offsets(size: int, stride: int) -> np.ndarray:
+    """Flat offsets of the compared pixels of a ``size`` block (see :func:`_offsets`) in rows of ``stride``."""
+    off = _offsets(size)
+    return _frozen((off[:, None] * stride + off[None]).ravel())
+
+
+def _gather(image: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.ndarray:
+    """The compared values ``[n, D]`` of the ``size`` blocks centred at ``pixels [n, 2]`` of an image that was
+    padded by ``pad`` on every side."""
+    flat = (pixels[:, 0] + pad) * image.shape[1] + pixels[:, 1] + pad
+    return image.reshape(-1)[flat[:, None] + _sample_offsets(size, image.shape[1])[None]]
 
 
 def _template_vectors(padded: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.ndarray:
-    off = _offsets(size)
-    dr, dc = np.meshgrid(off, off, indexing="ij")
-    return padded[pixels[:, :1] + pad + dr.ravel()[None], pixels[:, 1:] + pad + dc.ravel()[None]].astype(np.float32)
+    return _gather(padded, pad, pixels, size)
 
 
 def _match(index: _Index, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Best reference centre ``[M, 2]`` and normalised SSD ``[M]`` for template block vectors ``[M, D]``."""
     lossless = index.axes.shape[0] == index.axes.shape[1]
-    idx, _ = index.search.query((queries - index.mean) @ index.axes, 1 if lossless else RERANK)
+    centred = queries - index.mean
+    idx, _ = index.search.query(centred if lossless else centred @ index.axes, 1 if lossless else RERANK)
     full = ((index.vectors[idx] - queries[:, None]) ** 2).sum(-1)
     best = full.argmin(1)
     chosen = idx[np.arange(len(idx)), best]
@@ -150,6 +169,32 @@ class BlockCopy:
     rounds: int = 0
 
 
+class _Frame:
+    """A ``[H, W]`` grid embedded with a ``margin`` of cells on every side (and its right and bottom edges padded
+    to multiples of ``tile``), so that the cells of any block near the grid are flat indices of one array, with
+    no clipping."""
+
+    def __init__(self, shape, margin: int, tile: int = 1):
+        H, W = self.shape = shape
+        self.margin = m = margin
+        self.padded = (-(-H // tile) * tile + 2 * m, -(-W // tile) * tile + 2 * m)
+
+    def flat(self, pixels: np.ndarray) -> np.ndarray:
+        """Flat padded indices of ``pixels [n, 2]`` (row, col)."""
+        return (pixels[:, 0] + self.margin) * self.padded[1] + pixels[:, 1] + self.margin
+
+    def block(self, flat: np.ndarray, size: int) -> np.ndarray:
+        """Flat padded indices ``[n, size * size]`` of the ``size x size`` blocks centred at ``flat [n]``."""
+        return flat[:, None] + _square(size, self.padded[1])[None]
+
+
+@functools.lru_cache(maxsize=64)
+def _square(size: int, stride: int) -> np.ndarray:
+    """Flat offsets of a ``size x size`` square about its centre in an array of row length ``stride``."""
+    r = np.arange(-(size // 2), size // 2 + 1)
+    return _frozen((r[:, None] * stride + r[None]).ravel())
+
+
 class _Pending:
     """The pixels not yet done, and which of them are ready: ranked above every other pending pixel within
     ``reach`` (Chebyshev), so nothing processed before them in rank order can still change what fits at them,
@@ -157,29 +202,33 @@ class _Pending:
 
     Tested on tiles of side ``t = ceil(reach / 2)``: a tile's best pending pixel is ready when it beats the best
     of the 5 x 5 tiles around, a window (at least ``reach`` every way) a little larger than needed, which costs
-    a few rounds and saves a full-resolution maximum filter per round.  Ranks must be distinct.
+    a few rounds and saves a full-resolution maximum filter per round.  Ranks must be distinct.  The ranks live
+    in ``frame`` (-1 = done or outside the grid), so blocks of pixels are marked done by flat index.
     """
 
-    def __init__(self, rank: np.ndarray, reach: int):
-        H, W = self.shape = rank.shape
+    def __init__(self, rank: np.ndarray, reach: int, margin: int):
+        H, W = rank.shape
         self.t = t = max(1, -(-reach // 2))
+        self.frame = _Frame((H, W), margin, t)
         order = np.argsort(rank, axis=None, kind="stable")
         self.position = np.concatenate([[-1], order])           # dense rank (1 = lowest) -> flat pixel
-        self.rank = np.full((-(-H // t) * t, -(-W // t) * t), -1, np.int64)
+        self.rank = np.full(self.frame.padded, -1, np.int64)
         dense = np.empty(H * W, np.int64)
         dense[order] = np.arange(1, H * W + 1)
-        self.rank[:H, :W] = dense.reshape(H, W)
+        self.rank[margin:margin + H, margin:margin + W] = dense.reshape(H, W)
+        self.core = self.rank[margin:self.rank.shape[0] - margin, margin:self.rank.shape[1] - margin]
+        self.flat = self.rank.reshape(-1)
 
-    def done(self, rows: np.ndarray, cols: np.ndarray) -> None:
-        self.rank[rows, cols] = -1
+    def done(self, flat: np.ndarray) -> None:
+        self.flat[flat] = -1
 
     def ready(self) -> np.ndarray:
         t = self.t   # maxima of strided slices: ~30x faster than a reduction over a tiled 4-D view
-        columns = functools.reduce(np.maximum, (self.rank[:, i::t] for i in range(t)))
+        columns = functools.reduce(np.maximum, (self.core[:, i::t] for i in range(t)))
         tile_max = functools.reduce(np.maximum, (columns[i::t] for i in range(t)))
         around = ndimage.maximum_filter(tile_max, size=5, mode="constant", cval=-1)
         flat = self.position[tile_max[(tile_max > 0) & (tile_max == around)]]
-        return np.column_stack(np.divmod(flat, self.shape[1]))
+        return np.column_stack(np.divmod(flat, self.frame.shape[1]))
 
 
 @dataclasses.dataclass
@@ -204,30 +253,36 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
     are costed at all.  The result is that of visiting the pixels one by one in rank order.
     """
     H, W = rank.shape
-    reach = 2 * (max(sizes) // 2)
-    covered = np.zeros((H, W), bool)
-    pending = _Pending(rank, reach)
+    reach = 2 * (max(sizes) // 2) if len(sizes) else 0
+    grow = sizes[-1] // 2 if len(sizes) else 0    # a pixel this near a block cannot take even the smallest block
+    pending = _Pending(rank, reach, (max(sizes) // 2 if len(sizes) else 0) + grow)
+    frame = pending.frame
+    # covered cells, in the frame; the margin is cleared after every round, so blocks clipped at the edge fit
+    covered = np.zeros(frame.padded, bool)
+    covered_flat, m = covered.reshape(-1), frame.margin
     parts, queries, rounds = [], 0, 0
     while len(sizes):
         pixels = pending.ready()
         if len(pixels) == 0:
             break
         rounds += 1
+        flat = frame.flat(pixels)
         costs = np.full((len(sizes), len(pixels)), np.inf)
         centres = np.zeros((len(sizes), len(pixels), 2), np.int64)
         for s, size in enumerate(sizes):
-            here = _fits(covered, pixels, size)
+            here = ~covered_flat[frame.block(flat, size)].any(1)
             if here.any():
                 costs[s, here], centres[s, here] = cost(s, pixels[here])
                 queries += int(here.sum())
         best = costs.argmin(0)
         placed = np.isfinite(costs.min(0))
         for s, size in enumerate(sizes):
-            chosen = pixels[placed & (best == s)]
-            _mark(covered, chosen, size)
+            chosen = flat[placed & (best == s)]
+            covered_flat[frame.block(chosen, size)] = True
             # covered only grows: where not even the smallest block fits now, none ever will
-            pending.done(*_block_cells(chosen, size + 2 * (sizes[-1] // 2), (H, W))[:2])
-        pending.done(pixels[:, 0], pixels[:, 1])
+            pending.done(frame.block(chosen, size + 2 * grow))
+        covered[:m], covered[H + m:], covered[:, :m], covered[:, W + m:] = False, False, False, False
+        pending.done(flat)
         picked = np.flatnonzero(placed)
         parts.append((pixels[picked], best[picked], centres[best[picked], picked], costs[best[picked], picked]))
     if not parts:
@@ -244,16 +299,6 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
     owner = np.broadcast_to(np.arange(len(pixels))[:, None], rows.shape)
     inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
     return rows[inside], cols[inside], owner[inside]
-
-
-def _mark(mask, pixels, size):
-    mask[_block_cells(pixels, size, mask.shape)[:2]] = True
-
-
-def _fits(covered: np.ndarray, pixels: np.ndarray, size: int) -> np.ndarray:
-    """Whether the ``size x size`` block (clipped at the edge) at each of ``pixels`` overlaps no covered pixel."""
-    rows, cols, owner = _block_cells(pixels, size, covered.shape)
-    return np.bincount(owner[covered[rows, cols]], minlength=len(pixels)) == 0
 
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
@@ -273,7 +318,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         raise BtforgeInputError("liu.synthesize 'references'", f"a warped reference has no valid "
                                 f"{hole_size} x {hole_size} block", "give larger reference images")
     pad = max([i.size for i in indexes] + [hole_index.size]) // 2
-    padded = np.pad(guide, pad, mode="reflect")
+    padded = np.ascontiguousarray(np.pad(guide, pad, mode="reflect"), np.float32)
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
     rank = np.empty(H * W, np.int64)
     rank[np.argsort(-response, axis=None, kind="stable")] = np.arange(H * W, 0, -1)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 FAST_EPS = 1.0
+PARALLEL_QUERIES = 2000   # batches at least this large are searched on every core (smaller: threads cost more)
 ENGINES = ("fast", "exact")
 
 
@@ -41,6 +42,7 @@ class BlockIndex:
         if self._tree is None:
             from btforge.plugins.synth.search import knn
             return knn(self.vectors, queries, k, engine="exact")
-        d, i = self._tree.query(queries, k=k, eps=FAST_EPS)
+        workers = -1 if len(queries) >= PARALLEL_QUERIES else 1
+        d, i = self._tree.query(queries, k=k, eps=FAST_EPS, workers=workers)
         d, i = np.asarray(d).reshape(len(queries), k), np.asarray(i).reshape(len(queries), k)
         return i.astype(np.int64), (d * d).astype(np.float32)

@@ -10,6 +10,9 @@
 
 inline int wrap_index(int index, int period)
 {
+    if (index >= 0 && index < period) {   // the common case, without an integer division
+        return index;
+    }
     int m = index % period;
     return m < 0 ? m + period : m;
 }
