@@ -32,7 +32,8 @@ class BlockIndex:
         self._tree = None
         if engine == "fast":
             from scipy.spatial import cKDTree
-            self._tree = cKDTree(self.vectors)
+            # sliding-midpoint splits (not medians): built in about half the time, searched as fast on these blocks
+            self._tree = cKDTree(self.vectors, balanced_tree=False)
 
     def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(indices (M, k) int64, squared_distances (M, k) float32)`` of the ``k`` nearest rows, nearest
