@@ -18,6 +18,7 @@ nearest then re-ranked by their full sub-sampled SSD.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import math
@@ -143,10 +144,6 @@ def _gather(image: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.nd
     return image.reshape(-1)[flat[:, None] + _sample_offsets(size, image.shape[1])[None]]
 
 
-def _template_vectors(padded: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.ndarray:
-    return _gather(padded, pad, pixels, size)
-
-
 def _match(index: _Index, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Best reference centre ``[M, 2]`` and normalised SSD ``[M]`` for template block vectors ``[M, D]``."""
     lossless = index.axes.shape[0] == index.axes.shape[1]
@@ -210,11 +207,17 @@ class _Pending:
         H, W = rank.shape
         self.t = t = max(1, -(-reach // 2))
         self.frame = _Frame((H, W), margin, t)
-        order = np.argsort(rank, axis=None, kind="stable")
+        flat_rank = rank.reshape(-1)
+        if _is_dense(flat_rank):      # ranks 1 .. H W already: the order is the inverse permutation, no sort
+            order = np.empty(H * W, np.int64)
+            order[flat_rank - 1] = np.arange(H * W)
+            dense = flat_rank
+        else:
+            order = np.argsort(flat_rank, kind="stable")
+            dense = np.empty(H * W, np.int64)
+            dense[order] = np.arange(1, H * W + 1)
         self.position = np.concatenate([[-1], order])           # dense rank (1 = lowest) -> flat pixel
-        self.rank = np.full(self.frame.padded, -1, np.int64)
-        dense = np.empty(H * W, np.int64)
-        dense[order] = np.arange(1, H * W + 1)
+        self.rank = np.full(self.frame.padded, -1, np.int32)   # int32: half the memory traffic of every round
         self.rank[margin:margin + H, margin:margin + W] = dense.reshape(H, W)
         self.core = self.rank[margin:self.rank.shape[0] - margin, margin:self.rank.shape[1] - margin]
         self.flat = self.rank.reshape(-1)
@@ -229,6 +232,14 @@ class _Pending:
         around = ndimage.maximum_filter(tile_max, size=5, mode="constant", cval=-1)
         flat = self.position[tile_max[(tile_max > 0) & (tile_max == around)]]
         return np.column_stack(np.divmod(flat, self.frame.shape[1]))
+
+
+def _is_dense(rank: np.ndarray) -> bool:
+    """Whether the flat ``rank`` is a permutation of 1 .. its length."""
+    n = rank.size
+    if n == 0 or rank.min() != 1 or rank.max() != n:
+        return False
+    return bool((np.bincount(rank, minlength=n + 1)[1:] == 1).all())
 
 
 @dataclasses.dataclass
@@ -302,15 +313,22 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
 
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
-               hole_size: int = 3, seed: int = 0, engine: str = "fast") -> BlockCopy:
+               hole_size: int = 3, seed: int = 0, engine: str = "fast", threads: int = 1) -> BlockCopy:
     """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module;
-    the greedy pass is :func:`place_blocks`)."""
+    the greedy pass is :func:`place_blocks`); the block indexes are built on up to ``threads`` threads."""
     rng = np.random.default_rng(seed)
     H, W = template.shape
     grey = reference.mean(axis=2)
     guide = histogram_match(template, grey[valid] if valid.any() else grey)
     sizes = sorted({int(s) | 1 for s in block_sizes} | {hole_size | 1}, reverse=True)
-    built = {s: _block_index(grey, valid, s, rng, engine) for s in sizes}
+    # one generator per size, so the indexes can be built on threads (the k-d tree builds release the GIL)
+    seeds = rng.integers(0, 2**63, len(sizes))
+    build = lambda i: _block_index(grey, valid, sizes[i], np.random.default_rng(seeds[i]), engine)  # noqa: E731
+    if threads > 1:
+        with concurrent.futures.ThreadPoolExecutor(min(threads, len(sizes))) as pool:
+            built = dict(zip(sizes, pool.map(build, range(len(sizes)))))
+    else:
+        built = {s: build(i) for i, s in enumerate(sizes)}
     hole_index = built[hole_size | 1] or next((built[s] for s in sizes[::-1] if built[s] is not None), None)
     indexes = [built[s] for s in sorted({int(s) | 1 for s in block_sizes}, reverse=True) if built[s] is not None]
     if hole_index is None:
@@ -325,7 +343,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     rank = rank.reshape(H, W)
 
     def cost(s, pixels):
-        centres, ssd = _match(indexes[s], _template_vectors(padded, pad, pixels, indexes[s].size))
+        centres, ssd = _match(indexes[s], _gather(padded, pad, pixels, indexes[s].size))
         return ssd, centres
 
     placed = place_blocks(rank, [ix.size for ix in indexes], cost)
@@ -339,7 +357,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     hole_pixels = int((~covered).sum())
     if hole_pixels:
         pixels = np.argwhere(~covered)
-        centres, _ = _match(hole_index, _template_vectors(padded, pad, pixels, hole_index.size))
+        centres, _ = _match(hole_index, _gather(padded, pad, pixels, hole_index.size))
         out[pixels[:, 0], pixels[:, 1]] = reference[centres[:, 0], centres[:, 1]]
         source[pixels[:, 0], pixels[:, 1]] = centres
         covered[pixels[:, 0], pixels[:, 1]] = True
