@@ -106,7 +106,10 @@ def synthesize(field, references, views, lights, *, isotropic=True, count=3, blo
             out[v], templates_out[v] = out[first_view[v]], templates_out[first_view[v]]
             continue
         start = time.perf_counter()
-        images, _ = template.render(field.heights, albedo, field.normals, np.repeat(views[v:v + 1], L, 0), lights)
+        distinct = np.flatnonzero(first_light == np.arange(L))     # a repeated light's template is rendered once
+        images, _ = template.render(field.heights, albedo, field.normals, np.repeat(views[v:v + 1], len(distinct), 0),
+                                    lights[distinct])
+        images = images[np.searchsorted(distinct, first_light)]
         seconds["templates"] += time.perf_counter() - start
         templates_out[v, ..., 0] = images
         for l in range(L):
