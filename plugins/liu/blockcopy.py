@@ -327,7 +327,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     # one generator per size, so the indexes can be built on threads (the k-d tree builds release the GIL)
     seeds = rng.integers(0, 2**63, len(sizes))
     build = lambda i: _block_index(grey, valid, sizes[i], np.random.default_rng(seeds[i]), engine)  # noqa: E731
-    if threads > 1:
+    if threads > 1 and engine == "fast":
         with concurrent.futures.ThreadPoolExecutor(min(threads, len(sizes))) as pool:
             built = dict(zip(sizes, pool.map(build, range(len(sizes)))))
     else:

@@ -56,9 +56,9 @@ def reference_table(references):
 def synthesize_image(template_image, references, choice: Choice, pairs, block_sizes, seed, engine="fast"):
     """One target image ``[H, W, C]``: block copy from each chosen reference, blended with eq. 8's weights.
 
-    The references' block copies are independent (each has its own seed) and run on a thread each, up to the
-    number of cores (with one reference, its block indexes are built on threads): the k-d tree builds and
-    searches and the large array operations release the GIL.
+    The references' block copies are independent (each has its own seed) and, with the ``fast`` engine, run on
+    a thread each, up to the number of cores (with one reference, its block indexes are built on threads): the
+    k-d tree builds and searches and the large array operations release the GIL.
     """
     def copy(i):
         v, l = pairs[choice.indices[i]]
@@ -67,7 +67,7 @@ def synthesize_image(template_image, references, choice: Choice, pairs, block_si
         return blockcopy.block_copy(template_image, warped, valid, block_sizes, seed=seed + 7919 * i, engine=engine,
                                     threads=_WORKERS if count == 1 else 1)
     count = len(choice.indices)
-    if count > 1 and _WORKERS > 1:
+    if count > 1 and _WORKERS > 1 and engine == "fast":   # (the exact engine's OpenCL kernels are not shared)
         with concurrent.futures.ThreadPoolExecutor(min(count, _WORKERS)) as pool:
             results = list(pool.map(copy, range(count)))
     else:
