@@ -49,7 +49,7 @@ def _row(table, step, size, seconds, extra=""):
 
 
 def bench_liu(args: list[str]) -> int:
-    """Time each step of Liu et al.'s BTF synthesis: height from shading, height synthesis, templates, images, grid."""
+    """Time each step of Liu et al.'s BTF synthesis: height from shading, height synthesis, templates, images, shadow IoU, grid."""
     from btforge import SampleStack
     from btforge.plugins.height.synthetic import known_capture
     from btforge.plugins.liu import settings
