@@ -49,7 +49,7 @@ def _row(table, step, size, seconds, extra=""):
 
 
 def bench_liu(args: list[str]) -> int:
-    """Time each step of Liu et al.'s BTF synthesis: height from shading, height synthesis, templates, images, shadow IoU, grid."""
+    """Time each step of Liu et al.'s BTF synthesis: height from shading and synthesis, templates, images, IoU, grid."""
     from btforge import SampleStack
     from btforge.plugins.height.synthetic import known_capture
     from btforge.plugins.liu import settings
@@ -135,8 +135,9 @@ def _steps(table, opts, capture, refs):
         result = consistency.measure(tilts=tilts, baseline=tilts == (70, 75))
         seconds, _CPU[:] = time.perf_counter() - start, [time.process_time() - start_cpu]
         base = f", per-light 2D quilting {result.per_light_2d.mean():.3f}" if result.per_light_2d.size else ""
-        _row(table, f"shadow IoU, lights at tilts {tilts[0]}, {tilts[1]}", f"112^2, {len(result.liu)} lights (2 tilts x 6 az.)",
-             seconds, f"IoU mean {result.liu.mean():.3f} (min {result.liu.min():.3f}) over {len(result.liu)} lights, "
+        _row(table, f"shadow IoU, lights at tilts {tilts[0]}, {tilts[1]}",
+             f"112^2, {len(result.liu)} lights (2 tilts x 6 az.)", seconds,
+             f"IoU mean {result.liu.mean():.3f} (min {result.liu.min():.3f}) over {len(result.liu)} lights, "
              f"shadowed {100 * result.shadow_fraction.mean():.1f} % of the template{base}")
 
 
@@ -162,7 +163,8 @@ def _grid(table, opts, capture, refs):
             marks.append(_rss_mb())
     with tempfile.TemporaryDirectory(dir=opts.grid_out) as folder:
         # the output streams to disk: memory-mapped .npy files the size of the whole grid
-        out_stack = np.lib.format.open_memmap(f"{folder}/stack.npy", "w+", np.float32, (len(views), len(lights), g, g, 3))
+        out_stack = np.lib.format.open_memmap(f"{folder}/stack.npy", "w+", np.float32,
+                                              (len(views), len(lights), g, g, 3))
         out_templates = np.lib.format.open_memmap(f"{folder}/templates.npy", "w+", np.float32,
                                                   (len(views), len(lights), g, g, 1))
         rss_before = _rss_mb()
