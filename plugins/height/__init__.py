@@ -22,7 +22,9 @@ from . import io as height_io
     inputs={"stack": "SampleStack"},
     outputs={"height": "HeightField", "weights": "SampleStack"},
     params=[
-        Param("iterations", "int", 100, "conjugate-gradient iterations per round", low=1, high=100000),
+        Param("iterations", "int", 100, "at most this many conjugate-gradient iterations per round (a round "
+              "stops earlier once the energy fell by less than 1e-4 of itself over 10 iterations)", low=1,
+              high=100000),
         Param("smoothness", "float", 0.01, "lambda: weight of the edge-weighted second-difference smoothness "
               "of the heights, relative to the mean data term", low=0.0),
         Param("albedo_smoothness", "float", 0.01, "gamma: weight of the second-difference smoothness of the "

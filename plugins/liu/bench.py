@@ -49,11 +49,10 @@ def _row(table, step, size, seconds, extra=""):
 
 
 def bench_liu(args: list[str]) -> int:
-    """Time each step of Liu et al.'s BTF synthesis: height from shading, height synthesis, templates, images, grid."""
-    from btforge import SampleStack, stage
-    from btforge.plugins.height.field import HeightField
-    from btforge.plugins.height.synthetic import angular_error_degrees, known_capture
-    from btforge.plugins.liu import blockcopy, settings, synthesis, template
+    """Time each step of Liu et al.'s BTF synthesis: height from shading and synthesis, templates, images, IoU, grid."""
+    from btforge import SampleStack
+    from btforge.plugins.height.synthetic import known_capture
+    from btforge.plugins.liu import settings
 
     parser = argparse.ArgumentParser(prog="btforge bench liu", description=bench_liu.__doc__)
     parser.add_argument("--size", type=int, default=256, help="side of the height field and images (default 256)")
@@ -63,6 +62,9 @@ def bench_liu(args: list[str]) -> int:
     parser.add_argument("--grid-size", type=int, default=128, help="image side for --grid (default 128)")
     parser.add_argument("--grid-views", type=int, default=60, help="synthesize only N of the grid's 60 views, "
                         "spread over it (the time is also given scaled to the whole grid; default 60)")
+    parser.add_argument("--grid-out", metavar="DIR", help="folder for --grid's memory-mapped output (a temporary "
+                        "folder inside it, removed afterwards; default: the system's temporary folder)")
+    parser.add_argument("--skip-steps", action="store_true", help="with --grid: time only the grid")
     parser.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     opts = parser.parse_args(args)
     if opts.repeat < 1 or opts.size < 64 or opts.lights < 3:
@@ -70,12 +72,30 @@ def bench_liu(args: list[str]) -> int:
               "--lights >= 3", file=sys.stderr)
         return 2
     n, table = opts.size, []
-
     capture = known_capture(size=n, lights=opts.lights, specular=0.6, bump_height=6.0, bumps=n * n // 300)
+    ref_lights = np.array([settings.direction(t, a) for t in (45, 65) for a in range(0, 360, 45)], np.float32)
+    refs = SampleStack(_render_refs(capture, ref_lights)[None], ref_lights, [[0.0, 0.0, 1.0]])
+    if not opts.skip_steps:
+        _steps(table, opts, capture, refs)
+    if opts.grid:
+        _grid(table, opts, capture, refs)
+    if opts.json:
+        from btforge.atomic import atomic_write_text
+        atomic_write_text(opts.json, json.dumps(table, indent=2))
+    return 0
+
+
+def _steps(table, opts, capture, refs):
+    """Every step but the grid: height from shading, height synthesis, templates, one image, shadow IoU."""
+    from btforge import SampleStack, stage
+    from btforge.plugins.height.field import HeightField
+    from btforge.plugins.height.sfs import photometric_stereo_ls
+    from btforge.plugins.height.synthetic import angular_error_degrees
+    from btforge.plugins.liu import consistency, settings, synthesis, template
+    n = opts.size
     stack = SampleStack(capture.images[None], capture.lights, [[0.0, 0.0, 1.0]])
     seconds, out = _median_seconds(lambda: stage("height.from_shading")(stack=stack), opts.repeat)
     error = angular_error_degrees(out["height"].normals, capture.normals)
-    from btforge.plugins.height.sfs import photometric_stereo_ls
     ls_error = angular_error_degrees(photometric_stereo_ls(capture.images.mean(3), capture.lights)[0], capture.normals)
     _row(table, "height.from_shading (glossy, shadowed)", f"{n}^2 x {opts.lights} images", seconds,
          f"normal error mean {error.mean():.2f} / median {np.median(error):.2f} deg; least-squares PS "
@@ -101,8 +121,6 @@ def bench_liu(args: list[str]) -> int:
     seconds, _ = _median_seconds(lambda: template.render_numpy(*args_t), 1)
     _row(table, "template (NumPy twin)", f"{n}^2, 1 setting", seconds)
 
-    ref_lights = np.array([settings.direction(t, a) for t in (45, 65) for a in range(0, 360, 45)], np.float32)
-    refs = SampleStack(_render_refs(capture, ref_lights)[None], ref_lights, [[0.0, 0.0, 1.0]])
     for m in (1, 3):
         def one_image(m=m):
             images, _ = template.render(truth.heights, synthesis.grey_albedo(truth), truth.normals, view, light)
@@ -112,49 +130,66 @@ def bench_liu(args: list[str]) -> int:
         seconds, _ = _median_seconds(one_image, opts.repeat)
         _row(table, f"one BTF image, M = {m} references", f"{n}^2 (template + warp + copy)", seconds)
 
-    if opts.grid:
-        g = opts.grid_size
-        small = HeightField.from_height(capture.heights[:g, :g], capture.images.max(0)[:g, :g], wrap=False)
-        grid = {"view_tilts": [0, 15, 30, 45, 60], "view_azimuths": list(range(0, 360, 30)),
-                "light_tilts": [0, 15, 30, 45, 60], "light_azimuths": list(range(0, 360, 30))}
-        views, lights = settings.parse_grid(grid)
-        unique_total = len(set(synthesis.first_equal(views))) * len(set(synthesis.first_equal(lights)))
-        pick = np.unique(np.linspace(0, len(views) - 1, max(1, min(opts.grid_views, len(views)))).round().astype(int))
-        views = views[pick]                        # views spread over the grid (its tilt-0 rows are all one view)
-        synthesized = []
-        out_stack = np.empty((len(views), len(lights), g, g, 3), np.float32)
-        out_templates = np.empty((len(views), len(lights), g, g, 1), np.float32)
-        rss_before = _rss_mb()
-        marks = []
+    for tilts in ((70, 75), (45, 60)):
         start, start_cpu = time.perf_counter(), time.process_time()
+        result = consistency.measure(tilts=tilts, baseline=tilts == (70, 75))
+        seconds, _CPU[:] = time.perf_counter() - start, [time.process_time() - start_cpu]
+        base = f", per-light 2D quilting {result.per_light_2d.mean():.3f}" if result.per_light_2d.size else ""
+        _row(table, f"shadow IoU, lights at tilts {tilts[0]}, {tilts[1]}",
+             f"112^2, {len(result.liu)} lights (2 tilts x 6 az.)", seconds,
+             f"IoU mean {result.liu.mean():.3f} (min {result.liu.min():.3f}) over {len(result.liu)} lights, "
+             f"shadowed {100 * result.shadow_fraction.mean():.1f} % of the template{base}")
 
-        def progress(v, l):
-            synthesized.append((v, l))
-            if l == len(lights) - 1:
-                marks.append(_rss_mb())
-        out_stack[:] = 0
-        out_templates[:] = 0                       # touch the output, so its pages count before the run
-        rss_output = _rss_mb()
+
+def _grid(table, opts, capture, refs):
+    """The paper's 5 x 12 x 5 x 12 grid of ``--grid-size`` images, streamed into memory-mapped ``.npy`` files."""
+    import tempfile
+
+    from btforge.plugins.height.field import HeightField
+    from btforge.plugins.liu import settings, synthesis
+    g = opts.grid_size
+    small = HeightField.from_height(capture.heights[:g, :g], capture.images.max(0)[:g, :g], wrap=False)
+    grid = {"view_tilts": [0, 15, 30, 45, 60], "view_azimuths": list(range(0, 360, 30)),
+            "light_tilts": [0, 15, 30, 45, 60], "light_azimuths": list(range(0, 360, 30))}
+    views, lights = settings.parse_grid(grid)
+    unique_total = len(set(synthesis.first_equal(views))) * len(set(synthesis.first_equal(lights)))
+    pick = np.unique(np.linspace(0, len(views) - 1, max(1, min(opts.grid_views, len(views)))).round().astype(int))
+    views = views[pick]                        # views spread over the grid (its tilt-0 rows are all one view)
+    synthesized, marks = [], []
+
+    def progress(v, l):
+        synthesized.append((v, l))
+        if l == len(lights) - 1:
+            marks.append(_rss_mb())
+    with tempfile.TemporaryDirectory(dir=opts.grid_out) as folder:
+        # the output streams to disk: memory-mapped .npy files the size of the whole grid
+        out_stack = np.lib.format.open_memmap(f"{folder}/stack.npy", "w+", np.float32,
+                                              (len(views), len(lights), g, g, 3))
+        out_templates = np.lib.format.open_memmap(f"{folder}/templates.npy", "w+", np.float32,
+                                                  (len(views), len(lights), g, g, 1))
+        rss_before = _rss_mb()
+        start, start_cpu = time.perf_counter(), time.process_time()
         synthesis.synthesize(small, refs, views, lights, count=1, out=out_stack, templates_out=out_templates,
                              progress=progress)
+        out_stack.flush()
+        out_templates.flush()
         seconds = time.perf_counter() - start
         _CPU[:] = [time.process_time() - start_cpu]
-        done = len(synthesized)
-        _row(table, "grid 5 x 12 x 5 x 12, M = 1", f"{done} of its {unique_total} distinct images of {g}^2", seconds,
-             f"{seconds * unique_total / done / 60:.1f} min for the whole grid; resident {rss_before:.0f} MB before, "
-             f"{rss_output:.0f} MB with the output allocated, after each view " + ", ".join(f"{m:.0f}" for m in marks)
-             + " MB")
-    if opts.json:
-        from btforge.atomic import atomic_write_text
-        atomic_write_text(opts.json, json.dumps(table, indent=2))
-    return 0
+        gigabytes = (out_stack.nbytes + out_templates.nbytes) / 1e9
+        del out_stack, out_templates
+    done = len(synthesized)
+    whole = "" if done == unique_total else f"{seconds * unique_total / done / 60:.1f} min scaled to the whole grid; "
+    _row(table, "grid 5 x 12 x 5 x 12, M = 1", f"{done} of its {unique_total} distinct images of {g}^2", seconds,
+         f"{seconds / 60:.1f} min; {whole}{1000 * seconds / done:.0f} ms per image; output {gigabytes:.2f} GB "
+         f"memory-mapped; anonymous resident memory {rss_before:.0f} MB before, after each view "
+         f"{min(marks):.0f}-{max(marks):.0f} MB (first {marks[0]:.0f}, last {marks[-1]:.0f})")
 
 
 def _rss_mb() -> float:
-    """The process's resident memory now (not its peak), in MB."""
+    """The process's anonymous resident memory now (not its peak, and without memory-mapped files), in MB."""
     try:
         with open("/proc/self/status") as status:
-            return next(int(line.split()[1]) for line in status if line.startswith("VmRSS")) / 1024
+            return next(int(line.split()[1]) for line in status if line.startswith("RssAnon")) / 1024
     except (OSError, StopIteration):
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 

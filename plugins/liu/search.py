@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 FAST_EPS = 1.0
+PARALLEL_QUERIES = 2000   # batches at least this large are searched on every core (smaller: threads cost more)
 ENGINES = ("fast", "exact")
 
 
@@ -31,7 +32,8 @@ class BlockIndex:
         self._tree = None
         if engine == "fast":
             from scipy.spatial import cKDTree
-            self._tree = cKDTree(self.vectors)
+            # sliding-midpoint splits (not medians): built in about half the time, searched as fast on these blocks
+            self._tree = cKDTree(self.vectors, balanced_tree=False)
 
     def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(indices (M, k) int64, squared_distances (M, k) float32)`` of the ``k`` nearest rows, nearest
@@ -41,6 +43,7 @@ class BlockIndex:
         if self._tree is None:
             from btforge.plugins.synth.search import knn
             return knn(self.vectors, queries, k, engine="exact")
-        d, i = self._tree.query(queries, k=k, eps=FAST_EPS)
+        workers = -1 if len(queries) >= PARALLEL_QUERIES else 1
+        d, i = self._tree.query(queries, k=k, eps=FAST_EPS, workers=workers)
         d, i = np.asarray(d).reshape(len(queries), k), np.asarray(i).reshape(len(queries), k)
         return i.astype(np.int64), (d * d).astype(np.float32)

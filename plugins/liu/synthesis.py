@@ -7,12 +7,16 @@ of one target setting (the references it uses, their block indexes and one templ
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 import time
 
 import numpy as np
 
 from . import blockcopy, settings, template
+
+_WORKERS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,17 +54,28 @@ def reference_table(references):
 
 
 def synthesize_image(template_image, references, choice: Choice, pairs, block_sizes, seed, engine="fast"):
-    """One target image ``[H, W, C]``: block copy from each chosen reference, blended with eq. 8's weights."""
+    """One target image ``[H, W, C]``: block copy from each chosen reference, blended with eq. 8's weights.
+
+    The references' block copies are independent (each has its own seed) and, with the ``fast`` engine, run on
+    a thread each, up to the number of cores (with one reference, its block indexes are built on threads): the
+    k-d tree builds and searches and the large array operations release the GIL.
+    """
+    def copy(i):
+        v, l = pairs[choice.indices[i]]
+        warped, valid = blockcopy.warp(references.image(v, l), float(choice.rotations[i]), bool(choice.mirrored[i]),
+                                       template_image.shape)
+        return blockcopy.block_copy(template_image, warped, valid, block_sizes, seed=seed + 7919 * i, engine=engine,
+                                    threads=_WORKERS if count == 1 else 1)
+    count = len(choice.indices)
+    if count > 1 and _WORKERS > 1 and engine == "fast":   # (the exact engine's OpenCL kernels are not shared)
+        with concurrent.futures.ThreadPoolExecutor(min(count, _WORKERS)) as pool:
+            results = list(pool.map(copy, range(count)))
+    else:
+        results = [copy(i) for i in range(count)]
     out = np.zeros(template_image.shape + (references.n_channel,), np.float64)
-    stats = []
-    for i, (index, weight, rotation, mirrored) in enumerate(zip(choice.indices, choice.weights, choice.rotations,
-                                                                choice.mirrored)):
-        v, l = pairs[index]
-        warped, valid = blockcopy.warp(references.image(v, l), float(rotation), bool(mirrored), template_image.shape)
-        result = blockcopy.block_copy(template_image, warped, valid, block_sizes, seed=seed + 7919 * i, engine=engine)
+    for weight, result in zip(choice.weights, results):
         out += weight * result.image
-        stats.append((result.blocks, result.hole_pixels))
-    return out.astype(np.float32), stats
+    return out.astype(np.float32), [(r.blocks, r.hole_pixels) for r in results]
 
 
 def first_equal(directions: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
@@ -91,7 +106,10 @@ def synthesize(field, references, views, lights, *, isotropic=True, count=3, blo
             out[v], templates_out[v] = out[first_view[v]], templates_out[first_view[v]]
             continue
         start = time.perf_counter()
-        images, _ = template.render(field.heights, albedo, field.normals, np.repeat(views[v:v + 1], L, 0), lights)
+        distinct = np.flatnonzero(first_light == np.arange(L))     # a repeated light's template is rendered once
+        images, _ = template.render(field.heights, albedo, field.normals, np.repeat(views[v:v + 1], len(distinct), 0),
+                                    lights[distinct])
+        images = images[np.searchsorted(distinct, first_light)]
         seconds["templates"] += time.perf_counter() - start
         templates_out[v, ..., 0] = images
         for l in range(L):

@@ -4,12 +4,16 @@
 // For output texel (row, col) the camera ray passes through the reference-plane point (x = col, y = -row,
 // z = z_ref).  It is marched downward from the highest height in 0.5-texel horizontal steps until it meets the
 // (bilinear, wrapped) surface; the crossing is refined linearly.  The hit is shaded albedo * max(0, n . l), with
-// n the bilinear normal, and marched toward the light for a cast shadow.  The NumPy twin is `render_numpy` in
+// n the bilinear normal, and marched toward the light for a cast shadow; the shadow march skips the samples that
+// fall in a tile whose highest height is below the ray (they cannot occlude), which changes no result.  The NumPy twin is `render_numpy` in
 // template.py and performs the same float32 operations.
 #pragma OPENCL FP_CONTRACT OFF
 
 inline int wrap_index(int index, int period)
 {
+    if (index >= 0 && index < period) {   // the common case, without an integer division
+        return index;
+    }
     int m = index % period;
     return m < 0 ? m + period : m;
 }
@@ -36,6 +40,40 @@ inline void bilinear(__global const float *field, int n, float col, float row, i
     }
 }
 
+// Whether the shadow ray can skip ahead from step k: the highest height under the tile (TILE x TILE texels, the
+// last row and column of tiles possibly narrower) holding the sample's bilinear cell is below the ray, so no sample
+// in the tile can occlude (the ray only rises).  Returns the next step that may leave the tile (one early, so
+// rounding never skips a step outside it), or k + 1 when the ray cannot skip (or does not rise).
+inline int skip_tile(__global const float *tile_max, int tiles_w, int tile, float col, float row, float ray,
+                     float4 lm, int k, int H, int W)
+{
+    const int c0 = wrap_index((int)floor(col), W);
+    const int r0 = wrap_index((int)floor(row), H);
+    const int tc = c0 / tile;
+    const int tr = r0 / tile;
+    const float top = tile_max[tr * tiles_w + tc];
+    if (lm.z < 0.0f || !(ray > top + 1e-5f * (fabs(top) + 1.0f))) {
+        return k + 1;
+    }
+    // the unwrapped position within the texel grid, and the steps left until floor(col) or floor(row) leaves
+    // the tile's range [tc * tile, min((tc + 1) * tile, W) - 1]
+    const float cw = (float)c0 + (col - floor(col));
+    const float rw = (float)r0 + (row - floor(row));
+    float steps = 1e30f;
+    if (lm.x > 0.0f) {
+        steps = fmin(steps, ((float)min((tc + 1) * tile, W) - cw) / lm.x);
+    } else if (lm.x < 0.0f) {
+        steps = fmin(steps, (cw - (float)(tc * tile)) / -lm.x);
+    }
+    if (lm.y > 0.0f) {
+        steps = fmin(steps, ((float)min((tr + 1) * tile, H) - rw) / lm.y);
+    } else if (lm.y < 0.0f) {
+        steps = fmin(steps, (rw - (float)(tr * tile)) / -lm.y);
+    }
+    const float ahead = floor(steps) - 1.0f;
+    return ahead >= 1.0f ? k + (int)fmin(ahead, (float)(1 << 24)) : k + 1;
+}
+
 // NDRange (W, H, S).  view_march[s] = (column step, row step, height step, number of steps) going down the
 // camera ray; view_start[s] = (column offset, row offset, start height, vertical flag); light_march[s] =
 // (column step, row step, rise, number of steps) toward the light; lights[s] = unit light (x, y, z, unused).
@@ -50,6 +88,8 @@ __kernel void render_template(
     const int H, const int W,
     const float max_height,
     const float shadow_bias,
+    __global const float *tile_max,    // [tiles_h, tiles_w] highest height of each tile's cells and their corners
+    const int tiles_w, const int tile,
     __global float *image,             // [S, H, W]
     __global uchar *shadow)            // [S, H, W] 1 = attached or cast shadow
 {
@@ -110,16 +150,24 @@ __kernel void render_template(
     int dark = n_dot_l <= 0.0f;
     const float4 lm = light_march[s];
     const int n_light = (int)lm.w;
-    for (int k = 1; !dark && k <= n_light; ++k) {
+    for (int k = 1; !dark && k <= n_light;) {
         const float kf = (float)k;
         const float ray = hit_z + shadow_bias + kf * lm.z;
         if (ray >= max_height) {
             break;
         }
-        bilinear(height, 1, hit_col + kf * lm.x, hit_row + kf * lm.y, H, W, &h);
+        const float c = hit_col + kf * lm.x;
+        const float r = hit_row + kf * lm.y;
+        const int next = skip_tile(tile_max, tiles_w, tile, c, r, ray, lm, k, H, W);
+        if (next > k + 1) {      // samples k .. next - 1 lie in a tile wholly below the ray
+            k = next;
+            continue;
+        }
+        bilinear(height, 1, c, r, H, W, &h);
         if (h > ray) {
             dark = 1;
         }
+        k = next;
     }
     const size_t o = (size_t)s * (size_t)(H * W) + (size_t)(row * W + col);
     image[o] = dark ? 0.0f : a * n_dot_l;

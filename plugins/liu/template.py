@@ -20,6 +20,19 @@ MAX_LENGTH_FACTOR = 4      # a march is at most this many times max(H, W) texels
 SHADOW_BIAS = 1e-3         # texels: keeps a hit point from shadowing itself through rounding
 VERTICAL_EPS = 1e-6
 _CHUNK_BYTES = 64 << 20
+TILE = 8                   # texels per side of the tiles whose highest height lets the kernel's shadow march skip
+
+
+def tile_maxima(heights: np.ndarray, tile: int = TILE) -> np.ndarray:
+    """``[ceil(H / tile), ceil(W / tile)]`` the highest height of each tile's texels and of the texels one row and
+    column beyond it (wrapping): an upper bound of every bilinear sample whose cell's corner lies in the tile."""
+    H, W = heights.shape
+    grown = np.maximum(heights, np.roll(heights, -1, 0))
+    grown = np.maximum(grown, np.roll(grown, -1, 1))
+    th, tw = -(-H // tile), -(-W // tile)
+    padded = np.full((th * tile, tw * tile), -np.inf, np.float32)
+    padded[:H, :W] = grown
+    return padded.reshape(th, tile, tw, tile).max(axis=(1, 3)).astype(np.float32)
 
 
 def march_plan(heights: np.ndarray, views: np.ndarray, lights: np.ndarray):
@@ -144,15 +157,17 @@ def render(heights, albedo, normals, views, lights):
     if S == 0:
         return images, shadows.astype(bool)
     b = get_backend()
-    kernel = b.cl.Kernel(b.program(KERNEL_FILE), "render_template")
+    kernel = b.kernel(KERNEL_FILE, "render_template")
     plan = march_plan(heights, np.asarray(views), np.asarray(lights))
     field = [b.to_device(heights), b.to_device(albedo), b.to_device(normals)]
+    tiles = tile_maxima(heights)
     per = max(1, min(S, _CHUNK_BYTES // (H * W * 5)))
     img_buf, sh_buf = b.empty(per * H * W * 4), b.empty(per * H * W)
     for start in range(0, S, per):
         stop = min(S, start + per)
         kernel(b.queue, (W, H, stop - start), None, *field, *(b.to_device(p[start:stop]) for p in plan),
-               np.int32(H), np.int32(W), np.float32(heights.max()), np.float32(SHADOW_BIAS), img_buf, sh_buf)
+               np.int32(H), np.int32(W), np.float32(heights.max()), np.float32(SHADOW_BIAS), b.to_device(tiles),
+               np.int32(tiles.shape[1]), np.int32(TILE), img_buf, sh_buf)
         b.cl.enqueue_copy(b.queue, images[start:stop], img_buf)
         b.cl.enqueue_copy(b.queue, shadows[start:stop], sh_buf)
     b.queue.finish()
