@@ -63,6 +63,14 @@ HNSW_M = 12
 HNSW_EF_CONSTRUCTION = 48
 HNSW_SEED = 100
 FAST_RECALL_FLOOR = 0.9     #: recall at k = 6 the tests demand of the fast engine on texture neighbourhoods
+SELF_RECALL_FLOOR = 0.95    #: recall the tests demand of the fast self-join (similar_texels) on texture neighbourhoods
+SELF_LIST = 8               #: list length a fast self-join (similar_texels) keeps while it propagates
+SELF_OVERSAMPLE = 2         #: graph nominees per kept entry, beyond the excluded texels
+PROPAGATION_ROUNDS = 4      #: coherence propagation rounds of a fast self-join, at most
+SELF_MAX_DIMS = 16          #: a fast self-join's graph: reduced dimensions at most, links, construction breadth
+SELF_HNSW_M = 8             #: (a coarser graph than knn's: propagation repairs what it misses, for less time)
+SELF_HNSW_EF_CONSTRUCTION = 24
+PROPAGATION_SETTLED = 0.02  #: share of changed lists below which propagation stops
 FAST_BELOW = 2048           #: exemplars of at most this many vectors are searched exactly (it is as fast)
 INDEX_CACHE = 4             #: fast indices kept, keyed by the exemplar's content (re-synthesis skips the build)
 
@@ -284,11 +292,23 @@ class Projection:
     energy: float       # share of the variance kept
 
     def apply(self, x: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray((x - self.mean) @ self.axes, dtype=np.float32)
+        with blas_single_thread():  # x @ axes - mean @ axes: no centred copy of x (236 MB at 512 x 512)
+            return np.ascontiguousarray(x @ self.axes - self.mean @ self.axes, dtype=np.float32)
+
+
+def blas_single_thread():
+    """A context in which BLAS and LAPACK run on one thread (threadpoolctl, BSD-3).
+
+    The analysis' products are small (37k x 800 by 800 x 24 at most); on a shared 2-core machine a threaded
+    BLAS waits for busy cores and spins while it waits: a 192 x 192 analysis took 29 s wall and 11 s CPU under
+    load 6 with threads, 6.5 s and 4.9 s without (a QR of 800 x 32: 120 ms against 0.7 ms).
+    """
+    from threadpoolctl import threadpool_limits
+    return threadpool_limits(1, user_api="blas")
 
 
 def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims: int | None = None,
-                         min_dims: int | None = None, sample: int = 8192, seed: int = 0) -> Projection:
+                         min_dims: int | None = None, sample: int = 4096, seed: int = 0) -> Projection:
     """The fewest leading principal axes of ``x`` ``[N, D]`` that keep ``energy`` of its variance (clipped to
     ``[min_dims, max_dims]`` and to D), fitted on at most ``sample`` rows.  Defaults: the ``FAST_*`` settings."""
     energy = FAST_ENERGY if energy is None else energy
@@ -296,11 +316,11 @@ def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims
     min_dims = FAST_MIN_DIMS if min_dims is None else min_dims
     rng = np.random.default_rng(seed)
     pick = x if len(x) <= sample else x[np.sort(rng.choice(len(x), sample, replace=False))]
-    pick = pick.astype(np.float64)
-    mean = pick.mean(axis=0)
-    centred = pick - mean
-    covariance = centred.T @ centred
-    values, axes = leading_eigenpairs(covariance, max_dims + SUBSPACE_EXTRA, seed=seed)
+    mean = pick.mean(axis=0, dtype=np.float64)
+    centred = (pick - mean).astype(np.float32)  # the axes only steer the search: float32 products suffice
+    with blas_single_thread():
+        covariance = (centred.T @ centred).astype(np.float64)
+        values, axes = leading_eigenpairs(covariance, max_dims + SUBSPACE_EXTRA, seed=seed)
     total = float(np.trace(covariance))
     kept = np.cumsum(values) / total if total > 0 else np.ones(len(values))
     dims = int(np.clip(np.searchsorted(kept, energy - 1e-12) + 1, min(min_dims, x.shape[1]), min(max_dims, x.shape[1])))
@@ -311,55 +331,65 @@ def leading_eigenpairs(matrix: np.ndarray, count: int, *, seed: int = 0) -> tupl
     """The ``count`` largest eigenvalues (descending, >= 0) and eigenvectors of a symmetric PSD matrix.
 
     Large matrices go by subspace iteration with a Rayleigh-Ritz step: a few products with a thin block, never
-    a full eigendecomposition, whose threaded LAPACK call costs 50x more than the whole iteration when the
-    machine is busy (1 s against 20 ms for 225 x 225 under load).  The axes only steer the search (candidates
-    are re-ranked at full dimension), so the iteration need not converge to the last digit.
+    a full eigendecomposition (an 800 x 800 one costs more than the whole iteration).  The axes only steer the
+    search (candidates are re-ranked at full dimension), so the iteration need not converge to the last digit.
+    BLAS runs on one thread here (:func:`blas_single_thread`).
     """
     d = len(matrix)
-    if d <= 2 * count:
-        values, vectors = np.linalg.eigh(matrix)
-        return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
-    # the thin products go through einsum's own loops: threaded BLAS waits for busy cores (28 ms against
-    # 0.4 ms for 225 x 225 by 225 x 24 under load)
-    block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
-    for _ in range(SUBSPACE_ITERATIONS):
-        block = np.linalg.qr(np.einsum("ij,jk->ik", matrix, block))[0]
-    values, vectors = np.linalg.eigh(np.einsum("ji,jk->ik", block, np.einsum("ij,jk->ik", matrix, block)))
-    return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
+    with blas_single_thread():
+        if d <= 2 * count:
+            values, vectors = np.linalg.eigh(matrix)
+            return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
+        block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
+        for _ in range(SUBSPACE_ITERATIONS):
+            block = np.linalg.qr(matrix @ block)[0]
+        values, vectors = np.linalg.eigh(block.T @ (matrix @ block))
+        return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
 
 
 class FastIndex:
     """The fast engine's index over one exemplar: its principal projection and an HNSW graph of the result."""
 
-    def __init__(self, exemplar: np.ndarray):
+    def __init__(self, exemplar: np.ndarray, *, max_dims: int | None = None, links: int | None = None,
+                 ef_construction: int | None = None):
         import hnswlib
         self.exemplar = exemplar
-        self.projection = principal_projection(exemplar)
+        self.projection = principal_projection(exemplar, max_dims=max_dims)
         reduced = self.projection.apply(exemplar)
         self.graph = hnswlib.Index(space="l2", dim=reduced.shape[1])
-        self.graph.init_index(max_elements=len(reduced), M=HNSW_M, ef_construction=HNSW_EF_CONSTRUCTION,
-                              random_seed=HNSW_SEED)
+        self.graph.init_index(max_elements=len(reduced), M=links or HNSW_M,
+                              ef_construction=ef_construction or HNSW_EF_CONSTRUCTION, random_seed=HNSW_SEED)
         self.graph.set_num_threads(1)  # insertion order fixes the graph: results do not depend on timing
         self.graph.add_items(reduced, np.arange(len(reduced)))
         self.graph.set_num_threads(max(1, _cores()))
         self._lock = threading.Lock()
 
-    def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        n = len(self.exemplar)
-        nominated = min(n, int(max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES)))
+    def nominate(self, queries: np.ndarray, count: int) -> np.ndarray:
+        """The ``count`` exemplar rows ``[M, count]`` int64 nearest each query in the reduced space (graph order)."""
+        count = min(len(self.exemplar), int(count))
         reduced = self.projection.apply(queries)
         with self._lock:  # ef is the graph's state: two queries at once must not change it under each other
-            self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
-            rows, _ = self.graph.knn_query(reduced, k=nominated)
-        rows = rows.astype(np.int64)
-        dist = candidate_distances_opencl(self.exemplar, queries, rows)
-        order = np.lexsort((rows, dist), axis=1)[:, :k]
-        idx, dist = np.take_along_axis(rows, order, axis=1), np.take_along_axis(dist, order, axis=1)
-        if k > nominated:
-            pad = k - nominated
-            idx = np.concatenate([idx, np.full((len(idx), pad), -1, np.int64)], axis=1)
-            dist = np.concatenate([dist, np.full((len(idx), pad), np.inf, np.float32)], axis=1)
-        return idx, dist
+            self.graph.set_ef(max(count, 2 * FAST_MIN_CANDIDATES))
+            rows, _ = self.graph.knn_query(reduced, k=count)
+        return rows.astype(np.int64)
+
+    def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self.nominate(queries, max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES))
+        return ranked(self.exemplar, queries, rows, k)
+
+
+def ranked(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray, k: int,
+           device: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` candidate ``rows`` ``[M, C]`` (distinct per query, -1: none) nearest each query at full
+    dimension, sorted by (squared distance, index); -1 and inf pad lists with fewer than ``k`` candidates."""
+    distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
+    dist = distances(exemplar, queries, rows)
+    if rows.shape[1] < k:
+        rows = np.concatenate([rows, np.full((len(rows), k - rows.shape[1]), -1, np.int64)], axis=1)
+        dist = np.concatenate([dist, np.full(rows.shape[:1] + (k - dist.shape[1],), np.inf, np.float32)], axis=1)
+    key = np.where(rows < 0, np.iinfo(np.int64).max, rows)
+    order = np.lexsort((key, dist), axis=1)[:, :k]
+    return np.take_along_axis(rows, order, axis=1), np.take_along_axis(dist, order, axis=1)
 
 
 def _cores() -> int:
@@ -453,9 +483,16 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
             idx, cost = self_join(vectors, h, w, m, exclude=exclude, allowed=mask, device=device)
             return idx.astype(np.int32), cost
         search = "exact"
+    candidates = vectors if allowed is None else np.ascontiguousarray(vectors[listed])
+    if search == "fast" and len(listed) > FAST_BELOW:
+        mask = np.ones(h * w, bool) if allowed is None else np.asarray(allowed, bool).ravel()
+        try:
+            idx, cost = _similar_fast(vectors, candidates, listed, h, w, m, exclude, mask, device)
+            return idx.astype(np.int32), cost
+        except RuntimeError:  # hnswlib cannot fill every list when many vectors coincide (a flat exemplar)
+            search = "exact"
     # the nearest entries may be the excluded texels around the texel itself: ask for that many more
     ask = min(len(listed), m + (2 * exclude + 1) ** 2 if exclude >= 0 else m)
-    candidates = np.ascontiguousarray(vectors[listed])
     if search == "exact" and device == "numpy":
         idx, cost = knn_exact_numpy(candidates, vectors, ask)
     else:
@@ -470,6 +507,68 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
     idx_out[rows, rank[rows, cols]] = texel[rows, cols]
     cost_out[rows, rank[rows, cols]] = cost[rows, cols]
     return idx_out, cost_out
+
+
+def _similar_fast(vectors, candidates, listed, h, w, m, exclude, allowed, device):
+    """``similar_texels`` by the fast engine: the graph's nominees re-ranked, then :func:`propagate`."""
+    top = max(m, SELF_LIST)
+    near = (2 * exclude + 1) ** 2 if exclude >= 0 else 0
+    # the graph lives as long as this call: the caller (an analysis) keeps the result, not the index
+    index = FastIndex(candidates, max_dims=SELF_MAX_DIMS, links=SELF_HNSW_M, ef_construction=SELF_HNSW_EF_CONSTRUCTION)
+    rows = index.nominate(vectors, SELF_OVERSAMPLE * top + near)
+    texels = admissible(np.where(rows >= 0, listed[np.maximum(rows, 0)], -1), w, exclude, allowed)
+    idx, dist = ranked(vectors, vectors, texels, top, device)
+    idx, dist = propagate(vectors, h, w, idx, dist, exclude=exclude, allowed=allowed, device=device)
+    return idx[:, :m], dist[:, :m]
+
+
+def admissible(texels: np.ndarray, w: int, exclude: int, allowed: np.ndarray) -> np.ndarray:
+    """Candidate ``texels`` ``[N, C]`` of texels 0 .. N - 1 of a ``w``-wide grid, with -1 for those not allowed or
+    within Chebyshev distance ``exclude`` of the texel (-1: none excluded)."""
+    ys, xs = np.divmod(np.arange(len(texels), dtype=np.int32), np.int32(w))
+    safe = np.maximum(texels, 0).astype(np.int32)
+    ty, tx = np.divmod(safe, np.int32(w))
+    far = (np.abs(ty - ys[:, None]) > exclude) | (np.abs(tx - xs[:, None]) > exclude)
+    return np.where((texels >= 0) & far & allowed[safe], texels, -1)
+
+
+def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.ndarray, *, exclude: int,
+              allowed: np.ndarray, rounds: int | None = None, device: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
+    """Improve self-join lists ``idx`` ``[h * w, L]`` (sorted, with their full squared distances ``dist``) by
+    coherence: texel p also tries the matches of its four neighbours p + o, shifted back by o (k-coherence's
+    candidates; windows one texel apart share all but one row or column, so a neighbour's match shifted is
+    often a match).  Only candidates not yet in p's list have their full distance computed; the rounds stop
+    early once fewer than :data:`PROPAGATION_SETTLED` of the lists change.  Lists stay sorted by
+    (distance, index), and the result depends only on the input lists (no randomness, no timing)."""
+    rounds = PROPAGATION_ROUNDS if rounds is None else rounds
+    distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
+    n, top = idx.shape
+    ys, xs = np.divmod(np.arange(n), w)
+    for _ in range(rounds):
+        parts = []
+        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            qy, qx = ys + dy, xs + dx
+            inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+            match = np.where(inside[:, None], idx[np.where(inside, qy * w + qx, 0)], -1)
+            my, mx = np.divmod(np.maximum(match, 0), w)
+            cy, cx = my - dy, mx - dx
+            ok = (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
+            parts.append(np.where(ok, cy * w + cx, -1))
+        cand = np.sort(admissible(np.concatenate(parts, axis=1), w, exclude, allowed), axis=1)
+        repeated = np.zeros(cand.shape, bool)
+        repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
+        listed = (cand[:, :, None] == idx[:, None, :]).any(axis=2)
+        cand = np.where(repeated | listed, -1, cand)
+        rows = np.concatenate([idx, cand], axis=1)
+        d = np.concatenate([dist, distances(vectors, vectors, cand)], axis=1)
+        key = np.where(rows < 0, np.iinfo(np.int64).max, rows)
+        order = np.lexsort((key, d), axis=1)[:, :top]
+        new_idx = np.take_along_axis(rows, order, axis=1)
+        changed = float((new_idx != idx).any(axis=1).mean())
+        idx, dist = new_idx, np.take_along_axis(d, order, axis=1)
+        if changed < PROPAGATION_SETTLED:
+            break
+    return idx, dist
 
 
 # ============================================================================================ quality of the fast engine
