@@ -22,6 +22,13 @@ Engines
         the same recall; a kd-tree degrades past ~10 dimensions.  The graph is built single-threaded with a
         fixed seed, so results do not depend on timing; queries run on every core.
 
+Self-joins
+    :func:`similar_texels` (every texel of one image against the same image: the k-coherence sets, the jump
+    targets) with the fast engine lets the graph nominate a short list per texel and then improves the lists by
+    coherence at full dimension (:func:`propagate`): a texel also tries its four neighbours' matches shifted
+    back and its nearest matches' own nearest (NN-descent), for a few rounds, until few lists change.  The
+    candidates' distances are the full ones (``knn_distances``), so what the propagation adds is exact too.
+
 Reuse
     The fast engine's index is kept per exemplar content (:func:`fast_index`, a small LRU), so repeated
     :func:`knn` calls on one exemplar build it once; a caller querying one exemplar very often can keep
@@ -55,7 +62,7 @@ LOCAL = 64
 FAST_ENERGY = 0.98          #: share of the exemplar's variance the fast engine's reduced vectors keep
 FAST_MAX_DIMS = 24
 FAST_MIN_DIMS = 8
-FAST_OVERSAMPLE = 2         #: candidates nominated per neighbour asked for, re-ranked at full dimension
+FAST_OVERSAMPLE = 4         #: candidates nominated per neighbour asked for, re-ranked at full dimension
 FAST_MIN_CANDIDATES = 16
 SUBSPACE_EXTRA = 8          #: extra columns of the subspace iteration beyond the axes that can be kept
 SUBSPACE_ITERATIONS = 24
@@ -65,12 +72,10 @@ HNSW_SEED = 100
 FAST_RECALL_FLOOR = 0.9     #: recall at k = 6 the tests demand of the fast engine on texture neighbourhoods
 SELF_RECALL_FLOOR = 0.95    #: recall the tests demand of the fast self-join (similar_texels) on texture neighbourhoods
 SELF_LIST = 8               #: list length a fast self-join (similar_texels) keeps while it propagates
-SELF_OVERSAMPLE = 2         #: graph nominees per kept entry, beyond the excluded texels
+SELF_OVERSAMPLE = 1         #: graph nominees per kept entry, beyond the excluded texels
 PROPAGATION_ROUNDS = 4      #: coherence propagation rounds of a fast self-join, at most
-SELF_MAX_DIMS = 16          #: a fast self-join's graph: reduced dimensions at most, links, construction breadth
-SELF_HNSW_M = 8             #: (a coarser graph than knn's: propagation repairs what it misses, for less time)
-SELF_HNSW_EF_CONSTRUCTION = 24
 PROPAGATION_SETTLED = 0.02  #: share of changed lists below which propagation stops
+PROPAGATION_FRIENDS = 3     #: per round also try the nearest this many matches' own nearest this many (NN-descent)
 FAST_BELOW = 2048           #: exemplars of at most this many vectors are searched exactly (it is as fast)
 INDEX_CACHE = 4             #: fast indices kept, keyed by the exemplar's content (re-synthesis skips the build)
 
@@ -350,15 +355,14 @@ def leading_eigenpairs(matrix: np.ndarray, count: int, *, seed: int = 0) -> tupl
 class FastIndex:
     """The fast engine's index over one exemplar: its principal projection and an HNSW graph of the result."""
 
-    def __init__(self, exemplar: np.ndarray, *, max_dims: int | None = None, links: int | None = None,
-                 ef_construction: int | None = None):
+    def __init__(self, exemplar: np.ndarray):
         import hnswlib
         self.exemplar = exemplar
-        self.projection = principal_projection(exemplar, max_dims=max_dims)
+        self.projection = principal_projection(exemplar)
         reduced = self.projection.apply(exemplar)
         self.graph = hnswlib.Index(space="l2", dim=reduced.shape[1])
-        self.graph.init_index(max_elements=len(reduced), M=links or HNSW_M,
-                              ef_construction=ef_construction or HNSW_EF_CONSTRUCTION, random_seed=HNSW_SEED)
+        self.graph.init_index(max_elements=len(reduced), M=HNSW_M, ef_construction=HNSW_EF_CONSTRUCTION,
+                              random_seed=HNSW_SEED)
         self.graph.set_num_threads(1)  # insertion order fixes the graph: results do not depend on timing
         self.graph.add_items(reduced, np.arange(len(reduced)))
         self.graph.set_num_threads(max(1, _cores()))
@@ -383,13 +387,31 @@ def ranked(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray, k: int,
     """The ``k`` candidate ``rows`` ``[M, C]`` (distinct per query, -1: none) nearest each query at full
     dimension, sorted by (squared distance, index); -1 and inf pad lists with fewer than ``k`` candidates."""
     distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
-    dist = distances(exemplar, queries, rows)
-    if rows.shape[1] < k:
-        rows = np.concatenate([rows, np.full((len(rows), k - rows.shape[1]), -1, np.int64)], axis=1)
-        dist = np.concatenate([dist, np.full(rows.shape[:1] + (k - dist.shape[1],), np.inf, np.float32)], axis=1)
-    key = np.where(rows < 0, np.iinfo(np.int64).max, rows)
-    order = np.lexsort((key, dist), axis=1)[:, :k]
-    return np.take_along_axis(rows, order, axis=1), np.take_along_axis(dist, order, axis=1)
+    return smallest(packed(distances(exemplar, queries, rows), rows), k)
+
+
+_NONE = np.iinfo(np.int64).max   # the packed key of a missing entry: after every real one
+
+
+def packed(dist: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(squared distance, row) pairs as one int64 key each, ordered as the pairs are: a non-negative float32's
+    bits grow with its value, so ``bits << 32 | row`` sorts by distance, then row; -1 rows become :data:`_NONE`."""
+    bits = np.ascontiguousarray(dist, np.float32).view(np.int32).astype(np.int64)
+    return np.where(rows < 0, _NONE, (bits << 32) | np.maximum(rows, 0))
+
+
+def smallest(keys: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` smallest :func:`packed` keys of each row, unpacked: ``(rows [M, k] int64, dist [M, k] float32)``,
+    -1 and inf where there are fewer than ``k``."""
+    if keys.shape[1] < k:
+        keys = np.concatenate([keys, np.full((len(keys), k - keys.shape[1]), _NONE, np.int64)], axis=1)
+    elif keys.shape[1] > k:
+        keys = np.partition(keys, k - 1, axis=1)[:, :k]
+    keys = np.sort(keys, axis=1)
+    missing = keys == _NONE
+    rows = np.where(missing, -1, keys & 0xFFFFFFFF)
+    dist = np.where(missing, np.int32(0x7F800000), (keys >> 32).astype(np.int32)).view(np.float32)
+    return rows, dist
 
 
 def _cores() -> int:
@@ -514,8 +536,7 @@ def _similar_fast(vectors, candidates, listed, h, w, m, exclude, allowed, device
     top = max(m, SELF_LIST)
     near = (2 * exclude + 1) ** 2 if exclude >= 0 else 0
     # the graph lives as long as this call: the caller (an analysis) keeps the result, not the index
-    index = FastIndex(candidates, max_dims=SELF_MAX_DIMS, links=SELF_HNSW_M, ef_construction=SELF_HNSW_EF_CONSTRUCTION)
-    rows = index.nominate(vectors, SELF_OVERSAMPLE * top + near)
+    rows = FastIndex(candidates).nominate(vectors, SELF_OVERSAMPLE * top + near)
     texels = admissible(np.where(rows >= 0, listed[np.maximum(rows, 0)], -1), w, exclude, allowed)
     idx, dist = ranked(vectors, vectors, texels, top, device)
     idx, dist = propagate(vectors, h, w, idx, dist, exclude=exclude, allowed=allowed, device=device)
@@ -537,9 +558,11 @@ def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.nda
     """Improve self-join lists ``idx`` ``[h * w, L]`` (sorted, with their full squared distances ``dist``) by
     coherence: texel p also tries the matches of its four neighbours p + o, shifted back by o (k-coherence's
     candidates; windows one texel apart share all but one row or column, so a neighbour's match shifted is
-    often a match).  Only candidates not yet in p's list have their full distance computed; the rounds stop
-    early once fewer than :data:`PROPAGATION_SETTLED` of the lists change.  Lists stay sorted by
-    (distance, index), and the result depends only on the input lists (no randomness, no timing)."""
+    often a match), and the nearest :data:`PROPAGATION_FRIENDS` matches' own nearest as many (NN-descent: a
+    neighbour's neighbour is likely a neighbour).  Only candidates not yet in p's list have their full distance
+    computed; the rounds stop early once fewer than :data:`PROPAGATION_SETTLED` of the lists change.  Lists
+    stay sorted by (distance, index), and the result depends only on the input lists (no randomness, no
+    timing); ``device`` ``numpy`` computes the distances with the twin."""
     rounds = PROPAGATION_ROUNDS if rounds is None else rounds
     distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
     n, top = idx.shape
@@ -554,18 +577,19 @@ def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.nda
             cy, cx = my - dy, mx - dx
             ok = (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
             parts.append(np.where(ok, cy * w + cx, -1))
+        if PROPAGATION_FRIENDS:  # NN-descent: the nearest matches' own nearest matches
+            own = idx[:, :PROPAGATION_FRIENDS]
+            friends = idx[np.maximum(own, 0), :PROPAGATION_FRIENDS]
+            parts.append(np.where((own >= 0)[:, :, None], friends, -1).reshape(n, -1))
         cand = np.sort(admissible(np.concatenate(parts, axis=1), w, exclude, allowed), axis=1)
         repeated = np.zeros(cand.shape, bool)
         repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
         listed = (cand[:, :, None] == idx[:, None, :]).any(axis=2)
         cand = np.where(repeated | listed, -1, cand)
-        rows = np.concatenate([idx, cand], axis=1)
-        d = np.concatenate([dist, distances(vectors, vectors, cand)], axis=1)
-        key = np.where(rows < 0, np.iinfo(np.int64).max, rows)
-        order = np.lexsort((key, d), axis=1)[:, :top]
-        new_idx = np.take_along_axis(rows, order, axis=1)
+        keys = np.concatenate([packed(dist, idx), packed(distances(vectors, vectors, cand), cand)], axis=1)
+        new_idx, dist = smallest(keys, top)
         changed = float((new_idx != idx).any(axis=1).mean())
-        idx, dist = new_idx, np.take_along_axis(d, order, axis=1)
+        idx = new_idx
         if changed < PROPAGATION_SETTLED:
             break
     return idx, dist
