@@ -566,33 +566,64 @@ def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.nda
     rounds = PROPAGATION_ROUNDS if rounds is None else rounds
     distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
     n, top = idx.shape
-    ys, xs = np.divmod(np.arange(n), w)
+    idx, dist = idx.copy(), dist.copy()
+    active = np.ones(n, bool)
     for _ in range(rounds):
-        parts = []
-        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-            qy, qx = ys + dy, xs + dx
-            inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-            match = np.where(inside[:, None], idx[np.where(inside, qy * w + qx, 0)], -1)
-            my, mx = np.divmod(np.maximum(match, 0), w)
-            cy, cx = my - dy, mx - dx
-            ok = (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
-            parts.append(np.where(ok, cy * w + cx, -1))
-        if PROPAGATION_FRIENDS:  # NN-descent: the nearest matches' own nearest matches
-            own = idx[:, :PROPAGATION_FRIENDS]
-            friends = idx[np.maximum(own, 0), :PROPAGATION_FRIENDS]
-            parts.append(np.where((own >= 0)[:, :, None], friends, -1).reshape(n, -1))
-        cand = np.sort(admissible(np.concatenate(parts, axis=1), w, exclude, allowed), axis=1)
-        repeated = np.zeros(cand.shape, bool)
-        repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
-        listed = (cand[:, :, None] == idx[:, None, :]).any(axis=2)
-        cand = np.where(repeated | listed, -1, cand)
-        keys = np.concatenate([packed(dist, idx), packed(distances(vectors, vectors, cand), cand)], axis=1)
-        new_idx, dist = smallest(keys, top)
-        changed = float((new_idx != idx).any(axis=1).mean())
-        idx = new_idx
-        if changed < PROPAGATION_SETTLED:
+        # a texel whose candidates are those of the last round already holds the best of them: only texels
+        # near a changed list (or listing one among their nearest) can improve, so only they are redone
+        rows = np.flatnonzero(active)
+        cand = _propagation_candidates(idx, rows, h, w, exclude, allowed)
+        queries = vectors if len(rows) == n else vectors[rows]
+        keys = np.concatenate([packed(dist[rows], idx[rows]), packed(distances(vectors, queries, cand), cand)], axis=1)
+        new_idx, new_dist = smallest(keys, top)
+        changed = np.zeros(n, bool)
+        changed[rows] = (new_idx != idx[rows]).any(axis=1)
+        idx[rows], dist[rows] = new_idx, new_dist
+        if changed.mean() < PROPAGATION_SETTLED:
             break
+        active = _dilated(changed.reshape(h, w)).ravel()
+        if PROPAGATION_FRIENDS:
+            nearest = idx[:, :PROPAGATION_FRIENDS]
+            active |= ((nearest >= 0) & changed[np.maximum(nearest, 0)]).any(axis=1)
     return idx, dist
+
+
+def _propagation_candidates(idx, rows, h, w, exclude, allowed):
+    """The new candidates ``[len(rows), C]`` of texels ``rows`` (distinct, admissible, not yet listed; -1 pads):
+    the four neighbours' matches shifted back, and the nearest matches' own nearest."""
+    ys, xs = np.divmod(rows, w)
+    parts = []
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        qy, qx = ys + dy, xs + dx
+        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        match = np.where(inside[:, None], idx[np.where(inside, qy * w + qx, 0)], -1)
+        my, mx = np.divmod(np.maximum(match, 0), w)
+        cy, cx = my - dy, mx - dx
+        ok = (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
+        parts.append(np.where(ok, cy * w + cx, -1))
+    own = idx[rows]
+    if PROPAGATION_FRIENDS:
+        nearest = own[:, :PROPAGATION_FRIENDS]
+        friends = idx[np.maximum(nearest, 0), :PROPAGATION_FRIENDS]
+        parts.append(np.where((nearest >= 0)[:, :, None], friends, -1).reshape(len(rows), -1))
+    cand = np.concatenate(parts, axis=1)
+    ty, tx = np.divmod(np.maximum(cand, 0), w)
+    far = (np.abs(ty - ys[:, None]) > exclude) | (np.abs(tx - xs[:, None]) > exclude)
+    cand = np.sort(np.where((cand >= 0) & far & allowed[np.maximum(cand, 0)], cand, -1), axis=1)
+    repeated = np.zeros(cand.shape, bool)
+    repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
+    listed = (cand[:, :, None] == own[:, None, :]).any(axis=2)
+    return np.where(repeated | listed, -1, cand)
+
+
+def _dilated(mask: np.ndarray) -> np.ndarray:
+    """``mask`` ``[H, W]`` or its four neighbours."""
+    out = mask.copy()
+    out[1:] |= mask[:-1]
+    out[:-1] |= mask[1:]
+    out[:, 1:] |= mask[:, :-1]
+    out[:, :-1] |= mask[:, 1:]
+    return out
 
 
 # ============================================================================================ quality of the fast engine
