@@ -396,8 +396,11 @@ _NONE = np.iinfo(np.int64).max   # the packed key of a missing entry: after ever
 def packed(dist: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """(squared distance, row) pairs as one int64 key each, ordered as the pairs are: a non-negative float32's
     bits grow with its value, so ``bits << 32 | row`` sorts by distance, then row; -1 rows become :data:`_NONE`."""
-    bits = np.ascontiguousarray(dist, np.float32).view(np.int32).astype(np.int64)
-    return np.where(rows < 0, _NONE, (bits << 32) | np.maximum(rows, 0))
+    key = np.ascontiguousarray(dist, np.float32).view(np.int32).astype(np.int64)
+    key <<= 32
+    key |= np.maximum(rows, 0)
+    key[rows < 0] = _NONE
+    return key
 
 
 def smallest(keys: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -589,27 +592,30 @@ def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.nda
 
 
 def _propagation_candidates(idx, rows, h, w, exclude, allowed):
-    """The new candidates ``[len(rows), C]`` of texels ``rows`` (distinct, admissible, not yet listed; -1 pads):
-    the four neighbours' matches shifted back, and the nearest matches' own nearest."""
-    ys, xs = np.divmod(rows, w)
+    """The new candidates ``[len(rows), C]`` int32 of texels ``rows`` (distinct, admissible, not yet listed; -1
+    pads): the four neighbours' matches shifted back, and the nearest matches' own nearest."""
+    # coordinates by lookup (a gather is several times cheaper than an integer division), all in int32
+    row_of = np.repeat(np.arange(h, dtype=np.int32), w)
+    col_of = np.tile(np.arange(w, dtype=np.int32), h)
+    own = idx[rows].astype(np.int32)
+    ys, xs = row_of[rows][:, None], col_of[rows][:, None]
     parts = []
     for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        qy, qx = ys + dy, xs + dx
+        qy, qx = ys[:, 0] + dy, xs[:, 0] + dx
         inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-        match = np.where(inside[:, None], idx[np.where(inside, qy * w + qx, 0)], -1)
-        my, mx = np.divmod(np.maximum(match, 0), w)
-        cy, cx = my - dy, mx - dx
-        ok = (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
-        parts.append(np.where(ok, cy * w + cx, -1))
-    own = idx[rows]
+        match = idx[np.where(inside, qy * w + qx, 0)].astype(np.int32)
+        safe = np.maximum(match, 0)
+        cy, cx = row_of[safe] - dy, col_of[safe] - dx
+        ok = inside[:, None] & (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
+        parts.append(np.where(ok, match - (dy * w + dx), -1))
     if PROPAGATION_FRIENDS:
         nearest = own[:, :PROPAGATION_FRIENDS]
-        friends = idx[np.maximum(nearest, 0), :PROPAGATION_FRIENDS]
+        friends = idx[np.maximum(nearest, 0), :PROPAGATION_FRIENDS].astype(np.int32)
         parts.append(np.where((nearest >= 0)[:, :, None], friends, -1).reshape(len(rows), -1))
     cand = np.concatenate(parts, axis=1)
-    ty, tx = np.divmod(np.maximum(cand, 0), w)
-    far = (np.abs(ty - ys[:, None]) > exclude) | (np.abs(tx - xs[:, None]) > exclude)
-    cand = np.sort(np.where((cand >= 0) & far & allowed[np.maximum(cand, 0)], cand, -1), axis=1)
+    safe = np.maximum(cand, 0)
+    far = (np.abs(row_of[safe] - ys) > exclude) | (np.abs(col_of[safe] - xs) > exclude)
+    cand = np.sort(np.where((cand >= 0) & far & allowed[safe], cand, -1), axis=1)
     repeated = np.zeros(cand.shape, bool)
     repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
     listed = (cand[:, :, None] == own[:, None, :]).any(axis=2)
