@@ -254,3 +254,67 @@ def test_selfjoin_recall_meets_the_floor():
     twin_idx, twin_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent", device="numpy")
     np.testing.assert_array_equal(twin_idx, fast_idx)
     np.testing.assert_allclose(twin_d, fast_d, rtol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------- fast self-join
+
+
+@pytest.fixture(scope="module")
+def texture_features():
+    return normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_fast_similar_texels_recall_meets_the_floor(texture_features, masked):
+    # 48 x 48 texels: more than are searched exactly, so the graph nominates and propagation repairs
+    f = texture_features
+    allowed = np.random.default_rng(8).random(f.shape[:2]) < 0.7 if masked else None
+    fast_idx, fast_d = search.similar_texels(f, 5, 5, exclude=1, allowed=allowed)
+    true_idx, true_d = search.similar_texels(f, 5, 5, exclude=1, allowed=allowed, search="exact")
+    assert search.recall(fast_idx, true_idx) >= search.SELF_RECALL_FLOOR
+    assert search.distance_ratio(fast_d, true_d) <= 1.01
+    assert (fast_d[:, -1] >= true_d[:, -1]).all()                          # never nearer than the truth
+    h, w, _ = f.shape
+    v = search.neighbourhood_vectors(f, search.square_window(5))
+    np.testing.assert_array_equal(fast_d, search.candidate_distances_numpy(v, v, fast_idx.astype(np.int64)))
+    ys, xs = np.divmod(np.arange(h * w), w)
+    ty, tx = np.divmod(fast_idx, w)
+    assert (np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None])) > 1).all()
+    if masked:
+        assert allowed.ravel()[fast_idx].all()
+    assert all(len(set(r)) == len(r) for r in fast_idx)
+    twin = search.similar_texels(f, 5, 5, exclude=1, allowed=allowed, device="numpy")
+    np.testing.assert_array_equal(twin[0], fast_idx)
+    np.testing.assert_array_equal(twin[1], fast_d)
+
+
+@pytest.mark.parametrize("case", ["random", "ties", "constant"])
+def test_propagation_only_improves_sorted_lists(case):
+    rng = np.random.default_rng(9)
+    h, w = 20, 17
+    f = {"random": rng.random((h, w, 2)), "ties": rng.integers(0, 2, (h, w, 1)),
+         "constant": np.full((h, w, 3), 0.5)}[case].astype(np.float32)
+    v = search.neighbourhood_vectors(f, search.square_window(3))
+    allowed = np.ones(h * w, bool)
+    start = search.admissible(rng.integers(-1, h * w, (h * w, 6)), w, 1, allowed)
+    start = np.where(np.sort(start, axis=1)[:, 1:] == np.sort(start, axis=1)[:, :-1], -1, np.sort(start, axis=1)[:, 1:])
+    idx, dist = search.ranked(v, v, start, 5)
+    new_idx, new_d = search.propagate(v, h, w, idx, dist, exclude=1, allowed=allowed, rounds=3)
+    twin = search.propagate(v, h, w, idx, dist, exclude=1, allowed=allowed, rounds=3, device="numpy")
+    np.testing.assert_array_equal(twin[0], new_idx)
+    np.testing.assert_array_equal(twin[1], new_d)
+    assert (new_d <= dist).all()                                           # k-th best never gets worse
+    key = np.where(new_idx < 0, 2 ** 40, new_idx).astype(np.float64)
+    step = np.diff(new_d, axis=1)
+    assert ((step > 0) | ((step == 0) & (np.diff(key, axis=1) > 0)) | np.isinf(new_d[:, 1:])).all()
+    found = new_idx >= 0
+    assert all(len(set(r[r >= 0])) == (r >= 0).sum() for r in new_idx)     # no texel twice
+    np.testing.assert_array_equal(new_d[found], search.candidate_distances_numpy(v, v, new_idx)[found])
+
+
+def test_fast_similar_texels_on_a_flat_exemplar_falls_back_to_exact():
+    flat = np.full((50, 50, 2), 0.3, np.float32)
+    idx, dist = search.similar_texels(flat, 3, 4, exclude=1)
+    exact = search.similar_texels(flat, 3, 4, exclude=1, search="exact")
+    assert (dist == 0).all() and (idx >= 0).all()
+    np.testing.assert_array_equal(dist, exact[1])

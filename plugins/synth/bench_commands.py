@@ -34,10 +34,16 @@ def bench_kcoherence(argv: list[str]) -> int:
     p.add_argument("--search", choices=("fast", "exact", "coherent"), default="fast", help="neighbourhood search engine")
     p.add_argument("--warm", action="store_true",
                    help="keep the cached analysis between repeats (time re-synthesis only; default: analyse cold)")
+    p.add_argument("--texels", default="stack", metavar="stack|ptm|FILE.ptm",
+                   help="exemplar texels: the demo material as a 16-light stack (32-D appearance vectors, default), "
+                        "fitted as a 9-D orthonormal PTM (ptm), or the central square of a .ptm file")
+    p.add_argument("--recall", type=int, default=0, metavar="N",
+                   help="also measure the finest coherence sets against the exact search at N texels")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     args = p.parse_args(argv)
     print_figures(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat, search=args.search,
-                                       cold=not args.warm), args.json)
+                                       cold=not args.warm, texels=args.texels, recall_samples=args.recall),
+                  args.json)
     return 0
 
 

@@ -234,7 +234,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "jumpmap",
-    version="2",  # 2: principal axes by einsum products (rounding can change the fast lists)
+    version="3",  # 3: fast self-join by graph nominees + coherence propagation; k-means fitted on a sample
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),

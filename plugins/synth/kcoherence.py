@@ -331,7 +331,7 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
 
 @declare_synthesizer(
     "kcoherence",
-    version="2",  # 2: principal axes by einsum products (rounding can change the fast lists)
+    version="3",  # 3: fast self-join by graph nominees + coherence propagation; k-means fitted on a sample
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -425,9 +425,15 @@ def benchmark_exemplar(size: int = 64, lights: int = 16, seed: int = 1) -> PerTe
 
 def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6, neighborhood: int = 5,
                          levels: int = 3, wrap: bool = False, repeat: int = 3, seed: int = 0,
-                         search: str = "fast", cold: bool = True) -> dict:
-    """Median wall time of the ``kcoherence`` stage on the demo material (kernels compiled beforehand; with
-    ``cold`` every repeat analyses the exemplar again, else the cached analysis is reused).
+                         search: str = "fast", cold: bool = True, texels: str = "stack",
+                         recall_samples: int = 0) -> dict:
+    """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
+    analyses the exemplar again, else the cached analysis is reused).
+
+    ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
+    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
+    ``.ptm`` file (its central ``exemplar_size`` square).  ``recall_samples`` > 0 also measures the finest
+    level's coherence sets against the exact search at that many texels.
 
     Returns the figures as a dict: ``median_s`` (the whole stage call), ``analysis_median_s`` (textons and
     coherence sets of every level), ``synthesis_median_s`` (all passes), ``other_median_s`` (appearance vectors,
@@ -436,7 +442,8 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
     from btforge.context import StageContext
 
     from .search import clear_caches
-    exemplar = benchmark_exemplar(exemplar_size)
+    exemplar = _bench_texels(texels, exemplar_size)
+    exemplar_size = exemplar.height
     params = dict(size=[size, size], k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
                   search=search)
     kcoherence(exemplar=exemplar, **{**params, "size": [16, 16]})  # warm-up: kernel builds
@@ -460,5 +467,38 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
         "synthesis_median_s": statistics.median(synthesis),
         "other_median_s": total - statistics.median(analysis) - statistics.median(synthesis),
         "cpu_median_s": statistics.median(cpu), "coherent_fraction": ctx.notes["coherent_fraction"],
-        "causal_order": CAUSAL_ORDER,
+        "causal_order": CAUSAL_ORDER, "texels": texels,
+        **(kset_recall(texel_features(exemplar), k=k, neighborhood=neighborhood, levels=levels, search=search,
+                       samples=recall_samples) if recall_samples and k > 1 else {}),
     }
+
+
+def _bench_texels(texels: str, size: int) -> PerTexel:
+    from btforge import stage
+    if texels == "stack":
+        return benchmark_exemplar(size)
+    if texels == "ptm":
+        return stage("ptm.fit")(stack=benchmark_exemplar(size), variant="lrgb", basis="orthonormal")["model"]
+    from .bench import central_crop
+    return central_crop(stage("ptm.read")(path=texels)["model"], size)
+
+
+def kset_recall(features: np.ndarray, *, k: int, neighborhood: int, levels: int, search: str,
+                samples: int) -> dict:
+    """The finest level's coherence sets (from the cached analysis) against the exact search at ``samples``
+    texels: share of the true k - 1 most similar texels found, and the distance ratio (found over true)."""
+    from .search import distance_ratio, knn, neighbourhood_vectors, recall, square_window
+    level = analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels, search=search)[0]
+    h, w = level.height, level.width
+    rows = np.sort(np.random.default_rng(0).choice(h * w, min(samples, h * w), replace=False))
+    vectors = neighbourhood_vectors(normalise_features(features), square_window(neighborhood))
+    ask = k - 1 + (2 * KSET_EXCLUDE + 1) ** 2
+    idx, dist = knn(vectors, vectors[rows], ask, engine="exact")
+    ys, xs = np.divmod(rows, w)
+    ty, tx = np.divmod(idx, w)
+    far = np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None])) > KSET_EXCLUDE
+    order = np.argsort(~far, axis=1, kind="stable")[:, :k - 1]   # the first k - 1 far entries, in list order
+    true_idx, true_d = np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1)
+    return {"kset_recall": round(recall(level.ksets[rows, 1:], true_idx), 4),
+            "kset_distance_ratio": round(distance_ratio(level.kset_cost[rows], true_d), 4),
+            "kset_recall_samples": len(rows)}

@@ -22,6 +22,13 @@ Engines
         the same recall; a kd-tree degrades past ~10 dimensions.  The graph is built single-threaded with a
         fixed seed, so results do not depend on timing; queries run on every core.
 
+Self-joins
+    :func:`similar_texels` (every texel of one image against the same image: the k-coherence sets, the jump
+    targets) with the fast engine lets the graph nominate a short list per texel and then improves the lists by
+    coherence at full dimension (:func:`propagate`): a texel also tries its four neighbours' matches shifted
+    back and its nearest matches' own nearest (NN-descent), for a few rounds, until few lists change.  The
+    candidates' distances are the full ones (``knn_distances``), so what the propagation adds is exact too.
+
 Reuse
     The fast engine's index is kept per exemplar content (:func:`fast_index`, a small LRU), so repeated
     :func:`knn` calls on one exemplar build it once; a caller querying one exemplar very often can keep
@@ -42,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btforge.backend import get_backend
+from btforge.backend import get_backend, single_threaded_blas
 from btforge.errors import BtforgeInputError
 
 KERNELS = Path(__file__).with_name("search.cl")
@@ -55,14 +62,20 @@ LOCAL = 64
 FAST_ENERGY = 0.98          #: share of the exemplar's variance the fast engine's reduced vectors keep
 FAST_MAX_DIMS = 24
 FAST_MIN_DIMS = 8
-FAST_OVERSAMPLE = 2         #: candidates nominated per neighbour asked for, re-ranked at full dimension
+FAST_OVERSAMPLE = 4         #: candidates nominated per neighbour asked for, re-ranked at full dimension
 FAST_MIN_CANDIDATES = 16
 SUBSPACE_EXTRA = 8          #: extra columns of the subspace iteration beyond the axes that can be kept
 SUBSPACE_ITERATIONS = 24
 HNSW_M = 12
 HNSW_EF_CONSTRUCTION = 48
 HNSW_SEED = 100
-FAST_RECALL_FLOOR = 0.9     #: recall at k = 6 the tests demand of the fast engine on texture neighbourhoods
+FAST_RECALL_FLOOR = 0.95    #: recall at k = 6 the tests demand of the fast engine on texture neighbourhoods (0.999 measured)
+SELF_RECALL_FLOOR = 0.98    #: recall the tests demand of the fast self-join (similar_texels) on texture neighbourhoods
+SELF_LIST = 8               #: list length a fast self-join (similar_texels) keeps while it propagates
+SELF_OVERSAMPLE = 1         #: graph nominees per kept entry, beyond the excluded texels
+PROPAGATION_ROUNDS = 4      #: coherence propagation rounds of a fast self-join, at most
+PROPAGATION_SETTLED = 0.02  #: share of changed lists below which propagation stops
+PROPAGATION_FRIENDS = 3     #: per round also try the nearest this many matches' own nearest this many (NN-descent)
 FAST_BELOW = 2048           #: exemplars of at most this many vectors are searched exactly (it is as fast)
 INDEX_CACHE = 4             #: fast indices kept, keyed by the exemplar's content (re-synthesis skips the build)
 
@@ -284,11 +297,12 @@ class Projection:
     energy: float       # share of the variance kept
 
     def apply(self, x: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray((x - self.mean) @ self.axes, dtype=np.float32)
+        with single_threaded_blas():  # x @ axes - mean @ axes: no centred copy of x (236 MB at 512 x 512)
+            return np.ascontiguousarray(x @ self.axes - self.mean @ self.axes, dtype=np.float32)
 
 
 def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims: int | None = None,
-                         min_dims: int | None = None, sample: int = 8192, seed: int = 0) -> Projection:
+                         min_dims: int | None = None, sample: int = 4096, seed: int = 0) -> Projection:
     """The fewest leading principal axes of ``x`` ``[N, D]`` that keep ``energy`` of its variance (clipped to
     ``[min_dims, max_dims]`` and to D), fitted on at most ``sample`` rows.  Defaults: the ``FAST_*`` settings."""
     energy = FAST_ENERGY if energy is None else energy
@@ -296,11 +310,11 @@ def principal_projection(x: np.ndarray, *, energy: float | None = None, max_dims
     min_dims = FAST_MIN_DIMS if min_dims is None else min_dims
     rng = np.random.default_rng(seed)
     pick = x if len(x) <= sample else x[np.sort(rng.choice(len(x), sample, replace=False))]
-    pick = pick.astype(np.float64)
-    mean = pick.mean(axis=0)
-    centred = pick - mean
-    covariance = centred.T @ centred
-    values, axes = leading_eigenpairs(covariance, max_dims + SUBSPACE_EXTRA, seed=seed)
+    mean = pick.mean(axis=0, dtype=np.float64)
+    centred = (pick - mean).astype(np.float32)  # the axes only steer the search: float32 products suffice
+    with single_threaded_blas():
+        covariance = (centred.T @ centred).astype(np.float64)
+        values, axes = leading_eigenpairs(covariance, max_dims + SUBSPACE_EXTRA, seed=seed)
     total = float(np.trace(covariance))
     kept = np.cumsum(values) / total if total > 0 else np.ones(len(values))
     dims = int(np.clip(np.searchsorted(kept, energy - 1e-12) + 1, min(min_dims, x.shape[1]), min(max_dims, x.shape[1])))
@@ -311,21 +325,20 @@ def leading_eigenpairs(matrix: np.ndarray, count: int, *, seed: int = 0) -> tupl
     """The ``count`` largest eigenvalues (descending, >= 0) and eigenvectors of a symmetric PSD matrix.
 
     Large matrices go by subspace iteration with a Rayleigh-Ritz step: a few products with a thin block, never
-    a full eigendecomposition, whose threaded LAPACK call costs 50x more than the whole iteration when the
-    machine is busy (1 s against 20 ms for 225 x 225 under load).  The axes only steer the search (candidates
-    are re-ranked at full dimension), so the iteration need not converge to the last digit.
+    a full eigendecomposition (an 800 x 800 one costs more than the whole iteration).  The axes only steer the
+    search (candidates are re-ranked at full dimension), so the iteration need not converge to the last digit.
+    BLAS runs on one thread here (:func:`btforge.backend.single_threaded_blas`).
     """
     d = len(matrix)
-    if d <= 2 * count:
-        values, vectors = np.linalg.eigh(matrix)
-        return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
-    # the thin products go through einsum's own loops: threaded BLAS waits for busy cores (28 ms against
-    # 0.4 ms for 225 x 225 by 225 x 24 under load)
-    block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
-    for _ in range(SUBSPACE_ITERATIONS):
-        block = np.linalg.qr(np.einsum("ij,jk->ik", matrix, block))[0]
-    values, vectors = np.linalg.eigh(np.einsum("ji,jk->ik", block, np.einsum("ij,jk->ik", matrix, block)))
-    return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
+    with single_threaded_blas():
+        if d <= 2 * count:
+            values, vectors = np.linalg.eigh(matrix)
+            return np.clip(values[::-1][:count], 0, None), vectors[:, ::-1][:, :count]
+        block = np.linalg.qr(np.random.default_rng(seed).standard_normal((d, count)))[0]
+        for _ in range(SUBSPACE_ITERATIONS):
+            block = np.linalg.qr(matrix @ block)[0]
+        values, vectors = np.linalg.eigh(block.T @ (matrix @ block))
+        return np.clip(values[::-1], 0, None), block @ vectors[:, ::-1]
 
 
 class FastIndex:
@@ -344,22 +357,53 @@ class FastIndex:
         self.graph.set_num_threads(max(1, _cores()))
         self._lock = threading.Lock()
 
-    def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        n = len(self.exemplar)
-        nominated = min(n, int(max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES)))
+    def nominate(self, queries: np.ndarray, count: int) -> np.ndarray:
+        """The ``count`` exemplar rows ``[M, count]`` int64 nearest each query in the reduced space (graph order)."""
+        count = min(len(self.exemplar), int(count))
         reduced = self.projection.apply(queries)
         with self._lock:  # ef is the graph's state: two queries at once must not change it under each other
-            self.graph.set_ef(max(nominated, 2 * FAST_MIN_CANDIDATES))
-            rows, _ = self.graph.knn_query(reduced, k=nominated)
-        rows = rows.astype(np.int64)
-        dist = candidate_distances_opencl(self.exemplar, queries, rows)
-        order = np.lexsort((rows, dist), axis=1)[:, :k]
-        idx, dist = np.take_along_axis(rows, order, axis=1), np.take_along_axis(dist, order, axis=1)
-        if k > nominated:
-            pad = k - nominated
-            idx = np.concatenate([idx, np.full((len(idx), pad), -1, np.int64)], axis=1)
-            dist = np.concatenate([dist, np.full((len(idx), pad), np.inf, np.float32)], axis=1)
-        return idx, dist
+            self.graph.set_ef(max(count, 2 * FAST_MIN_CANDIDATES))
+            rows, _ = self.graph.knn_query(reduced, k=count)
+        return rows.astype(np.int64)
+
+    def query(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self.nominate(queries, max(FAST_OVERSAMPLE * k, FAST_MIN_CANDIDATES))
+        return ranked(self.exemplar, queries, rows, k)
+
+
+def ranked(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray, k: int,
+           device: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` candidate ``rows`` ``[M, C]`` (distinct per query, -1: none) nearest each query at full
+    dimension, sorted by (squared distance, index); -1 and inf pad lists with fewer than ``k`` candidates."""
+    distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
+    return smallest(packed(distances(exemplar, queries, rows), rows), k)
+
+
+_NONE = np.iinfo(np.int64).max   # the packed key of a missing entry: after every real one
+
+
+def packed(dist: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(squared distance, row) pairs as one int64 key each, ordered as the pairs are: a non-negative float32's
+    bits grow with its value, so ``bits << 32 | row`` sorts by distance, then row; -1 rows become :data:`_NONE`."""
+    key = np.ascontiguousarray(dist, np.float32).view(np.int32).astype(np.int64)
+    key <<= 32
+    key |= np.maximum(rows, 0)
+    key[rows < 0] = _NONE
+    return key
+
+
+def smallest(keys: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` smallest :func:`packed` keys of each row, unpacked: ``(rows [M, k] int64, dist [M, k] float32)``,
+    -1 and inf where there are fewer than ``k``."""
+    if keys.shape[1] < k:
+        keys = np.concatenate([keys, np.full((len(keys), k - keys.shape[1]), _NONE, np.int64)], axis=1)
+    elif keys.shape[1] > k:
+        keys = np.partition(keys, k - 1, axis=1)[:, :k]
+    keys = np.sort(keys, axis=1)
+    missing = keys == _NONE
+    rows = np.where(missing, -1, keys & 0xFFFFFFFF)
+    dist = np.where(missing, np.int32(0x7F800000), (keys >> 32).astype(np.int32)).view(np.float32)
+    return rows, dist
 
 
 def _cores() -> int:
@@ -453,9 +497,16 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
             idx, cost = self_join(vectors, h, w, m, exclude=exclude, allowed=mask, device=device)
             return idx.astype(np.int32), cost
         search = "exact"
+    candidates = vectors if allowed is None else np.ascontiguousarray(vectors[listed])
+    if search == "fast" and len(listed) > FAST_BELOW:
+        mask = np.ones(h * w, bool) if allowed is None else np.asarray(allowed, bool).ravel()
+        try:
+            idx, cost = _similar_fast(vectors, candidates, listed, h, w, m, exclude, mask, device)
+            return idx.astype(np.int32), cost
+        except RuntimeError:  # hnswlib cannot fill every list when many vectors coincide (a flat exemplar)
+            search = "exact"
     # the nearest entries may be the excluded texels around the texel itself: ask for that many more
     ask = min(len(listed), m + (2 * exclude + 1) ** 2 if exclude >= 0 else m)
-    candidates = np.ascontiguousarray(vectors[listed])
     if search == "exact" and device == "numpy":
         idx, cost = knn_exact_numpy(candidates, vectors, ask)
     else:
@@ -470,6 +521,104 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
     idx_out[rows, rank[rows, cols]] = texel[rows, cols]
     cost_out[rows, rank[rows, cols]] = cost[rows, cols]
     return idx_out, cost_out
+
+
+def _similar_fast(vectors, candidates, listed, h, w, m, exclude, allowed, device):
+    """``similar_texels`` by the fast engine: the graph's nominees re-ranked, then :func:`propagate`."""
+    top = max(m, SELF_LIST)
+    near = (2 * exclude + 1) ** 2 if exclude >= 0 else 0
+    # the graph lives as long as this call: the caller (an analysis) keeps the result, not the index
+    rows = FastIndex(candidates).nominate(vectors, SELF_OVERSAMPLE * top + near)
+    texels = admissible(np.where(rows >= 0, listed[np.maximum(rows, 0)], -1), w, exclude, allowed)
+    idx, dist = ranked(vectors, vectors, texels, top, device)
+    idx, dist = propagate(vectors, h, w, idx, dist, exclude=exclude, allowed=allowed, device=device)
+    return idx[:, :m], dist[:, :m]
+
+
+def admissible(texels: np.ndarray, w: int, exclude: int, allowed: np.ndarray) -> np.ndarray:
+    """Candidate ``texels`` ``[N, C]`` of texels 0 .. N - 1 of a ``w``-wide grid, with -1 for those not allowed or
+    within Chebyshev distance ``exclude`` of the texel (-1: none excluded)."""
+    ys, xs = np.divmod(np.arange(len(texels), dtype=np.int32), np.int32(w))
+    safe = np.maximum(texels, 0).astype(np.int32)
+    ty, tx = np.divmod(safe, np.int32(w))
+    far = (np.abs(ty - ys[:, None]) > exclude) | (np.abs(tx - xs[:, None]) > exclude)
+    return np.where((texels >= 0) & far & allowed[safe], texels, -1)
+
+
+def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.ndarray, *, exclude: int,
+              allowed: np.ndarray, rounds: int | None = None, device: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
+    """Improve self-join lists ``idx`` ``[h * w, L]`` (sorted, with their full squared distances ``dist``) by
+    coherence: texel p also tries the matches of its four neighbours p + o, shifted back by o (k-coherence's
+    candidates; windows one texel apart share all but one row or column, so a neighbour's match shifted is
+    often a match), and the nearest :data:`PROPAGATION_FRIENDS` matches' own nearest as many (NN-descent: a
+    neighbour's neighbour is likely a neighbour).  Only candidates not yet in p's list have their full distance
+    computed; the rounds stop early once fewer than :data:`PROPAGATION_SETTLED` of the lists change.  Lists
+    stay sorted by (distance, index), and the result depends only on the input lists (no randomness, no
+    timing); ``device`` ``numpy`` computes the distances with the twin."""
+    rounds = PROPAGATION_ROUNDS if rounds is None else rounds
+    distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
+    n, top = idx.shape
+    idx, dist = idx.copy(), dist.copy()
+    active = np.ones(n, bool)
+    for _ in range(rounds):
+        # a texel whose candidates are those of the last round already holds the best of them: only texels
+        # near a changed list (or listing one among their nearest) can improve, so only they are redone
+        rows = np.flatnonzero(active)
+        cand = _propagation_candidates(idx, rows, h, w, exclude, allowed)
+        queries = vectors if len(rows) == n else vectors[rows]
+        keys = np.concatenate([packed(dist[rows], idx[rows]), packed(distances(vectors, queries, cand), cand)], axis=1)
+        new_idx, new_dist = smallest(keys, top)
+        changed = np.zeros(n, bool)
+        changed[rows] = (new_idx != idx[rows]).any(axis=1)
+        idx[rows], dist[rows] = new_idx, new_dist
+        if changed.mean() < PROPAGATION_SETTLED:
+            break
+        active = _dilated(changed.reshape(h, w)).ravel()
+        if PROPAGATION_FRIENDS:
+            nearest = idx[:, :PROPAGATION_FRIENDS]
+            active |= ((nearest >= 0) & changed[np.maximum(nearest, 0)]).any(axis=1)
+    return idx, dist
+
+
+def _propagation_candidates(idx, rows, h, w, exclude, allowed):
+    """The new candidates ``[len(rows), C]`` int32 of texels ``rows`` (distinct, admissible, not yet listed; -1
+    pads): the four neighbours' matches shifted back, and the nearest matches' own nearest."""
+    # coordinates by lookup (a gather is several times cheaper than an integer division), all in int32
+    row_of = np.repeat(np.arange(h, dtype=np.int32), w)
+    col_of = np.tile(np.arange(w, dtype=np.int32), h)
+    own = idx[rows].astype(np.int32)
+    ys, xs = row_of[rows][:, None], col_of[rows][:, None]
+    parts = []
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        qy, qx = ys[:, 0] + dy, xs[:, 0] + dx
+        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        match = idx[np.where(inside, qy * w + qx, 0)].astype(np.int32)
+        safe = np.maximum(match, 0)
+        cy, cx = row_of[safe] - dy, col_of[safe] - dx
+        ok = inside[:, None] & (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
+        parts.append(np.where(ok, match - (dy * w + dx), -1))
+    if PROPAGATION_FRIENDS:
+        nearest = own[:, :PROPAGATION_FRIENDS]
+        friends = idx[np.maximum(nearest, 0), :PROPAGATION_FRIENDS].astype(np.int32)
+        parts.append(np.where((nearest >= 0)[:, :, None], friends, -1).reshape(len(rows), -1))
+    cand = np.concatenate(parts, axis=1)
+    safe = np.maximum(cand, 0)
+    far = (np.abs(row_of[safe] - ys) > exclude) | (np.abs(col_of[safe] - xs) > exclude)
+    cand = np.sort(np.where((cand >= 0) & far & allowed[safe], cand, -1), axis=1)
+    repeated = np.zeros(cand.shape, bool)
+    repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
+    listed = (cand[:, :, None] == own[:, None, :]).any(axis=2)
+    return np.where(repeated | listed, -1, cand)
+
+
+def _dilated(mask: np.ndarray) -> np.ndarray:
+    """``mask`` ``[H, W]`` or its four neighbours."""
+    out = mask.copy()
+    out[1:] |= mask[:-1]
+    out[:-1] |= mask[1:]
+    out[:, 1:] |= mask[:, :-1]
+    out[:, :-1] |= mask[:, 1:]
+    return out
 
 
 # ============================================================================================ quality of the fast engine
