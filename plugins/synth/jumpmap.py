@@ -65,7 +65,8 @@ def cached_jump_map(features: np.ndarray, **params) -> JumpMap:
 
 
 def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = 0.1, neighborhood: int = 5,
-                   textons: int = DEFAULT_TEXTONS, search: str = "fast", engine: str = "opencl") -> JumpMap:
+                   textons: int = DEFAULT_TEXTONS, search: str = "fast", coverage: float = 0.0,
+                   engine: str = "opencl") -> JumpMap:
     """Analyse ``[H, W, D]`` features into a :class:`JumpMap`.
 
     Jump targets are the texels with the most similar ``neighborhood`` windows, at least ``neighborhood // 2 + 1``
@@ -98,11 +99,16 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
     with np.errstate(over="ignore", invalid="ignore"):
         weight = np.where(real, np.exp(-np.where(real, distance, 0.0).astype(np.float64) / d_ref), 0.0)
     total = weight.sum(axis=1)
-    safe_total = np.where(total > 0, total, 1.0)
+    if coverage > 0:
+        # the choice (not the rate) also evens out how often each texel is landed on: in-degree ** -coverage
+        indegree = np.bincount(targets[real], minlength=h * w)
+        weight = weight * np.where(real, np.maximum(indegree[np.where(real, targets, 0)], 1.0) ** -coverage, 0.0)
+    choice_total = weight.sum(axis=1)
+    safe_total = np.where(choice_total > 0, choice_total, 1.0)
     # missing targets get 2 (never reached by a uniform draw); the last real target closes at exactly 1
     cumulative = np.where(real, np.minimum(np.cumsum(weight, axis=1) / safe_total[:, None], 1.0), 2.0)
     last = np.maximum(real.sum(axis=1) - 1, 0)
-    cumulative[np.arange(len(last)), last] = np.where(total > 0, 1.0, 2.0)
+    cumulative[np.arange(len(last)), last] = np.where(choice_total > 0, 1.0, 2.0)
     mean_total = float(total.mean()) if total.size else 0.0
     probability = np.clip(jump_probability * total / mean_total, 0.0, 1.0) if mean_total > 0 else np.zeros_like(total)
     return JumpMap(h, w, tx, targets, distance, np.ascontiguousarray(cumulative, np.float32),
@@ -244,9 +250,12 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               low=3, high=MAX_NEIGHBORHOOD),
         Param("textons", "int", DEFAULT_TEXTONS, "texton (k-means cluster) count of the analysis", low=1, high=2048),
         search_param(),
+        Param("coverage", "float", 0.0, "exponent of the in-degree balance of jump choices: a target's choice "
+              "weight is divided by (how many texels jump to it) ** coverage (0: off)", low=0.0, high=2.0),
     ],
 )
-def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search):
+def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
+            coverage):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -281,7 +290,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
                                 "use a larger exemplar or a smaller neighborhood")
     start = time.perf_counter()
     jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
-                        neighborhood=neighborhood, textons=textons, search=search)
+                        neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
     coords, counts = walk(jm, size, wrap=wrap, seed=seed)
     ctx.note("textons", jm.textons.count)
