@@ -39,7 +39,7 @@ CAUSAL_GROUP = 64
 KSET_EXCLUDE = 1             #: coherence-set members are more than this many texels (Chebyshev) from the texel
 CORRECTIONS = 1              #: default correction passes per level (the coarsest gets one more: the random border)
 MAX_CORRECTIONS = 8
-COVERAGE = 0.0               #: default coverage tolerance (0: off)
+COVERAGE = 0.5               #: default coverage tolerance (0: off; measured best of 0.05-1, README)
 COVERAGE_CELL = 4            #: exemplar texels per side of a cell whose use the coverage tie-break evens out
 ENGINES = ("opencl", "numpy")
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
@@ -385,7 +385,7 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
 
 @declare_synthesizer(
     "kcoherence",
-    version="2",  # 2: principal axes by einsum products (rounding can change the fast lists)
+    version="3",  # 3: coverage tie-break in the correction passes (default 0.5)
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -420,8 +420,14 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     3. **Finer levels**: every pixel starts from its parent's source x 2 plus its offset in the 2 x 2 block; the
        even-even pixels are kept (and used as known neighbours, also below and to the right), the others are
        synthesized as in 2.
-    4. **Correction**: after each level every pixel is chosen again with its full, non-causal neighbourhood
-       (twice at the coarsest level, where it also repairs the random border).
+    4. **Correction** (Tong et al. 2002; Lefebvre & Hoppe 2005): after each level's causal pass, ``corrections``
+       passes choose every pixel again from its k-coherence candidates with its now complete, non-causal
+       neighbourhood (one pass more at the coarsest level, where they also repair the random border).
+       **Coverage**: in these passes, among the candidates whose cost is within ``coverage`` (relative) of the
+       best, the one whose 4 x 4 exemplar cell is used least beyond its fair share (the output's texels spread
+       evenly over the exemplar; counted before each sub-pass) wins, then the cheapest.  Only near ties are
+       re-ordered, so a clearly better match always wins (a fixed usage penalty on every candidate collapsed
+       outputs).  The defaults (1 correction, coverage 0.5) are the best measured (README, Benchmarks).
 
     Order of work: scanline dependencies are resolved by wavefronts ``x + (r + 1) * y = t`` (r = n // 2).  A
     pixel uses a neighbour only once that neighbour is fixed or lies on an earlier wavefront, and pixels of one
