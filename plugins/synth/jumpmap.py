@@ -272,8 +272,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ``d`` (``d_ref``: the exemplar's median best-target distance), normalised per source texel, and divided by
     each target's in-degree ** ``coverage`` so that much-listed texels are not over-used.  The jump rate
     (``jump_probability`` on average) is scaled per texel by its total weight: close matches jump more often.
-    The defaults (rate 0.05, coverage 1) are the best measured on RealRTI crops (README, Benchmarks): rarer
-    jumps leave larger verbatim copies, more frequent ones break structure.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
+    The defaults (rate 0.05, coverage 1) scored best of those measured (README, Benchmarks): rarer jumps
+    leave large verbatim copies, more frequent ones scored worse on the 192 x 192 crops.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
     (a coherent copy); with a probability that is higher where good jumps exist it jumps to one of that
     texel's targets instead, and it must jump where the copy would leave the exemplar.  Of the candidates
     from the left and upper neighbours (and, with ``wrap``, the right and lower ones across the seam) the one
