@@ -73,7 +73,7 @@ def test_walk_kernel_matches_numpy(material, wrap, probability, size, case):
 
 def test_jump_targets_are_away_from_the_texel_and_inside_the_border(material):
     features = texel_features(material)
-    jm = build_jump_map(features, jumps=4, neighborhood=5)
+    jm = build_jump_map(features, jumps=4, neighborhood=5, jump_probability=0.1, coverage=0.0)
     h, w = jm.height, jm.width
     ys, xs = np.divmod(np.arange(h * w), w)
     real = jm.targets >= 0
@@ -111,6 +111,24 @@ def test_jump_probability_controls_the_jumps(material):
     _, often = walk(jm, (48, 48), seed=1)
     assert never["jumps_taken"] == never["forced_jumps"]      # only where a copy would leave the exemplar
     assert often["jumps_taken"] > never["jumps_taken"] + 200
+
+
+def choice_probabilities(jm):
+    """Each target's choice probability, from the cumulative lists (0 where the target is missing)."""
+    cumulative = np.where(jm.targets >= 0, np.minimum(jm.cumulative, 1.0), 1.0)
+    return np.diff(np.concatenate([np.zeros((len(cumulative), 1)), cumulative], axis=1), axis=1) * (jm.targets >= 0)
+
+
+def test_coverage_evens_out_the_landings_and_keeps_the_rate(material):
+    features = texel_features(material)
+    plain = build_jump_map(features, jumps=6, coverage=0.0)
+    balanced = build_jump_map(features, jumps=6, coverage=1.0)
+    np.testing.assert_allclose(choice_probabilities(balanced).sum(axis=1), 1.0, atol=1e-6)  # per source texel
+    np.testing.assert_array_equal(plain.probability, balanced.probability)   # the rate is the similarity's
+    landings = [np.bincount(jm.targets.ravel()[jm.targets.ravel() >= 0],
+                            weights=choice_probabilities(jm)[jm.targets >= 0], minlength=32 * 32)
+                for jm in (plain, balanced)]
+    assert landings[1].std() < 0.8 * landings[0].std(), [x.std() for x in landings]
 
 
 @pytest.mark.parametrize("params,name", [({"jumps": 0}, "'jumps'"), ({"jump_probability": 1.5}, "'jump_probability'")])

@@ -80,15 +80,40 @@ def test_kmeans_assignment_kernel_matches_numpy(case):
         assert (labels_cl == 0).all()
 
 
-@pytest.mark.parametrize("wrap,levels,k,neighborhood", [(False, 2, 4, 5), (True, 2, 3, 5), (False, 1, 1, 3),
-                                                       (True, 1, 6, 3)])
-def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood):
+@pytest.mark.parametrize("wrap,levels,k,neighborhood,corrections,coverage", [
+    (False, 2, 4, 5, 1, 0.0), (True, 2, 3, 5, 1, 0.0), (False, 1, 1, 3, 1, 0.0), (True, 1, 6, 3, 1, 0.0),
+    (False, 2, 4, 5, 2, 0.3), (True, 2, 3, 5, 3, 1.0), (False, 1, 6, 3, 0, 0.5)])
+def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood, corrections, coverage):
     features = texel_features(material)
     analysis = kc.analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels)
-    args = dict(k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=5, analysis=analysis)
+    args = dict(k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=5, analysis=analysis,
+                corrections=corrections, coverage=coverage)
     a = kc.synthesize(features, (30, 23), **args)
     b = kc.synthesize(features, (30, 23), engine="numpy", **args)
     np.testing.assert_array_equal(a.coords, b.coords)
+
+
+def test_cell_excess_counts_use_beyond_the_fair_share():
+    level = kc.analyse_exemplar(np.random.default_rng(0).random((10, 8, 2)).astype(np.float32), k=1,
+                                neighborhood=3, levels=1)[0]
+    # cells of 4: rows 4, 4, 2 by columns 4, 4; 80 sources over 80 texels give each texel a fair share of 1
+    sources = np.zeros(80, np.int64)   # every source in cell 0 (16 texels): 64 beyond its share of 16
+    excess = kc.cell_excess(sources, level, 4)
+    assert excess.shape == (6,)
+    np.testing.assert_allclose(excess, [64 / 16, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(kc.cell_excess(np.arange(80), level, 4), np.zeros(6, np.float32))
+
+
+def test_coverage_evens_out_the_use_of_the_exemplar(material):
+    features = texel_features(material)
+    analysis = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=2)
+    spread = []
+    for coverage in (0.0, 1.0):
+        coords = kc.synthesize(features, (64, 64), k=6, neighborhood=5, levels=2, seed=3, analysis=analysis,
+                               corrections=2, coverage=coverage).coords
+        excess = kc.cell_excess(coords[..., 0].ravel() * 32 + coords[..., 1].ravel(), analysis[0], kc.COVERAGE_CELL)
+        spread.append(float(excess.sum()))
+    assert spread[1] < spread[0], spread
 
 
 @pytest.mark.parametrize("order", ["single", "launch"])
@@ -202,7 +227,8 @@ def test_check_params_rejects_even_windows_directly():
         synthesizer.check_params("kcoherence", (64, 64), size=(8, 8), neighborhood=6, k=2, levels=1)
 
 
-@pytest.mark.parametrize("params,name", [({"k": 0}, "'k'"), ({"levels": 0}, "'levels'"), ({"size": (0, 8)}, "'size'")])
+@pytest.mark.parametrize("params,name", [({"k": 0}, "'k'"), ({"levels": 0}, "'levels'"), ({"size": (0, 8)}, "'size'"),
+                                         ({"corrections": 9}, "'corrections'")])
 def test_synthesize_checks_what_the_stage_params_bound(material, params, name):
     # Direct callers skip the stage's Param bounds: synthesize runs the same validator, with a hint.
     features = texel_features(material)

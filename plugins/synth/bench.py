@@ -146,6 +146,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--repeat", type=int, default=1, help="re-syntheses with cached analysis; the median is reported")
     p.add_argument("--only", action="append", help="only these synthesizers (stage names)")
     p.add_argument("--lights", type=int, default=8, help="probe lights of the scores (default 8)")
+    p.add_argument("--seeds", type=int, default=1, help="score seeds 0 .. N-1 (and N baselines) and report "
+                   "each score's median: one seed's sliced-Wasserstein distance varies by up to 2x (default 1)")
     return p
 
 
@@ -168,12 +170,15 @@ def bench_synthesis(args: list[str]) -> int:
               f"fast build {found['fast_build_s']:.2f} s + {found['fast_query_s_per_1000']:.3f} s / 1000 queries, "
               f"exact {found['exact_query_s_per_1000']:.3f} s / 1000 queries; self-join {found['self_join_s']:.2f} s, "
               f"recall {found['self_join_recall']:.3f}", file=sys.stderr)
-        baseline = score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size)), lights)
+        baseline = median_scores([score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size),
+                                                                   seed=seed), lights) for seed in range(opts.seeds)])
         rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
                      **{k: _round(v) for k, v in baseline.items()}})
         for name, st in chosen.items():
             timed = time_synthesizer(st, model, opts.size, opts.repeat)
-            scores = score_map(model, timed["coords"], lights)
+            scores = median_scores([score_map(model, timed["coords"], lights)] + [
+                score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed)["coords"], lights)
+                for seed in range(1, opts.seeds)])
             rows.append({"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
                          "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}})
             print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
@@ -195,6 +200,12 @@ def bench_synthesis(args: list[str]) -> int:
     print(_table(rows))
     print(_table(search_rows))
     return 0
+
+
+def median_scores(runs: list[dict]) -> dict:
+    """Each score's median over runs (None where a run has none)."""
+    return {k: statistics.median(r[k] for r in runs) if all(r[k] is not None for r in runs) else None
+            for k in runs[0]}
 
 
 def _round(value):

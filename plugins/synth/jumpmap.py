@@ -28,6 +28,8 @@ from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analys
 KERNELS = Path(__file__).with_name("jumpmap.cl")
 
 MAX_JUMPS = 16
+JUMP_PROBABILITY = 0.05   #: default mean jump rate (measured best of 0.02-0.8 with COVERAGE, README)
+COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
@@ -64,16 +66,22 @@ def cached_jump_map(features: np.ndarray, **params) -> JumpMap:
     return _jump_maps.get_or_make(key, lambda: build_jump_map(features, **params))
 
 
-def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = 0.1, neighborhood: int = 5,
-                   textons: int = DEFAULT_TEXTONS, search: str = "fast", engine: str = "opencl") -> JumpMap:
+def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: float = JUMP_PROBABILITY,
+                   neighborhood: int = 5, textons: int = DEFAULT_TEXTONS, search: str = "fast",
+                   coverage: float = COVERAGE,
+                   engine: str = "opencl") -> JumpMap:
     """Analyse ``[H, W, D]`` features into a :class:`JumpMap`.
 
     Jump targets are the texels with the most similar ``neighborhood`` windows, at least ``neighborhood // 2 + 1``
     texels away (Chebyshev) and one texel inside the exemplar's border (so a step in any direction after a jump
-    stays inside).  Target j of a texel has weight ``exp(-d_j / d_ref)`` (``d_ref``: the median distance of
-    the best targets); choice probabilities are the normalised weights, and the jump probability is
-    ``jump_probability`` scaled by the texel's total weight over the mean total (clipped to 1): a texel with
-    good jumps jumps more often, one without never.
+    stays inside).  Probabilities follow Zelinka & Garland (2002): target j of a texel has weight
+    ``exp(-d_j / d_ref)`` (``d_j`` its neighbourhood distance, ``d_ref`` the median distance of the best targets
+    over the exemplar), so weights fall with distance; the choice probabilities are the weights normalised per
+    source texel.  The jump rate of a texel is ``jump_probability`` times its total weight over the mean total
+    (clipped to 1): the mean rate is ``jump_probability``, a texel with close matches jumps more often, one
+    without never.  With ``coverage`` > 0 a target's choice weight (not the rate) is also divided by its
+    in-degree ** ``coverage`` (how many texels list it), so texels that many others jump to are not landed on
+    more than the rest: the walk uses more of the exemplar.
     """
     # The stage's params are bounded already; these guard direct callers (no targets would break the walk).
     if not 1 <= jumps <= MAX_JUMPS:
@@ -98,11 +106,16 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
     with np.errstate(over="ignore", invalid="ignore"):
         weight = np.where(real, np.exp(-np.where(real, distance, 0.0).astype(np.float64) / d_ref), 0.0)
     total = weight.sum(axis=1)
-    safe_total = np.where(total > 0, total, 1.0)
+    if coverage > 0:
+        # the choice (not the rate) also evens out how often each texel is landed on: in-degree ** -coverage
+        indegree = np.bincount(targets[real], minlength=h * w)
+        weight = weight * np.where(real, np.maximum(indegree[np.where(real, targets, 0)], 1.0) ** -coverage, 0.0)
+    choice_total = weight.sum(axis=1)
+    safe_total = np.where(choice_total > 0, choice_total, 1.0)
     # missing targets get 2 (never reached by a uniform draw); the last real target closes at exactly 1
     cumulative = np.where(real, np.minimum(np.cumsum(weight, axis=1) / safe_total[:, None], 1.0), 2.0)
     last = np.maximum(real.sum(axis=1) - 1, 0)
-    cumulative[np.arange(len(last)), last] = np.where(total > 0, 1.0, 2.0)
+    cumulative[np.arange(len(last)), last] = np.where(choice_total > 0, 1.0, 2.0)
     mean_total = float(total.mean()) if total.size else 0.0
     probability = np.clip(jump_probability * total / mean_total, 0.0, 1.0) if mean_total > 0 else np.zeros_like(total)
     return JumpMap(h, w, tx, targets, distance, np.ascontiguousarray(cumulative, np.float32),
@@ -234,24 +247,33 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "jumpmap",
-    version="3",  # 3: fast self-join by graph nominees + coherence propagation; k-means fitted on a sample
+    version="4",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
-        Param("jump_probability", "float", 0.1, "mean chance per step that the walk jumps instead of copying",
+        Param("jump_probability", "float", JUMP_PROBABILITY,
+              "mean chance per step that the walk jumps instead of copying",
               low=0.0, high=1.0),
         Param("neighborhood", "int", 5, "odd window size of the neighbourhoods compared to find jump targets",
               low=3, high=MAX_NEIGHBORHOOD),
         Param("textons", "int", DEFAULT_TEXTONS, "texton (k-means cluster) count of the analysis", low=1, high=2048),
         search_param(),
+        Param("coverage", "float", COVERAGE, "exponent of the in-degree balance of jump choices: a target's choice "
+              "weight is divided by (how many texels jump to it) ** coverage (0: off)", low=0.0, high=2.0),
     ],
 )
-def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search):
+def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
+            coverage):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
     the appearance vectors' windows, ``search`` fast or exact; texels near the texel itself are left out) with
-    probabilities that fall with the distance.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
+    probabilities as in Zelinka & Garland: weights ``exp(-d / d_ref)`` falling with the neighbourhood distance
+    ``d`` (``d_ref``: the exemplar's median best-target distance), normalised per source texel, and divided by
+    each target's in-degree ** ``coverage`` so that much-listed texels are not over-used.  The jump rate
+    (``jump_probability`` on average) is scaled per texel by its total weight: close matches jump more often.
+    The defaults (rate 0.05, coverage 1) scored best of those measured (README, Benchmarks): rarer jumps
+    leave large verbatim copies, more frequent ones scored worse on the 192 x 192 crops.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
     (a coherent copy); with a probability that is higher where good jumps exist it jumps to one of that
     texel's targets instead, and it must jump where the copy would leave the exemplar.  Of the candidates
     from the left and upper neighbours (and, with ``wrap``, the right and lower ones across the seam) the one
@@ -281,7 +303,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
                                 "use a larger exemplar or a smaller neighborhood")
     start = time.perf_counter()
     jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
-                        neighborhood=neighborhood, textons=textons, search=search)
+                        neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
     coords, counts = walk(jm, size, wrap=wrap, seed=seed)
     ctx.note("textons", jm.textons.count)

@@ -23,7 +23,7 @@
 inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc, const int *ntex,
                    __global const int *tex_pad, const int he, const int we, const int wp, const int pad,
                    __global const float *table, const int nt, __global const int *ksets, const int kmax,
-                   const int k)
+                   const int k, float *cost_out)
 {
     int best = -1;
     float best_cost = INFINITY;
@@ -53,7 +53,53 @@ inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc,
             if (best < 0 || acc < best_cost) { best = c; best_cost = acc; }
         }
     }
+    *cost_out = best_cost;
     return best;
+}
+
+// Coverage tie-break (correction passes): among the candidates whose cost is at most best_cost * (1 + tol),
+// the one whose exemplar cell (cell x cell texels, cw cells a row) is used least beyond its fair share
+// (`excess`), then the cheapest, then the first.  Off when tol == 0 or the best cost is not finite.
+inline int kc_fairest(const int best, const float best_cost, const int n, const int *ndy, const int *ndx,
+                      const int *nsrc, const int *ntex, __global const int *tex_pad, const int he, const int we,
+                      const int wp, const int pad, __global const float *table, const int nt,
+                      __global const int *ksets, const int kmax, const int k, __global const float *excess,
+                      const int cell, const int cw, const float tol)
+{
+    if (!(tol > 0.0f) || best < 0 || !isfinite(best_cost)) return best;
+    const float limit = best_cost * (1.0f + tol);
+    int pick = best;
+    float pick_excess = excess[(best / we) / cell * cw + (best % we) / cell];
+    float pick_cost = best_cost;
+    int seen[NOFF];
+    int n_seen = 0;
+    for (int i = 0; i < n; ++i) {
+        const int sy = clamp(nsrc[i] / we - ndy[i], 0, he - 1);
+        const int sx = clamp(nsrc[i] % we - ndx[i], 0, we - 1);
+        const int c0 = sy * we + sx;
+        int dup = 0;
+        for (int j = 0; j < n_seen; ++j) {
+            if (seen[j] == c0) { dup = 1; break; }
+        }
+        if (dup) continue;
+        seen[n_seen++] = c0;
+        for (int j = 0; j < k; ++j) {
+            const int c = ksets[(size_t)c0 * kmax + j];
+            if (c < 0) continue;
+            const float e = excess[(c / we) / cell * cw + (c % we) / cell];
+            if (e > pick_excess) continue;
+            const int cc = (c / we + pad) * wp + c % we + pad;
+            float acc = 0.0f;
+            int l = 0;
+            for (; l < n; ++l) {
+                acc += table[tex_pad[cc + ndy[l] * wp + ndx[l]] * nt + ntex[l]];
+                if (acc > limit) break;
+            }
+            if (l < n || !(acc <= limit)) continue;
+            if (e < pick_excess || acc < pick_cost) { pick = c; pick_excess = e; pick_cost = acc; }
+        }
+    }
+    return pick;
 }
 
 // Causal pass, one wavefront: pixels (y, x) with x + step * y == t (step = radius + 1), y = y0 .. y0 + ny - 1.
@@ -103,7 +149,8 @@ inline void causal_pixel(const int y, const int x, const int t, CAUSAL_ARGS)
         ntex[n] = tex[source];
         ++n;
     }
-    const int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k);
+    float cost;
+    const int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k, &cost);
     if (best >= 0) cur[p] = best;
 }
 
@@ -136,7 +183,8 @@ __kernel void kc_correct(__global const int *prev, __global int *cur, const int 
                          __global const int *off_dy, __global const int *off_dx, const int noff,
                          __global const int *tex, __global const int *tex_pad, const int he, const int we,
                          const int wp, const int pad, __global const float *table, const int nt,
-                         __global const int *ksets, const int kmax, const int k)
+                         __global const int *ksets, const int kmax, const int k,
+                         __global const float *excess, const int cell, const int cw, const float tol)
 {
     const int y = cy + step * (int)get_global_id(0);
     const int x = cx + step * (int)get_global_id(1);
@@ -154,6 +202,9 @@ __kernel void kc_correct(__global const int *prev, __global int *cur, const int 
         ntex[n] = tex[prev[q]];
         ++n;
     }
-    const int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k);
+    float cost;
+    int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k, &cost);
+    best = kc_fairest(best, cost, n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k,
+                      excess, cell, cw, tol);
     cur[p] = best >= 0 ? best : prev[p];
 }
