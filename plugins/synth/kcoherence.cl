@@ -20,6 +20,34 @@
 // neighbours, in order, of table[tex_pad(c + offset), tex(source)].  The first candidate with the lowest cost
 // wins; -1 when there is no used neighbour.  Repeated coherent sources are skipped (they add nothing), and a
 // candidate is abandoned once its partial cost reaches the best so far: neither changes the result.
+// The coherent source suggested by neighbour (dy, dx) with source `src`, clamped into the exemplar; -1 when an
+// earlier neighbour suggested it already (`seen` keeps the n_seen sources so far).
+inline int new_coherent_source(const int src, const int dy, const int dx, const int he, const int we, int *seen,
+                               int *n_seen)
+{
+    const int c0 = clamp(src / we - dy, 0, he - 1) * we + clamp(src % we - dx, 0, we - 1);
+    for (int j = 0; j < *n_seen; ++j) {
+        if (seen[j] == c0) return -1;
+    }
+    seen[(*n_seen)++] = c0;
+    return c0;
+}
+
+// Cost of candidate c: the sum over the used neighbours, in order, of table[tex_pad(c + offset), tex(source)];
+// INFINITY as soon as the partial sum reaches `stop_at` (the candidate cannot win), so callers skip it.
+inline float window_cost(const int c, const int n, const int *ndy, const int *ndx, const int *ntex,
+                         __global const int *tex_pad, const int we, const int wp, const int pad,
+                         __global const float *table, const int nt, const float stop_at)
+{
+    const int cc = (c / we + pad) * wp + c % we + pad;
+    float acc = 0.0f;
+    for (int l = 0; l < n; ++l) {
+        acc += table[tex_pad[cc + ndy[l] * wp + ndx[l]] * nt + ntex[l]];
+        if (acc >= stop_at) return INFINITY;
+    }
+    return acc;
+}
+
 inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc, const int *ntex,
                    __global const int *tex_pad, const int he, const int we, const int wp, const int pad,
                    __global const float *table, const int nt, __global const int *ksets, const int kmax,
@@ -30,26 +58,14 @@ inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc,
     int seen[NOFF];
     int n_seen = 0;
     for (int i = 0; i < n; ++i) {
-        const int sy = clamp(nsrc[i] / we - ndy[i], 0, he - 1);
-        const int sx = clamp(nsrc[i] % we - ndx[i], 0, we - 1);
-        const int c0 = sy * we + sx;
-        int dup = 0;
-        for (int j = 0; j < n_seen; ++j) {
-            if (seen[j] == c0) { dup = 1; break; }
-        }
-        if (dup) continue;
-        seen[n_seen++] = c0;
+        const int c0 = new_coherent_source(nsrc[i], ndy[i], ndx[i], he, we, seen, &n_seen);
+        if (c0 < 0) continue;
         for (int j = 0; j < k; ++j) {
             const int c = ksets[(size_t)c0 * kmax + j];
             if (c < 0) continue;
-            const int cc = (c / we + pad) * wp + c % we + pad;
-            float acc = 0.0f;
-            int l = 0;
-            for (; l < n; ++l) {
-                acc += table[tex_pad[cc + ndy[l] * wp + ndx[l]] * nt + ntex[l]];
-                if (best >= 0 && acc >= best_cost) break;
-            }
-            if (l < n) continue;
+            const float acc = window_cost(c, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt,
+                                          best >= 0 ? best_cost : INFINITY);
+            if (isinf(acc)) continue;
             if (best < 0 || acc < best_cost) { best = c; best_cost = acc; }
         }
     }
@@ -68,34 +84,22 @@ inline int kc_fairest(const int best, const float best_cost, const int n, const 
 {
     if (!(tol > 0.0f) || best < 0 || !isfinite(best_cost)) return best;
     const float limit = best_cost * (1.0f + tol);
+    const float above_limit = nextafter(limit, INFINITY);
     int pick = best;
     float pick_excess = excess[(best / we) / cell * cw + (best % we) / cell];
     float pick_cost = best_cost;
     int seen[NOFF];
     int n_seen = 0;
     for (int i = 0; i < n; ++i) {
-        const int sy = clamp(nsrc[i] / we - ndy[i], 0, he - 1);
-        const int sx = clamp(nsrc[i] % we - ndx[i], 0, we - 1);
-        const int c0 = sy * we + sx;
-        int dup = 0;
-        for (int j = 0; j < n_seen; ++j) {
-            if (seen[j] == c0) { dup = 1; break; }
-        }
-        if (dup) continue;
-        seen[n_seen++] = c0;
+        const int c0 = new_coherent_source(nsrc[i], ndy[i], ndx[i], he, we, seen, &n_seen);
+        if (c0 < 0) continue;
         for (int j = 0; j < k; ++j) {
             const int c = ksets[(size_t)c0 * kmax + j];
             if (c < 0) continue;
             const float e = excess[(c / we) / cell * cw + (c % we) / cell];
             if (e > pick_excess) continue;
-            const int cc = (c / we + pad) * wp + c % we + pad;
-            float acc = 0.0f;
-            int l = 0;
-            for (; l < n; ++l) {
-                acc += table[tex_pad[cc + ndy[l] * wp + ndx[l]] * nt + ntex[l]];
-                if (acc > limit) break;
-            }
-            if (l < n || !(acc <= limit)) continue;
+            const float acc = window_cost(c, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt, above_limit);
+            if (!(acc <= limit)) continue;
             if (e < pick_excess || acc < pick_cost) { pick = c; pick_excess = e; pick_cost = acc; }
         }
     }
