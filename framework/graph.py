@@ -318,6 +318,7 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
             if caught:
                 read_warnings[name] = caught
         files[name] = tuple(read)
+    _pass_facts_on(spec, stages, dag, facts)
     for where, src, src_port, name, port in typed_edges:
         expect = stages[name].expects.get(port)
         fact = facts.get((src, src_port), {}).get(expect.name) if expect else None
@@ -331,6 +332,25 @@ def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None
             raise BtforgeInputError("", problems[0])
         raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
     return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files, warnings=read_warnings)
+
+
+def _pass_facts_on(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.DiGraph,
+                   facts: dict[tuple[str, str], dict[str, Fact]]) -> None:
+    """Give outputs that keep their input's facts (``keeps_facts``, ``"=port"`` outputs) the facts of what is wired
+    into that input, in graph order, under the node's own; a graph with a cycle has no order and passes none."""
+    if not nx.is_directed_acyclic_graph(dag):
+        return
+    for name in nx.topological_sort(dag):
+        st = stages.get(name)
+        if st is None:
+            continue
+        kept = {port: declared[1:] for port, declared in st.outputs.items() if declared.startswith("=")}
+        kept.update(st.keeps_facts)
+        for out_port, in_port in kept.items():
+            src = spec.nodes[name].inputs.get(in_port)
+            inherited = facts.get(tuple(src), {}) if src else {}
+            if inherited:
+                facts[(name, out_port)] = {**inherited, **facts.get((name, out_port), {})}
 
 
 def _file_params(st: Stage, values: Mapping[str, Any]):

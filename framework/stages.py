@@ -179,6 +179,7 @@ class Stage:
     cache_outputs: bool = True
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
     expects: Mapping[str, Expect] = dataclasses.field(default_factory=dict)
+    keeps_facts: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
         """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
@@ -254,6 +255,7 @@ def declare_stage(
     cache_outputs: bool = True,
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
     expects: Mapping[str, Expect] | None = None,
+    keeps_facts: Mapping[str, str] | None = None,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -274,6 +276,9 @@ def declare_stage(
     files a precheck may return :class:`Fact` items about its outputs (a stack's view count read from its
     header); ``expects={port: Expect(name, value, hint)}`` on a stage makes the graph check compare the fact of
     the buffer wired into ``port``, where one is known, and report a mismatch naming the node and port.
+    ``keeps_facts={output: input}`` says an output has the facts of the buffer wired into ``input`` (a stage
+    that changes samples but not the views or lights, such as an exposure correction); outputs typed
+    ``"=port"`` keep those of ``port`` without it.  Facts of the stage's own precheck take precedence.
     An output typed ``"=port"`` has the type of whatever is wired into input ``port`` (a stage that crops or
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
@@ -296,7 +301,7 @@ def declare_stage(
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
-            expects=dict(expects or {}),
+            expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}),
         )
 
     return wrap

@@ -113,3 +113,24 @@ def test_a_btf_wired_into_a_single_view_fit_is_caught_at_validation(tmp_path, so
         _check(tmp_path, nodes)
     nodes["pick"]["params"]["views"] = [2]
     _check(tmp_path, nodes)
+
+
+def test_view_counts_pass_through_stages_that_keep_them(tmp_path):
+    btf = {"stage": "demo.btf", "params": {"size": [6, 5], "lights": 7, "views": 3}}
+    fit = {"stage": "ptm.fit", "inputs": {"stack": "last.stack"}}
+    for chain in ([{"stage": "stack.normalize"}], [{"stage": "stack.select", "params": {"lights": [0, 2, 4, 6]}}],
+                  [{"stage": "crop", "params": {"size": [4, 4]}, "port": "input", "out": "output"},
+                   {"stage": "stack.normalize"}]):
+        nodes, upstream = {"btf": btf}, "btf.stack"
+        for i, step in enumerate(chain):
+            name = "last" if i == len(chain) - 1 else f"step{i}"
+            port, out = step.get("port", "stack"), step.get("out", "stack")
+            nodes[name] = {"stage": step["stage"], "params": step.get("params", {}), "inputs": {port: upstream}}
+            upstream = f"{name}.{out}"
+        nodes["fit"] = {"stage": "ptm.fit", "inputs": {"stack": upstream}}
+        with pytest.raises(BtforgeInputError, match=r"ptm.fit expects views: 1, found 3 in '.*' \(from param 'views'\)"):
+            _check(tmp_path, nodes)
+    nodes = {"btf": btf, "pick": {"stage": "stack.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}},
+             "last": {"stage": "stack.normalize", "inputs": {"stack": "pick.stack"}}, "fit": fit}
+    _check(tmp_path, nodes)  # the selection's own count (1) wins over its input's, and passes on
+

@@ -14,6 +14,7 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
     "stack.normalize",
     inputs={"stack": "SampleStack"},
     outputs={"stack": "SampleStack"},
+    keeps_facts={"stack": "stack"},  # gains change the samples, not the views or lights
     params=[
         Param("reference", "ints", None, "a white target or matte patch as [row, col, height, width] in pixels that "
               "sets each image's intensity; leave out to estimate it robustly from the whole capture", length=4),

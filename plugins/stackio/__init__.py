@@ -216,6 +216,7 @@ def _selection_precheck(params, paths):
               "or angle names like 'tl45_pl120'; [] keeps all"),
     ],
     precheck=_selection_precheck,
+    keeps_facts={"stack": "stack"},  # views: [] keeps every view: the input's count still holds
 )
 def stack_select(ctx, stack, *, views, lights):
     """Keep some views and lights of a stack, by index or by name, in the order given.
