@@ -263,7 +263,7 @@ def test_search_param_switches_the_engine():
     # the fast lists are nearly the exact ones, and never better
     same = np.mean([len(np.intersect1d(a, b)) / 5 for a, b in zip(fast.ksets[:, 1:], exact.ksets[:, 1:])])
     assert same >= 0.9
-    assert (fast.kset_cost[:, -1] >= exact.kset_cost[:, -1]).all()
+    assert (fast.kset_cost[:, -1] >= exact.kset_cost[:, -1] * (1 - 1e-5)).all()   # (sums in another order)
     coords = kcoherence(exemplar=exemplar, size=[24, 24], levels=1, search="exact")["coords"].coords
     assert coords.shape == (24, 24, 2)
     with pytest.raises(BtforgeInputError, match="search"):

@@ -207,53 +207,99 @@ def test_bad_input_is_reported_at_once():
 # --------------------------------------------------------------------------------------------- self-join
 
 
-def _selfjoin_case(case, rng, n):
-    if case == "random":
-        return rng.random((n, 5), dtype=np.float32)
-    if case == "ties":        # two values per dimension: equal distances everywhere, resolved by index
-        return rng.integers(0, 2, (n, 3)).astype(np.float32)
+def _selfjoin_features(case, rng, h, w):
+    if case == "random":      # 5 features, radius 1: 15 floats a window row (one chunk of 8, then 7 singly)
+        return rng.random((h, w, 5), dtype=np.float32), 1
+    if case == "nine":        # 9 features, radius 2: 45 floats a row (five chunks, then 5), as a PTM's
+        return rng.random((h, w, 9), dtype=np.float32), 2
+    if case == "ties":        # two values per feature: equal distances everywhere, resolved by index
+        return rng.integers(0, 2, (h, w, 3)).astype(np.float32), 1
     if case == "constant":    # every distance 0
-        return np.full((n, 4), 0.5, np.float32)
-    if case == "one-dim":
-        return rng.random((n, 1), dtype=np.float32)
+        return np.full((h, w, 4), 0.5, np.float32), 1
+    if case == "one-channel":  # rows shorter than a chunk
+        return rng.random((h, w, 1), dtype=np.float32), 2
+    if case == "huge":        # sums overflow to inf: such candidates never enter a list
+        return (rng.normal(size=(h, w, 2)) * 1e22).astype(np.float32), 1
     raise ValueError(case)
 
 
-@pytest.mark.parametrize("case", ["random", "ties", "constant", "one-dim"])
-def test_selfjoin_kernel_matches_numpy_twin(case):
+@pytest.mark.parametrize("case,h,w", [("random", 17, 23), ("nine", 13, 11), ("ties", 17, 23), ("constant", 9, 14),
+                                      ("one-channel", 19, 7), ("huge", 11, 12), ("random", 40, 1)])
+def test_selfjoin_kernel_matches_numpy_twin(case, h, w):
     from btforge.plugins.synth import selfjoin
     rng = np.random.default_rng(11)
-    h, w = 17, 23
-    v = _selfjoin_case(case, rng, h * w)
+    f, radius = _selfjoin_features(case, rng, h, w)
+    image = selfjoin.padded_image(f, radius)
     allowed = rng.random(h * w) < 0.8
-    lists = {dev: (np.full((h * w, 6), -1, np.int32), np.full((h * w, 6), np.inf, np.float32)) for dev in "nc"}
-    for step, n_random, spread in [(0, 9, 1), (1, 3, 4), (2, 3, 1)]:
-        lists["n"] = selfjoin.improve_numpy(v, h, w, 1, allowed, *lists["n"], 7, step, n_random, 4, spread)
-        lists["c"] = selfjoin.improve_opencl(v, h, w, 1, allowed, *lists["c"], 7, step, n_random, 4, spread)
-        np.testing.assert_array_equal(lists["c"][0], lists["n"][0])
-        np.testing.assert_array_equal(lists["c"][1], lists["n"][1])
-    idx, dist = lists["c"]
+    start = (np.full((h * w, 6), -1, np.int32), np.full((h * w, 6), np.inf, np.float32), np.ones(h * w, bool))
+    lists = {"n": start, "c": start}
+    seeds = rng.integers(-1, h * w, (h * w, 5)).astype(np.int32)
+    for step, seeded, n_random, settle in [(0, True, 9, False), (1, False, 3, False), (2, False, 0, True),
+                                           (3, False, 0, True)]:
+        s = seeds if seeded else np.zeros((h * w, 0), np.int32)
+        args = (image, h, w, radius, 1, allowed)
+        lists["n"] = selfjoin.improve_numpy(*args, *lists["n"], s, 7, step, n_random, settle, 4, 3)
+        lists["c"] = selfjoin.improve_opencl(*args, *lists["c"], s, 7, step, n_random, settle, 4, 3)
+        for got, want in zip(lists["c"], lists["n"]):
+            np.testing.assert_array_equal(got, want)
+    idx, dist, _ = lists["c"]
     ys, xs = np.divmod(np.arange(h * w), w)
     ty, tx = np.divmod(np.maximum(idx, 0), w)
     found = idx >= 0
-    assert found[:, 0].all() and allowed[idx[found]].all()
+    assert allowed[idx[found]].all()
     assert (np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None]))[found] > 1).all()
     assert all(len(set(r[r >= 0])) == (r >= 0).sum() for r in idx)          # no texel twice
     key = np.where(idx < 0, 2 ** 40, idx).astype(np.float64)
-    assert ((np.diff(dist, axis=1) > 0) | ((np.diff(dist, axis=1) == 0) & (np.diff(key, axis=1) > 0))).all()
+    step_d = np.diff(dist, axis=1)
+    assert ((step_d > 0) | ((step_d == 0) & (np.diff(key, axis=1) > 0)) | np.isinf(dist[:, 1:])).all()
+    if case != "huge":
+        assert found[:, 0].all() or w == 1
 
 
-def test_selfjoin_recall_meets_the_floor():
-    # 48 x 48 texels: more than are searched exactly, so similar_texels runs the self-join
+def test_selfjoin_window_distances_are_the_windows_distances():
+    from btforge.plugins.synth import selfjoin
+    rng = np.random.default_rng(3)
+    f = rng.random((12, 10, 9), dtype=np.float32)
+    v = search.neighbourhood_vectors(f, search.square_window(5)).astype(np.float64)
+    rows = np.arange(120)
+    cand = rng.integers(-1, 120, (120, 7))
+    got = selfjoin.window_distances_numpy(selfjoin.padded_image(f, 2), 10, 2, rows, cand)
+    want = ((v[:, None] - v[np.maximum(cand, 0)]) ** 2).sum(-1)
+    np.testing.assert_allclose(got[cand >= 0], want[cand >= 0], rtol=2e-6)
+    assert np.isinf(got[cand < 0]).all()
+
+
+def test_settled_steps_skip_only_texels_whose_candidates_repeat():
+    # a step that skips settled texels gives the lists a full step gives
+    from btforge.plugins.synth import selfjoin
+    rng = np.random.default_rng(5)
+    h, w = 21, 19
+    f = rng.random((h, w, 3), dtype=np.float32)
+    image = selfjoin.padded_image(f, 1)
+    allowed = np.ones(h * w, bool)
+    lists = (np.full((h * w, 6), -1, np.int32), np.full((h * w, 6), np.inf, np.float32), np.ones(h * w, bool))
+    none = np.zeros((h * w, 0), np.int32)
+    lists = selfjoin.improve_opencl(image, h, w, 1, 1, allowed, *lists, none, 7, 0, 12, False, 4, 3)
+    for step in range(1, 5):
+        full = selfjoin.improve_opencl(image, h, w, 1, 1, allowed, *lists, none, 7, step, 0, False, 4, 3)
+        skip = selfjoin.improve_opencl(image, h, w, 1, 1, allowed, *lists, none, 7, step, 0, True, 4, 3)
+        for a, b in zip(full, skip):
+            np.testing.assert_array_equal(a, b)
+        assert (full[1] <= lists[1]).all()                                  # lists only improve
+        lists = full
+
+
+def test_coherent_selfjoin_recall_meets_the_floor():
+    # 48 x 48 texels: more than are searched exactly, so similar_texels runs the self-join seeded at random
     features = normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
     fast_idx, fast_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent")
     true_idx, true_d = search.similar_texels(features, 5, 5, exclude=1, search="exact")
     assert search.recall(fast_idx, true_idx) >= search.FAST_RECALL_FLOOR
     assert search.distance_ratio(fast_d, true_d) <= 1.05
-    assert (fast_d[:, -1] >= true_d[:, -1]).all()
+    assert (fast_d[:, -1] >= true_d[:, -1] * (1 - 1e-5)).all()
     twin_idx, twin_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent", device="numpy")
     np.testing.assert_array_equal(twin_idx, fast_idx)
-    np.testing.assert_allclose(twin_d, fast_d, rtol=1e-6)
+    np.testing.assert_array_equal(twin_d, fast_d)
 
 
 # --------------------------------------------------------------------------------------------- fast self-join
@@ -266,17 +312,18 @@ def texture_features():
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_fast_similar_texels_recall_meets_the_floor(texture_features, masked):
-    # 48 x 48 texels: more than are searched exactly, so the graph nominates and propagation repairs
+    # 48 x 48 texels: more than are searched exactly, so the kd-tree seeds and the steps repair
+    from btforge.plugins.synth import selfjoin
     f = texture_features
     allowed = np.random.default_rng(8).random(f.shape[:2]) < 0.7 if masked else None
     fast_idx, fast_d = search.similar_texels(f, 5, 5, exclude=1, allowed=allowed)
     true_idx, true_d = search.similar_texels(f, 5, 5, exclude=1, allowed=allowed, search="exact")
     assert search.recall(fast_idx, true_idx) >= search.SELF_RECALL_FLOOR
     assert search.distance_ratio(fast_d, true_d) <= 1.01
-    assert (fast_d[:, -1] >= true_d[:, -1]).all()                          # never nearer than the truth
+    assert (fast_d[:, -1] >= true_d[:, -1] * (1 - 1e-5)).all()             # never nearer than the truth
     h, w, _ = f.shape
-    v = search.neighbourhood_vectors(f, search.square_window(5))
-    np.testing.assert_array_equal(fast_d, search.candidate_distances_numpy(v, v, fast_idx.astype(np.int64)))
+    image = selfjoin.padded_image(f, 2)
+    np.testing.assert_array_equal(fast_d, selfjoin.window_distances_numpy(image, w, 2, np.arange(h * w), fast_idx))
     ys, xs = np.divmod(np.arange(h * w), w)
     ty, tx = np.divmod(fast_idx, w)
     assert (np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None])) > 1).all()
@@ -288,31 +335,7 @@ def test_fast_similar_texels_recall_meets_the_floor(texture_features, masked):
     np.testing.assert_array_equal(twin[1], fast_d)
 
 
-@pytest.mark.parametrize("case", ["random", "ties", "constant"])
-def test_propagation_only_improves_sorted_lists(case):
-    rng = np.random.default_rng(9)
-    h, w = 20, 17
-    f = {"random": rng.random((h, w, 2)), "ties": rng.integers(0, 2, (h, w, 1)),
-         "constant": np.full((h, w, 3), 0.5)}[case].astype(np.float32)
-    v = search.neighbourhood_vectors(f, search.square_window(3))
-    allowed = np.ones(h * w, bool)
-    start = search.admissible(rng.integers(-1, h * w, (h * w, 6)), w, 1, allowed)
-    start = np.where(np.sort(start, axis=1)[:, 1:] == np.sort(start, axis=1)[:, :-1], -1, np.sort(start, axis=1)[:, 1:])
-    idx, dist = search.ranked(v, v, start, 5)
-    new_idx, new_d = search.propagate(v, h, w, idx, dist, exclude=1, allowed=allowed, rounds=3)
-    twin = search.propagate(v, h, w, idx, dist, exclude=1, allowed=allowed, rounds=3, device="numpy")
-    np.testing.assert_array_equal(twin[0], new_idx)
-    np.testing.assert_array_equal(twin[1], new_d)
-    assert (new_d <= dist).all()                                           # k-th best never gets worse
-    key = np.where(new_idx < 0, 2 ** 40, new_idx).astype(np.float64)
-    step = np.diff(new_d, axis=1)
-    assert ((step > 0) | ((step == 0) & (np.diff(key, axis=1) > 0)) | np.isinf(new_d[:, 1:])).all()
-    found = new_idx >= 0
-    assert all(len(set(r[r >= 0])) == (r >= 0).sum() for r in new_idx)     # no texel twice
-    np.testing.assert_array_equal(new_d[found], search.candidate_distances_numpy(v, v, new_idx)[found])
-
-
-def test_fast_similar_texels_on_a_flat_exemplar_falls_back_to_exact():
+def test_fast_similar_texels_on_a_flat_exemplar_fills_every_list():
     flat = np.full((50, 50, 2), 0.3, np.float32)
     idx, dist = search.similar_texels(flat, 3, 4, exclude=1)
     exact = search.similar_texels(flat, 3, 4, exclude=1, search="exact")

@@ -105,7 +105,8 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
     from .selfjoin import self_join
     from .features import texel_features
     from .textons import normalise_features
-    vectors = search.neighbourhood_vectors(normalise_features(texel_features(model)), search.square_window(5))
+    features = normalise_features(texel_features(model))
+    vectors = search.neighbourhood_vectors(features, search.square_window(5))
     rng = np.random.default_rng(0)
     rows = np.sort(rng.choice(len(vectors), min(queries, len(vectors)), replace=False))
     sample = vectors[rows]
@@ -121,7 +122,7 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
     true_idx, true_d = search.knn(vectors, sample, k + 1, engine="exact")
     exact_query = time.perf_counter() - start
     start = time.perf_counter()
-    join_idx, join_d = self_join(vectors, model.height, model.width, k, exclude=0)
+    join_idx, join_d = self_join(features, 2, k, exclude=0)
     join = time.perf_counter() - start
     # the self-join leaves each texel itself out: its truth is the exact list without the query's own row
     others = true_idx != rows[:, None]

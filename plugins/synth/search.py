@@ -24,10 +24,10 @@ Engines
 
 Self-joins
     :func:`similar_texels` (every texel of one image against the same image: the k-coherence sets, the jump
-    targets) with the fast engine lets the graph nominate a short list per texel and then improves the lists by
-    coherence at full dimension (:func:`propagate`): a texel also tries its four neighbours' matches shifted
-    back and its nearest matches' own nearest (NN-descent), for a few rounds, until few lists change.  The
-    candidates' distances are the full ones (``knn_distances``), so what the propagation adds is exact too.
+    targets) with the fast engine runs :func:`.selfjoin.self_join`: a kd-tree over a few principal components
+    of the windows seeds every texel's list, then steps on OpenCL improve the lists by coherence at full
+    dimension (a texel tries its four neighbours' matches shifted back and its nearest matches' own nearest)
+    until few lists change.  Distances are the full window distances, so what is found is exact.
 
 Reuse
     The fast engine's index is kept per exemplar content (:func:`fast_index`, a small LRU), so repeated
@@ -71,11 +71,6 @@ HNSW_EF_CONSTRUCTION = 48
 HNSW_SEED = 100
 FAST_RECALL_FLOOR = 0.95    #: recall at k = 6 the tests demand of the fast engine on texture neighbourhoods (0.999 measured)
 SELF_RECALL_FLOOR = 0.98    #: recall the tests demand of the fast self-join (similar_texels) on texture neighbourhoods
-SELF_LIST = 8               #: list length a fast self-join (similar_texels) keeps while it propagates
-SELF_OVERSAMPLE = 1         #: graph nominees per kept entry, beyond the excluded texels
-PROPAGATION_ROUNDS = 4      #: coherence propagation rounds of a fast self-join, at most
-PROPAGATION_SETTLED = 0.02  #: share of changed lists below which propagation stops
-PROPAGATION_FRIENDS = 3     #: per round also try the nearest this many matches' own nearest this many (NN-descent)
 FAST_BELOW = 2048           #: exemplars of at most this many vectors are searched exactly (it is as fast)
 INDEX_CACHE = 4             #: fast indices kept, keyed by the exemplar's content (re-synthesis skips the build)
 
@@ -477,40 +472,32 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
     Two texels' distance is the squared distance of their ``neighborhood x neighborhood`` windows' features
     (the image edge-extended).  Texels within Chebyshev distance ``exclude`` of a texel are left out of its
     list (0: the texel itself; -1: none), and only texels where ``allowed`` ``[H, W]`` is true are listed.
-    ``search`` is the :func:`knn` engine, or ``coherent``: on more than :data:`FAST_BELOW` texels the
-    coherence-propagated self-join (:func:`.selfjoin.self_join`), else exact; ``device`` ``numpy`` runs the twins.
+    On more than :data:`FAST_BELOW` texels ``search`` ``fast`` runs the self-join :func:`.selfjoin.self_join`
+    seeded by a kd-tree, and ``coherent`` the same seeded at random; ``exact`` (and every search of fewer texels)
+    is the :func:`knn` brute force.  ``device`` ``numpy`` runs the twins.
 
     Returns ``[H * W, m]`` int32 row-major texel indices sorted by (distance, index), -1 where fewer than ``m``
     texels qualify, and ``[H * W, m]`` float32 squared distances (inf where missing).
     """
     h, w, _ = features.shape
-    vectors = neighbourhood_vectors(features, square_window(neighborhood))
     listed = np.arange(h * w) if allowed is None else np.flatnonzero(np.asarray(allowed, bool).ravel())
     idx_out = np.full((h * w, m), -1, np.int32)
     cost_out = np.full((h * w, m), np.inf, np.float32)
     if not len(listed):
         return idx_out, cost_out
-    if search == "coherent":
-        if h * w > FAST_BELOW:
-            from .selfjoin import self_join  # the grid's own coherence proposes the matches
-            mask = None if allowed is None else np.asarray(allowed, bool).ravel()
-            idx, cost = self_join(vectors, h, w, m, exclude=exclude, allowed=mask, device=device)
-            return idx.astype(np.int32), cost
-        search = "exact"
+    if search in ("fast", "coherent") and h * w > FAST_BELOW:
+        from .selfjoin import self_join  # the grid's own coherence proposes the matches
+        mask = None if allowed is None else np.asarray(allowed, bool).ravel()
+        return self_join(features, neighborhood // 2, m, exclude=exclude, allowed=mask,
+                         init="tree" if search == "fast" else "random", device=device)
+    vectors = neighbourhood_vectors(features, square_window(neighborhood))
     candidates = vectors if allowed is None else np.ascontiguousarray(vectors[listed])
-    if search == "fast" and len(listed) > FAST_BELOW:
-        mask = np.ones(h * w, bool) if allowed is None else np.asarray(allowed, bool).ravel()
-        try:
-            idx, cost = _similar_fast(vectors, candidates, listed, h, w, m, exclude, mask, device)
-            return idx.astype(np.int32), cost
-        except RuntimeError:  # hnswlib cannot fill every list when many vectors coincide (a flat exemplar)
-            search = "exact"
     # the nearest entries may be the excluded texels around the texel itself: ask for that many more
     ask = min(len(listed), m + (2 * exclude + 1) ** 2 if exclude >= 0 else m)
-    if search == "exact" and device == "numpy":
+    if device == "numpy":
         idx, cost = knn_exact_numpy(candidates, vectors, ask)
     else:
-        idx, cost = knn(candidates, vectors, ask, engine=search)
+        idx, cost = knn_exact_opencl(candidates, vectors, ask)
     texel = np.where(idx >= 0, listed[np.maximum(idx, 0)], -1)
     ys, xs = np.divmod(np.arange(h * w), w)
     ty, tx = np.divmod(np.maximum(texel, 0), w)
@@ -521,104 +508,6 @@ def similar_texels(features: np.ndarray, neighborhood: int, m: int, *, exclude: 
     idx_out[rows, rank[rows, cols]] = texel[rows, cols]
     cost_out[rows, rank[rows, cols]] = cost[rows, cols]
     return idx_out, cost_out
-
-
-def _similar_fast(vectors, candidates, listed, h, w, m, exclude, allowed, device):
-    """``similar_texels`` by the fast engine: the graph's nominees re-ranked, then :func:`propagate`."""
-    top = max(m, SELF_LIST)
-    near = (2 * exclude + 1) ** 2 if exclude >= 0 else 0
-    # the graph lives as long as this call: the caller (an analysis) keeps the result, not the index
-    rows = FastIndex(candidates).nominate(vectors, SELF_OVERSAMPLE * top + near)
-    texels = admissible(np.where(rows >= 0, listed[np.maximum(rows, 0)], -1), w, exclude, allowed)
-    idx, dist = ranked(vectors, vectors, texels, top, device)
-    idx, dist = propagate(vectors, h, w, idx, dist, exclude=exclude, allowed=allowed, device=device)
-    return idx[:, :m], dist[:, :m]
-
-
-def admissible(texels: np.ndarray, w: int, exclude: int, allowed: np.ndarray) -> np.ndarray:
-    """Candidate ``texels`` ``[N, C]`` of texels 0 .. N - 1 of a ``w``-wide grid, with -1 for those not allowed or
-    within Chebyshev distance ``exclude`` of the texel (-1: none excluded)."""
-    ys, xs = np.divmod(np.arange(len(texels), dtype=np.int32), np.int32(w))
-    safe = np.maximum(texels, 0).astype(np.int32)
-    ty, tx = np.divmod(safe, np.int32(w))
-    far = (np.abs(ty - ys[:, None]) > exclude) | (np.abs(tx - xs[:, None]) > exclude)
-    return np.where((texels >= 0) & far & allowed[safe], texels, -1)
-
-
-def propagate(vectors: np.ndarray, h: int, w: int, idx: np.ndarray, dist: np.ndarray, *, exclude: int,
-              allowed: np.ndarray, rounds: int | None = None, device: str = "opencl") -> tuple[np.ndarray, np.ndarray]:
-    """Improve self-join lists ``idx`` ``[h * w, L]`` (sorted, with their full squared distances ``dist``) by
-    coherence: texel p also tries the matches of its four neighbours p + o, shifted back by o (k-coherence's
-    candidates; windows one texel apart share all but one row or column, so a neighbour's match shifted is
-    often a match), and the nearest :data:`PROPAGATION_FRIENDS` matches' own nearest as many (NN-descent: a
-    neighbour's neighbour is likely a neighbour).  Only candidates not yet in p's list have their full distance
-    computed; the rounds stop early once fewer than :data:`PROPAGATION_SETTLED` of the lists change.  Lists
-    stay sorted by (distance, index), and the result depends only on the input lists (no randomness, no
-    timing); ``device`` ``numpy`` computes the distances with the twin."""
-    rounds = PROPAGATION_ROUNDS if rounds is None else rounds
-    distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
-    n, top = idx.shape
-    idx, dist = idx.copy(), dist.copy()
-    active = np.ones(n, bool)
-    for _ in range(rounds):
-        # a texel whose candidates are those of the last round already holds the best of them: only texels
-        # near a changed list (or listing one among their nearest) can improve, so only they are redone
-        rows = np.flatnonzero(active)
-        cand = _propagation_candidates(idx, rows, h, w, exclude, allowed)
-        queries = vectors if len(rows) == n else vectors[rows]
-        keys = np.concatenate([packed(dist[rows], idx[rows]), packed(distances(vectors, queries, cand), cand)], axis=1)
-        new_idx, new_dist = smallest(keys, top)
-        changed = np.zeros(n, bool)
-        changed[rows] = (new_idx != idx[rows]).any(axis=1)
-        idx[rows], dist[rows] = new_idx, new_dist
-        if changed.mean() < PROPAGATION_SETTLED:
-            break
-        active = _dilated(changed.reshape(h, w)).ravel()
-        if PROPAGATION_FRIENDS:
-            nearest = idx[:, :PROPAGATION_FRIENDS]
-            active |= ((nearest >= 0) & changed[np.maximum(nearest, 0)]).any(axis=1)
-    return idx, dist
-
-
-def _propagation_candidates(idx, rows, h, w, exclude, allowed):
-    """The new candidates ``[len(rows), C]`` int32 of texels ``rows`` (distinct, admissible, not yet listed; -1
-    pads): the four neighbours' matches shifted back, and the nearest matches' own nearest."""
-    # coordinates by lookup (a gather is several times cheaper than an integer division), all in int32
-    row_of = np.repeat(np.arange(h, dtype=np.int32), w)
-    col_of = np.tile(np.arange(w, dtype=np.int32), h)
-    own = idx[rows].astype(np.int32)
-    ys, xs = row_of[rows][:, None], col_of[rows][:, None]
-    parts = []
-    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        qy, qx = ys[:, 0] + dy, xs[:, 0] + dx
-        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-        match = idx[np.where(inside, qy * w + qx, 0)].astype(np.int32)
-        safe = np.maximum(match, 0)
-        cy, cx = row_of[safe] - dy, col_of[safe] - dx
-        ok = inside[:, None] & (match >= 0) & (cy >= 0) & (cy < h) & (cx >= 0) & (cx < w)
-        parts.append(np.where(ok, match - (dy * w + dx), -1))
-    if PROPAGATION_FRIENDS:
-        nearest = own[:, :PROPAGATION_FRIENDS]
-        friends = idx[np.maximum(nearest, 0), :PROPAGATION_FRIENDS].astype(np.int32)
-        parts.append(np.where((nearest >= 0)[:, :, None], friends, -1).reshape(len(rows), -1))
-    cand = np.concatenate(parts, axis=1)
-    safe = np.maximum(cand, 0)
-    far = (np.abs(row_of[safe] - ys) > exclude) | (np.abs(col_of[safe] - xs) > exclude)
-    cand = np.sort(np.where((cand >= 0) & far & allowed[safe], cand, -1), axis=1)
-    repeated = np.zeros(cand.shape, bool)
-    repeated[:, 1:] = cand[:, 1:] == cand[:, :-1]
-    listed = (cand[:, :, None] == own[:, None, :]).any(axis=2)
-    return np.where(repeated | listed, -1, cand)
-
-
-def _dilated(mask: np.ndarray) -> np.ndarray:
-    """``mask`` ``[H, W]`` or its four neighbours."""
-    out = mask.copy()
-    out[1:] |= mask[:-1]
-    out[:-1] |= mask[1:]
-    out[:, 1:] |= mask[:, :-1]
-    out[:, :-1] |= mask[:, 1:]
-    return out
 
 
 # ============================================================================================ quality of the fast engine
