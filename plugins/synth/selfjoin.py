@@ -24,13 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from btforge.backend import get_backend
+from btforge.backend import get_backend, single_threaded_blas
 
 KERNELS = Path(__file__).with_name("selfjoin.cl")
 INITS = ("tree", "random")
-TREE_DIMS = 6            #: principal components of the windows the kd-tree compares
-TREE_SEEDS = 8           #: kd-tree nominees per texel, beyond the excluded texels around it
-TREE_EPS = 1.0           #: the kd-tree's approximation: nominees within (1 + eps) x the true distances
+TREE_DIMS = 8            #: principal components of the windows the kd-tree compares
+TREE_SEEDS = 4           #: kd-tree nominees per texel, beyond the excluded texels around it
+TREE_EPS = 3.0           #: the kd-tree's approximation: nominees within (1 + eps) x the true distances
 TREE_LEAF = 32           #: points per kd-tree leaf
 RANDOM_SEEDS = 24        #: random seeds per texel of init="random"
 STEP_RANDOM = 2          #: random candidates per texel in each of the first RANDOM_STEPS steps
@@ -38,7 +38,7 @@ RANDOM_STEPS = {"tree": 2, "random": 6}
 STEPS = {"tree": 8, "random": 14}   #: steps after the seeding one, at most
 SETTLED = 0.01           #: share of changed lists below which the steps stop
 LIST = 8                 #: list length kept during the steps (at least the length asked for)
-NPROP = 8                #: entries of each neighbour's list propagated
+NPROP = 4                #: entries of each neighbour's list propagated
 NN = 4                   #: nearest matches whose own nearest this many are tried
 PCA_SAMPLE = 4096        #: windows the principal components are fitted on
 SEED = 0x5eed
@@ -110,10 +110,11 @@ def window_components(features: np.ndarray, radius: int, dims: int) -> np.ndarra
     py, px = np.divmod(pick, w)
     sample = image[py[:, None] + offsets[None, :, 0], px[:, None] + offsets[None, :, 1]].reshape(len(pick), -1)
     axes = principal_projection(sample, max_dims=dims, min_dims=dims).axes.reshape(len(offsets), d, -1)
-    out = np.zeros((h * w, axes.shape[2]), np.float32)
-    for (oy, ox), a in zip(offsets, axes):
-        out += np.einsum("nd,de->ne", image[oy:oy + h, ox:ox + w].reshape(h * w, d), a)
-    return out
+    out = np.zeros((h, w, axes.shape[2]), np.float32)
+    with single_threaded_blas():  # thin products: threads cost more than they save
+        for (oy, ox), a in zip(offsets, axes):
+            out += image[oy:oy + h, ox:ox + w] @ a
+    return out.reshape(h * w, -1)
 
 
 # ============================================================================================ the steps

@@ -171,9 +171,10 @@ def texton_analysis(features: np.ndarray, n_textons: int = DEFAULT_TEXTONS, *, s
     """Cluster ``[H, W, D]`` float32 features into at most ``n_textons`` textons (see the module docstring)."""
     h, w, d = features.shape
     x = np.ascontiguousarray(features.reshape(-1, d), dtype=np.float32)
-    distinct, inverse = np.unique(x, axis=0, return_inverse=True)
-    if len(distinct) <= n_textons:
+    few = _at_most_distinct(x, n_textons)
+    if few is not None:
         # no more distinct vectors than textons (small or flat levels): every vector is its own texton, exactly
+        distinct, inverse = few
         labels, centres, iterations = inverse.reshape(-1).astype(np.int32), np.ascontiguousarray(distinct), 0
     else:
         labels, centres, iterations = kmeans(x, n_textons, seed, engine=engine)
@@ -181,3 +182,16 @@ def texton_analysis(features: np.ndarray, n_textons: int = DEFAULT_TEXTONS, *, s
     variance = float(((x - x.mean(axis=0)) ** 2).sum())
     error = float((residual ** 2).sum() / variance) if variance > 0 else 0.0
     return Textons(labels.reshape(h, w).astype(np.int32), centres, texton_table(centres), iterations, error)
+
+
+def _at_most_distinct(x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``np.unique(x, axis=0, return_inverse=True)`` when ``x`` has at most ``n`` distinct rows, else None.
+
+    Equal rows have equal hashes, so more than ``n`` distinct hashes prove more than ``n`` distinct rows without
+    the (several times dearer) exact row sort; only a few distinct hashes lead to the exact count."""
+    bits = np.ascontiguousarray(x + np.float32(0)).view(np.uint32).astype(np.uint64)  # -0.0 hashes as 0.0
+    weights = (np.arange(1, x.shape[1] + 1, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15))
+    if len(np.unique((bits * weights).sum(axis=1))) > n:
+        return None
+    distinct, inverse = np.unique(x, axis=0, return_inverse=True)
+    return (distinct, inverse) if len(distinct) <= n else None
