@@ -82,23 +82,32 @@ def analyse_exemplar(features: np.ndarray, *, k: int, neighborhood: int, levels:
 
 
 def _analyse(features, k, neighborhood, levels, textons, search, engine) -> list[ExemplarLevel]:
+    from concurrent.futures import ThreadPoolExecutor
     pad = neighborhood // 2
-    out = []
-    level_features = normalise_features(features)
-    for l in range(levels):
-        if l:
-            level_features = downsample(level_features)
-        h, w, _ = level_features.shape
-        tx = texton_analysis(level_features, min(textons, h * w), engine=engine)
-        ksets = np.empty((h * w, k), np.int32)
-        ksets[:, 0] = np.arange(h * w)
-        cost = np.zeros((h * w, k - 1), np.float32)
-        if k > 1:
-            ksets[:, 1:], cost = similar_texels(level_features, neighborhood, k - 1, exclude=KSET_EXCLUDE,
-                                                search=search, device=engine)
-        out.append(ExemplarLevel(h, w, tx, tx.labels.ravel().astype(np.int32), pad_textons(tx.labels, pad), pad,
-                                 ksets, cost))
-    return out
+    pyramid = [normalise_features(features)]
+    while len(pyramid) < levels:
+        pyramid.append(downsample(pyramid[-1]))
+    # the textons (k-means, much of it single-threaded NumPy) run beside the coherence sets (kd-tree and
+    # OpenCL steps): each is deterministic, so the overlap changes nothing but the time
+    with ThreadPoolExecutor(1) as pool:
+        clustered = [pool.submit(texton_analysis, f, min(textons, f.shape[0] * f.shape[1]), engine=engine)
+                     for f in pyramid]
+        sets = [_coherence_sets(f, k, neighborhood, search, engine) for f in pyramid]
+        clustered = [c.result() for c in clustered]
+    return [ExemplarLevel(f.shape[0], f.shape[1], tx, tx.labels.ravel().astype(np.int32), pad_textons(tx.labels, pad),
+                          pad, ksets, cost) for f, tx, (ksets, cost) in zip(pyramid, clustered, sets)]
+
+
+def _coherence_sets(features, k, neighborhood, search, engine) -> tuple[np.ndarray, np.ndarray]:
+    """Every texel itself, then its k - 1 most similar texels ``[H * W, k]``, and their costs ``[H * W, k - 1]``."""
+    h, w, _ = features.shape
+    ksets = np.empty((h * w, k), np.int32)
+    ksets[:, 0] = np.arange(h * w)
+    cost = np.zeros((h * w, k - 1), np.float32)
+    if k > 1:
+        ksets[:, 1:], cost = similar_texels(features, neighborhood, k - 1, exclude=KSET_EXCLUDE, search=search,
+                                            device=engine)
+    return ksets, cost
 
 
 # ============================================================================================ synthesis passes
