@@ -33,10 +33,10 @@ def shared_params(*, size=(256, 256), seed_doc: str = "random seed: the same see
 
 def search_param() -> Param:
     """The ``search`` param of synthesizers whose analysis runs the shared neighbourhood search (:mod:`.search`)."""
-    return Param("search", "choice", "fast", "exemplar neighbourhood search: fast (PCA-reduced HNSW graph, "
-                 "re-ranked exactly, then coherence propagation at full dimension; recall 0.99 at 192 x 192, 0.92 "
-                 "at 512 x 512), exact (OpenCL brute force) or coherent (coherence-propagated self-join on OpenCL, "
-                 "re-ranked exactly; recall 0.94 at 192 x 192, lower on larger exemplars)", choices=SEARCHES)
+    return Param("search", "choice", "fast", "exemplar neighbourhood search: fast (kd-tree seeds, then "
+                 "coherence steps at full dimension on OpenCL; recall 0.97 at 192 x 192, 0.95 at 512 x 512), exact "
+                 "(OpenCL brute force) or coherent (the same steps from random seeds; recall 0.95 at 192 x 192)",
+                 choices=SEARCHES)
 
 
 def declare_synthesizer(name: str, *, params: Sequence[Param] = (), version: str = "1",
