@@ -5,17 +5,19 @@ and exemplar are the same windows, laid out on a grid, and neighbouring texels h
 general index (:func:`.search.knn`) does not know.  :func:`self_join` uses it (PatchMatch with NN-descent,
 ``selfjoin.cl``, one work-item per texel and one launch per step; :func:`improve_numpy` is its twin):
 
-- the lists start from seeds: with ``init="tree"`` the :data:`TREE_SEEDS` nearest texels in a kd-tree over the
-  windows' :data:`TREE_DIMS` leading principal components (scipy's cKDTree on every core; few dimensions keep
-  the tree fast, the steps repair what they miss), with ``init="random"`` random texels;
-- every step, a texel tries its four neighbours' matches shifted back, its nearest matches' own nearest and,
-  in the first :data:`RANDOM_STEPS` steps, a few random texels; later steps skip texels whose candidates are
-  those of the step before, and the steps stop once fewer than :data:`SETTLED` of the lists change.
+- the lists start from seeds: with ``init="tree"`` the :data:`TREE_SEEDS` nearest texels in an approximate
+  kd-tree over the windows' :data:`TREE_DIMS` leading principal components (scipy's cKDTree on every core; few
+  dimensions keep the tree fast, the steps repair what it misses), with ``init="random"`` random texels;
+- every step, a texel tries the first b entries of its four neighbours' lists shifted back, the first b entries
+  of its first b matches' lists and, in the first :data:`RANDOM_STEPS` steps, a few random texels; later steps
+  skip texels whose candidates are those of the step before, and the steps stop once fewer than
+  :data:`SETTLED` of the lists change.  The breadth b (:func:`breadth`) grows with the image;
+- a last step draws the neighbours' whole lists and :data:`LAST_EXTRA` more matches' lists, once.
 
 Distances are always the full window distances, read from the edge-padded feature image (no ``[N, D x window]``
 vectors: 9 x 25 floats a texel would be 236 MB at 512 x 512), so what is found is exact; what can be missed is
 a true neighbour no step nominated.  Recall against the exact engine is tested against
-:data:`.search.SELF_RECALL_FLOOR` and reported by the benches.
+:data:`.search.SELF_RECALL_FLOOR` and reported by ``btforge bench kcoherence --recall N``.
 """
 from __future__ import annotations
 
@@ -35,11 +37,13 @@ TREE_LEAF = 32           #: points per kd-tree leaf
 RANDOM_SEEDS = 24        #: random seeds per texel of init="random"
 STEP_RANDOM = 2          #: random candidates per texel in each of the first RANDOM_STEPS steps
 RANDOM_STEPS = {"tree": 2, "random": 6}
-STEPS = {"tree": 8, "random": 14}   #: steps after the seeding one, at most
+STEPS = {"tree": 8, "random": 14}   #: steps of a phase, at most
 SETTLED = 0.01           #: share of changed lists below which the steps stop
 LIST = 8                 #: list length kept during the steps (at least the length asked for)
-BREADTH = 4              #: entries propagated from each neighbour's list, and matches whose matches are tried
-BREADTH_TEXELS = 1 << 15  #: images of up to about this many texels get BREADTH; each doubling beyond, one more
+BREADTH = 4              #: entries propagated from each neighbour's list, and matches whose matches are tried, at first
+BREADTH_TEXELS = 1 << 15  #: images of up to about this many texels start at BREADTH; each doubling beyond, one more
+LAST_EXTRA = 2           #: once the lists settle, a last step draws the neighbours' whole lists and this many
+                         #: more matches' lists
 PCA_SAMPLE = 4096        #: windows the principal components are fitted on
 SEED = 0x5eed
 
@@ -64,21 +68,31 @@ def self_join(features: np.ndarray, radius: int, m: int, *, exclude: int = 0, al
         seeds, n_random = tree_seeds(f, radius, allowed, TREE_SEEDS + (2 * exclude + 1) ** 2), 0
     else:
         seeds, n_random = np.zeros((h * w, 0), np.int32), RANDOM_SEEDS
+    steps = (_Steps if device == "opencl" else _NumpySteps)(image, h, w, radius, exclude, allowed, top)
     wide = min(breadth(h * w), top)
-    steps = (_Steps if device == "opencl" else _NumpySteps)(image, h, w, radius, exclude, allowed, top, wide)
-    steps.step(seeds, 0, n_random, False)
-    for s in range(1, STEPS[init] + 1):
-        settle = s > RANDOM_STEPS[init]
-        if steps.step(None, s, 0 if settle else STEP_RANDOM, settle) < SETTLED * h * w and settle:
-            break
+    steps.step(seeds, 0, n_random, False, (wide, wide))
+    count = _settle(steps, init, 1, (wide, wide), h * w)
+    if wide < top:
+        # a last, wider step: every texel tries, once, its neighbours' whole lists and more of its matches' lists
+        steps.step(None, count + 1, 0, False, (top, min(top, wide + LAST_EXTRA)))
     idx, dist = steps.lists()
     return idx[:, :m], dist[:, :m]
 
 
+def _settle(steps, init, first: int, wide: tuple[int, int], n: int) -> int:
+    """Steps from ``first`` on until fewer than :data:`SETTLED` of the lists change (random candidates in the
+    first :data:`RANDOM_STEPS` of them); the last step's number."""
+    last = first + STEPS[init] - 1
+    for s in range(first, last + 1):
+        settle = s > RANDOM_STEPS[init]
+        if steps.step(None, s, 0 if settle else STEP_RANDOM, settle, wide) < SETTLED * n and settle:
+            return s
+    return last
+
+
 def breadth(texels: int) -> int:
-    """Candidates a step draws from each source list: :data:`BREADTH`, one more per doubling of the texels beyond
-    :data:`BREADTH_TEXELS`.  A larger image holds more near matches that coherence alone does not reach (at
-    512 x 512 ``tablet1.ptm`` recall 0.83 with 4, 0.94 with 7), while at 192 x 192 4 already find 0.97."""
+    """Entries a step draws from each source list: :data:`BREADTH`, one more per doubling of the texels beyond
+    :data:`BREADTH_TEXELS`: a larger image holds more near matches that coherence alone does not reach."""
     return BREADTH + max(0, int(round(np.log2(max(texels, 1) / BREADTH_TEXELS))))
 
 
@@ -130,12 +144,11 @@ def window_components(features: np.ndarray, radius: int, dims: int) -> np.ndarra
 class _Steps:
     """``selfjoin_step`` over one image, the lists and their changed flags kept on the device between launches."""
 
-    def __init__(self, image, h, w, radius, exclude, allowed, top, wide):
+    def __init__(self, image, h, w, radius, exclude, allowed, top):
         self.backend = get_backend()
         cl = self.backend.cl
         self.n, self.h, self.w, self.exclude, self.top = h * w, h, w, exclude, top
-        self.kernel = self.backend.kernel(KERNELS, "selfjoin_step", (
-            f"-DFEATURES={image.shape[2]}", f"-DRADIUS={radius}", f"-DTOPK={top}", f"-DNPROP={wide}", f"-DNN={wide}"))
+        self.options = (f"-DFEATURES={image.shape[2]}", f"-DRADIUS={radius}", f"-DTOPK={top}")
         self.image = self.backend.host_input(image)
         self.allowed = self.backend.host_input(np.ascontiguousarray(allowed, np.uint8))
         mf = cl.mem_flags
@@ -148,16 +161,19 @@ class _Steps:
         cl.enqueue_copy(self.backend.queue, self.buffers[0][2], np.ones(self.n, np.uint8))
         self.no_seeds = self.backend.to_device(np.full(1, -1, np.int32))
 
-    def step(self, seeds, step: int, n_random: int, skip_settled: bool) -> int:
-        """One launch; returns how many lists changed."""
+    def step(self, seeds, step: int, n_random: int, skip_settled: bool, wide) -> int:
+        """One launch drawing ``wide`` = (entries of each neighbour's list, matches whose first as many entries
+        are tried); returns how many lists changed."""
+        nprop, nn = wide
         (idx_in, d_in, ch_in), (idx_out, d_out, ch_out) = self.buffers
         seeds_dev = self.no_seeds if seeds is None or not seeds.shape[1] else \
             self.backend.to_device(np.ascontiguousarray(seeds, np.int32))
         n_seed = 0 if seeds is None else seeds.shape[1]
-        self.kernel.set_args(self.image, np.int32(self.h), np.int32(self.w), np.int32(self.exclude), self.allowed,
+        kernel = self.backend.kernel(KERNELS, "selfjoin_step", (*self.options, f"-DNPROP={nprop}", f"-DNN={nn}"))
+        kernel.set_args(self.image, np.int32(self.h), np.int32(self.w), np.int32(self.exclude), self.allowed,
                              idx_in, d_in, ch_in, idx_out, d_out, ch_out, seeds_dev, np.int32(n_seed), np.uint32(SEED),
                              np.uint32(step), np.int32(n_random), np.int32(skip_settled))
-        self.backend.cl.enqueue_nd_range_kernel(self.backend.queue, self.kernel, (-(-self.n // 64) * 64,), (64,))
+        self.backend.cl.enqueue_nd_range_kernel(self.backend.queue, kernel, (-(-self.n // 64) * 64,), (64,))
         self.buffers.reverse()
         return int(np.count_nonzero(self.backend.from_device(self.buffers[0][2], (self.n,), np.uint8)))
 
@@ -170,16 +186,16 @@ class _Steps:
 class _NumpySteps:
     """The twin of :class:`_Steps`: :func:`improve_numpy` on host lists."""
 
-    def __init__(self, image, h, w, radius, exclude, allowed, top, wide):
+    def __init__(self, image, h, w, radius, exclude, allowed, top):
         self.args = (image, h, w, radius, exclude, allowed)
-        self.wide = wide
         self.idx, self.dist = _empty_lists(h * w, top)
         self.changed = np.ones(h * w, bool)
 
-    def step(self, seeds, step: int, n_random: int, skip_settled: bool) -> int:
+    def step(self, seeds, step: int, n_random: int, skip_settled: bool, wide) -> int:
+        nprop, nn = wide
         seeds = np.zeros((len(self.idx), 0), np.int32) if seeds is None else seeds
         self.idx, self.dist, self.changed = improve_numpy(*self.args, self.idx, self.dist, self.changed, seeds, SEED,
-                                                          step, n_random, skip_settled, self.wide, self.wide)
+                                                          step, n_random, skip_settled, nprop, nn)
         return int(np.count_nonzero(self.changed))
 
     def lists(self) -> tuple[np.ndarray, np.ndarray]:
