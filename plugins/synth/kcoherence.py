@@ -46,7 +46,7 @@ BLOCKS = -1                  #: default side of the stratified exemplar pieces t
 MIN_AUTO_BLOCK = 16          #: auto: a sixth of the exemplar's shorter side, at least this (measured, README)
 AUTO_BLOCK_SHARE = 6
 MAX_BLOCKS = 1024
-KEEP = 0.8                   #: default weight of a pixel's own source's cost in the correction passes
+KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
 
 
@@ -510,7 +510,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
        best, the one whose 4 x 4 exemplar cell is used least beyond its fair share (the output's texels spread
        evenly over the exemplar; counted before each sub-pass) wins, then the cheapest.  Only near ties are
        re-ordered, so a clearly better match always wins (a fixed usage penalty on every candidate collapsed
-       outputs).  The defaults (blocks -1, keep 0.8, 1 correction, coverage 0.5) are the best measured
+       outputs).  The defaults (blocks -1, keep 0.5, 1 correction, coverage 0.5) are the best measured
        (README, Benchmarks).
 
     Order of work: scanline dependencies are resolved by wavefronts ``x + (r + 1) * y = t`` (r = n // 2).  A
