@@ -62,13 +62,30 @@ def test_jump_map_analysis_on_opencl_matches_numpy(material, case):
     (False, 0.1, (37, 41), "material"), (True, 0.1, (40, 33), "material"), (True, 1.0, (16, 64), "material"),
     (False, 0.0, (25, 25), "material"), (True, 0.3, (21, 18), "constant"), (False, 0.5, (1, 30), "material"),
 ])
-def test_walk_kernel_matches_numpy(material, wrap, probability, size, case):
+@pytest.mark.parametrize("balance", [False, True])
+def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, balance):
     features = texel_features(material) if case == "material" else np.ones((9, 10, 2), np.float32)
     jm = build_jump_map(features, jumps=3, jump_probability=probability, neighborhood=5 if case == "material" else 3)
-    a, counts_a = walk(jm, size, wrap=wrap, seed=11)
-    b, counts_b = walk(jm, size, wrap=wrap, seed=11, engine="numpy")
+    a, counts_a = walk(jm, size, wrap=wrap, seed=11, balance=balance)
+    b, counts_b = walk(jm, size, wrap=wrap, seed=11, balance=balance, engine="numpy")
     np.testing.assert_array_equal(a, b)
     assert counts_a == counts_b
+
+
+def test_balance_evens_out_the_use_of_the_exemplar():
+    """The plain walk drifts right and down and piles up in pockets; the balanced one spreads its copies."""
+    from btforge.plugins.synth.kcoherence import benchmark_exemplar
+    jm = build_jump_map(texel_features(benchmark_exemplar(64, lights=8)), jumps=3, jump_probability=0.02)
+    spread = {}
+    for balance in (False, True):
+        use = []
+        for seed in range(3):
+            coords, _ = walk(jm, (128, 128), seed=seed, balance=balance)
+            cells = (coords[..., 0] // 8) * 8 + coords[..., 1] // 8
+            share = np.bincount(cells.ravel(), minlength=64) / (128 * 128 / 64)   # 1 = the fair share
+            use.append(np.abs(share - 1).mean())
+        spread[balance] = float(np.median(use))
+    assert spread[True] < 0.85 * spread[False], spread
 
 
 def test_jump_targets_are_away_from_the_texel_and_inside_the_border(material):
@@ -106,9 +123,9 @@ def test_output_shape_range_determinism_and_notes(material):
 
 def test_jump_probability_controls_the_jumps(material):
     jm = build_jump_map(texel_features(material), jumps=3, jump_probability=0.0)
-    _, never = walk(jm, (48, 48), seed=1)
+    _, never = walk(jm, (48, 48), seed=1, balance=False)   # balance also jumps away from over-used cells
     jm = build_jump_map(texel_features(material), jumps=3, jump_probability=0.5)
-    _, often = walk(jm, (48, 48), seed=1)
+    _, often = walk(jm, (48, 48), seed=1, balance=False)
     assert never["jumps_taken"] == never["forced_jumps"]      # only where a copy would leave the exemplar
     assert often["jumps_taken"] > never["jumps_taken"] + 200
 

@@ -80,17 +80,40 @@ def test_kmeans_assignment_kernel_matches_numpy(case):
         assert (labels_cl == 0).all()
 
 
-@pytest.mark.parametrize("wrap,levels,k,neighborhood,corrections,coverage", [
-    (False, 2, 4, 5, 1, 0.0), (True, 2, 3, 5, 1, 0.0), (False, 1, 1, 3, 1, 0.0), (True, 1, 6, 3, 1, 0.0),
-    (False, 2, 4, 5, 2, 0.3), (True, 2, 3, 5, 3, 1.0), (False, 1, 6, 3, 0, 0.5)])
-def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood, corrections, coverage):
+@pytest.mark.parametrize("wrap,levels,k,neighborhood,corrections,coverage,blocks,keep", [
+    (False, 2, 4, 5, 1, 0.0, 0, 1.0), (True, 2, 3, 5, 1, 0.0, 0, 0.5), (False, 1, 1, 3, 1, 0.0, 0, 1.0),
+    (True, 1, 6, 3, 1, 0.0, 0, 0.0), (False, 2, 4, 5, 2, 0.3, 0, 0.8), (True, 2, 3, 5, 3, 1.0, 0, 1.0),
+    (False, 1, 6, 3, 0, 0.5, 0, 0.8), (False, 2, 6, 5, 1, 0.5, -1, 0.8), (True, 2, 4, 5, 2, 0.5, 7, 0.5),
+    (False, 1, 3, 3, 1, 1.0, 5, 0.0), (True, 1, 6, 5, 0, 0.0, 16, 1.0)])
+def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood, corrections, coverage, blocks, keep):
     features = texel_features(material)
     analysis = kc.analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels)
     args = dict(k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=5, analysis=analysis,
-                corrections=corrections, coverage=coverage)
+                corrections=corrections, coverage=coverage, blocks=blocks, keep=keep)
     a = kc.synthesize(features, (30, 23), **args)
     b = kc.synthesize(features, (30, 23), engine="numpy", **args)
     np.testing.assert_array_equal(a.coords, b.coords)
+
+
+def test_stratified_blocks_use_the_exemplar_evenly():
+    rng = np.random.default_rng(0)
+    sources = kc.stratified_blocks(rng, (48, 40), (96, 96), 8)
+    rows, cols = np.divmod(sources.reshape(96, 96), 40)
+    # whole pieces: each 8 x 8 block of the output is one coherent copy
+    assert (np.diff(cols.reshape(12, 8, 12, 8), axis=3) == 1).all()
+    assert (np.diff(rows.reshape(12, 8, 12, 8), axis=1) == 1).all()
+    # origins: every stratum (about a block apart) once before any twice, so their use differs by at most one
+    origins = np.stack([rows[::8, ::8].ravel(), cols[::8, ::8].ravel()], axis=1)
+    strata_y, strata_x = round(41 / 8), round(33 / 8)
+    lo_y, lo_x = np.arange(strata_y + 1) * 41 // strata_y, np.arange(strata_x + 1) * 33 // strata_x
+    stratum = ((np.searchsorted(lo_y, origins[:, 0], side="right") - 1) * strata_x
+               + np.searchsorted(lo_x, origins[:, 1], side="right") - 1)
+    counts = np.bincount(stratum, minlength=strata_y * strata_x)
+    assert counts.max() - counts.min() <= 1, counts
+    i_i_d = np.random.default_rng(0).integers(0, strata_y * strata_x, len(origins))
+    assert np.bincount(i_i_d).max() - np.bincount(i_i_d, minlength=strata_y * strata_x).min() > 1
+    assert kc.block_side((192, 200), -1) == 32 and kc.block_side((64, 64), -1) == 16
+    assert kc.block_side((20, 30), 24) == 20
 
 
 def test_cell_excess_counts_use_beyond_the_fair_share():
@@ -160,7 +183,10 @@ def test_output_shape_range_and_determinism(material):
     assert (other.coords != out.coords).any()
     for key in ("textons", "texton_error", "kset_distance", "coherent_fraction", "seconds_analysis"):
         assert key in ctx.notes
-    assert len(ctx.notes["textons"]) == 2
+    assert len(ctx.notes["textons"]) == 1  # blocks (the default): only the finest level is analysed
+    hierarchical = StageContext(node="kc", quiet=True)
+    kcoherence(ctx=hierarchical, exemplar=material, size=[40, 52], k=4, levels=2, seed=7, blocks=0)
+    assert len(hierarchical.notes["textons"]) == 2
 
 
 def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
@@ -168,7 +194,7 @@ def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
     analysis = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=2)
     stats = {}
     for wrap in (False, True):
-        runs = [kc.synthesize(features, (64, 64), levels=2, wrap=wrap, seed=s, analysis=analysis).coords
+        runs = [kc.synthesize(features, (64, 64), levels=2, wrap=wrap, seed=s, analysis=analysis, blocks=0).coords
                 for s in range(3)]
         coherence = np.mean([pair_coherence(c) for c in runs], axis=0)
         mismatch = np.mean([seam_mismatch(c, features) for c in runs], axis=0)
@@ -182,6 +208,28 @@ def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
     # than in the interior (about half), but far more than without wrap (none).
     assert seam > 0.4 * interior, stats
     assert seam > coh_open[2:].mean() + 0.15, stats
+
+
+def test_wrap_repairs_the_wrap_seam_like_the_block_seams(material):
+    """With blocks (16 here, multiples of which the 64-texel output's edges are), the wrap-around seam is one
+    more block seam: repaired as well as the inner ones with wrap, left as cut without."""
+    features = textons.normalise_features(texel_features(material))
+
+    def mismatch(coords):
+        f = features[coords[..., 0], coords[..., 1]].astype(np.float64)
+        dh = ((np.roll(f, -1, axis=1) - f) ** 2).sum(-1)
+        dv = ((np.roll(f, -1, axis=0) - f) ** 2).sum(-1)
+        inner = np.arange(15, 63, 16)
+        return np.concatenate([dh[:, inner].ravel(), dv[inner].ravel()]).mean(), np.concatenate([dh[:, -1], dv[-1]]).mean()
+
+    # keep 1: every seam pixel may change to any cheaper candidate (the default 0.5 leaves this tiny exemplar's
+    # seams, inner and wrap-around alike, partly as cut, which hides what wrap does)
+    stats = {wrap: np.mean([mismatch(kc.synthesize(features, (64, 64), wrap=wrap, seed=s, blocks=16,
+                                                   keep=1.0).coords)
+                            for s in range(3)], axis=0) for wrap in (False, True)}
+    (inner_open, seam_open), (inner_wrap, seam_wrap) = stats[False], stats[True]
+    assert seam_wrap < 1.5 * inner_wrap, stats
+    assert seam_open > 2 * inner_open, stats
 
 
 def test_periodic_tile_is_reproduced_in_large_coherent_patches():

@@ -11,18 +11,60 @@
 #ifndef JUMPS
 #define JUMPS 3
 #endif
+#ifndef OVERUSE
+#define OVERUSE 4
+#endif
 
 __constant int NBR_Y[4] = {0, -1, 0, 1};
 __constant int NBR_X[4] = {-1, 0, 1, 0};
 
+// Whether `use` copies of a cell's texels exceed OVERUSE times its fair share of `done` pixels (fair_scale: the
+// exemplar's texel count) plus one cell's worth (a slack, so the first copies never count as over-use).
+inline int over_share(const int use, const int cell, const long fair_scale, const long done)
+{
+    return (long)(use - cell * cell) * fair_scale > OVERUSE * done * cell * cell;
+}
+
+// The target drawn by u from the cumulative probabilities; with balance, of the targets from the drawn one on
+// (cyclically), the first whose exemplar cell has been used least so far, or `escape` (a random interior texel)
+// when even that cell holds more than OVERUSE times its fair share of the `done` pixels so far.
 inline int pick_target(const int texel, const float u, __global const float *cumulative,
-                       __global const int *targets)
+                       __global const int *targets, const int balance, __global const int *usage, const int we,
+                       const int cell, const int cw, const int escape, const long fair_scale, const long done)
 {
     int j = 0;
     for (int i = 0; i < JUMPS; ++i) {
         if (u >= cumulative[texel * JUMPS + i]) ++j;
     }
-    return targets[texel * JUMPS + min(j, JUMPS - 1)];
+    j = min(j, JUMPS - 1);
+    int best = targets[texel * JUMPS + j];
+    if (!balance || best < 0) return best;
+    int best_use = usage[(best / we) / cell * cw + (best % we) / cell];
+    for (int i = 1; i < JUMPS; ++i) {
+        const int c = targets[texel * JUMPS + (j + i) % JUMPS];
+        if (c < 0) continue;
+        const int use = usage[(c / we) / cell * cw + (c % we) / cell];
+        if (use < best_use) { best = c; best_use = use; }
+    }
+    return over_share(best_use, cell, fair_scale, done) ? escape : best;
+}
+
+// Whether texel c's exemplar cell holds more than OVERUSE times its fair share of the `done` pixels.
+inline int overused(const int c, __global const int *usage, const int we, const int cell, const int cw,
+                    const long fair_scale, const long done)
+{
+    return over_share(usage[(c / we) / cell * cw + (c % we) / cell], cell, fair_scale, done);
+}
+
+// After a wavefront: count its pixels' sources per exemplar cell (read by later wavefronts only).
+__kernel void jm_count(__global const int *src, __global int *usage, const int wo, const int t, const int y0,
+                       const int ny, const int we, const int cell, const int cw)
+{
+    const int gi = get_global_id(0);
+    if (gi >= ny) return;
+    const int y = y0 + gi, x = t - 2 * (y0 + gi);
+    const int s = src[y * wo + x];
+    atomic_inc(&usage[(s / we) / cell * cw + (s % we) / cell]);
 }
 
 // Flat index of output pixel (qy, qx) one step from the image: wrapped around a tiling output, -1 outside one
@@ -44,7 +86,9 @@ __kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, co
                       __global const int *targets, __global const float *cumulative,
                       __global const float *probability,
                       __global const int *tex, __global const int *tex_pad, const int he, const int we,
-                      __global const float *table, const int nt)
+                      __global const float *table, const int nt,
+                      const int balance, __global const int *usage, const int cell, const int cw,
+                      __global const int *escape, const int done)
 {
     const int gi = get_global_id(0);
     if (gi >= ny) return;
@@ -65,13 +109,16 @@ __kernel void jm_walk(__global int *src, __global uchar *flags, const int ho, co
         const float u0 = uniform[((size_t)p * 4 + d) * 2], u1 = uniform[((size_t)p * 4 + d) * 2 + 1];
         if (sy >= 0 && sy < he && sx >= 0 && sx < we) {
             int c = sy * we + sx;
-            if (targets[c * JUMPS] >= 0 && u0 < probability[c]) {
-                c = pick_target(c, u1, cumulative, targets);
+            if (targets[c * JUMPS] >= 0
+                && (u0 < probability[c] || (balance && overused(c, usage, we, cell, cw, (long)he * we, done)))) {
+                c = pick_target(c, u1, cumulative, targets, balance, usage, we, cell, cw, escape[p],
+                                (long)he * we, done);
                 flag[d] = 1;
             }
             cand[d] = c;
         } else {
-            const int f = pick_target(s, u1, cumulative, targets);
+            const int f = pick_target(s, u1, cumulative, targets, balance, usage, we, cell, cw, escape[p],
+                                      (long)he * we, done);
             if (f >= 0) {
                 cand[d] = (f / we - NBR_Y[d]) * we + f % we - NBR_X[d];
                 flag[d] = 3;

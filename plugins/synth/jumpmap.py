@@ -28,8 +28,11 @@ from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analys
 KERNELS = Path(__file__).with_name("jumpmap.cl")
 
 MAX_JUMPS = 16
-JUMP_PROBABILITY = 0.05   #: default mean jump rate (measured best of 0.02-0.8 with COVERAGE, README)
+JUMP_PROBABILITY = 0.02   #: default mean jump rate (measured with BALANCE: 0.01-0.05, README)
 COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
+BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
+BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
+OVERUSE = 4               #: balance: a cell holding more than this x its fair share (+ one cell) is over-used
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
@@ -122,14 +125,37 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
                    probability.astype(np.float32))
 
 
-def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """The jump target of each ``texel`` chosen by uniform ``u`` (-1 where the texel has none)."""
+def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | None = None,
+          escape: np.ndarray | None = None, done: int = 0) -> np.ndarray:
+    """The jump target of each ``texel`` chosen by uniform ``u`` (-1 where the texel has none); with ``usage``
+    (per exemplar cell) the first least-used of its targets from the drawn one on, cyclically (``pick_target``)."""
+    n_jump = jm.targets.shape[1]
     j = (u[:, None] >= jm.cumulative[texel]).sum(axis=1)
-    j = np.minimum(j, jm.targets.shape[1] - 1)
-    return jm.targets[texel, j]
+    j = np.minimum(j, n_jump - 1)
+    drawn = jm.targets[texel, j]
+    if usage is None:
+        return drawn
+    order = (j[:, None] + np.arange(n_jump)[None]) % n_jump
+    cand = jm.targets[texel[:, None], order]
+    use = np.where(cand >= 0, usage[_cell_of(np.maximum(cand, 0), jm.width)], np.int64(1) << 40)
+    pick = np.argmin(use, axis=1)
+    rows = np.arange(len(texel))
+    best = cand[rows, pick]
+    over = _over_share(use[rows, pick], jm, done)
+    return np.where(drawn >= 0, np.where(over, escape, best), drawn)
 
 
-def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0,
+def _over_share(use: np.ndarray, jm: JumpMap, done: int) -> np.ndarray:
+    """Twin of ``over_share``: uses beyond OVERUSE x the fair share of ``done`` pixels plus one cell's worth."""
+    area = BALANCE_CELL * BALANCE_CELL
+    return (use - area) * (jm.height * jm.width) > OVERUSE * done * area
+
+
+def _cell_of(texel: np.ndarray, width: int) -> np.ndarray:
+    return (texel // width) // BALANCE_CELL * -(-width // BALANCE_CELL) + (texel % width) // BALANCE_CELL
+
+
+def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0, balance: bool = BALANCE,
          engine: str = "opencl") -> tuple[np.ndarray, dict]:
     """Synthesize ``[H, W, 2]`` int32 coordinates with the jump-map walk; returns them and counts.
 
@@ -145,20 +171,29 @@ def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 
     rng = np.random.default_rng(seed)
     uniform = rng.random((ho * wo, 4, 2), dtype=np.float32)
     fallback = rng.integers(0, jm.height * jm.width, ho * wo).astype(np.int32)
+    # balance's escapes: random texels one inside the border, like jump targets (so a step stays inside)
+    escape = ((rng.integers(1, max(2, jm.height - 1), ho * wo)) * jm.width
+              + rng.integers(1, max(2, jm.width - 1), ho * wo)).astype(np.int32)
     if engine == "numpy":
-        src, flags = walk_numpy(jm, ho, wo, wrap, uniform, fallback)
+        src, flags = walk_numpy(jm, ho, wo, wrap, uniform, fallback, balance, escape)
     else:
-        src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback)
+        src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback, balance, escape)
     coords = np.stack(np.divmod(src.reshape(ho, wo), jm.width), axis=-1).astype(np.int32)
     return coords, {"jumps_taken": int((flags & 1).sum()), "forced_jumps": int((flags >> 1 & 1).sum())}
 
 
-def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
+def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
+                balance: bool, escape: np.ndarray):
     """The walk on OpenCL (``jm_walk``, one launch per wavefront): flat sources and per-pixel jump flags."""
     backend = get_backend()
     jumps = jm.targets.shape[1]
-    kernel = backend.kernel(KERNELS, "jm_walk", (f"-DJUMPS={jumps}",))
+    options = (f"-DJUMPS={jumps}", f"-DOVERUSE={OVERUSE}")
+    kernel = backend.kernel(KERNELS, "jm_walk", options)
+    count = backend.kernel(KERNELS, "jm_count", options)
+    escape_dev = backend.to_device(escape)
     cl = backend.cl
+    cw = -(-jm.width // BALANCE_CELL)
+    usage_dev = backend.to_device(np.zeros(-(-jm.height // BALANCE_CELL) * cw, np.int32))
     src_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=4 * ho * wo)
     flags_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=ho * wo)
     # the device buffers must outlive the launches: set_args does not keep them alive
@@ -168,15 +203,26 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, 
     uniform_dev, fallback_dev, targets_dev, cumulative_dev, probability_dev, tex_dev, tex_pad_dev, table_dev = inputs
     kernel.set_args(src_dev, flags_dev, np.int32(ho), np.int32(wo), np.int32(wrap), np.int32(0), np.int32(0),
                     np.int32(0), uniform_dev, fallback_dev, targets_dev, cumulative_dev, probability_dev, tex_dev,
-                    tex_pad_dev, np.int32(jm.height), np.int32(jm.width), table_dev, np.int32(jm.textons.count))
+                    tex_pad_dev, np.int32(jm.height), np.int32(jm.width), table_dev, np.int32(jm.textons.count),
+                    np.int32(balance), usage_dev, np.int32(BALANCE_CELL), np.int32(cw), escape_dev, np.int32(0))
+    count.set_args(src_dev, usage_dev, np.int32(wo), np.int32(0), np.int32(0), np.int32(0), np.int32(jm.width),
+                   np.int32(BALANCE_CELL), np.int32(cw))
+    done = 0
     for t, y0, ny in wavefronts(2, ho, wo):
         kernel.set_arg(5, np.int32(t))
         kernel.set_arg(6, np.int32(y0))
         kernel.set_arg(7, np.int32(ny))
+        kernel.set_arg(24, np.int32(done))
         cl.enqueue_nd_range_kernel(backend.queue, kernel, (round_up(ny),), (LOCAL,))
+        done += ny
+        if balance:
+            count.set_arg(3, np.int32(t))
+            count.set_arg(4, np.int32(y0))
+            count.set_arg(5, np.int32(ny))
+            cl.enqueue_nd_range_kernel(backend.queue, count, (round_up(ny),), (LOCAL,))
     src = backend.from_device(src_dev, (ho * wo,), np.int32)
     flags = backend.from_device(flags_dev, (ho * wo,), np.uint8)
-    del inputs
+    del inputs, usage_dev, escape_dev
     return src, flags
 
 
@@ -186,7 +232,8 @@ def _output_neighbour(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bo
     return qy * wo + qx, inside
 
 
-def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray):
+def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
+               balance: bool, escape: np.ndarray):
     """Twin of ``jm_walk``, vectorised over each wavefront: flat sources and per-pixel jump flags."""
     he, we = jm.height, jm.width
     tex = jm.textons.labels.ravel()
@@ -196,6 +243,8 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
     src = np.zeros(ho * wo, np.int64)
     flags = np.zeros(ho * wo, np.uint8)
     done = np.zeros(ho * wo, bool)
+    usage = np.zeros(-(-he // BALANCE_CELL) * -(-we // BALANCE_CELL), np.int64) if balance else None
+    n_done = 0
     for t, y0, ny in wavefronts(2, ho, wo):
         ys = np.arange(y0, y0 + ny)
         xs = t - 2 * ys
@@ -214,9 +263,11 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
             # coherent copy, or a jump from the copied texel
             c = np.clip(sy, 0, he - 1) * we + np.clip(sx, 0, we - 1)
             jump = ~out & has_jump[c] & (u[:, 0] < jm.probability[c])
-            c = np.where(jump, _pick(jm, c, u[:, 1]), c)
+            if balance:  # an over-used cell is left by a jump whatever the draw
+                jump |= ~out & has_jump[c] & _over_share(usage[_cell_of(c, we)], jm, n_done)
+            c = np.where(jump, _pick(jm, c, u[:, 1], usage, escape[p], n_done), c)
             # forced: the copy leaves the exemplar, so jump from the source and step from the target
-            f_target = _pick(jm, s, u[:, 1])
+            f_target = _pick(jm, s, u[:, 1], usage, escape[p], n_done)
             f_ok = f_target >= 0
             fy = np.where(f_ok, f_target // we + STEP[d, 0], np.clip(sy, 0, he - 1))
             fx = np.where(f_ok, f_target % we + STEP[d, 1], np.clip(sx, 0, we - 1))
@@ -242,12 +293,15 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
         src[p] = np.where(some, cand[rows, pick], fallback[p])
         flags[p] = np.where(some, jumped[rows, pick] * 1 + forced[rows, pick] * 2, 0)
         done[p] = True
+        n_done += n
+        if balance:
+            np.add.at(usage, _cell_of(src[p], we), 1)
     return src.astype(np.int32), flags
 
 
 @declare_synthesizer(
     "jumpmap",
-    version="4",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default
+    version="5",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -260,10 +314,14 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
         search_param(),
         Param("coverage", "float", COVERAGE, "exponent of the in-degree balance of jump choices: a target's choice "
               "weight is divided by (how many texels jump to it) ** coverage (0: off)", low=0.0, high=2.0),
+        Param("balance", "bool", BALANCE, "usage-aware walk: a copy from an exemplar cell (8 x 8 texels) the "
+              "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
+              "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
+              "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage):
+            coverage, balance):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -272,13 +330,20 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ``d`` (``d_ref``: the exemplar's median best-target distance), normalised per source texel, and divided by
     each target's in-degree ** ``coverage`` so that much-listed texels are not over-used.  The jump rate
     (``jump_probability`` on average) is scaled per texel by its total weight: close matches jump more often.
-    The defaults (rate 0.05, coverage 1) scored best of those measured (README, Benchmarks): rarer jumps
-    leave large verbatim copies, more frequent ones scored worse on the 192 x 192 crops.  Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
+    Synthesis: each output pixel continues the source of its left or upper neighbour by one texel
     (a coherent copy); with a probability that is higher where good jumps exist it jumps to one of that
     texel's targets instead, and it must jump where the copy would leave the exemplar.  Of the candidates
     from the left and upper neighbours (and, with ``wrap``, the right and lower ones across the seam) the one
     whose 3 x 3 neighbourhood matches the pixels already synthesized best is taken.  Pixels are visited in
     anti-diagonal wavefronts ``x + 2 y = t``, one OpenCL launch each (scanline-equivalent without wrap).
+
+    **Balance** (``balance``, on by default): the plain walk drifts right and down and gets caught in pockets
+    whose forced jumps land in the pocket again (on a 64 x 64 crop, one 8 x 8 cell held 27 x its fair share).
+    With balance the walk counts the output's use of every 8 x 8 exemplar cell after each wavefront; a copy
+    from an over-used cell (more than 4 x its fair share of the pixels so far, plus one cell's worth) jumps
+    whatever the draw, a jump goes to the least-used of the texel's targets, and where even that cell is
+    over-used to a random texel.  The defaults (rate 0.02, coverage 1, balance) scored best of those measured
+    (README, Benchmarks).
 
     With ``wrap`` the output's last column and row continue into its first ones, so the result tiles.  There is
     no correction pass: the closing row and column must agree with both sides, so the seam has fewer exact
@@ -305,7 +370,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
-    coords, counts = walk(jm, size, wrap=wrap, seed=seed)
+    coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance)
     ctx.note("textons", jm.textons.count)
     ctx.note("jump_targets", int((jm.targets[:, 0] >= 0).sum()))
     ctx.note("jumps_taken", counts["jumps_taken"])

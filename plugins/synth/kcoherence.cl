@@ -18,7 +18,8 @@
 // Candidates for an output pixel: for each used neighbour (offset (dy, dx), source s), the coherent source
 // s - (dy, dx) (clamped into the exemplar) and its coherence set.  Cost of a candidate c: the sum over used
 // neighbours, in order, of table[tex_pad(c + offset), tex(source)].  The first candidate with the lowest cost
-// wins; -1 when there is no used neighbour.  Repeated coherent sources are skipped (they add nothing), and a
+// wins; -1 when there is no used neighbour.  `own` >= 0 (the pixel's current source) is tried before all others,
+// at its cost times `own_scale` (<= 1: it is kept unless another candidate is clearly cheaper).  Repeated coherent sources are skipped (they add nothing), and a
 // candidate is abandoned once its partial cost reaches the best so far: neither changes the result.
 // The coherent source suggested by neighbour (dy, dx) with source `src`, clamped into the exemplar; -1 when an
 // earlier neighbour suggested it already (`seen` keeps the n_seen sources so far).
@@ -51,10 +52,14 @@ inline float window_cost(const int c, const int n, const int *ndy, const int *nd
 inline int kc_best(const int n, const int *ndy, const int *ndx, const int *nsrc, const int *ntex,
                    __global const int *tex_pad, const int he, const int we, const int wp, const int pad,
                    __global const float *table, const int nt, __global const int *ksets, const int kmax,
-                   const int k, float *cost_out)
+                   const int k, const int own, const float own_scale, float *cost_out)
 {
     int best = -1;
     float best_cost = INFINITY;
+    if (own >= 0 && n > 0) {  // the pixel's own source goes first, so it is kept where nothing beats it
+        best = own;
+        best_cost = window_cost(own, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt, INFINITY) * own_scale;
+    }
     int seen[NOFF];
     int n_seen = 0;
     for (int i = 0; i < n; ++i) {
@@ -80,7 +85,7 @@ inline int kc_fairest(const int best, const float best_cost, const int n, const 
                       const int *nsrc, const int *ntex, __global const int *tex_pad, const int he, const int we,
                       const int wp, const int pad, __global const float *table, const int nt,
                       __global const int *ksets, const int kmax, const int k, __global const float *excess,
-                      const int cell, const int cw, const float tol)
+                      const int cell, const int cw, const float tol, const int own, const float own_scale)
 {
     if (!(tol > 0.0f) || best < 0 || !isfinite(best_cost)) return best;
     const float limit = best_cost * (1.0f + tol);
@@ -88,6 +93,13 @@ inline int kc_fairest(const int best, const float best_cost, const int n, const 
     int pick = best;
     float pick_excess = excess[(best / we) / cell * cw + (best % we) / cell];
     float pick_cost = best_cost;
+    if (own >= 0 && own != best) {  // the pixel's own source, at its scaled cost, comes before the others
+        const float e = excess[(own / we) / cell * cw + (own % we) / cell];
+        const float acc = window_cost(own, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt, INFINITY) * own_scale;
+        if (acc <= limit && (e < pick_excess || (e == pick_excess && acc < pick_cost))) {
+            pick = own; pick_excess = e; pick_cost = acc;
+        }
+    }
     int seen[NOFF];
     int n_seen = 0;
     for (int i = 0; i < n; ++i) {
@@ -154,7 +166,8 @@ inline void causal_pixel(const int y, const int x, const int t, CAUSAL_ARGS)
         ++n;
     }
     float cost;
-    const int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k, &cost);
+    const int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k,
+                             -1, 1.0f, &cost);
     if (best >= 0) cur[p] = best;
 }
 
@@ -188,7 +201,8 @@ __kernel void kc_correct(__global const int *prev, __global int *cur, const int 
                          __global const int *tex, __global const int *tex_pad, const int he, const int we,
                          const int wp, const int pad, __global const float *table, const int nt,
                          __global const int *ksets, const int kmax, const int k,
-                         __global const float *excess, const int cell, const int cw, const float tol)
+                         __global const float *excess, const int cell, const int cw, const float tol,
+                         const float own_scale)
 {
     const int y = cy + step * (int)get_global_id(0);
     const int x = cx + step * (int)get_global_id(1);
@@ -207,8 +221,10 @@ __kernel void kc_correct(__global const int *prev, __global int *cur, const int 
         ++n;
     }
     float cost;
-    int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k, &cost);
+    const int own = own_scale >= 0.0f && n > 0 ? prev[p] : -1;
+    int best = kc_best(n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k, own,
+                       own_scale, &cost);
     best = kc_fairest(best, cost, n, ndy, ndx, nsrc, ntex, tex_pad, he, we, wp, pad, table, nt, ksets, kmax, k,
-                      excess, cell, cw, tol);
+                      excess, cell, cw, tol, own, own_scale);
     cur[p] = best >= 0 ? best : prev[p];
 }

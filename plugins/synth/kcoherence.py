@@ -42,6 +42,11 @@ MAX_CORRECTIONS = 8
 COVERAGE = 0.5               #: default coverage tolerance (0: off; measured best of 0.05-1, README)
 COVERAGE_CELL = 4            #: exemplar texels per side of a cell whose use the coverage tie-break evens out
 ENGINES = ("opencl", "numpy")
+BLOCKS = -1                  #: default side of the stratified exemplar pieces the synthesis starts from (-1: auto)
+MIN_AUTO_BLOCK = 16          #: auto: a sixth of the exemplar's shorter side, at least this (measured, README)
+AUTO_BLOCK_SHARE = 6
+MAX_BLOCKS = 1024
+KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
 
 
@@ -127,10 +132,12 @@ def _neighbours(ys, xs, offs, ho, wo, wrap):
 
 
 def best_candidates_numpy(level: ExemplarLevel, nsrc: np.ndarray, used: np.ndarray, offs: np.ndarray,
-                          k: int, coverage: tuple | None = None) -> np.ndarray:
+                          k: int, coverage: tuple | None = None, own: np.ndarray | None = None,
+                          own_scale: float = 1.0) -> np.ndarray:
     """Twin of ``kc_best`` for ``P`` pixels at once: ``nsrc``/``used`` ``[P, O]`` -> best source ``[P]`` or -1.
 
     ``coverage`` ``(excess, cell, tolerance)``: then the twin of ``kc_fairest`` re-picks among near ties.
+    ``own`` ``[P]``: each pixel's current source, tried before every other candidate (kept on ties).
     """
     he, we, pad = level.height, level.width, level.pad
     n_pix, n_off = nsrc.shape
@@ -140,6 +147,9 @@ def best_candidates_numpy(level: ExemplarLevel, nsrc: np.ndarray, used: np.ndarr
     sx = np.clip(nsrc % we - offs[None, :, 1], 0, we - 1)
     cand = level.ksets[sy * we + sx, :k].reshape(n_pix, n_off * k)
     valid = np.repeat(used, k, axis=1) & (cand >= 0)
+    if own is not None:
+        cand = np.concatenate([own.astype(cand.dtype)[:, None], cand], axis=1)
+        valid = np.concatenate([((own >= 0) & used.any(axis=1))[:, None], valid], axis=1)
     safe = np.where(cand >= 0, cand, 0)
     cy, cx = safe // we + pad, safe % we + pad
     ntex = level.tex[nsrc]
@@ -150,6 +160,8 @@ def best_candidates_numpy(level: ExemplarLevel, nsrc: np.ndarray, used: np.ndarr
         for l in range(n_off):
             term = table[level.tex_pad[cy + offs[l, 0], cx + offs[l, 1]], ntex[:, l:l + 1]]
             acc += np.where(used[:, l:l + 1], term, zero)
+    if own is not None:
+        acc[:, 0] *= np.float32(own_scale)
     key = np.where(valid, acc, np.float32(np.inf))
     rows = np.arange(n_pix)
     pick = np.argmin(key, axis=1)
@@ -194,6 +206,39 @@ def cell_excess(sources: np.ndarray, level: ExemplarLevel, cell: int) -> np.ndar
     return (np.maximum(count - fair, 0.0) / fair).astype(np.float32)
 
 
+def block_side(exemplar_size: tuple[int, int], blocks: int) -> int:
+    """The block side ``blocks`` asks for: itself, or for -1 a sixth of the exemplar's shorter side (at least
+    :data:`MIN_AUTO_BLOCK`), never more than the exemplar."""
+    if blocks < 0:
+        blocks = max(MIN_AUTO_BLOCK, min(exemplar_size) // AUTO_BLOCK_SHARE)
+    return min(blocks, *exemplar_size)
+
+
+def stratified_blocks(rng: np.random.Generator, exemplar_size: tuple[int, int], size: tuple[int, int],
+                      block: int) -> np.ndarray:
+    """Flat exemplar sources ``[H * W]`` int32 of ``block x block`` exemplar pieces laid side by side, their
+    origins spread evenly: the exemplar's origins are cut into strata about ``block`` apart, every stratum is used
+    once (one random origin inside it, in random order) before any is used again."""
+    (eh, ew), (ho, wo) = exemplar_size, size
+    b = max(1, min(block, eh, ew))
+    by, bx = -(-ho // b), -(-wo // b)
+    span_y, span_x = eh - b + 1, ew - b + 1
+    gy, gx = max(1, round(span_y / b)), max(1, round(span_x / b))
+    lo_y, lo_x = (np.arange(gy + 1) * span_y) // gy, (np.arange(gx + 1) * span_x) // gx
+    origins = []
+    while sum(len(o) for o in origins) < by * bx:
+        strata = rng.permutation(gy * gx)
+        iy, ix = np.divmod(strata, gx)
+        oy = lo_y[iy] + (rng.random(len(strata)) * (lo_y[iy + 1] - lo_y[iy])).astype(np.int64)
+        ox = lo_x[ix] + (rng.random(len(strata)) * (lo_x[ix + 1] - lo_x[ix])).astype(np.int64)
+        origins.append(np.stack([oy, ox], axis=1))
+    origin = np.concatenate(origins)[:by * bx].reshape(by, bx, 2)
+    rows, cols = np.mgrid[0:ho, 0:wo]
+    sy = origin[rows // b, cols // b, 0] + rows % b
+    sx = origin[rows // b, cols // b, 1] + cols % b
+    return (sy * ew + sx).ravel().astype(np.int32)
+
+
 def causal_pass_numpy(level, cur, fixed, ho, wo, wrap, offs, k, use_prev=False):
     """Twin of the wavefront-ordered causal pass (``kc_causal``); updates ``cur`` (flat) in place."""
     step = int(np.abs(offs).max()) + 1
@@ -225,7 +270,7 @@ def _groups(n: int, step: int, wrap: bool) -> list[tuple[int, int]]:
     return groups + [(line, line + 1) for line in range(main, n)]
 
 
-def correction_pass_numpy(level, cur, ho, wo, wrap, offs, k, coverage=0.0):
+def correction_pass_numpy(level, cur, ho, wo, wrap, offs, k, coverage=0.0, keep=1.0):
     """Twin of the correction pass (``kc_correct`` over interleaved sub-passes); updates ``cur`` in place."""
     step = int(np.abs(offs).max()) + 1
     for cy, y_end in _groups(ho, step, wrap):
@@ -240,7 +285,8 @@ def correction_pass_numpy(level, cur, ho, wo, wrap, offs, k, coverage=0.0):
             p = ys * wo + xs
             used = inside & (q != p[:, None])
             fair = (cell_excess(prev, level, COVERAGE_CELL), COVERAGE_CELL, coverage) if coverage > 0 else None
-            best = best_candidates_numpy(level, prev[q], used, offs, k, coverage=fair)
+            best = best_candidates_numpy(level, prev[q], used, offs, k, coverage=fair,
+                                         own=prev[p], own_scale=keep)
             cur[p] = np.where(best >= 0, best, prev[p])
 
 
@@ -293,7 +339,8 @@ class _DeviceLevel:
             backend.cl.enqueue_nd_range_kernel(backend.queue, kernel, (round_up(ny),), (LOCAL,))
         backend.queue.finish()
 
-    def correction_pass(self, cur_dev, ho: int, wo: int, wrap: bool, coverage: float = 0.0) -> None:
+    def correction_pass(self, cur_dev, ho: int, wo: int, wrap: bool, coverage: float = 0.0,
+                        keep: float = 1.0) -> None:
         backend = self.backend
         step = int(np.abs(self.offs).max()) + 1
         prev_dev = backend.empty(4 * ho * wo)
@@ -312,7 +359,7 @@ class _DeviceLevel:
                 launch(backend, self.correct, (ny, nx), prev_dev, cur_dev, np.int32(ho), np.int32(wo),
                         np.int32(wrap), np.int32(cy), np.int32(cx), np.int32(step), np.int32(y_end),
                         np.int32(x_end), *self.args, excess_dev, np.int32(COVERAGE_CELL), np.int32(cw),
-                        np.float32(coverage))
+                        np.float32(coverage), np.float32(keep))
 
 
 @dataclasses.dataclass
@@ -325,8 +372,8 @@ class SynthesisResult:
 
 def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neighborhood: int = 5, levels: int = 3,
                wrap: bool = False, seed: int = 0, textons: int = DEFAULT_TEXTONS, search: str = "fast",
-               corrections: int = CORRECTIONS, coverage: float = COVERAGE, engine: str = "opencl",
-               analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
+               corrections: int = CORRECTIONS, coverage: float = COVERAGE, blocks: int = BLOCKS, keep: float = KEEP,
+               engine: str = "opencl", analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
     """Hierarchical k-coherence synthesis on ``[H, W, D]`` features; see :func:`kcoherence` for the method."""
     if engine not in ENGINES:
         raise BtforgeInputError("kcoherence 'engine'", f"expected one of {ENGINES}, found {engine!r}",
@@ -337,49 +384,42 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
         raise BtforgeInputError("kcoherence param 'corrections'",
                                 f"expected an int in [0, {MAX_CORRECTIONS}], found {corrections}",
                                 f"use e.g. {CORRECTIONS} correction pass per level")
+    if not -1 <= blocks <= MAX_BLOCKS:
+        raise BtforgeInputError("kcoherence param 'blocks'", f"expected an int in [-1, {MAX_BLOCKS}], found {blocks}",
+                                "use -1 (a sixth of the exemplar), e.g. 16, or 0 for the hierarchical synthesis "
+                                "from a random border")
+    blocks = block_side(features.shape[:2], blocks)
+    if not 0.0 <= keep <= 1.0:
+        raise BtforgeInputError("kcoherence param 'keep'", f"expected a value in [0, 1], found {keep}",
+                                f"use e.g. {KEEP}; 1 keeps a pixel's source only where nothing is cheaper")
     start = time.perf_counter()
+    # with blocks only the finest level is synthesized, so only it is analysed
     pyramid = analysis if analysis is not None else analyse_exemplar(
-        features, k=k, neighborhood=neighborhood, levels=levels, textons=textons, search=search, engine=engine)
+        features, k=k, neighborhood=neighborhood, levels=1 if blocks else levels, textons=textons, search=search,
+        engine=engine)
     analysed = time.perf_counter()
-    radius = neighborhood // 2
-    offs = synthesis_offsets(radius)
-    out_sizes = level_sizes(int(size[0]), int(size[1]), levels)
+    offs = synthesis_offsets(neighborhood // 2)
+    synthesized = 1 if blocks else levels
+    out_sizes = level_sizes(int(size[0]), int(size[1]), synthesized)
     rng = np.random.default_rng(seed)
     cur = None
-    for l in reversed(range(levels)):
+    for l in reversed(range(synthesized)):
         level = pyramid[l]
         ho, wo = out_sizes[l]
-        ys, xs = np.divmod(np.arange(ho * wo), wo)
-        # causal passes as (fixed mask, read later neighbours from the previous state)
-        if cur is None:
-            # coarsest level: the border (first `radius` rows and columns) seeded with random exemplar texels
-            cur = rng.integers(0, level.height * level.width, ho * wo).astype(np.int32)
-            passes_causal = [((ys < radius) | (xs < radius), False)]
-            if wrap:
-                # periodic output: a second, toroidal pass re-synthesizes everything, the border included, with
-                # the neighbours not yet redone (across the seams) read from the first pass's result
-                passes_causal.append((np.zeros(ho * wo, bool), True))
-        else:
-            # finer level: coarse coordinates x 2 plus the pixel's offset in its 2 x 2 block; even pixels fixed
-            coarse_level, wc = pyramid[l + 1], out_sizes[l + 1][1]
-            parent = cur[(ys // 2) * wc + xs // 2]
-            sy = np.minimum(2 * (parent // coarse_level.width) + ys % 2, level.height - 1)
-            sx = np.minimum(2 * (parent % coarse_level.width) + xs % 2, level.width - 1)
-            cur = (sy * level.width + sx).astype(np.int32)
-            passes_causal = [((ys % 2 == 0) & (xs % 2 == 0), False)]
-        passes = corrections + 1 if l == levels - 1 else corrections
+        cur, passes_causal = _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, neighborhood // 2)
+        passes = corrections + 1 if l == synthesized - 1 else corrections
         if engine == "numpy":
             for fixed, use_prev in passes_causal:
                 causal_pass_numpy(level, cur, fixed, ho, wo, wrap, offs, k, use_prev=use_prev)
             for _ in range(passes):
-                correction_pass_numpy(level, cur, ho, wo, wrap, offs, k, coverage)
+                correction_pass_numpy(level, cur, ho, wo, wrap, offs, k, coverage, keep)
         else:
             dev = _DeviceLevel(level, offs, k)
             cur_dev = dev.rw_buffer(cur)
             for fixed, use_prev in passes_causal:
                 dev.causal_pass(cur_dev, fixed, ho, wo, wrap, use_prev=use_prev)
             for _ in range(passes):
-                dev.correction_pass(cur_dev, ho, wo, wrap, coverage)
+                dev.correction_pass(cur_dev, ho, wo, wrap, coverage, keep)
             dev.backend.cl.enqueue_copy(dev.backend.queue, cur, cur_dev)
             dev.backend.queue.finish()
     finest = pyramid[0]
@@ -387,19 +427,46 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
     return SynthesisResult(coords, pyramid, analysed - start, time.perf_counter() - analysed)
 
 
+def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
+    """A level's starting sources (flat int32) and its causal passes as (fixed mask, read later neighbours from
+    the previous state)."""
+    level = pyramid[l]
+    ho, wo = out_sizes[l]
+    ys, xs = np.divmod(np.arange(ho * wo), wo)
+    if cur is None and blocks:
+        # stratified exemplar pieces: the correction passes repair their seams
+        return stratified_blocks(rng, (level.height, level.width), (ho, wo), blocks), []
+    if cur is None:
+        # coarsest level: the border (first `radius` rows and columns) seeded with random exemplar texels
+        cur = rng.integers(0, level.height * level.width, ho * wo).astype(np.int32)
+        passes = [((ys < radius) | (xs < radius), False)]
+        if wrap:
+            # periodic output: a second, toroidal pass re-synthesizes everything, the border included, with
+            # the neighbours not yet redone (across the seams) read from the first pass's result
+            passes.append((np.zeros(ho * wo, bool), True))
+        return cur, passes
+    # finer level: coarse coordinates x 2 plus the pixel's offset in its 2 x 2 block; even pixels fixed
+    coarse_level, wc = pyramid[l + 1], out_sizes[l + 1][1]
+    parent = cur[(ys // 2) * wc + xs // 2]
+    sy = np.minimum(2 * (parent // coarse_level.width) + ys % 2, level.height - 1)
+    sx = np.minimum(2 * (parent % coarse_level.width) + xs % 2, level.width - 1)
+    return (sy * level.width + sx).astype(np.int32), [((ys % 2 == 0) & (xs % 2 == 0), False)]
+
+
 # ============================================================================================ the stage
 
 
 @declare_synthesizer(
     "kcoherence",
-    version="4",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5)
+    version="5",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5)
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
               low=1, high=MAX_K),
         Param("neighborhood", "int", 5, "odd window size n of the n x n neighbourhoods compared",
               low=3, high=MAX_NEIGHBORHOOD),
-        Param("levels", "int", 3, "pyramid levels (each half the previous resolution)", low=1, high=12),
+        Param("levels", "int", 3, "pyramid levels (each half the previous resolution) of the hierarchical start "
+              "(blocks: 0); with blocks the finest level alone is analysed and synthesized", low=1, high=12),
         Param("textons", "int", DEFAULT_TEXTONS, "texton (k-means cluster) count per level, at most the texels "
               "of the level", low=1, high=2048),
         search_param(),
@@ -408,10 +475,17 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
         Param("coverage", "float", COVERAGE, "coverage tolerance of the correction passes: among candidates "
               "within this relative cost of the best, the least over-used exemplar cell wins (0: off)",
               low=0.0, high=1.0),
+        Param("blocks", "int", BLOCKS, "side in texels of the exemplar pieces the synthesis starts from, laid side "
+              "by side with origins spread evenly over the exemplar; only the finest level is then synthesized "
+              "(its correction passes repair the seams).  -1: a sixth of the exemplar's shorter side, at least 16; "
+              "0: the hierarchical synthesis from a random border over 'levels' levels", low=-1, high=MAX_BLOCKS),
+        Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
+              "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
+              low=0.0, high=1.0),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage):
+               coverage, blocks, keep):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -421,20 +495,32 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
        exemplar texel its coherence set - itself and the k - 1 texels with the most similar n x n
        neighbourhoods of the appearance vectors (the shared search, ``search`` fast or exact; texels within one
        texel of it are left out).  The analysis is kept per exemplar: another seed or size skips it.
-    2. **Coarsest level**: the first n // 2 rows and columns are seeded with random exemplar texels; every other
-       pixel takes, among the coherence sets of the coherent sources suggested by its causal (L-shaped)
-       neighbours, the candidate whose neighbourhood differs least (sums of texton-table lookups).
-    3. **Finer levels**: every pixel starts from its parent's source x 2 plus its offset in the 2 x 2 block; the
-       even-even pixels are kept (and used as known neighbours, also below and to the right), the others are
-       synthesized as in 2.
+    2. **Start from stratified blocks** (the default, ``blocks`` != 0): the output is tiled with ``blocks x
+       blocks`` pieces of the exemplar (-1: a sixth of its shorter side, at least 16 texels) whose origins are
+       spread evenly: the exemplar's origins are cut into strata about a block apart, and every stratum gives
+       one random origin, in random order, before any gives another.  Only the finest level is synthesized:
+       its correction passes (4. below, ``corrections`` + 1 of them) repair the seams between the pieces.  The
+       output thus copies large coherent pieces and uses the whole exemplar about evenly, which the
+       hierarchical start below does not (its passes drift to a few easily continued regions; README,
+       Benchmarks).
+    2'. **Hierarchical start** (``blocks: 0``), coarsest level: the first n // 2 rows and columns are seeded
+       with random exemplar texels; every other pixel takes, among the coherence sets of the coherent sources
+       suggested by its causal (L-shaped) neighbours, the candidate whose neighbourhood differs least (sums of
+       texton-table lookups).
+    3. **Finer levels** (``blocks: 0``): every pixel starts from its parent's source x 2 plus its offset in
+       the 2 x 2 block; the even-even pixels are kept (and used as known neighbours, also below and to the
+       right), the others are synthesized as in 2'.
     4. **Correction** (Tong et al. 2002; Lefebvre & Hoppe 2005): after each level's causal pass, ``corrections``
        passes choose every pixel again from its k-coherence candidates with its now complete, non-causal
-       neighbourhood (one pass more at the coarsest level, where they also repair the random border).
+       neighbourhood (one pass more at the coarsest level, where they also repair the random border or the
+       seams).  **Keep**: the pixel's own source is a candidate too, at ``keep`` x its cost, so a source
+       changes only for a clearly better match (seams change, the pieces' insides stay).
        **Coverage**: in these passes, among the candidates whose cost is within ``coverage`` (relative) of the
        best, the one whose 4 x 4 exemplar cell is used least beyond its fair share (the output's texels spread
        evenly over the exemplar; counted before each sub-pass) wins, then the cheapest.  Only near ties are
        re-ordered, so a clearly better match always wins (a fixed usage penalty on every candidate collapsed
-       outputs).  The defaults (1 correction, coverage 0.5) are the best measured (README, Benchmarks).
+       outputs).  The defaults (blocks -1, keep 0.5, 1 correction, coverage 0.5) are the best measured
+       (README, Benchmarks).
 
     Order of work: scanline dependencies are resolved by wavefronts ``x + (r + 1) * y = t`` (r = n // 2).  A
     pixel uses a neighbour only once that neighbour is fixed or lies on an earlier wavefront, and pixels of one
@@ -444,9 +530,9 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     The correction visits pixels in (r + 1) x (r + 1) interleaved sub-passes whose pixels do not see each other
     (also across a wrapping seam).
 
-    ``wrap``: neighbourhoods continue across the output's edges, and the coarsest level gets a second, toroidal
-    causal pass in which pixels not yet redone (across the seams) are read from the first pass; the result
-    tiles seamlessly.
+    ``wrap``: neighbourhoods continue across the output's edges (the correction passes repair the wrap-around
+    seams of the blocks too); with ``blocks: 0`` the coarsest level gets a second, toroidal causal pass in which
+    pixels not yet redone (across the seams) are read from the first pass; the result tiles seamlessly.
 
     Outputs
     -------
@@ -466,7 +552,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     features = texel_features(exemplar)
     result = synthesize(features, size, k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
                         textons=textons, search=search, corrections=corrections,
-                        coverage=coverage)
+                        coverage=coverage, blocks=blocks, keep=keep)
     ctx.note("textons", [lv.textons.count for lv in result.levels])
     ctx.note("texton_error", [round(lv.textons.error, 4) for lv in result.levels])
     if k > 1:
