@@ -458,7 +458,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
 
 @declare_synthesizer(
     "kcoherence",
-    version="5",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5)
+    version="6",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -586,9 +586,11 @@ def benchmark_exemplar(size: int = 64, lights: int = 16, seed: int = 1) -> PerTe
 def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6, neighborhood: int = 5,
                          levels: int = 3, wrap: bool = False, repeat: int = 3, seed: int = 0,
                          search: str = "fast", cold: bool = True, texels: str = "stack",
-                         recall_samples: int = 0) -> dict:
+                         recall_samples: int = 0, blocks: int = 0) -> dict:
     """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
-    analyses the exemplar again, else the cached analysis is reused).
+    analyses the exemplar again, else the cached analysis is reused).  ``blocks`` is the stage's param: 0 (the
+    default here) times the hierarchical synthesis over ``levels`` levels, the configuration the issue names;
+    the stage's own default (-1) starts from stratified blocks and analyses the finest level only.
 
     ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
     ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
@@ -605,7 +607,7 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
     exemplar = _bench_texels(texels, exemplar_size)
     exemplar_size = exemplar.height
     params = dict(size=[size, size], k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
-                  search=search)
+                  search=search, blocks=blocks)
     kcoherence(exemplar=exemplar, **{**params, "size": [16, 16]})  # warm-up: kernel builds
     totals, analysis, synthesis, cpu = [], [], [], []
     for _ in range(repeat):
@@ -621,7 +623,7 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
     total = statistics.median(totals)
     return {
         "exemplar": [exemplar_size, exemplar_size], "size": [size, size], "k": k, "neighborhood": neighborhood,
-        "levels": levels, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold,
+        "levels": levels, "blocks": blocks, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold,
         "device": get_backend().description,
         "median_s": total, "analysis_median_s": statistics.median(analysis),
         "synthesis_median_s": statistics.median(synthesis),
