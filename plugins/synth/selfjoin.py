@@ -29,7 +29,6 @@ import numpy as np
 from btforge.backend import get_backend, single_threaded_blas
 
 KERNELS = Path(__file__).with_name("selfjoin.cl")
-INITS = ("tree", "random")
 TREE_DIMS = 8            #: principal components of the windows the kd-tree compares
 TREE_SEEDS = 4           #: kd-tree nominees per texel, beyond the excluded texels around it
 TREE_EPS = 3.0           #: the kd-tree's approximation: nominees within (1 + eps) x the true distances
@@ -37,7 +36,7 @@ TREE_LEAF = 32           #: points per kd-tree leaf
 RANDOM_SEEDS = 24        #: random seeds per texel of init="random"
 STEP_RANDOM = 2          #: random candidates per texel in each of the first RANDOM_STEPS steps
 RANDOM_STEPS = {"tree": 2, "random": 6}
-STEPS = {"tree": 8, "random": 14}   #: steps of a phase, at most
+STEPS = {"tree": 8, "random": 14}   #: steps after the seeding one, at most (before the last, wider one)
 SETTLED = 0.01           #: share of changed lists below which the steps stop
 LIST = 8                 #: list length kept during the steps (at least the length asked for)
 BREADTH = 4              #: entries propagated from each neighbour's list, and matches whose matches are tried, at first
