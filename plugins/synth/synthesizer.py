@@ -34,8 +34,8 @@ def shared_params(*, size=(256, 256), seed_doc: str = "random seed: the same see
 def search_param() -> Param:
     """The ``search`` param of synthesizers whose analysis runs the shared neighbourhood search (:mod:`.search`)."""
     return Param("search", "choice", "fast", "exemplar neighbourhood search: fast (kd-tree seeds, then "
-                 "coherence steps at full dimension on OpenCL; recall 0.97 at 192 x 192, 0.95 at 512 x 512), exact "
-                 "(OpenCL brute force) or coherent (the same steps from random seeds; recall 0.95 at 192 x 192)",
+                 "coherence steps at full dimension on OpenCL; recall 0.91-0.98 at 192 x 192, 0.96 at 512 x 512), exact "
+                 "(OpenCL brute force) or coherent (the same steps from random seeds; recall 0.96 at 192 x 192)",
                  choices=SEARCHES)
 
 
