@@ -18,6 +18,12 @@
 __constant int NBR_Y[4] = {0, -1, 0, 1};
 __constant int NBR_X[4] = {-1, 0, 1, 0};
 
+// The cell (cell x cell exemplar texels, cw cells a row) that exemplar texel c of a we-wide exemplar lies in
+inline int cell_of(const int c, const int we, const int cell, const int cw)
+{
+    return (c / we) / cell * cw + (c % we) / cell;
+}
+
 // Whether `use` copies of a cell's texels exceed OVERUSE times its fair share of `done` pixels (fair_scale: the
 // exemplar's texel count) plus one cell's worth (a slack, so the first copies never count as over-use).
 inline int over_share(const int use, const int cell, const long fair_scale, const long done)
@@ -39,11 +45,11 @@ inline int pick_target(const int texel, const float u, __global const float *cum
     j = min(j, JUMPS - 1);
     int best = targets[texel * JUMPS + j];
     if (!balance || best < 0) return best;
-    int best_use = usage[(best / we) / cell * cw + (best % we) / cell];
+    int best_use = usage[cell_of(best, we, cell, cw)];
     for (int i = 1; i < JUMPS; ++i) {
         const int c = targets[texel * JUMPS + (j + i) % JUMPS];
         if (c < 0) continue;
-        const int use = usage[(c / we) / cell * cw + (c % we) / cell];
+        const int use = usage[cell_of(c, we, cell, cw)];
         if (use < best_use) { best = c; best_use = use; }
     }
     return over_share(best_use, cell, fair_scale, done) ? escape : best;
@@ -53,7 +59,7 @@ inline int pick_target(const int texel, const float u, __global const float *cum
 inline int overused(const int c, __global const int *usage, const int we, const int cell, const int cw,
                     const long fair_scale, const long done)
 {
-    return over_share(usage[(c / we) / cell * cw + (c % we) / cell], cell, fair_scale, done);
+    return over_share(usage[cell_of(c, we, cell, cw)], cell, fair_scale, done);
 }
 
 // After a wavefront: count its pixels' sources per exemplar cell (read by later wavefronts only).
@@ -64,7 +70,7 @@ __kernel void jm_count(__global const int *src, __global int *usage, const int w
     if (gi >= ny) return;
     const int y = y0 + gi, x = t - 2 * (y0 + gi);
     const int s = src[y * wo + x];
-    atomic_inc(&usage[(s / we) / cell * cw + (s % we) / cell]);
+    atomic_inc(&usage[cell_of(s, we, cell, cw)]);
 }
 
 // Flat index of output pixel (qy, qx) one step from the image: wrapped around a tiling output, -1 outside one

@@ -10,6 +10,12 @@
 #define NOFF 24
 #endif
 
+// The cell (cell x cell exemplar texels, cw cells a row) that exemplar texel c of a we-wide exemplar lies in
+inline int cell_of(const int c, const int we, const int cell, const int cw)
+{
+    return (c / we) / cell * cw + (c % we) / cell;
+}
+
 // ------------------------------------------------------------------------------------------- k-coherence
 // The exemplar level: he x we texels, texton map `tex` [he * we] and its edge-padded copy `tex_pad` (padding
 // `pad` >= the window radius, row length wp), texton distance table [nt * nt], coherence sets `ksets`
@@ -91,10 +97,10 @@ inline int kc_fairest(const int best, const float best_cost, const int n, const 
     const float limit = best_cost * (1.0f + tol);
     const float above_limit = nextafter(limit, INFINITY);
     int pick = best;
-    float pick_excess = excess[(best / we) / cell * cw + (best % we) / cell];
+    float pick_excess = excess[cell_of(best, we, cell, cw)];
     float pick_cost = best_cost;
     if (own >= 0 && own != best) {  // the pixel's own source, at its scaled cost, comes before the others
-        const float e = excess[(own / we) / cell * cw + (own % we) / cell];
+        const float e = excess[cell_of(own, we, cell, cw)];
         const float acc = window_cost(own, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt, INFINITY) * own_scale;
         if (acc <= limit && (e < pick_excess || (e == pick_excess && acc < pick_cost))) {
             pick = own; pick_excess = e; pick_cost = acc;
@@ -108,7 +114,7 @@ inline int kc_fairest(const int best, const float best_cost, const int n, const 
         for (int j = 0; j < k; ++j) {
             const int c = ksets[(size_t)c0 * kmax + j];
             if (c < 0) continue;
-            const float e = excess[(c / we) / cell * cw + (c % we) / cell];
+            const float e = excess[cell_of(c, we, cell, cw)];
             if (e > pick_excess) continue;
             const float acc = window_cost(c, n, ndy, ndx, ntex, tex_pad, we, wp, pad, table, nt, above_limit);
             if (!(acc <= limit)) continue;

@@ -28,6 +28,8 @@ import numpy as np
 
 from btforge.backend import get_backend, single_threaded_blas
 
+from .search import _NONE, _empty_lists
+
 KERNELS = Path(__file__).with_name("selfjoin.cl")
 TREE_DIMS = 8            #: principal components of the windows the kd-tree compares
 TREE_SEEDS = 4           #: kd-tree nominees per texel, beyond the excluded texels around it
@@ -47,7 +49,6 @@ PCA_SAMPLE = 4096        #: windows the principal components are fitted on
 SEED = 0x5eed
 
 _U32 = np.uint32
-_NONE = np.iinfo(np.int64).max
 
 
 def self_join(features: np.ndarray, radius: int, m: int, *, exclude: int = 0, allowed: np.ndarray | None = None,
@@ -64,7 +65,7 @@ def self_join(features: np.ndarray, radius: int, m: int, *, exclude: int = 0, al
     image = padded_image(f, radius)
     top = max(LIST, m)
     if init == "tree":
-        seeds, n_random = tree_seeds(f, radius, allowed, TREE_SEEDS + (2 * exclude + 1) ** 2), 0
+        seeds, n_random = tree_seeds(image, h, w, radius, allowed, TREE_SEEDS + (2 * exclude + 1) ** 2), 0
     else:
         seeds, n_random = np.zeros((h * w, 0), np.int32), RANDOM_SEEDS
     steps = (_Steps if device == "opencl" else _NumpySteps)(image, h, w, radius, exclude, allowed, top)
@@ -101,15 +102,15 @@ def padded_image(features: np.ndarray, radius: int) -> np.ndarray:
                                 np.float32)
 
 
-def tree_seeds(features: np.ndarray, radius: int, allowed: np.ndarray, count: int) -> np.ndarray:
-    """The ``count`` allowed texels ``[H * W, count]`` int32 (-1: fewer allowed) whose windows' leading principal
-    components are nearest each texel's (scipy's cKDTree, queried on every core; deterministic)."""
+def tree_seeds(image: np.ndarray, h: int, w: int, radius: int, allowed: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` allowed texels ``[h * w, count]`` int32 (-1: fewer allowed) whose windows' leading principal
+    components are nearest each texel's, in the :func:`padded_image` of an ``h x w`` image (scipy's cKDTree,
+    queried on every core; deterministic)."""
     from scipy.spatial import cKDTree
-    h, w, d = features.shape
     listed = np.flatnonzero(allowed).astype(np.int32)
     if not len(listed):
         return np.full((h * w, 0), -1, np.int32)
-    reduced = window_components(features, radius, TREE_DIMS)
+    reduced = window_components(image, h, w, radius, TREE_DIMS)
     tree = cKDTree(reduced[listed], leafsize=TREE_LEAF, balanced_tree=False, compact_nodes=False)
     count = min(count, len(listed))
     _, rows = tree.query(reduced, k=count, eps=TREE_EPS, workers=len(os.sched_getaffinity(0)))
@@ -117,13 +118,13 @@ def tree_seeds(features: np.ndarray, radius: int, allowed: np.ndarray, count: in
     return np.where(rows < len(listed), listed[np.minimum(rows, len(listed) - 1)], -1).astype(np.int32)
 
 
-def window_components(features: np.ndarray, radius: int, dims: int) -> np.ndarray:
-    """Every texel's window projected on the windows' ``dims`` leading principal axes ``[H * W, dims]`` float32
-    (fitted on :data:`PCA_SAMPLE` windows; the mean is not subtracted: a kd-tree does not need it), summed one
-    window offset at a time so the ``[H * W, D x window]`` vectors never exist."""
+def window_components(image: np.ndarray, h: int, w: int, radius: int, dims: int) -> np.ndarray:
+    """Every texel's window in the :func:`padded_image` of an ``h x w`` image, projected on the windows' ``dims``
+    leading principal axes ``[h * w, dims]`` float32 (fitted on :data:`PCA_SAMPLE` windows; the mean is not
+    subtracted: a kd-tree does not need it), summed one window offset at a time so the ``[h * w, D x window]``
+    vectors never exist."""
     from .search import principal_projection, square_window
-    h, w, d = features.shape
-    image = padded_image(features, radius)
+    d = image.shape[2]
     offsets = square_window(2 * radius + 1) + radius
     rng = np.random.default_rng(0)
     pick = np.sort(rng.choice(h * w, min(PCA_SAMPLE, h * w), replace=False))
@@ -332,7 +333,3 @@ def improve_numpy(image, h, w, radius, exclude, allowed, idx, dist, changed, see
         keys[repeat] = _NONE
         new_idx[rows], new_dist[rows] = smallest(keys, top)
     return new_idx.astype(np.int32), new_dist, (new_idx != idx).any(axis=1)
-
-
-def _empty_lists(n: int, top: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.full((n, top), -1, np.int32), np.full((n, top), np.inf, np.float32)
