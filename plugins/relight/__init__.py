@@ -88,12 +88,12 @@ def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0
         return float("inf") if mse == 0 else float(10 * np.log10(peak ** 2 / mse))
 
     mse = float(per_light_mse.mean())
-    per_light = [psnr(m) for m in per_light_mse]
-    scores = {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(per_light), 3),
-              "psnr_db_median_light": round(float(np.median(per_light)), 3), "rmse": round(mse ** 0.5, 6),
+    light_psnrs = [psnr(m) for m in per_light_mse]
+    scores = {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(light_psnrs), 3),
+              "psnr_db_median_light": round(float(np.median(light_psnrs)), 3), "rmse": round(mse ** 0.5, 6),
               "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
     if per_light:
-        scores["psnr_db_per_light"] = per_light
+        scores["psnr_db_per_light"] = light_psnrs
     return scores
 
 
