@@ -37,6 +37,14 @@ def _version_tuple(text: str | None) -> tuple[int, ...]:
     return tuple(int(n) for n in re.findall(r"\d+", text or "")[:3])
 
 
+class DeviceError(BtforgeInputError):
+    """No usable device: about the machine, not the graph node that first needed a device, so it stays as it is
+    where the runner would put the node in front of it."""
+
+    def located(self, prefix: str) -> "DeviceError":
+        return self
+
+
 @dataclass
 class DeviceEntry:
     """One OpenCL device with what btforge shows and sorts by (PoCL and LLVM versions parsed from the platform)."""
@@ -198,7 +206,7 @@ def choose_device(cl, hint: str | None = None, probe: BuildProbe | None = None,
     :class:`BtforgeInputError` lists every device tried with its error and the fix."""
     entries = list_devices(cl) if entries is None else entries
     if not entries:
-        raise BtforgeInputError("OpenCL", "expected at least one OpenCL device, found none",
+        raise DeviceError("OpenCL", "expected at least one OpenCL device, found none",
                                 f"{INSTALL_HINT}, or `pip install pocl-binary-distribution`")
     hint, source = hint_and_source(hint)
     candidates = preferred_order(matching_devices(entries, hint, source))
@@ -218,7 +226,7 @@ def matching_devices(entries: list[DeviceEntry], hint: str | None, source: str) 
     matching = [e for e in entries if e.matches(hint)]
     if not matching:
         names = ", ".join(e.label for e in entries)
-        raise BtforgeInputError("device", f"no OpenCL device matches {source}={hint!r}; found {names}",
+        raise DeviceError("device", f"no OpenCL device matches {source}={hint!r}; found {names}",
                                 f"set {source} to part of a platform name or version, device name or driver "
                                 "version (`btforge devices` lists them)")
     return matching
@@ -241,15 +249,16 @@ def _warn_skipped(choice: Choice) -> None:
                       stacklevel=4)
 
 
-def _nothing_builds(tried: list[DeviceEntry], found: int, hint: str | None, source: str) -> BtforgeInputError:
+def _nothing_builds(tried: list[DeviceEntry], found: int, hint: str | None, source: str) -> DeviceError:
     lines = "".join(f"\n    {e.number} {e.label}: {e.error}" for e in tried)
-    fix = INSTALL_HINT
+    fix = (f"{INSTALL_HINT}; `btforge devices` then shows which device builds, and BTFORGE_DEVICE (or --device) "
+           "picks one by part of its name or version")
     if hint and found > len(tried):
         fix = (f"{source}={hint!r} selects only these: unset it or choose another of the {found} devices "
                f"(`btforge devices` lists them), or {INSTALL_HINT}")
     elif hint:
         fix = f"{INSTALL_HINT}, and unset {source} or set it to the new device"
-    return BtforgeInputError("OpenCL devices", f"expected a device that builds OpenCL kernels, found none that "
+    return DeviceError("OpenCL devices", f"expected a device that builds OpenCL kernels, found none that "
                              f"does ({len(tried)} tried):{lines}", fix)
 
 
