@@ -136,6 +136,7 @@ class BuildProbe:
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_root() / "devices"
         self.recheck = recheck  # ignore verdicts on disk (they are replaced)
         self.builds = 0         # how many probe builds this object ran (tests check the cache)
+        self._known: dict[Path, dict] = {}  # verdicts this object has read or found, so each device is probed once
 
     def source_for(self, entry: DeviceEntry) -> str:
         return self.source
@@ -145,13 +146,14 @@ class BuildProbe:
         source = self.source_for(entry)
         path = self.cache_dir / (hashlib.blake2b(json.dumps([entry.identity, source]).encode(),
                                                  digest_size=16).hexdigest() + ".json")
-        cached = None if self.recheck else _read_verdict(path, entry.identity)
+        cached = self._known.get(path) or (None if self.recheck else _read_verdict(path, entry.identity))
         if cached is None:
             cached = {"identity": entry.identity, "device": entry.label, "error": self._probe(entry, source)}
             try:
                 atomic_write_text(path, json.dumps(cached, indent=1))
             except OSError:  # a read-only cache: probe again next time
                 pass
+        self._known[path] = cached
         entry.error = cached["error"]
         return entry.error
 

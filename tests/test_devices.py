@@ -62,9 +62,16 @@ def test_probe_verdict_is_kept_on_disk_and_reused(tmp_path, entries):
     again = BuildProbe(cl, tmp_path)
     assert again.verdict(entries[0]) is None and again.builds == 0   # a warm process pays no build
     kept.write_text("{not json")                                     # a damaged verdict is probed again
-    assert again.verdict(entries[0]) is None and again.builds == 1
+    damaged = BuildProbe(cl, tmp_path)
+    assert damaged.verdict(entries[0]) is None and damaged.builds == 1
     assert json.loads(kept.read_text())["error"] is None
-    assert BuildProbe(cl, tmp_path, recheck=True).verdict(entries[0]) is None
+
+
+def test_recheck_probes_every_device_once(tmp_path):
+    BuildProbe(cl, tmp_path).verdict(list_devices(cl)[0])
+    probe = BuildProbe(cl, tmp_path, recheck=True)
+    described = devices.describe_devices(cl, probe=probe)
+    assert probe.builds == len(list_devices(cl)) == len(described["devices"])
 
 
 def test_a_failing_verdict_is_kept_with_its_first_error_line(tmp_path, entries):
