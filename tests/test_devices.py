@@ -109,7 +109,7 @@ def test_no_device_builds_is_one_error_listing_every_device(tmp_path, entries):
 
 def unique_hint(entry, entries):
     """A part of ``entry``'s names or versions that no other listed device has (None if there is none)."""
-    others = [e for e in entries if e.identity != entry.identity]
+    others = [e for e in entries if e.number != entry.number]
     return next((h for h in (entry.driver, entry.name, entry.platform_version)
                  if entry.matches(h) and not any(e.matches(h) for e in others)), None)
 
