@@ -148,16 +148,20 @@ class BuildProbe:
                                                  digest_size=16).hexdigest() + ".json")
         cached = self._known.get(path) or (None if self.recheck else _read_verdict(path, entry.identity))
         if cached is None:
-            cached = {"identity": entry.identity, "device": entry.label, "error": self._probe(entry, source)}
+            error, lasting = self._probe(entry, source)
+            cached = {"identity": entry.identity, "device": entry.label, "error": error}
             try:
-                atomic_write_text(path, json.dumps(cached, indent=1))
+                if lasting:  # not an error that may pass (a device busy or out of resources): probe again then
+                    atomic_write_text(path, json.dumps(cached, indent=1))
             except OSError:  # a read-only cache: probe again next time
                 pass
         self._known[path] = cached
         entry.error = cached["error"]
         return entry.error
 
-    def _probe(self, entry: DeviceEntry, source: str) -> str | None:
+    def _probe(self, entry: DeviceEntry, source: str) -> tuple[str | None, bool]:
+        """The probe's error (None if it built and computed the right values), and whether that verdict lasts as
+        long as the device's identity (a success, a failed build or wrong values)."""
         cl = self.cl
         self.builds += 1
         values = np.arange(4, dtype=np.float32)
@@ -166,14 +170,16 @@ class BuildProbe:
             program = cl.Program(context, source).build()
             queue = cl.CommandQueue(context)
             buffer = cl.Buffer(context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=values)
-            program.btforge_probe(queue, values.shape, None, buffer)
+            kernel = cl.Kernel(program, "btforge_probe")
+            kernel.set_args(buffer)
+            cl.enqueue_nd_range_kernel(queue, kernel, values.shape, None)
             cl.enqueue_copy(queue, values, buffer)
             queue.finish()
         except cl.Error as exc:
-            return first_useful_line(str(exc))
+            return first_useful_line(str(exc)), getattr(exc, "code", None) == cl.status_code.BUILD_PROGRAM_FAILURE
         if values.tolist() != [1.0, 3.0, 5.0, 7.0]:
-            return f"the probe kernel computed {values.tolist()} instead of [1.0, 3.0, 5.0, 7.0]"
-        return None
+            return f"the probe kernel computed {values.tolist()} instead of [1.0, 3.0, 5.0, 7.0]", True
+        return None, True
 
 
 def _read_verdict(path: Path, identity: str) -> dict | None:

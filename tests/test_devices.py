@@ -213,3 +213,12 @@ def test_run_with_no_device_that_builds_exits_2_without_traceback(tmp_path, caps
     err = capsys.readouterr().err
     assert "expected a device that builds OpenCL kernels" in err and "Traceback" not in err
     assert all(e.name in err for e in list_devices(cl)) and "apt-get install pocl-opencl-icd" in err
+
+
+def test_an_error_that_may_pass_is_not_kept_on_disk(tmp_path, entries):
+    class NoKernel(BuildProbe):
+        source = "kernel void another_name(global float *x) { }\n"   # builds, but the probe's kernel is missing
+
+    error = NoKernel(cl, tmp_path).verdict(entries[0])
+    assert error and "INVALID_KERNEL_NAME" in error
+    assert not list(tmp_path.glob("*.json"))                       # the next process probes again
