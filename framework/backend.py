@@ -7,8 +7,10 @@ platform, device, driver and pyopencl versions, source and options), so a later 
 building (2-10 ms instead of tens of milliseconds with PoCL's own cache warm, or seconds with it cold).  PoCL's
 cache in ``POCL_CACHE_DIR`` points at a per-user directory unless the user already set it.
 
-The device is chosen by ``BTFORGE_DEVICE`` (a substring of the platform or device name, e.g. ``pthread`` or
-``cuda``) or the CLI's ``--device``; by default the first CPU device of PoCL, else the first device found.
+The device is the first that builds a tiny probe kernel among those ``BTFORGE_DEVICE`` or the CLI's ``--device``
+selects (part of the platform name or version, device name or driver version, e.g. ``3.1`` or ``cuda``), in
+btforge's order: CPU devices of PoCL first, newest LLVM first (see :mod:`btforge.devices`; ``btforge devices``
+shows every device, whether it builds and which is chosen).
 """
 from __future__ import annotations
 
@@ -23,11 +25,12 @@ import numpy as np
 
 from . import profile
 from .atomic import atomic_write_bytes
-from .errors import BtforgeInputError
+from .devices import choose_device, hint_and_source, list_devices, matching_devices
 from .numerics import texel_chunks  # noqa: F401  (its former home; plugins import it from btforge.numerics)
 
 _lock = threading.RLock()
 _backend: "Backend | None" = None
+_device_hint: str | None = None  # the CLI's --device; None: BTFORGE_DEVICE or btforge's order decides
 
 
 def default_cache_root() -> Path:
@@ -64,21 +67,21 @@ class Backend:
         import pyopencl as cl
 
         self.cl = cl
-        self.device = _choose_device(cl, device_hint)
+        self.choice = choose_device(cl, device_hint)
+        self.device = self.choice.entry.device
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self._programs: dict[tuple[str, str], "cl.Program"] = {}
         self._kernels: dict[tuple[str, str, str], "cl.Kernel"] = {}
         self.builds = 0  # how many programs this context built, from source or binary (tests check memoisation)
         self.binaries = default_cache_root() / "opencl"
-        d = self.device
-        self._build_identity = json.dumps([d.platform.name, d.platform.version, d.name, d.version, d.driver_version,
-                                           cl.VERSION_TEXT])
+        self._build_identity = self.choice.entry.identity
         profile.record_phase("device_start_s", time.perf_counter() - start)
 
     @property
     def description(self) -> str:
-        return f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
+        entry = self.choice.entry
+        return f"{entry.platform} / {entry.name}" + (f" (PoCL {entry.pocl})" if entry.pocl else "")
 
     def program(self, cl_file: str | os.PathLike, options: tuple[str, ...] = ()) -> "cl.Program":
         """The compiled program of ``cl_file``; built on first use in this context, then reused."""
@@ -170,40 +173,23 @@ class Backend:
         return out
 
 
-def _choose_device(cl, hint: str | None):
-    devices = [d for p in cl.get_platforms() for d in p.get_devices()]
-    if not devices:
-        raise BtforgeInputError(
-            "OpenCL", "expected at least one OpenCL device, found none",
-            "install PoCL with `pip install pocl-binary-distribution`",
-        )
-    hint = hint if hint is not None else os.environ.get("BTFORGE_DEVICE")
-    if hint:
-        for d in devices:
-            if hint.lower() in f"{d.platform.name} {d.name}".lower():
-                return d
-        names = ", ".join(f"'{d.platform.name.strip()} / {d.name.strip()}'" for d in devices)
-        raise BtforgeInputError(
-            "device", f"no OpenCL device matches '{hint}'; found {names}",
-            "set BTFORGE_DEVICE (or --device) to part of one of these names",
-        )
-    cpus = [d for d in devices if d.type & cl.device_type.CPU]
-    return (cpus or devices)[0]
-
-
 def get_backend() -> Backend:
-    """The process-wide backend, created on first use."""
+    """The process-wide backend, created on first use (so a device skipped on the way is warned about inside the
+    node that first needs the device, and shows in its report)."""
     global _backend
     with _lock:
         if _backend is None:
-            _backend = Backend()
+            _backend = Backend(_device_hint)
         return _backend
 
 
-def select_device(hint: str | None) -> Backend:
-    """Replace the process-wide backend by one on the device matching ``hint``."""
-    global _backend
+def select_device(hint: str | None) -> None:
+    """Use the device ``hint`` selects from now on (the backend is created on first use).  A hint that matches no
+    device is an error at once; whether a matching device builds is found out when the backend starts."""
+    global _backend, _device_hint
+    import pyopencl as cl
     with _lock:
-        _backend = Backend(hint)
-        return _backend
-
+        _prepare_pocl_environment()
+        hint, source = hint_and_source(hint)
+        matching_devices(list_devices(cl), hint, source)
+        _device_hint, _backend = hint, None

@@ -1,4 +1,4 @@
-"""The ``btforge`` command line: run, validate, stages, info, bench.
+"""The ``btforge`` command line: run, validate, stages, info, devices, bench.
 
 Bad input prints one clear message (no traceback unless ``--debug``) and exits with code 2.
 """
@@ -154,6 +154,16 @@ def cmd_info(args) -> int:
     return 0
 
 
+def cmd_devices(args) -> int:
+    import pyopencl as cl
+    from .backend import _prepare_pocl_environment
+    from .devices import BuildProbe, describe_devices, format_devices
+    _prepare_pocl_environment()
+    description = describe_devices(cl, args.device, BuildProbe(cl, recheck=args.recheck))
+    print(json.dumps(description, indent=2) if args.json else format_devices(description))
+    return 0
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args)
@@ -196,6 +206,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("devices", help="list the OpenCL devices: versions, compiler, whether each builds kernels, "
+                       "and which btforge chooses and why")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--recheck", action="store_true", help="probe every device again instead of trusting the "
+                   "verdicts kept in the cache")
+    p.set_defaults(func=cmd_devices)
 
     from . import bench
     bench.add_parser(sub).set_defaults(func=cmd_bench)
@@ -251,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
 
     warnings.showwarning = show_warning
     try:
-        if args.device:
+        if args.device and args.func is not cmd_devices:  # `devices` shows what the hint selects, and why
             from .backend import select_device
             select_device(args.device)
         return args.func(args) or 0
