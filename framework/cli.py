@@ -144,7 +144,10 @@ def cmd_info(args) -> int:
     if reader is None:
         raise BtforgeInputError(str(path), f"no reader describes '{path.suffix}' files",
                                 f"known: {', '.join(sorted(readers))}")
-    info = reader(path)
+    from .errors import reading_file
+    with reading_file(path, f"a '{path.suffix}' file", "the file is damaged or truncated; write it again, or check "
+                      "that it is the kind of file its name says"):
+        info = reader(path)
     if args.json:
         print(json.dumps(info, indent=2, default=str))
     else:

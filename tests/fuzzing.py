@@ -286,6 +286,9 @@ def run_cases(readers: list[Reader], cases: list[Case], seed_dir: Path, scratch:
                 job = {"reader": dataclasses.asdict(by_name[case.reader]), "case": dataclasses.asdict(case),
                        "seed_dir": str(seed_dir), "scratch": str(scratch)}
                 got = worker.run(job, timeout)
+                if "mutation" not in got:  # the worker died: replay the (deterministic) mutation to name it
+                    data = (seed_dir / case.member).read_bytes()
+                    got["mutation"] = mutate(data, Path(case.member).suffix.lower(), random.Random(case.seed))[1]
                 outcomes[index] = Outcome(case, got["verdict"], got.get("detail", ""), got.get("mutation", ""))
         finally:
             worker.stop()

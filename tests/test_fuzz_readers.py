@@ -161,4 +161,4 @@ def test_damaged_files_are_read_or_refused_cleanly(seed_files, tmp_path):
     assert len(outcomes) == len(cases)
     assert not failures, "\n".join(lines + [textwrap.shorten(
         f"{o.case.reader} | {o.case.member} | {o.mutation} | seed {o.case.seed} | {o.verdict}: {o.detail}", 400)
-        for o in failures[:20]])
+        for o in failures[:40]])

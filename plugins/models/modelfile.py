@@ -35,7 +35,7 @@ import numpy as np
 
 from btforge.atomic import atomic_write
 from btforge.buffers import Buffer
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, file_reader
 from btforge.spill import pages, write_npy
 
 FORMAT = "btforge.model"
@@ -90,6 +90,10 @@ def _open(path: Path) -> zipfile.ZipFile:
                                 f"write models with the model.write stage ({SUFFIX} files)") from None
 
 
+DAMAGED = "the file is damaged or truncated; write the model again"
+
+
+@file_reader("a btforge model file", DAMAGED)
 def read_manifest(path: str | os.PathLike, archive: zipfile.ZipFile | None = None) -> dict[str, Any]:
     """The manifest of a model file, checked for format and version (arrays are not read)."""
     path = Path(path)
@@ -134,6 +138,7 @@ def _manifest_v1(manifest: dict[str, Any], path: Path) -> dict[str, Any]:
 READERS: dict[int, Callable[[dict[str, Any], Path], dict[str, Any]]] = {1: _manifest_v1}
 
 
+@file_reader("a btforge model file", DAMAGED)
 def read_model(path: str | os.PathLike, types: Mapping[str, type[Buffer]]) -> Buffer:
     """Read a model file back into the buffer it was written from (exactly: same arrays, same parameters)."""
     path = Path(path)

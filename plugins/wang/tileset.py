@@ -31,7 +31,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.buffers import Buffer, CoordMap, check_array, frozen
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, file_reader
 
 FORMAT = "btforge-wang-tiles"
 VERSION = 1
@@ -160,6 +160,10 @@ class TileSet(Buffer):
                     archive.writestr(f"{name}.npy", bio.getvalue())
 
 
+DAMAGED = "the archive is damaged or truncated; write it again with tiles.write"
+
+
+@file_reader("a tile-set archive", DAMAGED)
 def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
     path = Path(path)
     try:
@@ -179,6 +183,7 @@ def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
     return manifest, archive
 
 
+@file_reader("a tile-set archive", DAMAGED)
 def read_tile_set(path) -> TileSet:
     manifest, archive = read_manifest(path)
     with archive:
