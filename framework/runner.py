@@ -16,7 +16,7 @@ from . import profile
 from .atomic import atomic_write_text
 from .backend import default_cache_root
 from .buffers import Buffer
-from .cache import DamagedEntry, NodeCache, node_key_of_output
+from .cache import DamagedEntry, NodeCache, node_key_of_output, plain_notes
 from .context import StageContext
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_warnings
 from .graph import CheckedGraph, check_graph, load_graph
@@ -194,7 +194,7 @@ def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], path
     report.seconds = time.perf_counter() - start
     report.peak_rss_mb = round(mem.peak / 2**20, 1)
     earlier = report.notes.get("warnings", [])  # a deferred node's: noted before it ran
-    report.status, report.notes = "ran", ctx.notes
+    report.status, report.notes = "ran", plain_notes(ctx.notes)  # as a cache hit will give them back
     _add_warnings(report.notes, name, [*earlier, *raised])
     _check_outputs(name, st, outputs or {}, inputs, registry)
     return dict(outputs or {})
