@@ -36,7 +36,7 @@ import numpy as np
 from btforge.atomic import atomic_write
 from btforge.buffers import Buffer
 from btforge.errors import BtforgeInputError, file_reader
-from btforge.spill import pages, write_npy
+from btforge.spill import pages, read_npy, write_npy
 
 FORMAT = "btforge.model"
 FORMAT_VERSION = 1
@@ -151,9 +151,13 @@ def read_model(path: str | os.PathLike, types: Mapping[str, type[Buffer]]) -> Bu
                                     "install the plugin that provides it (see `btforge stages`)")
         arrays = {}
         for name, info in manifest["arrays"].items():
+            if not isinstance(info, dict) or not isinstance(info.get("file"), str):
+                raise BtforgeInputError(str(path), f"manifest entry of array '{name}' is not a mapping with a 'file'",
+                                        DAMAGED)
             try:
                 with archive.open(info["file"]) as member:
-                    array = np.lib.format.read_array(member, allow_pickle=False)
+                    array = read_npy(member, archive.getinfo(info["file"]).file_size,
+                                     f"{path}, array '{name}'")
             except (KeyError, ValueError, OSError, zipfile.BadZipFile) as exc:
                 raise BtforgeInputError(str(path), f"array '{name}' cannot be read ({exc})",
                                         "the file is damaged or truncated; write the model again") from None

@@ -32,6 +32,7 @@ import numpy as np
 
 from btforge.buffers import Buffer, CoordMap, check_array, frozen
 from btforge.errors import BtforgeInputError, file_reader
+from btforge.spill import read_npy
 
 FORMAT = "btforge-wang-tiles"
 VERSION = 1
@@ -190,7 +191,8 @@ def read_tile_set(path) -> TileSet:
         arrays = {}
         for name in ARRAYS:
             try:
-                arrays[name] = np.load(io.BytesIO(archive.read(f"{name}.npy")), allow_pickle=False)
+                data = archive.read(f"{name}.npy")
+                arrays[name] = read_npy(io.BytesIO(data), len(data), f"{path}, {name}.npy")
             except (KeyError, ValueError) as exc:
                 raise BtforgeInputError(str(path), f"'{name}.npy' is missing or damaged ({exc})")
     missing = [k for k in ("colors_h", "colors_v", "source_size", "edge", "variants", "texel_bytes") if k not in manifest]
