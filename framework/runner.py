@@ -75,6 +75,7 @@ class RunResult(dict):
 
     report: list[NodeReport]
     startup: dict[str, Any]
+    output_paths: list[Path]  # the output paths stages asked for (files or folders; some may not be written)
 
     def report_dict(self) -> dict[str, Any]:
         """The run report: one entry per node, and under ``startup`` where the process spent its time besides."""
@@ -161,6 +162,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         if report.status == "deferred":  # no node needed its data: every consumer came from the cache
             report.status = "not needed"
     result.report = [reports[n] for n in graph.spec.nodes]
+    result.output_paths = list(dict.fromkeys(paths.requested))
     return result
 
 

@@ -77,3 +77,19 @@ def test_cached_nodes_report_the_notes_they_ran_with(tmp_path, capsys):
     assert [row[5] for row in tables[0]] == [row[5] for row in tables[1]]   # the table's notes column too
     again = btforge.run(graph, out_dir=tmp_path / "out", cache_dir=tmp_path / "cache")
     assert {r.node: r.notes for r in again.report} == {name: n["notes"] for name, n in reports[0].items()}
+
+
+def test_run_ends_with_the_files_it_wrote(tmp_path, monkeypatch, capsys):
+    """The last lines of `btforge run` name what it wrote, relative to the current folder; an output folder of
+    many files is one line with its count."""
+    from btforge.cli import main
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "g.yaml").write_text("""nodes:
+  material: {stage: demo.material, params: {size: [8, 8], lights: 6, bumps: 2}}
+  images:   {stage: stack.write, params: {dir: relit, format: exr}, inputs: {stack: material.stack}}
+  sheet:    {stage: stack.contact_sheet, params: {path: sheet.png}, inputs: {stack: material.stack}}
+""")
+    assert main(["run", "g.yaml", "--out", "results", "--cache", str(tmp_path / "cache")]) == 0
+    tail = capsys.readouterr().err.splitlines()
+    start = tail.index("wrote:")
+    assert sorted(tail[start + 1:]) == ["  results/relit/ (7 files)", "  results/sheet.png"]
