@@ -131,7 +131,23 @@ def _manifest_v1(manifest: dict[str, Any], path: Path) -> dict[str, Any]:
         if not isinstance(manifest.get(key), kind):
             raise BtforgeInputError(str(path), f"manifest key '{key}' must be a {kind.__name__}, found "
                                     f"{type(manifest.get(key)).__name__}", "the file is damaged; write it again")
+    for name, info in manifest["arrays"].items():
+        if not _valid_array_entry(info):
+            raise BtforgeInputError(str(path), f"manifest entry of array '{name}' is not a mapping of file, dtype, "
+                                    f"shape and blake2b, found {str(info)[:80]}", DAMAGED)
     return manifest
+
+
+def _valid_array_entry(info: Any) -> bool:
+    if not isinstance(info, dict) or not all(isinstance(info.get(k), str) for k in ("file", "dtype", "blake2b")):
+        return False
+    shape = info.get("shape")
+    if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+        return False
+    try:
+        return not np.dtype(info["dtype"]).hasobject
+    except (TypeError, ValueError):
+        return False
 
 
 # format version -> function that checks a manifest of that version and returns it in the current layout
@@ -151,9 +167,6 @@ def read_model(path: str | os.PathLike, types: Mapping[str, type[Buffer]]) -> Bu
                                     "install the plugin that provides it (see `btforge stages`)")
         arrays = {}
         for name, info in manifest["arrays"].items():
-            if not isinstance(info, dict) or not isinstance(info.get("file"), str):
-                raise BtforgeInputError(str(path), f"manifest entry of array '{name}' is not a mapping with a 'file'",
-                                        DAMAGED)
             try:
                 with archive.open(info["file"]) as member:
                     array = read_npy(member, archive.getinfo(info["file"]).file_size,

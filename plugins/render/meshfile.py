@@ -139,19 +139,24 @@ def _ply_binary_rows(data: bytes, offset: int, element: dict, order: str, path: 
             if length_type is None:
                 kind = np.dtype(order + PLY_TYPES[item_type])
                 if offset + kind.itemsize > len(data):
-                    raise MeshFileError(path, f"element '{element['name']}' runs past the end of the file")
+                    raise MeshFileError(path, f"element '{element['name']}' runs past the end of the file",
+                                        hint="the file is truncated; write it again")
                 out[name].append(np.frombuffer(data, kind, 1, offset)[0])
                 offset += kind.itemsize
                 continue
             length = np.dtype(order + PLY_TYPES[length_type])
             item = np.dtype(order + PLY_TYPES[item_type])
             if offset + length.itemsize > len(data):
-                raise MeshFileError(path, f"element '{element['name']}' runs past the end of the file")
+                raise MeshFileError(path, f"element '{element['name']}' runs past the end of the file",
+                                    hint="the file is truncated; write it again")
             k = int(np.frombuffer(data, length, 1, offset)[0])
             offset += length.itemsize
-            if k < 0 or k > MAX_POLYGON or offset + k * item.itemsize > len(data):
+            if not 0 <= k <= MAX_POLYGON:
                 raise MeshFileError(path, f"element '{element['name']}' has a list of {k} items, expected 0 to "
-                                    f"{MAX_POLYGON} within the file")
+                                    f"{MAX_POLYGON}")
+            if offset + k * item.itemsize > len(data):
+                raise MeshFileError(path, f"element '{element['name']}' runs past the end of the file",
+                                    hint="the file is truncated; write it again")
             out[name].append(np.frombuffer(data, item, k, offset))
             offset += k * item.itemsize
     return {n: (np.asarray(v) if v and np.ndim(v[0]) == 0 else v) for n, v in out.items()}, offset
