@@ -38,7 +38,7 @@ nodes:
   web:      {stage: model.export_web, params: {dir: web}, inputs: {model: fit.model}}
   height:   {stage: height.from_shading, params: {iterations: 3, rounds: 1}, inputs: {stack: material.stack}}
   ply:      {stage: height.write, params: {path: height.ply}, inputs: {height: height.height}}
-  tiles:    {stage: wang.tiles, params: {tile: 16, edge: 4, seed: 1}, inputs: {exemplar: material.stack}}
+  tiles:    {stage: wang.tiles, params: {tile: 8, edge: 2, seed: 1}, inputs: {exemplar: material.stack}}
   wang:     {stage: tiles.write, params: {path: set.wang}, inputs: {tiles: tiles.tiles}}
   tiling:   {stage: wang.tiling, params: {rows: 2, cols: 2}, inputs: {tiles: tiles.tiles}}
   coords:   {stage: coords.write, params: {path: coords.exr}, inputs: {coords: tiling.coords}}
