@@ -95,8 +95,9 @@ def reading_file(path, kind: str, hint: str = "the file is damaged or truncated;
         raise BtforgeInputError(str(path), "file not found", "check the path") from None
     except DAMAGED_FILE_ERRORS as exc:
         detail = str(exc).strip() or "no detail"
-        raise BtforgeInputError(str(path), f"cannot be read as {kind} ({type(exc).__name__}: {detail[:200]})",
-                                hint) from None
+        module = type(exc).__module__
+        name = type(exc).__name__ if module == "builtins" else f"{module}.{type(exc).__name__}"
+        raise BtforgeInputError(str(path), f"cannot be read as {kind} ({name}: {detail[:200]})", hint) from None
 
 
 Reader = TypeVar("Reader", bound=Callable)
