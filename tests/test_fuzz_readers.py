@@ -6,8 +6,8 @@ plugins' writers or as text).  Each case damages one of them (tests/fuzzing.py) 
 ``btforge info FILE``, or a one-node graph under ``btforge run`` whose stage reads it.  Cases run in worker
 processes, so a segmentation fault or a hang in native code is a failed case, not a dead test run.
 
-CI runs ``BTFORGE_FUZZ_CASES`` (default 300) cases with a fixed seed (``BTFORGE_FUZZ_SEED``, default 0); set them
-higher (e.g. 10000) to explore.  A failure lists the reader, the damaged file, the mutation and the case seed.
+CI runs ``BTFORGE_FUZZ_CASES`` (default 230, 10 per reader) cases with a fixed seed (``BTFORGE_FUZZ_SEED``,
+default 0); set them higher (e.g. 10000) to explore.  A failure lists the reader, the damaged file, the mutation and the case seed.
 """
 from __future__ import annotations
 
@@ -25,17 +25,19 @@ import btforge
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fuzzing import Reader, make_cases, run_cases, summary  # noqa: E402
 
-CASES = int(os.environ.get("BTFORGE_FUZZ_CASES", "300"))
+CASES = int(os.environ.get("BTFORGE_FUZZ_CASES", "230"))
 SEED = int(os.environ.get("BTFORGE_FUZZ_SEED", "0"))
 
 SEED_GRAPH = """
 nodes:
   material: {stage: demo.material, params: {size: [24, 24], lights: 10, bumps: 6, seed: 3}}
   capture:  {stage: stack.write, params: {dir: capture, format: exr}, inputs: {stack: material.stack}}
+  png:      {stage: stack.write, params: {dir: capture_png, format: png}, inputs: {stack: material.stack}}
   fit:      {stage: ptm.fit, params: {variant: rgb, space: srgb}, inputs: {stack: material.stack}}
   ptm:      {stage: ptm.write, params: {path: model.ptm}, inputs: {model: fit.model}}
   saved:    {stage: model.write, params: {path: model.btfm}, inputs: {model: fit.model}}
   web:      {stage: model.export_web, params: {dir: web}, inputs: {model: fit.model}}
+  web_jpg:  {stage: model.export_web, params: {dir: web_jpg, format: jpg}, inputs: {model: fit.model}}
   height:   {stage: height.from_shading, params: {iterations: 3, rounds: 1}, inputs: {stack: material.stack}}
   ply:      {stage: height.write, params: {path: height.ply}, inputs: {height: height.height}}
   tiles:    {stage: wang.tiles, params: {tile: 8, edge: 2, seed: 1}, inputs: {exemplar: material.stack}}
@@ -81,6 +83,7 @@ def _write_extra_files(folder: Path) -> None:
     lights = np.array([[0.2, 0.0], [0.5, 1.0], [0.9, 2.0]])
     write_dfmf(folder / "capture.btf", lights, np.array([[0.0, 0.0], [0.6, 1.5]]), 4, 3,
                random_factors(rng, 6, 12))
+    _jpeg_capture(folder / "capture_png", folder / "capture_jpg")
     (folder / "quad.obj").write_text(OBJ)
     (folder / "scene.yaml").write_text(SCENE)
     graphs = {"read_stack.yaml": _one_node("stack.read", "capture/lights.lp"),
@@ -89,9 +92,25 @@ def _write_extra_files(folder: Path) -> None:
               "read_tiles.yaml": _one_node("tiles.read", "set.wang"),
               "read_web.yaml": _one_node("web.read", "web/info.json"),
               "read_scene.yaml": _one_node("scene.read", "scene.yaml"),
-              "read_btf.yaml": _one_node("stack.read", "capture.btf")}
+              "read_btf.yaml": _one_node("stack.read", "capture.btf"),
+              "read_png.yaml": _one_node("stack.read", "capture_png/lights.lp"),
+              "read_jpg.yaml": _one_node("stack.read", "capture_jpg/lights.lp"),
+              "fit_jpg.yaml": _one_node("ptm.fit_capture", "capture_jpg/lights.lp"),
+              "read_web_jpg.yaml": _one_node("web.read", "web_jpg/info.json")}
     for name, text in graphs.items():
         (folder / name).write_text(text)
+
+
+def _jpeg_capture(png_folder: Path, folder: Path) -> None:
+    """The PNG capture as JPEG files (the format of most RTI domes) with its light file."""
+    from PIL import Image
+    folder.mkdir()
+    lines = (png_folder / "lights.lp").read_text().splitlines()
+    for i, line in enumerate(lines[1:], 1):
+        name = line.split()[0]
+        Image.open(png_folder / name).convert("RGB").save(folder / name.replace(".png", ".jpg"), quality=90)
+        lines[i] = line.replace(".png", ".jpg")
+    (folder / "lights.lp").write_text("\n".join(lines) + "\n")
 
 
 @pytest.fixture(scope="session")
@@ -118,6 +137,12 @@ def readers(seed: Path) -> list[Reader]:
         Reader("info .lp", ("capture/lights.lp",), _info("capture/lights.lp")),
         Reader("stack.read (.lp + EXR)", ("capture/lights.lp", "capture/light_000.exr", "capture/light_007.exr"),
                _run("read_stack.yaml")),
+        Reader("stack.read (.lp + PNG)", ("capture_png/lights.lp", "capture_png/light_002.png"),
+               _run("read_png.yaml")),
+        Reader("stack.read (.lp + JPEG)", ("capture_jpg/light_000.jpg", "capture_jpg/light_004.jpg"),
+               _run("read_jpg.yaml")),
+        Reader("ptm.fit_capture (.lp + JPEG)", ("capture_jpg/light_001.jpg", "capture_jpg/light_006.jpg"),
+               _run("fit_jpg.yaml")),
         Reader("info .exr (image)", ("capture/light_003.exr",), _info("capture/light_003.exr")),
         Reader("info .exr (coordinates)", ("coords.exr",), _info("coords.exr")),
         Reader("info .ptm", ("model.ptm",), _info("model.ptm")),
@@ -130,6 +155,7 @@ def readers(seed: Path) -> list[Reader]:
         Reader("tiles.read", ("set.wang",), _run("read_tiles.yaml")),
         Reader("info web layout", web, _info("web/info.json")),
         Reader("web.read", web, _run("read_web.yaml")),
+        Reader("web.read (JPEG planes)", ("web_jpg/plane_1.jpg", "web_jpg/info.json"), _run("read_web_jpg.yaml")),
         Reader("info .rti (HSH)", ("model.rti",), _info("model.rti")),
         Reader("info .zarr store", store, _info("store.zarr")),
         Reader("info .btf (UBO2014)", ("capture.btf",), _info("capture.btf")),
