@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, file_reader
 
 PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
@@ -34,6 +34,7 @@ class MeshFileError(BtforgeInputError):
         super().__init__(f"{path}" + (f", line {line}" if line else ""), problem, hint)
 
 
+@file_reader("a PLY or OBJ mesh", "re-export the mesh (PLY or OBJ with triangles or polygons)")
 def read_mesh(path: str | Path) -> dict[str, np.ndarray]:
     """Read a ``.ply`` or ``.obj`` mesh (chosen by suffix), checked; see the module docstring."""
     path = Path(path)
@@ -224,9 +225,10 @@ def read_ply(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
             table, offset = _ply_binary_element(data, offset, element, PLY_FORMATS[fmt], path)
             tables.append(table)
     named = {e["name"]: t for e, t in zip(elements, tables)}
+    scalars = {p[0] for e in elements if e["name"] == "vertex" for p in e["props"] if p[2] is None}
     vertex, face = named.get("vertex"), named.get("face")
-    if vertex is None or not {"x", "y", "z"} <= set(vertex) or face is None:
-        raise MeshFileError(path, "expected a 'vertex' element with x, y, z and a 'face' element")
+    if vertex is None or not {"x", "y", "z"} <= scalars or face is None:
+        raise MeshFileError(path, "expected a 'vertex' element with scalar x, y, z and a 'face' element")
     positions = np.stack([np.asarray(vertex[a], np.float64) for a in "xyz"], 1)
     index_name = next((n for n in INDEX_NAMES if n in face), None)
     if index_name is None:
@@ -234,7 +236,7 @@ def read_ply(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
     if not len(face[index_name]):
         return positions, np.zeros((0, 3), np.int64), np.zeros((0, 3, 2))
     triangles = _ply_faces(face[index_name], len(positions), path)
-    pair = next(((a, b) for a, b in UV_NAMES if a in vertex and b in vertex), None)
+    pair = next(((a, b) for a, b in UV_NAMES if a in scalars and b in scalars), None)
     corner_uv = np.zeros((0, 3, 2))
     if pair is not None:
         corner_uv = np.stack([np.asarray(vertex[pair[0]], np.float64), np.asarray(vertex[pair[1]], np.float64)],
