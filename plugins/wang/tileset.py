@@ -39,6 +39,13 @@ VERSION = 1
 ARRAYS = ("table", "indices", "tile_colors", "edge_seams")
 
 
+LARGEST = 1 << 31  # bound of every size and count of a tile set
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class TileSet(Buffer):
     """A Wang-tile set: edge colours per tile and the tiles as index maps into a BTFel table (module docs)."""
@@ -63,14 +70,17 @@ class TileSet(Buffer):
         t = self.indices.shape[0]
         check_array("tile_colors", self.tile_colors, (t, 4), np.int32, owner=owner)
         check_array("edge_seams", self.edge_seams, (t, 4), np.float32, owner=owner)
-        src_h, src_w = (int(v) for v in self.source_size)
         problems = []
-        for name in ("colors_h", "colors_v", "edge", "variants"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                problems.append(f"'{name}' must be an int >= 1, got {value!r}")
+        size = tuple(self.source_size) if isinstance(self.source_size, (tuple, list)) else ()
+        if len(size) != 2 or not all(_is_int(v) and 1 <= v < LARGEST for v in size):
+            problems.append(f"'source_size' must be two ints in [1, {LARGEST}), got {self.source_size!r}")
+        for name in ("colors_h", "colors_v", "edge", "variants", "texel_bytes"):
+            value, least = getattr(self, name), 0 if name == "texel_bytes" else 1
+            if not _is_int(value) or not least <= value < LARGEST:
+                problems.append(f"'{name}' must be an int in [{least}, {LARGEST}), got {value!r}")
         if problems:
             raise BtforgeInputError(owner, "; ".join(problems))
+        src_h, src_w = (int(v) for v in size)
         if self.table.size and (self.table.min() < 0 or self.table[:, 0].max() >= src_h
                                 or self.table[:, 1].max() >= src_w):
             problems.append(f"'table' must lie inside the {src_h} x {src_w} exemplar")
