@@ -196,7 +196,10 @@ def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], path
     report.seconds = time.perf_counter() - start
     report.peak_rss_mb = round(mem.peak / 2**20, 1)
     earlier = report.notes.get("warnings", [])  # a deferred node's: noted before it ran
-    report.status, report.notes = "ran", plain_notes(ctx.notes)  # as a cache hit will give them back
+    plain = plain_notes(ctx.notes)  # as a cache hit will give them back; the same dict, which the report shares
+    ctx.notes.clear()
+    ctx.notes.update(plain)
+    report.status, report.notes = "ran", ctx.notes
     _add_warnings(report.notes, name, [*earlier, *raised])
     _check_outputs(name, st, outputs or {}, inputs, registry)
     return dict(outputs or {})
