@@ -103,7 +103,8 @@ def reading_file(path, kind: str, hint: str = "the file is damaged or truncated;
 Reader = TypeVar("Reader", bound=Callable)
 
 
-def file_reader(kind: str, hint: str = "the file is damaged or truncated; write it again") -> Callable[[Reader], Reader]:
+def file_reader(kind: str,
+                hint: str = "the file is damaged or truncated; write it again") -> Callable[[Reader], Reader]:
     """Decorate a function whose first argument is a file path with :func:`reading_file`."""
     def decorate(read: Reader) -> Reader:
         @functools.wraps(read)

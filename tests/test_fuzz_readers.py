@@ -7,7 +7,8 @@ plugins' writers or as text).  Each case damages one of them (tests/fuzzing.py) 
 processes, so a segmentation fault or a hang in native code is a failed case, not a dead test run.
 
 CI runs ``BTFORGE_FUZZ_CASES`` (default 230, 10 per reader) cases with a fixed seed (``BTFORGE_FUZZ_SEED``,
-default 0); set them higher (e.g. 10000) to explore.  A failure lists the reader, the damaged file, the mutation and the case seed.
+default 0); set them higher (e.g. 10000) to explore.  A failure lists the reader, the damaged file, the mutation
+and the case seed.
 """
 from __future__ import annotations
 

@@ -10,6 +10,7 @@ from btforge.plugins.render.meshfile import read_mesh
 QUAD_PLY_HEADER = ("ply\nformat {fmt} 1.0\ncomment a unit quad\nelement vertex 4\nproperty float x\nproperty float y\n"
                    "property float z\nproperty float s\nproperty float t\nelement face {faces}\n"
                    "property list uchar int vertex_indices\nend_header\n")
+ASCII_QUAD = QUAD_PLY_HEADER.format(fmt="ascii", faces=1)
 QUAD = np.array([[-1, -1, 0, 0, 0], [1, -1, 0, 1, 0], [1, 1, 0, 1, 1], [-1, 1, 0, 0, 1]], np.float32)
 
 
@@ -65,9 +66,8 @@ def test_obj_vertex_with_two_texture_coordinates_is_split(tmp_path):
     ("count.ply", binary_quad("<", [[0, 1, 2]]).replace(b"element vertex 4", b"element vertex 400000000"),
      "declares 400000000 rows of at least 20 bytes, but only"),
     ("short.ply", binary_quad("<", [[0, 1, 2]])[:-5], "element 'face' runs past the end of the file"),
-    ("nan.ply", QUAD_PLY_HEADER.format(fmt="ascii", faces=1) + "nan 0 0 0 0\n1 0 0 0 0\n0 1 0 0 0\n0 0 1 0 0\n3 0 1 2\n",
-     "NaN/Inf vertex positions"),
-    ("text.ply", QUAD_PLY_HEADER.format(fmt="ascii", faces=1) + "0 0 0 0 0\n1 0 0 0 0\n0 one 0 0 0\n0 0 1 0 0\n3 0 1 2\n",
+    ("nan.ply", ASCII_QUAD + "nan 0 0 0 0\n1 0 0 0 0\n0 1 0 0 0\n0 0 1 0 0\n3 0 1 2\n", "NaN/Inf vertex positions"),
+    ("text.ply", ASCII_QUAD + "0 0 0 0 0\n1 0 0 0 0\n0 one 0 0 0\n0 0 1 0 0\n3 0 1 2\n",
      r"line 15: expected numbers, found b?'0 one 0 0 0'"),
     ("header.ply", "ply\nformat ascii 1.0\nelement vertex -4\nend_header\n", "line 3: unreadable PLY header line"),
     ("nothing.ply", b"\x00\x01garbage", "is not a PLY file"),

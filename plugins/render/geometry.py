@@ -247,8 +247,9 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
     A mesh file's vertices are split wherever texture coordinates differ (an OBJ vertex used with several
     texture coordinates is read as one vertex per coordinate), which cuts the surface open along its UV seams;
-    closedness, inside tests and smooth normals need the surface's own connectivity.  Positions within :data:`WELD_TOLERANCE` of the
-    mesh's size are one vertex, so float noise from an exporter does not reopen a seam.
+    closedness, inside tests and smooth normals need the surface's own connectivity.  Positions within
+    :data:`WELD_TOLERANCE` of the mesh's size are one vertex, so float noise from an exporter does not reopen a
+    seam.
     """
     pos = np.asarray(positions, np.float64)
     low = pos.min(0)
