@@ -55,18 +55,22 @@ def read_mesh(path: str | Path) -> dict[str, np.ndarray]:
             "corner_uv": corner_uv.astype(np.float32)}
 
 
-def fan(polygons: np.ndarray | list[np.ndarray]) -> np.ndarray:
-    """Triangles ``[F, 3]`` of polygons (rows of corner indices, or a list of index arrays of any lengths >= 3),
-    each fanned from its first corner, in the order of the polygons."""
-    if isinstance(polygons, np.ndarray):
-        k = polygons.shape[1]
-        return np.stack([np.stack([polygons[:, 0], polygons[:, i], polygons[:, i + 1]], 1)
-                         for i in range(1, k - 1)], 1).reshape(-1, 3)
-    sizes = np.asarray([len(p) for p in polygons])
+def fan(polygons: np.ndarray) -> np.ndarray:
+    """Triangles ``[F * (k - 2), 3]`` of polygons given as rows of ``k >= 3`` corner indices, each fanned from its
+    first corner."""
+    k = polygons.shape[1]
+    return np.stack([np.stack([polygons[:, 0], polygons[:, i], polygons[:, i + 1]], 1)
+                     for i in range(1, k - 1)], 1).reshape(-1, 3)
+
+
+def fan_runs(corners: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Triangles of polygons given as consecutive runs of ``corners``, ``sizes[i] >= 3`` corners each, fanned and
+    kept in the order of the polygons."""
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     parts, owners = [], []
     for k in np.unique(sizes):  # one vectorised fan per polygon size, put back in file order after
         rows = np.flatnonzero(sizes == k)
-        parts.append(fan(np.stack([polygons[r] for r in rows])))
+        parts.append(fan(corners[starts[rows, None] + np.arange(k)]))
         owners.append(np.repeat(rows, k - 2))
     order = np.argsort(np.concatenate(owners), kind="stable")
     return np.concatenate(parts)[order]
@@ -212,7 +216,7 @@ def _ply_faces(indices: np.ndarray | list, n_vertex: int, path: Path) -> np.ndar
                             f"{flat.min():.0f} to {flat.max():.0f}")
     if isinstance(indices, np.ndarray):
         return fan(indices.astype(np.int64))
-    return fan([p.astype(np.int64) for p in polygons])
+    return fan_runs(flat.astype(np.int64), np.asarray([len(p) for p in polygons]))
 
 
 def read_ply(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -271,7 +275,67 @@ def _obj_floats(words: list[bytes], least: int, path: Path, line: int, what: str
     return values + [0.0] * (2 - len(values)) if what == "texture coordinate" else values
 
 
+def _obj_tables(data: bytes):
+    """``(positions [V, 3], uvs [T, 2], corners [N, 2], sizes [F])`` of an OBJ, parsed by NumPy: each face corner as
+    0-based (vertex, uv or -1), faces as runs of ``sizes`` corners.  None when anything is unusual (an unparsable
+    number, a negative or out-of-range index, corners of mixed forms): the line-by-line reader then reads the file
+    or says where it is wrong."""
+    comments = b"#" in data
+    v_rows, vt_rows, f_rows, v_seen, vt_seen = [], [], [], [], []
+    for line in data.split(b"\n"):
+        words = (line.split(b"#", 1)[0] if comments else line).split()
+        if not words:
+            continue
+        if words[0] == b"v":
+            v_rows.append(words[1:4])
+        elif words[0] == b"vt":
+            vt_rows.append(words[1:3] if len(words) > 2 else words[1:2] + [b"0"])
+        elif words[0] == b"f":
+            f_rows.append(words[1:])
+            v_seen.append(len(v_rows))
+            vt_seen.append(len(vt_rows))
+    sizes = np.fromiter((len(f) for f in f_rows), np.int64, len(f_rows))
+    if any(len(r) != 3 for r in v_rows) or any(len(r) != 2 for r in vt_rows) or (
+            len(sizes) and (sizes.min() < 3 or sizes.max() > MAX_POLYGON)):
+        return None
+    corners = np.array([c for f in f_rows for c in f] or [b"1"])[:int(sizes.sum())]
+    slashes = np.char.count(corners, b"/") if len(corners) else np.zeros(0, np.int64)
+    if len(corners) and (slashes.min() != slashes.max() or slashes.max() > 2):
+        return None
+    try:
+        positions = np.array(v_rows or np.zeros((0, 3)), dtype=np.bytes_).astype(np.float64).reshape(-1, 3)
+        uvs = np.array(vt_rows or np.zeros((0, 2)), dtype=np.bytes_).astype(np.float64).reshape(-1, 2)
+        parts = int(slashes.max()) + 1 if len(corners) else 1
+        text = b" ".join(corners.tolist()).replace(b"//", b"/0/").replace(b"/", b" ")
+        numbers = np.array(text.split() or [], dtype=np.bytes_).astype(np.int64).reshape(-1, parts)
+    except ValueError:
+        return None
+    face_of = np.repeat(np.arange(len(sizes)), sizes)
+    v = numbers[:, 0]
+    t = numbers[:, 1] if parts > 1 else np.zeros(len(numbers), np.int64)
+    if (v < 1).any() or (v > np.asarray(v_seen, np.int64)[face_of]).any() or (t < 0).any() or \
+            (t > np.asarray(vt_seen, np.int64)[face_of]).any():
+        return None
+    return positions, uvs, np.stack([v - 1, t - 1], 1), sizes
+
+
 def read_obj(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    tables = _obj_tables(data)
+    if tables is None:
+        tables = _obj_tables_line_by_line(data, path)
+    position_array, uv_array, pairs, sizes = tables
+    if not len(sizes):
+        return position_array, np.zeros((0, 3), np.int64), np.zeros((0, 3, 2))
+    if (pairs[:, 1] < 0).any():  # UVs only where every corner has one; the vertices stay as the file numbers them
+        return position_array, fan_runs(pairs[:, 0], sizes), np.zeros((0, 3, 2))
+    keys = pairs[:, 0] * len(uv_array) + pairs[:, 1]          # one vertex per (position, UV) pair
+    unique, vertex_of = np.unique(keys, return_inverse=True)
+    triangles = fan_runs(vertex_of, sizes)
+    return position_array[unique // len(uv_array)], triangles, uv_array[unique % len(uv_array)][triangles]
+
+
+def _obj_tables_line_by_line(data: bytes, path: Path):
+    """:func:`_obj_tables` one line at a time, refusing the first line that is wrong with its number."""
     positions, uvs, corners = [], [], []   # corners: (vertex, uv or -1) per face corner, faces as lists
     for number, raw in enumerate(data.split(b"\n"), start=1):
         words = raw.split(b"#", 1)[0].split()
@@ -292,17 +356,6 @@ def read_obj(data: bytes, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
                     if len(parts) > 1 and parts[1] else -1
                 face.append((v, t))
             corners.append(face)
-    position_array = np.asarray(positions, np.float64).reshape(-1, 3)
-    if not corners:
-        return position_array, np.zeros((0, 3), np.int64), np.zeros((0, 3, 2))
-    textured = all(t >= 0 for face in corners for _, t in face)
-    if not textured:  # UVs only where every corner has one; the vertices stay as the file numbers them
-        return position_array, fan([np.asarray([v for v, _ in f]) for f in corners]), np.zeros((0, 3, 2))
-    pairs = np.asarray([c for face in corners for c in face], np.int64)
-    unique, vertex_of = np.unique(pairs, axis=0, return_inverse=True)   # one vertex per (position, UV) pair
-    vertex_of = vertex_of.ravel()
-    sizes = np.asarray([len(f) for f in corners])
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    triangles = fan([vertex_of[s:s + n] for s, n in zip(starts, sizes)])
-    uv_array = np.asarray(uvs, np.float64).reshape(-1, 2)
-    return position_array[unique[:, 0]], triangles, uv_array[unique[:, 1]][triangles]
+    pairs = np.asarray([c for face in corners for c in face], np.int64).reshape(-1, 2)
+    return (np.asarray(positions, np.float64).reshape(-1, 3), np.asarray(uvs, np.float64).reshape(-1, 2), pairs,
+            np.asarray([len(f) for f in corners], np.int64))
