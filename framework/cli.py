@@ -89,14 +89,12 @@ def written_lines(output_paths: list[Path], out_dir: Path, since: float) -> list
 def cmd_run(args) -> int:
     import time
 
-    from .runner import run
+    from .runner import DEFAULT_OUT, run
     started = time.time()
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
                  use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)
     _print_report(result, sys.stderr)
-    from .runner import DEFAULT_OUT
-    out_dir = Path(args.out) if args.out else DEFAULT_OUT
-    for line in written_lines(getattr(result, "output_paths", []), out_dir, started):
+    for line in written_lines(result.output_paths, Path(args.out) if args.out else DEFAULT_OUT, started):
         print(line, file=sys.stderr)
     if args.profile:
         from .profile import format_profile
