@@ -78,9 +78,10 @@ def collect_warnings() -> Iterator[list[str]]:
 
 # What a decoder raises on damaged bytes: archive and compression errors, truncation, bad text or numbers (JSON and
 # .npy headers raise ValueError), sizes that overflow, lookups of entries the damaged file lacks.
-# Pillow also raises SyntaxError for a broken PNG chunk.
+# Pillow also raises SyntaxError for a broken PNG chunk; zipfile raises NotImplementedError for a damaged
+# compression method or version, RuntimeError for a damaged encryption flag (JSON: RecursionError, a RuntimeError).
 DAMAGED_FILE_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, struct.error, UnicodeError, ValueError,
-                       OverflowError, LookupError, OSError, SyntaxError)
+                       OverflowError, LookupError, OSError, SyntaxError, NotImplementedError, RuntimeError)
 
 
 @contextlib.contextmanager
