@@ -175,6 +175,12 @@ def _run_call(target: str, path: str) -> tuple[int, str]:
     return 0, ""
 
 
+def crash(path: str) -> None:
+    """A reader that dies as native code does on a bad file (for the harness's own test)."""
+    import signal
+    os.kill(os.getpid(), signal.SIGSEGV)
+
+
 def verdict_of(code: int, err: str) -> tuple[str, str]:
     if "Traceback" in err:
         return "traceback", err[-400:]

@@ -191,3 +191,15 @@ def test_damaged_files_are_read_or_refused_cleanly(seed_files, tmp_path):
     assert not failures, "\n".join(lines + [textwrap.shorten(
         f"{o.case.reader} | {o.case.member} | {o.mutation} | seed {o.case.seed} | {o.verdict}: {o.detail}", 400)
         for o in failures[:40]])
+
+
+def test_a_crash_in_native_code_is_a_failed_case_not_a_dead_run(seed_files, tmp_path):
+    """The harness itself: a reader that kills its process (here a deliberate segmentation fault) is recorded as
+    a crash of that case, and the next case runs on a fresh worker."""
+    from fuzzing import Case
+    crash = Reader("segfault", ("seed.yaml",), call="fuzzing:crash", entry="seed.yaml")
+    fine = Reader("validate graph", ("seed.yaml",), ("validate", "{dir}/seed.yaml"))
+    cases = [Case("segfault", "seed.yaml", 1), Case("validate graph", "seed.yaml", 2)]
+    first, second = run_cases([crash, fine], cases, seed_files, tmp_path, workers=1, timeout=120)
+    assert first.verdict == "crash" and "-11" in first.detail and first.mutation
+    assert second.clean
