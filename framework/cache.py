@@ -162,6 +162,24 @@ def node_key_of_output(key: str, port: str) -> str:
     return _hash(f"output {port} of {key}")
 
 
+def plain_notes(notes: Mapping[str, Any]) -> dict[str, Any]:
+    """``notes`` as the cache stores them (JSON numbers, strings, lists and mappings with text keys), so a node
+    served from the cache reports exactly the notes it reported when it ran."""
+    return {str(k): _plain(v) for k, v in notes.items()}
+
+
+def _plain(value: Any) -> Any:
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, Mapping):
+        return plain_notes(value)
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "tolist"):  # NumPy scalars and arrays: their Python numbers, not their text
+        return _plain(value.tolist())
+    return str(value)
+
+
 class NodeCache:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
@@ -224,6 +242,6 @@ class NodeCache:
         manifest = {
             "outputs": {port: {"type": buf.type_name, "content_key": buf.content_key, **written[port]}
                         for port, buf in outputs.items()},
-            "notes": notes,
+            "notes": plain_notes(notes),
         }
-        atomic_write_text(entry / "manifest.json", json.dumps(manifest, default=str))
+        atomic_write_text(entry / "manifest.json", json.dumps(manifest))

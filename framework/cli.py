@@ -40,11 +40,62 @@ def _print_report(result, stream) -> None:
         print("  ".join(cell.ljust(w) for cell, w in zip(row[:5], widths)) + "  " + row[5], file=stream)
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the current folder when that is shorter, else absolute."""
+    import os
+    absolute = path.resolve()
+    relative = os.path.relpath(absolute)
+    return relative if len(relative) < len(str(absolute)) else str(absolute)
+
+
+FOLDER_AFTER = 4  # more files than this in one folder are listed as the folder and a count
+
+
+def written_lines(output_paths: list[Path], out_dir: Path, since: float) -> list[str]:
+    """The files a run wrote, for the end of ``btforge run``, in the order the stages asked for them: files by
+    name, an output folder (or a folder other than ``out_dir`` holding many of the files) as the folder and its
+    count.  Only what was modified since ``since`` (a ``time.time()``) counts as written."""
+    def fresh(p: Path) -> bool:
+        return p.is_file() and p.stat().st_mtime >= since - 1
+
+    entries: dict[Path, list[Path]] = {}   # a folder (collapsed) or a file (itself) -> its written files
+    for path in output_paths:
+        if path.is_dir():
+            members = sorted(p for p in path.rglob("*") if fresh(p))
+            if len(members) > FOLDER_AFTER:
+                entries[path] = members
+            else:
+                entries.update({p: [p] for p in members})
+        elif fresh(path):
+            entries[path] = [path]
+    siblings: dict[Path, int] = {}
+    for path, members in entries.items():
+        if members == [path]:
+            siblings[path.parent] = siblings.get(path.parent, 0) + 1
+    lines, folded = [], set()
+    for path, members in entries.items():
+        parent = path.parent
+        if members == [path] and siblings[parent] > FOLDER_AFTER and parent.resolve() != out_dir.resolve():
+            if parent not in folded:
+                folded.add(parent)
+                lines.append(f"  {_shown(parent)}/ ({siblings[parent]} files)")
+        elif members == [path]:
+            lines.append(f"  {_shown(path)}")
+        else:
+            lines.append(f"  {_shown(path)}/ ({len(members)} files)")
+    return ["wrote:", *lines] if lines else []
+
+
 def cmd_run(args) -> int:
-    from .runner import run
+    import time
+
+    from .runner import DEFAULT_OUT, run
+    started = time.time()
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
                  use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)
     _print_report(result, sys.stderr)
+    for line in written_lines(result.output_paths, Path(args.out) if args.out else DEFAULT_OUT, started):
+        print(line, file=sys.stderr)
     if args.profile:
         from .profile import format_profile
         print(format_profile(result.report_dict()), file=sys.stderr)
@@ -144,7 +195,10 @@ def cmd_info(args) -> int:
     if reader is None:
         raise BtforgeInputError(str(path), f"no reader describes '{path.suffix}' files",
                                 f"known: {', '.join(sorted(readers))}")
-    info = reader(path)
+    from .errors import reading_file
+    with reading_file(path, f"a '{path.suffix}' file", "the file is damaged or truncated; write it again, or check "
+                      "that it is the kind of file its name says"):
+        info = reader(path)
     if args.json:
         print(json.dumps(info, indent=2, default=str))
     else:

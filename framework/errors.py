@@ -7,8 +7,12 @@ tracebacks are only shown behind ``--debug``.
 from __future__ import annotations
 
 import contextlib
+import functools
+import struct
 import warnings
-from typing import Iterator
+import zipfile
+import zlib
+from typing import Callable, Iterator, TypeVar
 
 
 class BtforgeError(Exception):
@@ -70,3 +74,43 @@ def collect_warnings() -> Iterator[list[str]]:
             texts.extend(str(w.message) for w in caught if issubclass(w.category, BtforgeWarning))
     for w in caught:
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+
+# What a decoder raises on damaged bytes: archive and compression errors, truncation, bad text or numbers (JSON and
+# .npy headers raise ValueError), sizes that overflow, lookups of entries the damaged file lacks.
+# Pillow also raises SyntaxError for a broken PNG chunk; zipfile raises NotImplementedError for a damaged
+# compression method or version, RuntimeError for a damaged encryption flag (JSON: RecursionError, a RuntimeError).
+DAMAGED_FILE_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, struct.error, UnicodeError, ValueError,
+                       OverflowError, LookupError, OSError, SyntaxError, NotImplementedError, RuntimeError)
+
+
+@contextlib.contextmanager
+def reading_file(path, kind: str, hint: str = "the file is damaged or truncated; write it again") -> Iterator[None]:
+    """Turn a decoder's error on a damaged ``path`` into a :class:`BtforgeInputError` naming the file and its
+    ``kind`` (e.g. ``"a tile-set archive"``) with what went wrong; input errors raised inside pass unchanged."""
+    try:
+        yield
+    except BtforgeInputError:
+        raise
+    except FileNotFoundError:
+        raise BtforgeInputError(str(path), "file not found", "check the path") from None
+    except DAMAGED_FILE_ERRORS as exc:
+        detail = str(exc).strip() or "no detail"
+        module = type(exc).__module__
+        name = type(exc).__name__ if module == "builtins" else f"{module}.{type(exc).__name__}"
+        raise BtforgeInputError(str(path), f"cannot be read as {kind} ({name}: {detail[:200]})", hint) from None
+
+
+Reader = TypeVar("Reader", bound=Callable)
+
+
+def file_reader(kind: str,
+                hint: str = "the file is damaged or truncated; write it again") -> Callable[[Reader], Reader]:
+    """Decorate a function whose first argument is a file path with :func:`reading_file`."""
+    def decorate(read: Reader) -> Reader:
+        @functools.wraps(read)
+        def checked(path, *args, **kwargs):
+            with reading_file(path, kind, hint):
+                return read(path, *args, **kwargs)
+        return checked  # type: ignore[return-value]
+    return decorate

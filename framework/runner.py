@@ -16,7 +16,7 @@ from . import profile
 from .atomic import atomic_write_text
 from .backend import default_cache_root
 from .buffers import Buffer
-from .cache import DamagedEntry, NodeCache, node_key_of_output
+from .cache import DamagedEntry, NodeCache, node_key_of_output, plain_notes
 from .context import StageContext
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_warnings
 from .graph import CheckedGraph, check_graph, load_graph
@@ -75,6 +75,7 @@ class RunResult(dict):
 
     report: list[NodeReport]
     startup: dict[str, Any]
+    output_paths: list[Path]  # the output paths stages asked for (files or folders; some may not be written)
 
     def report_dict(self) -> dict[str, Any]:
         """The run report: one entry per node, and under ``startup`` where the process spent its time besides."""
@@ -161,6 +162,7 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         if report.status == "deferred":  # no node needed its data: every consumer came from the cache
             report.status = "not needed"
     result.report = [reports[n] for n in graph.spec.nodes]
+    result.output_paths = list(dict.fromkeys(paths.requested))
     return result
 
 
@@ -194,6 +196,9 @@ def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], path
     report.seconds = time.perf_counter() - start
     report.peak_rss_mb = round(mem.peak / 2**20, 1)
     earlier = report.notes.get("warnings", [])  # a deferred node's: noted before it ran
+    plain = plain_notes(ctx.notes)  # as a cache hit will give them back; the same dict, which the report shares
+    ctx.notes.clear()
+    ctx.notes.update(plain)
     report.status, report.notes = "ran", ctx.notes
     _add_warnings(report.notes, name, [*earlier, *raised])
     _check_outputs(name, st, outputs or {}, inputs, registry)

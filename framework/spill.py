@@ -10,6 +10,7 @@ For an ordinary array both are plain iteration and no-ops.
 """
 from __future__ import annotations
 
+import math
 import mmap
 import tempfile
 from typing import Iterator, Sequence
@@ -99,3 +100,36 @@ def write_npy(handle, array: np.ndarray) -> None:
         raise ValueError("write_npy writes numeric arrays only (no pickled objects)")
     for part in pages(np.ascontiguousarray(array)) if array.size else ():
         handle.write(memoryview(np.ascontiguousarray(part).reshape(-1).view(np.uint8)))
+
+
+def read_npy(handle, size: int, what: str) -> np.ndarray:
+    """The array of a ``.npy`` stream of ``size`` bytes (a file object at its start), its header checked before
+    anything is allocated: numeric dtype, non-negative shape, and a data size equal to what the stream holds.
+    A damaged stream is a :class:`~btforge.errors.BtforgeInputError` naming ``what``."""
+    from tokenize import TokenError
+
+    from .errors import BtforgeInputError
+    damaged = "the file is damaged or truncated; write it again"
+    try:
+        version = np.lib.format.read_magic(handle)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise ValueError(f"unsupported .npy version {version}")
+        shape, fortran_order, dtype = read_header[version](handle)
+    except (ValueError, SyntaxError, TokenError, TypeError, EOFError) as exc:
+        raise BtforgeInputError(what, f"is not a readable .npy array ({exc})", damaged) from None
+    if dtype.hasobject or any(not isinstance(d, int) or d < 0 for d in shape):
+        raise BtforgeInputError(what, f"expected a numeric array, found dtype {dtype} and shape {shape}", damaged)
+    count = math.prod(shape)
+    header_bytes = handle.tell()
+    if count * dtype.itemsize != size - header_bytes:
+        raise BtforgeInputError(what, f"its header says {shape} {dtype} ({count * dtype.itemsize} bytes), the data "
+                                f"holds {size - header_bytes} bytes", damaged)
+    out = np.empty(count, dtype)
+    view, filled = memoryview(out.view(np.uint8).reshape(-1)), 0
+    while filled < len(view):
+        got = handle.readinto(view[filled:])
+        if not got:
+            raise BtforgeInputError(what, f"ends after {filled} of {len(view)} data bytes", damaged)
+        filled += got
+    return out.reshape(shape[::-1]).T if fortran_order else out.reshape(shape)

@@ -229,6 +229,8 @@ class RunPaths:
 
     graph_dir: Path
     out_dir: Path
+    # every output path a stage asked for, in order (the CLI lists those written during the run)
+    requested: list[Path] = dataclasses.field(default_factory=list, compare=False, repr=False)
 
     def input(self, value: str) -> Path:
         p = Path(os.path.expanduser(value))
@@ -236,7 +238,9 @@ class RunPaths:
 
     def output(self, value: str) -> Path:
         p = Path(os.path.expanduser(value))
-        return p if p.is_absolute() else self.out_dir / p
+        p = p if p.is_absolute() else self.out_dir / p
+        self.requested.append(p)
+        return p
 
 
 def declare_stage(

@@ -74,7 +74,7 @@ def open_store(path: str | os.PathLike):
         raise BtforgeInputError(str(path), "is not a zarr store (no zarr.json)", "make one with stack.import")
     try:
         array = zarr.open_group(str(path), mode="r", zarr_format=3)[ARRAY]
-    except (KeyError, ValueError, OSError, json.JSONDecodeError) as exc:
+    except (KeyError, ValueError, TypeError, OSError, json.JSONDecodeError) as exc:  # zarr: TypeError for bad metadata
         raise BtforgeInputError(str(path), f"has no readable '{ARRAY}' array ({exc})",
                                 "make the store with stack.import") from None
     meta = dict(array.attrs.get("btforge") or {})

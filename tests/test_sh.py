@@ -14,6 +14,7 @@ from btforge.context import StageContext
 from btforge.plugins.sh.model import (ENERGY_SLACK, RCOND, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
                                       energy_root, evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
                                       evaluate_sh_scattered_opencl, fit_sh, quantize_coeffs, real_sh, sh_solver)
+from tolerances import summation_order_tolerance
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FOUR_PI = 4 * math.pi
@@ -237,12 +238,20 @@ def test_constrained_fit_bounds_energy_where_plain_least_squares_blows_up():
     assert residual < 0.06
 
 
-def test_fit_streams_in_bands_with_identical_result():
+def test_fit_streams_in_bands_with_the_same_result():
     rng = np.random.default_rng(8)
     s = stack_of(rng.uniform(0, 1, (1, 16, 40, 9, 3)), hemisphere(16, 0.1))
     whole, _ = quiet_fit(s, 3)
     banded, _ = quiet_fit(s, 3, budget_bytes=16 * 9 * 3 * 4 * 3)
-    np.testing.assert_array_equal(whole.coeffs, banded.coeffs)
+    # Every texel gets the same solve, but its projection U^T y is a float32 BLAS product, and BLAS may pick its
+    # summation order by the width of the product, i.e. by the band (AVX-512 builds do): bands may differ in the
+    # last bits of each 16-light sum, and the solve amplifies that by at most its condition number.  A banding
+    # mistake (a row fitted from another row's samples) changes coefficients by about their own size, 1000x more.
+    solver = sh_solver(s.lights, s.views, 3, 1)
+    condition = solver.s.max() / solver.s[solver.s > 0].min()
+    tolerance = summation_order_tolerance(whole.coeffs, terms=s.n_light * s.n_view, amplification=condition)
+    assert tolerance < 1e-3 * np.abs(whole.coeffs).max()
+    np.testing.assert_allclose(banded.coeffs, whole.coeffs, rtol=0, atol=tolerance)
 
 
 def test_srgb8_stack_is_fitted_in_linear_radiance():

@@ -35,8 +35,8 @@ import numpy as np
 
 from btforge.atomic import atomic_write
 from btforge.buffers import Buffer
-from btforge.errors import BtforgeInputError
-from btforge.spill import pages, write_npy
+from btforge.errors import BtforgeInputError, file_reader
+from btforge.spill import pages, read_npy, write_npy
 
 FORMAT = "btforge.model"
 FORMAT_VERSION = 1
@@ -90,6 +90,10 @@ def _open(path: Path) -> zipfile.ZipFile:
                                 f"write models with the model.write stage ({SUFFIX} files)") from None
 
 
+DAMAGED = "the file is damaged or truncated; write the model again"
+
+
+@file_reader("a btforge model file", DAMAGED)
 def read_manifest(path: str | os.PathLike, archive: zipfile.ZipFile | None = None) -> dict[str, Any]:
     """The manifest of a model file, checked for format and version (arrays are not read)."""
     path = Path(path)
@@ -127,13 +131,30 @@ def _manifest_v1(manifest: dict[str, Any], path: Path) -> dict[str, Any]:
         if not isinstance(manifest.get(key), kind):
             raise BtforgeInputError(str(path), f"manifest key '{key}' must be a {kind.__name__}, found "
                                     f"{type(manifest.get(key)).__name__}", "the file is damaged; write it again")
+    for name, info in manifest["arrays"].items():
+        if not _valid_array_entry(info):
+            raise BtforgeInputError(str(path), f"manifest entry of array '{name}' is not a mapping of file, dtype, "
+                                    f"shape and blake2b, found {str(info)[:80]}", DAMAGED)
     return manifest
+
+
+def _valid_array_entry(info: Any) -> bool:
+    if not isinstance(info, dict) or not all(isinstance(info.get(k), str) for k in ("file", "dtype", "blake2b")):
+        return False
+    shape = info.get("shape")
+    if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+        return False
+    try:
+        return not np.dtype(info["dtype"]).hasobject
+    except (TypeError, ValueError):
+        return False
 
 
 # format version -> function that checks a manifest of that version and returns it in the current layout
 READERS: dict[int, Callable[[dict[str, Any], Path], dict[str, Any]]] = {1: _manifest_v1}
 
 
+@file_reader("a btforge model file", DAMAGED)
 def read_model(path: str | os.PathLike, types: Mapping[str, type[Buffer]]) -> Buffer:
     """Read a model file back into the buffer it was written from (exactly: same arrays, same parameters)."""
     path = Path(path)
@@ -148,7 +169,8 @@ def read_model(path: str | os.PathLike, types: Mapping[str, type[Buffer]]) -> Bu
         for name, info in manifest["arrays"].items():
             try:
                 with archive.open(info["file"]) as member:
-                    array = np.lib.format.read_array(member, allow_pickle=False)
+                    array = read_npy(member, archive.getinfo(info["file"]).file_size,
+                                     f"{path}, array '{name}'")
             except (KeyError, ValueError, OSError, zipfile.BadZipFile) as exc:
                 raise BtforgeInputError(str(path), f"array '{name}' cannot be read ({exc})",
                                         "the file is damaged or truncated; write the model again") from None

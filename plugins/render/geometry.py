@@ -1,4 +1,4 @@
-"""Meshes for rendering: built-in primitives with UVs, PLY/OBJ files read with open3d, transforms, tangent frames.
+"""Meshes for rendering: built-in primitives with UVs, PLY/OBJ files (see .meshfile), transforms, tangent frames.
 
 Every mesh ends up as world-space triangles with per-corner attributes (``[F, 3, ...]``): UV, shading normal,
 tangent and bitangent.  Tangents come from the parameterization - ``T`` along dP/du, ``B`` toward dP/dv - so a
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -117,75 +116,15 @@ def make_primitive(spec: MeshSpec):
 
 # ----------------------------------------------------------------------------------------------- files
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-_UV_NAMES = (("u", "v"), ("s", "t"), ("texture_u", "texture_v"), ("texture_s", "texture_t"))
-
-
-def _ply_vertex_uv(path: Path) -> np.ndarray | None:
-    """Per-vertex UVs of a PLY file (open3d ignores them), or None when it has none."""
-    with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
-            return None
-        fmt, elements = None, []
-        while True:
-            line = f.readline()
-            if not line:
-                return None
-            words = line.decode("ascii", "replace").split()
-            if not words:
-                continue
-            if words[0] == "format":
-                fmt = words[1]
-            elif words[0] == "element":
-                elements.append((words[1], int(words[2]), []))
-            elif words[0] == "property" and elements:
-                elements[-1][2].append(("list",) if words[1] == "list" else (words[1], words[2]))
-            elif words[0] == "end_header":
-                break
-        if not elements or elements[0][0] != "vertex":
-            return None
-        _, count, props = elements[0]
-        names = [p[1] for p in props if p[0] != "list"]
-        pair = next(((a, b) for a, b in _UV_NAMES if a in names and b in names), None)
-        if pair is None or any(p[0] == "list" for p in props):
-            return None
-        if fmt == "ascii":
-            table = np.loadtxt(f, max_rows=count, ndmin=2, usecols=range(len(props)))
-            return np.stack([table[:, names.index(pair[0])], table[:, names.index(pair[1])]], 1)
-        order = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(p[1], order + _PLY_TYPES[p[0]]) for p in props])
-        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype, count=count)
-        return np.stack([data[pair[0]], data[pair[1]]], 1).astype(np.float64)
-
-
 def read_mesh_file(path: str, where: str = "") -> dict[str, np.ndarray]:
-    """Read a PLY/OBJ triangle mesh with open3d: ``positions [V, 3]``, ``triangles [F, 3]``, ``corner_uv [F, 3, 2]``
-    (``[0, 3, 2]`` when the file has no texture coordinates)."""
-    o3d = open3d()
-
-    where = where or str(path)
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
-    positions = np.asarray(mesh.vertices, dtype=np.float64)
-    triangles = np.asarray(mesh.triangles, dtype=np.int64)
-    if len(triangles) == 0 or len(positions) == 0:
-        raise BtforgeInputError(where, f"cannot read a triangle mesh from {Path(path).name} (no triangles found)",
-                                "check that the file is a complete PLY or OBJ mesh with faces")
-    if not np.isfinite(positions).all():
-        raise BtforgeInputError(where, f"{Path(path).name} has NaN/Inf vertex positions")
-    corner_uv = np.zeros((0, 3, 2), np.float32)
-    if mesh.has_triangle_uvs() and len(mesh.triangle_uvs) == 3 * len(triangles):
-        corner_uv = np.asarray(mesh.triangle_uvs, dtype=np.float32).reshape(-1, 3, 2)
-    elif Path(path).suffix.lower() == ".ply":
-        uv = _ply_vertex_uv(Path(path))
-        if uv is not None and len(uv) == len(positions):
-            corner_uv = uv[triangles].astype(np.float32)
-    if corner_uv.size and not np.isfinite(corner_uv).all():
-        raise BtforgeInputError(where, f"{Path(path).name} has NaN/Inf texture coordinates")
-    return {"positions": positions.astype(np.float32), "triangles": triangles.astype(np.int32),
-            "corner_uv": corner_uv}
+    """Read a PLY/OBJ triangle mesh: ``positions [V, 3]``, ``triangles [F, 3]``, ``corner_uv [F, 3, 2]``
+    (``[0, 3, 2]`` when the file has no texture coordinates).  The file is parsed and checked in NumPy
+    (:mod:`.meshfile`), so a damaged file is refused before any array reaches open3d."""
+    from .meshfile import read_mesh
+    try:
+        return read_mesh(path)
+    except BtforgeInputError as exc:
+        raise exc.located(where) if where else exc
 
 
 # ----------------------------------------------------------------------------------------------- frames
@@ -305,10 +244,11 @@ def build_mesh(spec: MeshSpec, scene: Scene | None = None) -> BuiltMesh:
 def weld(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``triangles`` re-indexed so that vertices at one position share one index (the first of them).
 
-    A mesh file's vertices are split wherever texture coordinates differ (open3d splits every vertex of a textured
-    OBJ/PLY by position and UV on reading), which cuts the surface open along its UV seams; closedness, inside
-    tests and smooth normals need the surface's own connectivity.  Positions within :data:`WELD_TOLERANCE` of the
-    mesh's size are one vertex, so float noise from an exporter does not reopen a seam.
+    A mesh file's vertices are split wherever texture coordinates differ (an OBJ vertex used with several
+    texture coordinates is read as one vertex per coordinate), which cuts the surface open along its UV seams;
+    closedness, inside tests and smooth normals need the surface's own connectivity.  Positions within
+    :data:`WELD_TOLERANCE` of the mesh's size are one vertex, so float noise from an exporter does not reopen a
+    seam.
     """
     pos = np.asarray(positions, np.float64)
     low = pos.min(0)

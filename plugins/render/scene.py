@@ -285,7 +285,10 @@ def read_scene_source(value: Any, paths) -> tuple[Mapping[str, Any], str, Path]:
     if not path.is_file():
         raise BtforgeInputError(f"scene {path}", "scene file not found", "paths are relative to the graph file's folder")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise BtforgeInputError(f"scene {path}", f"is not UTF-8 text (byte {exc.start} cannot be decoded)",
+                                "save the scene as UTF-8 YAML") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"scene {path}" + (f", line {mark.line + 1}" if mark else "")

@@ -91,7 +91,7 @@ class _Cursor:
 
     def bytes(self, count: int, field: str) -> bytes:
         at = self.offset
-        data = self.handle.read(count)
+        data = self.handle.read(min(count, self.size - at))  # a damaged count asks for no more than the file has
         if len(data) != count:
             raise BtforgeInputError(f"{self.where}, byte {at}", f"expected {count} bytes of {field}, found "
                                     f"{len(data)} before the end of the file", "the file is truncated; download it again")

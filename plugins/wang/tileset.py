@@ -31,11 +31,19 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.buffers import Buffer, CoordMap, check_array, frozen
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, file_reader
+from btforge.spill import read_npy
 
 FORMAT = "btforge-wang-tiles"
 VERSION = 1
 ARRAYS = ("table", "indices", "tile_colors", "edge_seams")
+
+
+LARGEST = 1 << 31  # bound of every size and count of a tile set
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -62,14 +70,17 @@ class TileSet(Buffer):
         t = self.indices.shape[0]
         check_array("tile_colors", self.tile_colors, (t, 4), np.int32, owner=owner)
         check_array("edge_seams", self.edge_seams, (t, 4), np.float32, owner=owner)
-        src_h, src_w = (int(v) for v in self.source_size)
         problems = []
-        for name in ("colors_h", "colors_v", "edge", "variants"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                problems.append(f"'{name}' must be an int >= 1, got {value!r}")
+        size = tuple(self.source_size) if isinstance(self.source_size, (tuple, list)) else ()
+        if len(size) != 2 or not all(_is_int(v) and 1 <= v < LARGEST for v in size):
+            problems.append(f"'source_size' must be two ints in [1, {LARGEST}), got {self.source_size!r}")
+        for name in ("colors_h", "colors_v", "edge", "variants", "texel_bytes"):
+            value, least = getattr(self, name), 0 if name == "texel_bytes" else 1
+            if not _is_int(value) or not least <= value < LARGEST:
+                problems.append(f"'{name}' must be an int in [{least}, {LARGEST}), got {value!r}")
         if problems:
             raise BtforgeInputError(owner, "; ".join(problems))
+        src_h, src_w = (int(v) for v in size)
         if self.table.size and (self.table.min() < 0 or self.table[:, 0].max() >= src_h
                                 or self.table[:, 1].max() >= src_w):
             problems.append(f"'table' must lie inside the {src_h} x {src_w} exemplar")
@@ -160,6 +171,10 @@ class TileSet(Buffer):
                     archive.writestr(f"{name}.npy", bio.getvalue())
 
 
+DAMAGED = "the archive is damaged or truncated; write it again with tiles.write"
+
+
+@file_reader("a tile-set archive", DAMAGED)
 def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
     path = Path(path)
     try:
@@ -179,13 +194,15 @@ def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
     return manifest, archive
 
 
+@file_reader("a tile-set archive", DAMAGED)
 def read_tile_set(path) -> TileSet:
     manifest, archive = read_manifest(path)
     with archive:
         arrays = {}
         for name in ARRAYS:
             try:
-                arrays[name] = np.load(io.BytesIO(archive.read(f"{name}.npy")), allow_pickle=False)
+                data = archive.read(f"{name}.npy")
+                arrays[name] = read_npy(io.BytesIO(data), len(data), f"{path}, {name}.npy")
             except (KeyError, ValueError) as exc:
                 raise BtforgeInputError(str(path), f"'{name}.npy' is missing or damaged ({exc})")
     missing = [k for k in ("colors_h", "colors_v", "source_size", "edge", "variants", "texel_bytes") if k not in manifest]

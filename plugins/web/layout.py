@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.atomic import atomic_write, atomic_write_text
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, file_reader
 
 from .hsh import HSHModel
 
@@ -138,6 +138,10 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
 # ----------------------------------------------------------------------------------------------- reading
 
 
+MAX_SIDE = 1 << 17   # pixels per side of a plane image
+MAX_PLANES = 64      # the largest layouts (HSH order 3, RGB) have 27
+
+
 def read_info(path) -> dict:
     """The checked ``info.json`` of a web layout (a folder or the file itself)."""
     path = Path(path)
@@ -155,6 +159,9 @@ def read_info(path) -> dict:
                       ("materials", list)):
         if not isinstance(info.get(key), kind):
             problems.append(f"'{key}' missing or not {kind.__name__}")
+    for key, top in (("width", MAX_SIDE), ("height", MAX_SIDE), ("nplanes", MAX_PLANES)):
+        if isinstance(info.get(key), int) and not 1 <= info[key] <= top:
+            problems.append(f"'{key}' must be 1 to {top}, found {info[key]}")
     if not problems:
         if info["type"] not in ("ptm", "hsh", "sh"):
             problems.append(f"'type' {info['type']!r} is not ptm, hsh or sh")
@@ -188,7 +195,7 @@ def _read_planes(info: dict) -> np.ndarray:
         try:
             with Image.open(path) as image:
                 pixels = np.asarray(image.convert("RGB"))
-        except OSError as exc:
+        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
             raise BtforgeInputError(str(path), f"cannot be read as an image ({exc})",
                                     "every plane_J image the info.json implies must be present") from None
         if pixels.shape[:2] != (h, w):
@@ -201,6 +208,7 @@ def _read_planes(info: dict) -> np.ndarray:
     return planes
 
 
+@file_reader("a web layout", "export the model again (relight or model.export_web)")
 def read_web(path):
     """The model a web layout holds: a PTMModel, SHModel or HSHModel (see the module docs)."""
     from btforge.plugins.ptm.model import PTMModel
