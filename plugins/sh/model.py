@@ -54,7 +54,7 @@ from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb,
                              scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import resolve_space
+from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, best_held_out, held_out_grid, resolve_space
 from btforge.spill import finite_range, release, spilled_empty
 
 KERNELS = Path(__file__).with_name("sh.cl")
@@ -68,6 +68,11 @@ LAMBDA_ITERS = 32
 BUILD_OPTIONS = (f"-DLAMBDA_SPAN={LAMBDA_SPAN!r}f", f"-DLAMBDA_ITERS={LAMBDA_ITERS}")
 FOUR_PI = 4.0 * math.pi
 SPACES = ("linear", "srgb")
+AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses among
+# Held-out errors within this fraction of the lowest count as a tie, won by the higher order: the whole stack has
+# a quarter more lights than each fold fits, and more lights carry higher orders (measured on the shared real
+# captures, docs/incoming/accuracy.md).
+AUTO_ORDER_TIE = 0.05
 
 
 # ----------------------------------------------------------------------------------------------- basis
@@ -466,7 +471,56 @@ def _fit_blocks(stack: SampleStack, solver: SHSolver, solve, space: str, energy_
         release(coeffs[rows, cols])
 
 
-def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quantize: bool = False, *,
+def auto_orders(n_light: int) -> tuple[int, ...]:
+    """The light orders ``auto`` tries on ``n_light`` lights: those of :data:`AUTO_ORDERS` with no more
+    coefficients than the lights each held-out fold fits (more would be fitted by the energy bound alone)."""
+    n_fit = n_light - math.ceil(n_light / AUTO_HOLD_EVERY)
+    return tuple(order for order in AUTO_ORDERS if order * order <= n_fit) or AUTO_ORDERS[:1]
+
+
+def few_lights_order(n_light: int) -> int:
+    """``auto``'s light order when there are too few lights to hold any out: the largest order up to 4 with at
+    least two lights per light coefficient (at least 1)."""
+    return max([order for order in range(1, 5) if 2 * order * order <= n_light] or [1])
+
+
+def resolve_order_and_space(stack: SampleStack, light_order, view_order: int, space: str, engine: str,
+                            energy_factor: float) -> tuple[int, str, dict]:
+    """The light order and space to fit, and the held-out error of each (order, space) pair ``auto`` compared.
+
+    ``light_order="auto"`` fits every order of :func:`auto_orders` (in each space ``space`` allows) to a grid of
+    texels with every light held out once (:func:`btforge.fitspace.best_held_out`) and keeps the pair whose fits
+    predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`): as many
+    harmonics as the lights support, and no more.  With fewer than
+    ``AUTO_MIN_LIGHTS`` lights it takes :func:`few_lights_order` and the space ``auto`` takes without a test.
+    """
+    def predict(fit, candidate, lights, views):
+        order, sp = candidate
+        return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor,
+                      space=sp)[0].evaluate(lights, views)
+
+    if light_order != "auto":
+        return light_order, resolve_space(stack, space, lambda fit, sp, lights, views: predict(
+            fit, (light_order, sp), lights, views)), {}
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        return few_lights_order(stack.n_light), resolve_space(stack, space), {}
+    spaces = (space,) if space != "auto" else ("srgb", "linear") if stack.encoding == "srgb8" else ("linear",)
+    candidates = [(order, sp) for order in auto_orders(stack.n_light) for sp in spaces]
+    _, errors = best_held_out(held_out_grid(stack), stack, candidates, predict)
+    order, sp = highest_near_best(errors)
+    return order, sp, {f"{o} {s}": e for (o, s), e in errors.items()}
+
+
+def highest_near_best(errors: dict) -> tuple[int, str]:
+    """Of ``{(order, space): held-out error}``, the highest order within :data:`AUTO_ORDER_TIE` of the lowest
+    error, in its better space."""
+    lowest = min(errors.values())
+    near = [(order, -error, sp) for (order, sp), error in errors.items() if error <= lowest * (1 + AUTO_ORDER_TIE)]
+    order, _, sp = max(near)
+    return order, sp
+
+
+def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
            energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto") -> tuple[SHModel, dict]:
     """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
@@ -479,8 +533,11 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     ``view_order^2``: nothing would then choose among the exact fits.
     """
     for name, value in (("light_order", light_order), ("view_order", view_order)):
+        if name == "light_order" and value == "auto":
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
-            raise BtforgeInputError(f"sh.fit '{name}'", f"expected an int in [1, {MAX_ORDER}], found {value!r}")
+            allowed = "'auto' or " * (name == "light_order")
+            raise BtforgeInputError(f"sh.fit '{name}'", f"expected {allowed}an int in [1, {MAX_ORDER}], found {value!r}")
     if not energy_factor > 0:
         raise BtforgeInputError("sh.fit 'energy_factor'", f"expected a positive number, found {energy_factor!r}")
     if engine not in ("opencl", "numpy"):
@@ -489,6 +546,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         raise BtforgeInputError("sh.fit 'space'", f"expected one of auto, linear, srgb, found {space!r}")
     if stack.n_view == 1:
         view_order = 1
+    light_order, space, order_errors = resolve_order_and_space(stack, light_order, view_order, space, engine,
+                                                               energy_factor)
     k_l, k_v = light_order ** 2, view_order ** 2
     if math.isinf(energy_factor) and (stack.n_light < k_l or stack.n_view < k_v):
         # Without the energy bound nothing picks among the exact fits: the minimum-norm one is arbitrary.
@@ -498,8 +557,6 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
-    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_sh(
-        fit, light_order, view_order, engine=engine, energy_factor=energy_factor, space=sp)[0].evaluate(lights, views))
     solver = sh_solver(stack.lights, stack.views, light_order, view_order)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
@@ -537,6 +594,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         "view_order": view_order,
         "energy_factor": energy_factor,
         "space": space,
+        "light_order": light_order,
+        "held_out_errors": order_errors,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
     }
     return model, stats
