@@ -9,9 +9,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from btforge.buffers import SampleStack, linear_to_srgb8
+from btforge.errors import BtforgeInputError
 from btforge.fitspace import AUTO_HOLD_EVERY, best_held_out, held_out_grid
 from btforge.numerics import real_sh
-from btforge.plugins.sh.model import AUTO_ORDERS, auto_orders, few_lights_order, fit_sh, highest_near_best
+from btforge.plugins.sh.model import AUTO_ORDERS, AUTO_SMOOTHNESS, auto_orders, few_lights_order, fit_sh, highest_near_best
 
 from lightsets import dome, lights_at
 
@@ -152,3 +153,53 @@ def test_auto_order_stays_finite_and_bounded_on_hard_light_sets(lights, texels, 
     assert np.isfinite(relit).all() and (relit <= model.light_order * max(peak, 1.0) * 1.001 + 1e-6).all()
     if texels == "black":
         assert (relit == 0).all()
+
+
+# ----------------------------------------------------------------------------------------------- smoothness
+
+
+def test_smoothness_solves_the_penalised_least_squares():
+    """With enough lights and no energy bound the fit is the solution of the normal equations
+    ``(A^T A + s (L / 4 pi) diag(l (l + 1))) c = A^T y``."""
+    lights = dome(40, seed=7)
+    stack = SampleStack(sh_capture(3, lights, 0.05, seed=7, size=3), lights, np.array([[0.0, 0.0, 1.0]]))
+    order, smoothness = 4, 0.02
+    model, _ = quiet(fit_sh, stack, order, energy_factor=np.inf, space="linear", smoothness=smoothness)
+    a = real_sh(order, lights)
+    bands = np.repeat(np.arange(order), 2 * np.arange(order) + 1)
+    normal = a.T @ a + np.diag(smoothness * len(lights) / (4 * np.pi) * bands * (bands + 1.0))
+    y = stack.samples[0].reshape(len(lights), -1).astype(np.float64)
+    # a single view's coefficients carry the factor sqrt(4 pi) of the constant view harmonic
+    expected = np.sqrt(4 * np.pi) * np.linalg.solve(normal, a.T @ y).T.reshape(3, 3, 3, 1, order * order)
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(model.coeffs, expected, atol=2e-4 * scale)
+
+
+def test_more_smoothness_means_less_gradient_energy():
+    lights = dome(30, seed=8)
+    stack = SampleStack(sh_capture(4, lights, 0.05, seed=8, size=4), lights, np.array([[0.0, 0.0, 1.0]]))
+    bands = np.repeat(np.arange(5), 2 * np.arange(5) + 1)
+    gradient = [float((quiet(fit_sh, stack, 5, space="linear", smoothness=s)[0].coeffs ** 2 * bands * (bands + 1)).sum())
+                for s in (0.0, 0.01, 0.1, 1.0)]
+    assert all(a > b for a, b in zip(gradient, gradient[1:])), gradient
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), "smooth", True])
+def test_bad_smoothness_is_named(bad):
+    lights = dome(12)
+    stack = SampleStack(sh_capture(2, lights, 0.0, seed=1, size=2), lights, np.array([[0.0, 0.0, 1.0]]))
+    with pytest.raises(BtforgeInputError, match="smoothness"):
+        fit_sh(stack, 2, smoothness=bad)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(lights=st.sampled_from(sorted(HARD_LIGHTS)), seed=st.integers(0, 2 ** 16))
+def test_auto_smoothness_stays_finite_and_bounded_on_hard_light_sets(lights, seed):
+    rng = np.random.default_rng(seed)
+    dirs = HARD_LIGHTS[lights](rng)
+    samples = linear_to_srgb8(rng.uniform(0, 1, (1, len(dirs), 3, 4, 3)) ** 4)
+    stack = SampleStack(samples, dirs, np.array([[0.0, 0.0, 1.0]]), encoding="srgb8")
+    model, stats = quiet(fit_sh, stack, "auto", smoothness="auto")
+    assert stats["smoothness"] in (0.0,) + AUTO_SMOOTHNESS
+    relit = model.evaluate(np.vstack([dirs, lights_at([30, 89, -40], [0, 180, 270])]))
+    assert np.isfinite(relit).all() and (relit <= model.light_order * 1.001).all()

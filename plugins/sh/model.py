@@ -73,6 +73,7 @@ AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses
 # a quarter more lights than each fold fits, and more lights carry higher orders (measured on the shared real
 # captures, docs/incoming/accuracy.md).
 AUTO_ORDER_TIE = 0.05
+AUTO_SMOOTHNESS = (0.003, 0.01, 0.03)  # the smoothness weights ``smoothness="auto"`` tries (0 is tried too)
 
 
 # ----------------------------------------------------------------------------------------------- basis
@@ -330,7 +331,8 @@ class SHSolver:
         # Two plain matrix products (one over the views, then one per view coefficient over the lights) on
         # C-ordered factors: a batched product with a transposed factor runs 5-10x slower in NumPy.
         t = np.ascontiguousarray(self.u_v.T, np.float32) @ y.reshape(n_view, -1)      # [r_v, L * N]
-        p = np.matmul(np.ascontiguousarray(self.u_l.T, np.float32), t.reshape(len(self.s_v), n_light, n))
+        # (rows of u_l past the lights belong to penalty rows, whose samples are zero)
+        p = np.matmul(np.ascontiguousarray(self.u_l[:n_light].T, np.float32), t.reshape(len(self.s_v), n_light, n))
         return np.ascontiguousarray(p.transpose(2, 0, 1)).reshape(n, -1)             # [N, r_v * r_l]
 
 
@@ -342,9 +344,22 @@ def _factor_svd(basis: np.ndarray):
     return u[:, keep], s[keep], vt[keep].T
 
 
-def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int) -> SHSolver:
-    """SVD of the light and view SH design matrices (the design matrix's Kronecker factors)."""
-    u_l, s_l, v_l = _factor_svd(real_sh(light_order, lights))
+def smoothness_rows(light_order: int, n_light: int, smoothness: float) -> np.ndarray:
+    """Rows appended to the light design matrix (with zero samples) whose squared residual is the smoothness
+    penalty ``smoothness (n_light / 4 pi) sum_lm l (l + 1) c_lm^2``: the squared gradient of the function over
+    the sphere, in units of the data term (``n_light / 4 pi`` is ``A^T A`` for lights spread evenly over it)."""
+    bands = np.repeat(np.arange(light_order), 2 * np.arange(light_order) + 1)
+    return np.diag(np.sqrt(smoothness * n_light / FOUR_PI * bands * (bands + 1.0)))
+
+
+def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int,
+              smoothness: float = 0.0) -> SHSolver:
+    """SVD of the light and view SH design matrices (the design matrix's Kronecker factors); with
+    ``smoothness`` the light factor carries the rows of :func:`smoothness_rows` below the lights."""
+    design = real_sh(light_order, lights)
+    if smoothness > 0:
+        design = np.vstack([design, smoothness_rows(light_order, len(lights), smoothness)])
+    u_l, s_l, v_l = _factor_svd(design)
     u_v, s_v, v_v = _factor_svd(real_sh(view_order, views))
     return SHSolver(u_v, s_v, v_v, u_l, s_l, v_l)
 
@@ -484,31 +499,41 @@ def few_lights_order(n_light: int) -> int:
     return max([order for order in range(1, 5) if 2 * order * order <= n_light] or [1])
 
 
-def resolve_order_and_space(stack: SampleStack, light_order, view_order: int, space: str, engine: str,
-                            energy_factor: float) -> tuple[int, str, dict]:
-    """The light order and space to fit, and the held-out error of each (order, space) pair ``auto`` compared.
+def resolve_choices(stack: SampleStack, light_order, view_order: int, space: str, smoothness, engine: str,
+                    energy_factor: float) -> tuple[int, str, float, dict]:
+    """The light order, space and smoothness to fit, and the held-out error of each setting ``auto`` compared
+    (keyed ``"order space smoothness"``).
 
     ``light_order="auto"`` fits every order of :func:`auto_orders` (in each space ``space`` allows) to a grid of
     texels with every light held out once (:func:`btforge.fitspace.best_held_out`) and keeps the pair whose fits
-    predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`): as many
-    harmonics as the lights support, and no more.  With fewer than
-    ``AUTO_MIN_LIGHTS`` lights it takes :func:`few_lights_order` and the space ``auto`` takes without a test.
+    predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`).
+    ``smoothness="auto"`` then tries that order and the higher ones, in that space, at each smoothness of
+    :data:`AUTO_SMOOTHNESS`, and keeps the best setting, unsmoothed included.  With fewer than
+    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, and the space
+    ``auto`` takes without a test.
     """
     def predict(fit, candidate, lights, views):
-        order, sp = candidate
-        return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor,
-                      space=sp)[0].evaluate(lights, views)
+        order, sp, smooth = candidate
+        return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor, space=sp,
+                      smoothness=smooth)[0].evaluate(lights, views)
 
-    if light_order != "auto":
-        return light_order, resolve_space(stack, space, lambda fit, sp, lights, views: predict(
-            fit, (light_order, sp), lights, views)), {}
-    if stack.n_light < AUTO_MIN_LIGHTS:
-        return few_lights_order(stack.n_light), resolve_space(stack, space), {}
+    orders = auto_orders(stack.n_light) if light_order == "auto" else (light_order,)
     spaces = (space,) if space != "auto" else ("srgb", "linear") if stack.encoding == "srgb8" else ("linear",)
-    candidates = [(order, sp) for order in auto_orders(stack.n_light) for sp in spaces]
-    _, errors = best_held_out(held_out_grid(stack), stack, candidates, predict)
-    order, sp = highest_near_best(errors)
-    return order, sp, {f"{o} {s}": e for (o, s), e in errors.items()}
+    smooth = 0.0 if smoothness == "auto" else float(smoothness)
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        order = few_lights_order(stack.n_light) if light_order == "auto" else light_order
+        return order, resolve_space(stack, space), smooth, {}
+    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto":
+        return orders[0], spaces[0], smooth, {}
+    grid = held_out_grid(stack)
+    _, errors = best_held_out(grid, stack, [(o, sp, smooth) for o in orders for sp in spaces], predict)
+    order, sp = highest_near_best({(o, sp): e for (o, sp, _), e in errors.items()})
+    best = (order, sp, smooth)
+    if smoothness == "auto":
+        smoothed = [(o, sp, value) for o in orders if o >= order for value in AUTO_SMOOTHNESS]
+        errors.update(best_held_out(grid, stack, smoothed, predict)[1])
+        best = min([best] + smoothed, key=errors.get)
+    return (*best, {f"{o} {sp} {value:g}": e for (o, sp, value), e in errors.items()})
 
 
 def highest_near_best(errors: dict) -> tuple[int, str]:
@@ -522,7 +547,8 @@ def highest_near_best(errors: dict) -> tuple[int, str]:
 
 def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
-           energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto") -> tuple[SHModel, dict]:
+           energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto",
+           smoothness: float | str = 0.0) -> tuple[SHModel, dict]:
     """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
 
     ``view_order`` is forced to 1 for a single-view stack.  Returns the model and a dict of statistics:
@@ -538,6 +564,9 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
             allowed = "'auto' or " * (name == "light_order")
             raise BtforgeInputError(f"sh.fit '{name}'", f"expected {allowed}an int in [1, {MAX_ORDER}], found {value!r}")
+    if smoothness != "auto" and (isinstance(smoothness, bool) or not isinstance(smoothness, (int, float))
+                                 or not 0 <= smoothness < math.inf):
+        raise BtforgeInputError("sh.fit 'smoothness'", f"expected 'auto' or a number >= 0, found {smoothness!r}")
     if not energy_factor > 0:
         raise BtforgeInputError("sh.fit 'energy_factor'", f"expected a positive number, found {energy_factor!r}")
     if engine not in ("opencl", "numpy"):
@@ -546,8 +575,8 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         raise BtforgeInputError("sh.fit 'space'", f"expected one of auto, linear, srgb, found {space!r}")
     if stack.n_view == 1:
         view_order = 1
-    light_order, space, order_errors = resolve_order_and_space(stack, light_order, view_order, space, engine,
-                                                               energy_factor)
+    light_order, space, smoothness, held_out_errors = resolve_choices(stack, light_order, view_order, space,
+                                                                      smoothness, engine, energy_factor)
     k_l, k_v = light_order ** 2, view_order ** 2
     if math.isinf(energy_factor) and (stack.n_light < k_l or stack.n_view < k_v):
         # Without the energy bound nothing picks among the exact fits: the minimum-norm one is arbitrary.
@@ -557,7 +586,7 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
-    solver = sh_solver(stack.lights, stack.views, light_order, view_order)
+    solver = sh_solver(stack.lights, stack.views, light_order, view_order, smoothness)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
     n_samples = stack.n_view * stack.n_light
@@ -595,7 +624,8 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         "energy_factor": energy_factor,
         "space": space,
         "light_order": light_order,
-        "held_out_errors": order_errors,
+        "smoothness": smoothness,
+        "held_out_errors": held_out_errors,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
     }
     return model, stats
