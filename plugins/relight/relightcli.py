@@ -5,8 +5,10 @@ relight-cli is not a dependency: the bench finds it through ``BTFORGE_RELIGHT_CL
 ``relight-cli`` on ``PATH`` and leaves it out, with a note, when neither exists.  For each basis it builds an
 RTI from the fitting photographs (``relight-cli -b BASIS -p PLANES FOLDER OUT``, coefficient planes stored
 as JPEG at relight's default quality) and renders every held-out light (``relight-cli OUT -L x:y:z -D
-image.png``).  relight fits and renders the bytes of the photographs as they are (display values, no sRGB
-decoding), so its renderings are 8-bit display values, scored like the photographs.
+image.png``).  By default relight-cli converts 8-bit sRGB photographs to 8-bit linear RGB before fitting
+and renders linear RGB (``info.json`` says ``"colorprofile": "RGB"``); with ``-I srgb`` it fits and renders
+display values (``"sRGB"``).  The bench runs both and reads each rendering as its ``info.json`` says, so both
+are scored on display values like the photographs.
 """
 from __future__ import annotations
 
@@ -21,8 +23,11 @@ import numpy as np
 
 RELIGHT_ENV = "BTFORGE_RELIGHT_CLI"
 #: (basis, planes) relight-cli builds: its default RBF at 9 and 18 planes, RGB PTM (18 = 6 per channel),
-#: HSH at 27 planes (9 per channel) and bilinear at 9 and 18.
-RELIGHT_BASES = (("rbf", 9), ("rbf", 18), ("ptm", 18), ("hsh", 27), ("bilinear", 9), ("bilinear", 18))
+#: HSH at 27 planes (9 per channel) and bilinear at 18.
+RELIGHT_BASES = (("rbf", 9), ("rbf", 18), ("ptm", 18), ("hsh", 27), ("bilinear", 18))
+#: relight-cli's colour modes (``-I``): its default converts the photographs to 8-bit linear RGB before fitting
+#: (and renders linear RGB); ``srgb`` fits the display values as they are.
+RELIGHT_COLOR_MODES = ("linear", "srgb")
 
 
 def find_relight_cli(explicit: str | None = None) -> Path | None:
@@ -64,10 +69,19 @@ def _run(argv: list[str], what: str) -> float:
     return seconds
 
 
-def build_rti(exe: Path, capture: Path, out: Path, basis: str, planes: int, crop_args: list[str]) -> float:
+def build_rti(exe: Path, capture: Path, out: Path, basis: str, planes: int, color: str,
+              crop_args: list[str]) -> float:
     """Fit one basis with relight-cli; the wall seconds of the whole process (image decoding included)."""
-    return _run([str(exe), "-b", basis, "-p", str(planes), *crop_args, str(capture), str(out)],
+    return _run([str(exe), "-b", basis, "-p", str(planes), "-I", color, *crop_args, str(capture), str(out)],
                 f"build a {basis} RTI with {planes} planes")
+
+
+def rendered_encoding(rti: Path) -> str:
+    """How relight-cli's renderings of ``rti`` hold values: ``srgb8`` (display values) for an ``sRGB`` colour
+    profile, ``linear`` (8-bit linear RGB) otherwise (its default, ``RGB``)."""
+    import json
+    profile = json.loads((rti / "info.json").read_text()).get("colorprofile", "RGB")
+    return "srgb8" if profile.lower() == "srgb" else "linear"
 
 
 def render_lights(exe: Path, rti: Path, lights: np.ndarray, scratch: Path) -> np.ndarray:
@@ -99,16 +113,19 @@ def measure_relight(exe: Path, fit_entries, test, crop, full_shape: tuple[int, i
         capture = Path(tmp) / "capture"
         write_capture(capture, fit_entries)
         crop_args = crop_option(*full_shape, crop)
-        for basis, planes in RELIGHT_BASES:
-            out = Path(tmp) / f"{basis}{planes}"
-            fit_seconds = build_rti(exe, capture, out, basis, planes, crop_args)
+        for (basis, planes), color in ((b, c) for b in RELIGHT_BASES for c in RELIGHT_COLOR_MODES):
+            out = Path(tmp) / f"{basis}{planes}{color}"
+            fit_seconds = build_rti(exe, capture, out, basis, planes, color, crop_args)
             start = time.perf_counter()
             relit = render_lights(exe, out, test.lights, Path(tmp))
             relight_s = time.perf_counter() - start
-            predicted = SampleStack(relit[None], test.lights, test.views, test.channels, "srgb8")
+            if rendered_encoding(out) == "linear":
+                relit = (relit / np.float32(255.0)).astype(np.float32)
+            predicted = SampleStack(relit[None], test.lights, test.views, test.channels,
+                                    "srgb8" if relit.dtype == np.uint8 else "linear")
             scores = compare_stacks(predicted, test)
             megapixels = test.n_light * test.height * test.width / 1e6
-            rows.append({"representation": f"relight-cli {basis}", "params": f"planes={planes}",
+            rows.append({"representation": f"relight-cli {basis}", "params": f"planes={planes} color={color}",
                          "fit_seconds": round(fit_seconds, 4),
                          "relight_seconds_per_megapixel": round(relight_s / megapixels, 5),
                          "bytes_per_texel": round(plane_bytes(out) / (test.height * test.width), 2),
