@@ -1,0 +1,156 @@
+"""relight's bases: hemispherical harmonics (``hsh.fit``), PCA planes with RBF interpolation over the light set
+(``rbf.fit``) and PCA planes on a bilinear light grid (``bilinear.fit``).
+
+One family because the three share one model (:class:`LightTableModel`: coefficient planes over a light table),
+one projection and one evaluation kernel, the PCA and the luma-chroma (YCoCg) machinery; they differ only in
+how the table is built and how a light direction weighs its entries (:mod:`.lightfuncs`).
+"""
+from __future__ import annotations
+
+from btforge import Expect, Param, declare_stage, hookimpl
+
+from .fit import fit_bilinear, fit_hsh, fit_rbf
+from .model import LightTableModel
+
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
+__all__ = ["LightTableModel", "fit_hsh", "fit_rbf", "fit_bilinear"]
+
+ONE_VIEW = Expect("views", 1, "these bases depend on the light only: select one view with stack.select first")
+COLORSPACE = Param("colorspace", "choice", "rgb", "rgb: planes mix all three channels (relight's mrgb); ycc: "
+                   "planes of luma and of chroma (YCoCg) are separate, so fewer chroma planes can be kept (relight's "
+                   "yrbf / ybilinear, colorspace mycc)", choices=("rgb", "ycc"))
+YPLANES = Param("yplanes", "int", 0, "for colorspace ycc, how many planes are luma (relight's -y); the rest split "
+                "evenly between the two chroma components, so planes - yplanes must be even; 0: planes - 2 * "
+                "(planes // 4)", low=0, high=64)
+PLANES = Param("planes", "int", 9, "coefficient planes per texel: PCA components kept (relight's -p)", low=1, high=64)
+SIGMA = Param("sigma", "float", 0.125, "width of the Gaussian interpolation between lights, exp(-d^2 / sigma^2) for "
+              "d the distance between unit light directions (relight's -S; 0.125 suits ~100 lights)",
+              low=1e-3, high=10.0)
+
+
+def _report(ctx, model, stats):
+    ctx.note("planes", stats["planes"])
+    ctx.note("condition_number", round(stats["condition_number"], 3))
+    if stats["rank"] < stats["planes"]:
+        ctx.warn(f"the lights determine only {stats['rank']} of {stats['planes']} coefficients (too few, clustered "
+                 "or grazing lights): the regularisation keeps the rest small")
+    return {"model": model}
+
+
+@declare_stage(
+    "hsh.fit",
+    role="fit",
+    sweep=[{"planes": 12}, {"planes": 27}, {"planes": 27, "colorspace": "ycc"}],
+    inputs={"stack": "SampleStack"},
+    outputs={"model": "LightTableModel"},
+    params=[
+        Param("planes", "int", 27, "12 (order 2: 4 terms x 3 channels) or 27 (order 3: 9 terms x 3), relight's -p",
+              low=12, high=27),
+        Param("colorspace", "choice", "rgb", "rgb: every channel has all terms; ycc: luma has all terms and each "
+              "chroma component one constant term (planes/3 + 2 planes in all)", choices=("rgb", "ycc")),
+    ],
+    per_texel=True,
+    expects={"stack": ONE_VIEW},
+)
+def hsh_fit(ctx, stack, *, planes, colorspace):
+    """Fit hemispherical harmonics (HSH, Gautron et al. 2004) per texel, as relight's ``-b hsh`` does.
+
+    The basis is the one RTI viewers evaluate (OpenLIME's, with the light's polar angle clamped 0.15 rad above
+    the horizon); coefficients fit display values (sRGB), like an ``.rti`` file's, by least squares with a small
+    ridge (see ``plugins/bases/fit.py``) that keeps them bounded when the lights are few, clustered or grazing.
+    The projection runs on OpenCL and reads an 8-bit capture's bytes in place.
+
+    Outputs
+    -------
+    model : LightTableModel
+        ``kind: hsh``; exports to the web layout ``hsh`` (colorspace rgb).
+
+    Notes
+    -----
+    ``planes``, ``condition_number`` of the light design.
+    """
+    from btforge.errors import BtforgeInputError
+    if planes not in (12, 27):
+        raise BtforgeInputError("hsh.fit 'planes'", f"expected 12 or 27, found {planes}",
+                                "12 for second-order HSH, 27 for third order")
+    model, stats = fit_hsh(stack, planes, colorspace)
+    return _report(ctx, model, stats)
+
+
+@declare_stage(
+    "rbf.fit",
+    role="fit",
+    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
+    inputs={"stack": "SampleStack"},
+    outputs={"model": "LightTableModel"},
+    params=[PLANES, COLORSPACE, YPLANES, SIGMA],
+    expects={"stack": ONE_VIEW},
+)
+def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma):
+    """PCA-compressed light responses with Gaussian (RBF) interpolation over the light set: relight's default
+    basis (``-b rbf``; ``colorspace: ycc`` is ``-b yrbf``).
+
+    The leading principal components of the texels' responses over all lights (display values, up to 65536
+    texels sampled) are the planes; each texel keeps ``planes`` coefficients, fitted by least squares against the
+    interpolated basis at the capture's lights (on OpenCL).  Relighting interpolates the mean and the components
+    between the capture's lights with normalised weights ``exp(-|l - l_i|^2 / sigma^2)``.
+
+    Outputs
+    -------
+    model : LightTableModel
+        ``kind: rbf``; exports to the web layout ``rbf`` (colorspace mrgb or mycc).
+
+    Notes
+    -----
+    ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    """
+    model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma)
+    return _report(ctx, model, stats)
+
+
+@declare_stage(
+    "bilinear.fit",
+    role="fit",
+    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
+    inputs={"stack": "SampleStack"},
+    outputs={"model": "LightTableModel"},
+    params=[PLANES, Param("resolution", "int", 8, "side of the light grid over the octahedral map of the hemisphere "
+                          "(relight's -r)", low=2, high=20),
+            COLORSPACE, YPLANES, SIGMA,
+            Param("regularization", "float", 0.1, "pull of grid nodes the lights leave undetermined towards their "
+                  "Gaussian estimate (relight's -R)", low=0.0, high=1e6)],
+    expects={"stack": ONE_VIEW},
+)
+def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, regularization):
+    """PCA planes on a ``resolution x resolution`` grid of light directions, interpolated bilinearly: relight's
+    ``-b bilinear`` (``colorspace: ycc`` is ``-b ybilinear``).
+
+    Each texel's samples are resampled onto the grid (relight's regularised resampling: the grid whose bilinear
+    interpolation best reproduces the samples, pulled towards the Gaussian estimate by ``regularization``), the
+    leading principal components of the resampled responses are the planes, and each texel's coefficients are
+    fitted by least squares against the bilinearly interpolated basis at the capture's lights (on OpenCL).  The
+    grid is the octahedral map of the hemisphere rotated 45 degrees, so the zenith is its centre and the
+    horizon its border.
+
+    Outputs
+    -------
+    model : LightTableModel
+        ``kind: bilinear``; exports to the web layout ``bilinear`` (OpenLIME's ``bln``).
+
+    Notes
+    -----
+    ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    """
+    model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization)
+    return _report(ctx, model, stats)
+
+
+@hookimpl
+def btforge_stages():
+    return [hsh_fit, rbf_fit, bilinear_fit]
+
+
+@hookimpl
+def btforge_buffer_types():
+    return [LightTableModel]

@@ -1,0 +1,230 @@
+"""Fitting light-table bases: build the table (HSH terms, or PCA of the light responses), then project every
+texel's samples on it by one shared regularised least-squares inverse.
+
+The table (:mod:`.model`) is evaluated at the capture's lights, giving per light ``g0 [3]`` (the mean) and
+``G [P, 3]`` (the planes), in RGB.  A texel's coefficients minimise
+
+    sum_{l, k} (g0[l, k] + sum_p c[p] G[l, p, k] - y[l, k])^2 + lambda |c|^2
+
+over its display samples ``y [L, 3]``, with ``lambda = (RIDGE * s_max)^2`` for ``s_max`` the largest singular
+value of ``G``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
+(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  The solution is one
+matrix ``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them
+(NumPy twin :func:`project_numpy`), reading an 8-bit capture's bytes in place.
+
+PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values, over
+the lights or resampled onto the bilinear grid) are centred on their mean and the leading eigenvectors of
+their covariance become the planes; ``ycc`` runs one PCA per YCoCg component.  The mean row is clipped to
+[0, 1] (so the web layout's 8-bit basis holds it); the least-squares coefficients absorb the difference.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from btforge.backend import get_backend, single_threaded_blas
+from btforge.buffers import SampleStack, linear_to_srgb
+from btforge.errors import BtforgeInputError
+
+from .lightfuncs import RGB_TO_YCC, colour_matrix, octa_directions, resample_matrix, table_weights
+from .model import KERNELS, LightTableModel
+
+RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
+PCA_SAMPLES = 1 << 16  # texels whose responses the PCA sees (relight samples 65536 by default)
+
+
+# ----------------------------------------------------------------------------------------------- tables
+
+
+def hsh_table(terms: int, colorspace: str) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The one-hot table of an HSH fit: rgb has plane ``3k + c`` = term k of channel c; ycc has the 3 constant
+    terms of Y, Co, Cg first, then Y's terms 1 .. K-1 (luma varies with the light, chroma does not)."""
+    if colorspace == "rgb":
+        table = np.zeros((3 * terms + 1, terms, 3))
+        for k in range(terms):
+            for c in range(3):
+                table[3 * k + c + 1, k, c] = 1.0
+        return table, (0, 0, 0)
+    table = np.zeros((terms + 3, terms, 3))
+    for c in range(3):
+        table[c + 1, 0, c] = 1.0
+    for k in range(1, terms):
+        table[k + 3, k, 0] = 1.0
+    return table, (terms, 1, 1)
+
+
+def ycc_split(planes: int, yplanes: int) -> tuple[int, int, int]:
+    """(Y, Co, Cg) plane counts for ``planes`` in all; ``yplanes`` 0 picks about half for Y."""
+    y = yplanes or planes - 2 * (planes // 4)
+    if not 1 <= y <= planes or (planes - y) % 2:
+        raise BtforgeInputError("param 'yplanes'", f"expected Y planes in [1, {planes}] leaving an even number for "
+                                f"the two chroma components, found {y} of {planes}",
+                                "give yplanes with planes - yplanes even (or 0 for the default split)")
+    return y, (planes - y) // 2, (planes - y) // 2
+
+
+def _principal(x: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` leading unit eigenvectors ``[count, dim]`` of the covariance of centred rows ``x``, each
+    signed so its largest component is positive (deterministic)."""
+    cov = x.T @ x / max(len(x), 1)
+    values, vectors = np.linalg.eigh(cov)
+    top = vectors[:, np.argsort(values)[::-1][:count]].T
+    pivot = top[np.arange(count), np.argmax(np.abs(top), axis=1)]
+    return top * np.where(pivot < 0, -1.0, 1.0)[:, None]
+
+
+def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tuple[int, int, int]) -> np.ndarray:
+    """Table ``[planes + 1, D, 3]`` from display ``responses [N, D, 3]`` (relight's plane order for ycc:
+    (Y, Co, Cg) triplets while chroma planes last, then the remaining Y planes)."""
+    n, d, _ = responses.shape
+    if colorspace == "rgb":
+        mean = responses.mean(axis=0)
+        vectors = _principal((responses - mean).reshape(n, -1), planes).reshape(planes, d, 3)
+        return np.concatenate([np.clip(mean, 0.0, 1.0)[None], vectors])
+    ycc = responses @ RGB_TO_YCC.T
+    mean = ycc.mean(axis=0)
+    table = np.zeros((planes + 1, d, 3))
+    for comp, count in enumerate(yccplanes):
+        vectors = _principal(ycc[:, :, comp] - mean[:, comp], count)
+        for yp in range(count):
+            p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
+            table[p + 1, :, comp] = vectors[yp]
+    table[0] = np.clip(mean, 0.0, 1.0)
+    return table
+
+
+def display_values(stack: SampleStack, rows=slice(None), cols=slice(None), step: int = 1) -> np.ndarray:
+    """Display values ``[L, h, w, 3]`` float32 of a single-view stack (an 8-bit capture's bytes / 255)."""
+    raw = np.asarray(stack.samples[0, :, rows, cols][:, ::step, ::step])
+    if stack.encoding == "srgb8":
+        return np.divide(raw, np.float32(255.0), dtype=np.float32)
+    return linear_to_srgb(raw).astype(np.float32)
+
+
+def pca_responses(stack: SampleStack) -> np.ndarray:
+    """Display responses ``[N, L, 3]`` of at most :data:`PCA_SAMPLES` texels on a regular grid."""
+    step = max(1, math.ceil(math.sqrt(stack.height * stack.width / PCA_SAMPLES)))
+    y = display_values(stack, step=step)
+    return np.moveaxis(y, 0, 2).reshape(-1, stack.n_light, 3).astype(np.float64)
+
+
+# ----------------------------------------------------------------------------------------------- solving
+
+
+def least_squares(lw: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``(proj [P, L, 3], offset [P], stats)`` of the regularised fit to the basis ``lw [L, P + 1, 3]`` (RGB)."""
+    n_light, n_plane = lw.shape[0], lw.shape[1] - 1
+    a = lw[:, 1:, :].transpose(0, 2, 1).reshape(n_light * 3, n_plane)   # row (l, k), column p
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    lam = (RIDGE * s[0]) ** 2 if s.size and s[0] > 0 else 0.0
+    gain = np.where(s > 0, s / (s * s + lam), 0.0) if lam > 0 else np.zeros_like(s)
+    inverse = (vt.T * gain) @ u.T                                        # [P, L * 3]
+    offset = inverse @ lw[:, 0, :].reshape(-1)
+    stats = {"condition_number": float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf,
+             "rank": int(np.count_nonzero(s > 1e-6 * s[0])) if s.size and s[0] > 0 else 0}
+    return inverse.reshape(n_plane, n_light, 3), offset, stats
+
+
+def project_numpy(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Twin of kernel ``basis_project``: ``samples [L, T, 3]`` -> ``coeffs [T, P]`` float32."""
+    return (np.einsum("ltk,plk->tp", samples.astype(np.float64), proj.astype(np.float64)) - offset).astype(np.float32)
+
+
+def project_opencl(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Kernel ``basis_project``; uint8 samples are read as bytes (``proj`` must then carry the 1/255)."""
+    backend = get_backend()
+    n_light, n_texel, _ = samples.shape
+    n_plane = proj.shape[0]
+    out = np.empty((n_texel, n_plane), np.float32)
+    if out.size == 0:
+        return out
+    options = ("-DBYTES",) if samples.dtype == np.uint8 else ()
+    kernel = backend.kernel(KERNELS, "basis_project", options)
+    o_dev = backend.host_output(out)
+    data = samples if samples.dtype == np.uint8 else samples.astype(np.float32, copy=False)
+    backend.run(kernel, (n_texel, n_plane), backend.host_input(np.ascontiguousarray(data)),
+                backend.to_device(np.ascontiguousarray(proj, np.float32)),
+                backend.to_device(np.ascontiguousarray(offset, np.float32)), np.int32(n_light), np.int32(n_texel),
+                np.int32(n_plane), o_dev)
+    backend.finish_output(o_dev, out)
+    return out
+
+
+def project_stack(stack: SampleStack, proj: np.ndarray, offset: np.ndarray, engine: str = "opencl",
+                  budget_bytes: int = 64 << 20) -> np.ndarray:
+    """Coefficients ``[H, W, P]`` of every texel, band by band (bytes read in place for an 8-bit capture)."""
+    run = project_numpy if engine == "numpy" else project_opencl
+    coeffs = np.empty((stack.height, stack.width, proj.shape[0]), np.float32)
+    for rows, cols in stack.texel_blocks(budget_bytes):
+        if stack.encoding == "srgb8":
+            block = np.asarray(stack.samples[0, :, rows, cols])
+            scaled = proj / 255.0
+        else:
+            block, scaled = display_values(stack, rows, cols), proj
+        h, w = block.shape[1:3]
+        samples = np.ascontiguousarray(block).reshape(stack.n_light, h * w, 3)
+        coeffs[rows, cols] = run(samples, scaled, offset).reshape(h, w, -1)
+    return coeffs
+
+
+# ----------------------------------------------------------------------------------------------- the fits
+
+
+def _check_stack(stack: SampleStack, stage: str) -> None:
+    if stack.n_view != 1 or stack.n_channel != 3:
+        raise BtforgeInputError(f"{stage} 'stack'", f"expected a single-view RGB stack, found {stack.n_view} view(s) "
+                                f"and {stack.n_channel} channel(s)", "select one view with stack.select")
+
+
+def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl") -> tuple[LightTableModel, dict]:
+    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``."""
+    table = np.asarray(model_args["table"], np.float32)
+    args = {**model_args, "table": table}
+    probe = LightTableModel(coeffs=np.zeros((0, 0, table.shape[0] - 1), np.float32), **args)
+    lw = probe.light_weights(stack.lights).astype(np.float64)
+    proj, offset, stats = least_squares(lw)
+    with single_threaded_blas():
+        coeffs = project_stack(stack, proj, offset, engine)
+    stats["planes"] = table.shape[0] - 1
+    return LightTableModel(coeffs=coeffs, **args), stats
+
+
+def fit_hsh(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", engine: str = "opencl"):
+    _check_stack(stack, "hsh.fit")
+    table, ycc = hsh_table(planes // 3, colorspace)
+    return fit_table(stack, {"kind": "hsh", "table": table, "colorspace": colorspace, "yccplanes": ycc}, engine)
+
+
+def _pca_planes(stack: SampleStack, stage: str, planes: int, colorspace: str, yplanes: int, dims: int):
+    ycc = ycc_split(planes, yplanes) if colorspace == "ycc" else (0, 0, 0)
+    limit = dims * 3 if colorspace == "rgb" else dims
+    if (planes if colorspace == "rgb" else max(ycc)) > limit:
+        raise BtforgeInputError(f"{stage} 'planes'", f"expected at most {limit} planes per PCA for {dims} table "
+                                f"directions, found {planes} ({colorspace}, split {ycc})",
+                                "lower planes (or use more lights / a finer resolution)")
+    return ycc
+
+
+def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.125,
+            engine: str = "opencl"):
+    _check_stack(stack, "rbf.fit")
+    ycc = _pca_planes(stack, "rbf.fit", planes, colorspace, yplanes, stack.n_light)
+    table = pca_table(pca_responses(stack), planes, colorspace, ycc)
+    return fit_table(stack, {"kind": "rbf", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                             "table_lights": stack.lights.astype(np.float32), "sigma": sigma}, engine)
+
+
+def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
+                 sigma: float = 0.125, regularization: float = 0.1, engine: str = "opencl"):
+    _check_stack(stack, "bilinear.fit")
+    ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
+    resample = resample_matrix(stack.lights, resolution, sigma, regularization)
+    responses = np.einsum("dl,nlk->ndk", resample, pca_responses(stack))
+    table = pca_table(responses, planes, colorspace, ycc)
+    return fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                             "resolution": resolution}, engine)
+
+
+__all__ = ["fit_hsh", "fit_rbf", "fit_bilinear", "fit_table", "least_squares", "project_numpy", "project_opencl",
+           "hsh_table", "pca_table", "octa_directions", "table_weights", "colour_matrix"]
