@@ -22,6 +22,7 @@ from btforge.buffers import ReflectanceModel, check_array, frozen, srgb_to_linea
 from btforge.errors import BtforgeInputError
 from btforge.numerics import texel_chunks
 
+from . import weblayout
 from .lightfuncs import colour_matrix, table_weights
 
 KERNELS = Path(__file__).with_name("bases.cl")
@@ -101,6 +102,15 @@ class LightTableModel(ReflectanceModel):
         lw = np.einsum("ld,pdk->lpk", w, self.table.astype(np.float64))
         return (lw @ colour_matrix(self.colorspace).T).astype(np.float32)
 
+    def web_layout(self) -> tuple[dict, np.ndarray]:
+        """``(info fields, planes [P, H, W])`` for relight's web layout (:mod:`.weblayout`)."""
+        return weblayout.web_layout(self)
+
+    @classmethod
+    def from_web(cls, info: dict, planes: np.ndarray) -> "LightTableModel":
+        """The model an ``rbf`` or ``bilinear`` web layout holds (``planes`` the decoded coefficient planes)."""
+        return weblayout.from_web(cls, info, planes)
+
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = "opencl") -> np.ndarray:
         """Linear radiance ``[1, L, H, W, 3]``: the display value clipped to [0, 1] and decoded."""
         lights = unit_directions("lights", lights, owner=f"{self.kind} evaluation")
@@ -143,3 +153,4 @@ def evaluate_opencl(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
                 np.int32(n_light), o_dev)
     backend.finish_output(o_dev, out)
     return out
+
