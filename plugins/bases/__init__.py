@@ -27,6 +27,21 @@ PLANES = Param("planes", "int", 9, "coefficient planes per texel: PCA components
 SIGMA = Param("sigma", "float", 0.125, "width of the Gaussian interpolation between lights, exp(-d^2 / sigma^2) for "
               "d the distance between unit light directions (relight's -S; 0.125 suits ~100 lights)",
               low=1e-3, high=10.0)
+RBF_SIGMA = Param("sigma", "float", 0.0, "width of the Gaussian interpolation between lights, exp(-d^2 / sigma^2) "
+                  "for d the distance between unit light directions (relight's -S, 0.125 there); 0: the multiple of "
+                  "the lights' spacing (0.7 to 2.8 x the median nearest-neighbour distance) that predicts held-out "
+                  "lights best", low=0.0, high=10.0)
+TABLE = Param("table", "choice", "interpolating", "responses: the table holds the principal components at the "
+              "lights, so the Gaussian weights average neighbouring lights (relight); interpolating: the table is "
+              "solved so that the interpolation passes through the components at the lights, which predicts the "
+              "lights between them better", choices=("interpolating", "responses"))
+RBF_COEFFICIENTS = Param("coefficients", "choice", "lsq", "projection: each texel's responses projected on the "
+                         "principal components, as relight does (only with table: responses); lsq: least squares "
+                         "against the interpolated basis at the capture's lights", choices=("projection", "lsq"))
+COEFFICIENTS = Param("coefficients", "choice", "projection", "projection: each texel's (resampled) responses projected "
+                     "on the principal components, as relight does; lsq: least squares against the interpolated "
+                     "basis at the capture's lights (closer at those lights, can be worse between them)",
+                     choices=("projection", "lsq"))
 
 
 def _report(ctx, model, stats):
@@ -84,10 +99,10 @@ def hsh_fit(ctx, stack, *, planes, colorspace):
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
-    params=[PLANES, COLORSPACE, YPLANES, SIGMA],
+    params=[PLANES, COLORSPACE, YPLANES, RBF_SIGMA, TABLE, RBF_COEFFICIENTS],
     expects={"stack": ONE_VIEW},
 )
-def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma):
+def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficients):
     """PCA-compressed light responses with Gaussian (RBF) interpolation over the light set: relight's default
     basis (``-b rbf``; ``colorspace: ycc`` is ``-b yrbf``).
 
@@ -105,7 +120,8 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma):
     -----
     ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
-    model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma)
+    model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table)
+    ctx.note("sigma", round(stats["sigma"], 4))
     return _report(ctx, model, stats)
 
 
@@ -115,14 +131,14 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma):
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
-    params=[PLANES, Param("resolution", "int", 8, "side of the light grid over the octahedral map of the hemisphere "
-                          "(relight's -r)", low=2, high=20),
+    params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
+                          "(relight's -r); 0: the side (4 to 12) that predicts held-out lights best", low=0, high=20),
             COLORSPACE, YPLANES, SIGMA,
             Param("regularization", "float", 0.1, "pull of grid nodes the lights leave undetermined towards their "
-                  "Gaussian estimate (relight's -R)", low=0.0, high=1e6)],
+                  "Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS],
     expects={"stack": ONE_VIEW},
 )
-def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, regularization):
+def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients):
     """PCA planes on a ``resolution x resolution`` grid of light directions, interpolated bilinearly: relight's
     ``-b bilinear`` (``colorspace: ycc`` is ``-b ybilinear``).
 
@@ -142,7 +158,12 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, 
     -----
     ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
-    model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization)
+    from btforge.errors import BtforgeInputError
+    if resolution == 1:
+        raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
+                                "a grid needs at least 2 x 2 nodes")
+    model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients)
+    ctx.note("resolution", stats["resolution"])
     return _report(ctx, model, stats)
 
 

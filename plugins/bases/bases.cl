@@ -7,7 +7,8 @@
 // The host builds lw and proj; these kernels do the per-texel work.  NumPy twins: model.evaluate_numpy and
 // fit.project_numpy.
 //
-// Build options: -DBYTES (basis_project reads uchar samples, 0..255; proj already carries the 1/255).
+// Build options: -DBYTES (basis_project reads uchar samples, 0..255; proj already carries the 1/255);
+// -DSRGB_STEPS=<n> (basis_eval exists only with it: model.EVAL_OPTIONS).
 
 #ifdef BYTES
 #define SAMPLE_T uchar
@@ -32,20 +33,27 @@ __kernel void basis_project(__global const SAMPLE_T *samples, __global const flo
     coeffs[(size_t)t * n_plane + p] = acc - offset[p];
 }
 
-// sRGB display value in [0, 1] -> linear radiance.
-inline float srgb_decode(const float v)
+// sRGB display value -> linear radiance: the curve sampled at SRGB_STEPS + 1 points (model.SRGB_TABLE, set by
+// -DSRGB_STEPS) and interpolated linearly, clipping to [0, 1] first.  pow() costs more than the whole sum on CPU
+// devices; the interpolation is within 1e-7 of the curve.
+#ifdef SRGB_STEPS
+inline float srgb_decode(const float value, __constant float *table)
 {
-    return v <= 0.04045f ? v / 12.92f : pow((v + 0.055f) / 1.055f, 2.4f);
+    const float x = clamp(value, 0.0f, 1.0f) * (float)SRGB_STEPS;
+    const int i = min((int)x, SRGB_STEPS - 1);
+    const float f = x - (float)i;
+    return table[i] + f * (table[i + 1] - table[i]);
 }
 
-// coeffs: [T, P] ; lw: [L, P + 1, 3] ; out: [L, T, 3] linear radiance.  Global size (T, L).
-__kernel void basis_eval(__global const float *coeffs, __global const float *lw, const int n_plane,
-                         const int n_texel, const int n_light, __global float *out)
+// coeffs: [T, P] ; lw: [L, P + 1, 3] ; srgb_table: [SRGB_STEPS + 1] ; out: [L, T, 3] linear radiance.
+// Global size (T, L).
+__kernel void basis_eval(__global const float *coeffs, __constant float *lw, __constant float *srgb_table,
+                         const int n_plane, const int n_texel, const int n_light, __global float *out)
 {
     const int t = get_global_id(0);
     const int l = get_global_id(1);
     if (t >= n_texel || l >= n_light) return;
-    __global const float *w = lw + (size_t)l * (n_plane + 1) * 3;
+    __constant float *w = lw + (size_t)l * (n_plane + 1) * 3;
     __global const float *c = coeffs + (size_t)t * n_plane;
     float r = w[0], g = w[1], b = w[2];
     for (int p = 0; p < n_plane; ++p) {
@@ -55,7 +63,8 @@ __kernel void basis_eval(__global const float *coeffs, __global const float *lw,
         b += cp * w[3 * p + 5];
     }
     __global float *o = out + ((size_t)l * n_texel + t) * 3;
-    o[0] = srgb_decode(clamp(r, 0.0f, 1.0f));
-    o[1] = srgb_decode(clamp(g, 0.0f, 1.0f));
-    o[2] = srgb_decode(clamp(b, 0.0f, 1.0f));
+    o[0] = srgb_decode(r, srgb_table);
+    o[1] = srgb_decode(g, srgb_table);
+    o[2] = srgb_decode(b, srgb_table);
 }
+#endif  // SRGB_STEPS

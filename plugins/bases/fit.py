@@ -27,9 +27,12 @@ from btforge.backend import get_backend, single_threaded_blas
 from btforge.buffers import SampleStack, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
-from .lightfuncs import RGB_TO_YCC, colour_matrix, octa_directions, resample_matrix, table_weights
+from .lightfuncs import RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix, table_weights
 from .model import KERNELS, LightTableModel
 
+SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
+RESOLUTIONS = (4, 5, 6, 8, 10, 12)          # resolution auto: these grid sides are tried
+TABLE_DAMPING = 0.1   # the interpolating rbf table stays this close (relatively) to the components at the lights
 RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
 PCA_SAMPLES = 1 << 16  # texels whose responses the PCA sees (relight samples 65536 by default)
 
@@ -126,6 +129,17 @@ def least_squares(lw: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     return inverse.reshape(n_plane, n_light, 3), offset, stats
 
 
+def pca_projection(table: np.ndarray, resample: np.ndarray, colorspace: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(proj [P, L, 3], offset [P])`` of relight's PCA projection: a texel's samples resampled onto the table
+    (``resample [D, L]``; the identity for rbf), taken to the table's colour space, centred on the mean row and
+    projected on each plane (the planes are orthonormal, so this is the least-squares fit on the table)."""
+    to_space = RGB_TO_YCC if colorspace == "ycc" else np.eye(3)
+    planes = table[1:].astype(np.float64)                                 # [P, D, 3] in the table's space
+    proj = np.einsum("pdc,dl,ck->plk", planes, resample, to_space)
+    offset = np.einsum("pdc,dc->p", planes, table[0].astype(np.float64))
+    return proj, offset
+
+
 def project_numpy(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """Twin of kernel ``basis_project``: ``samples [L, T, 3]`` -> ``coeffs [T, P]`` float32."""
     return (np.einsum("ltk,plk->tp", samples.astype(np.float64), proj.astype(np.float64)) - offset).astype(np.float32)
@@ -177,13 +191,17 @@ def _check_stack(stack: SampleStack, stage: str) -> None:
                                 f"and {stack.n_channel} channel(s)", "select one view with stack.select")
 
 
-def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl") -> tuple[LightTableModel, dict]:
-    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``."""
+def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
+              resample: np.ndarray | None = None) -> tuple[LightTableModel, dict]:
+    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``: by
+    least squares against the table at the capture's lights, or, given ``resample``, by relight's projection."""
     table = np.asarray(model_args["table"], np.float32)
     args = {**model_args, "table": table}
     probe = LightTableModel(coeffs=np.zeros((0, 0, table.shape[0] - 1), np.float32), **args)
     lw = probe.light_weights(stack.lights).astype(np.float64)
     proj, offset, stats = least_squares(lw)
+    if resample is not None:
+        proj, offset = pca_projection(table, resample, args.get("colorspace", "rgb"))
     with single_threaded_blas():
         coeffs = project_stack(stack, proj, offset, engine)
     stats["planes"] = table.shape[0] - 1
@@ -206,24 +224,88 @@ def _pca_planes(stack: SampleStack, stage: str, planes: int, colorspace: str, yp
     return ycc
 
 
-def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.125,
-            engine: str = "opencl"):
+def light_spacing(lights: np.ndarray) -> float:
+    """The median distance from a light to its nearest neighbour (unit directions)."""
+    d = np.asarray(lights, np.float64)
+    if len(d) < 2:
+        return 1.0
+    dist = np.linalg.norm(d[:, None] - d[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    return float(max(np.median(dist.min(axis=1)), 1e-3))
+
+
+def held_out_choice(stack: SampleStack, candidates, fit):
+    """The candidate whose ``fit(part, candidate)`` model predicts held-out lights best: on a grid of at most
+    4096 texels, every fifth light held out (as ``space: auto`` judges), mean squared error of display values.
+    With fewer than 10 lights there is nothing to hold out: the middle candidate."""
+    from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, auto_grid_step
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        return candidates[len(candidates) // 2]
+    step = auto_grid_step(stack.height, stack.width)
+    grid = np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
+    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
+    part = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels,
+                       stack.encoding)
+    truth = SampleStack(np.ascontiguousarray(grid[:, held]), stack.lights[held], stack.views, stack.channels,
+                        stack.encoding)
+    target = display_values(truth)
+    errors = []
+    for value in candidates:
+        predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+        errors.append(float(np.mean((predicted - target) ** 2)))
+    return candidates[int(np.argmin(errors))]
+
+
+def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, damping: float) -> np.ndarray:
+    """The table whose Gaussian interpolation passes (nearly) through ``table`` at ``lights``: ``T`` minimising
+    ``|W T - table|^2 + damping^2 |T - table|^2`` per plane and component, ``W`` the interpolation weights
+    between the lights (relight's viewer then reproduces the components at the lights and blends them smoothly
+    between, instead of averaging neighbours)."""
+    w = rbf_weights(lights, lights, sigma)
+    n = len(lights)
+    lhs = w.T @ w + damping ** 2 * np.eye(n)
+    flat = table.transpose(1, 0, 2).reshape(n, -1)                   # [L, (P + 1) * 3]
+    solved = np.linalg.solve(lhs, w.T @ flat + damping ** 2 * flat)
+    out = solved.reshape(n, table.shape[0], 3).transpose(1, 0, 2)
+    out[0] = np.clip(out[0], 0.0, 1.0)
+    return out
+
+
+def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.0,
+            coefficients: str = "lsq", table_mode: str = "interpolating", engine: str = "opencl"):
+    """rbf.fit: PCA table over the lights (``sigma`` 0: chosen on held-out lights; see the stage's docs)."""
     _check_stack(stack, "rbf.fit")
     ycc = _pca_planes(stack, "rbf.fit", planes, colorspace, yplanes, stack.n_light)
+    if not sigma:
+        candidates = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS]
+        sigma = held_out_choice(stack, candidates, lambda part, value: fit_rbf(
+            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine)[0])
     table = pca_table(pca_responses(stack), planes, colorspace, ycc)
-    return fit_table(stack, {"kind": "rbf", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                             "table_lights": stack.lights.astype(np.float32), "sigma": sigma}, engine)
+    if table_mode == "interpolating":
+        table = interpolating_table(table, stack.lights, sigma, TABLE_DAMPING)
+    projection = coefficients == "projection" and table_mode == "responses"
+    model, stats = fit_table(stack, {"kind": "rbf", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                                     "table_lights": stack.lights.astype(np.float32), "sigma": sigma}, engine,
+                             np.eye(stack.n_light) if projection else None)
+    return model, {**stats, "sigma": sigma}
 
 
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
-                 sigma: float = 0.125, regularization: float = 0.1, engine: str = "opencl"):
+                 sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
+                 engine: str = "opencl"):
     _check_stack(stack, "bilinear.fit")
+    if not resolution:
+        fits = [r for r in RESOLUTIONS if planes <= (3 if colorspace == "rgb" else 1) * r * r]
+        resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
+            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, engine)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
     resample = resample_matrix(stack.lights, resolution, sigma, regularization)
     responses = np.einsum("dl,nlk->ndk", resample, pca_responses(stack))
     table = pca_table(responses, planes, colorspace, ycc)
-    return fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                             "resolution": resolution}, engine)
+    model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                                     "resolution": resolution}, engine,
+                             resample if coefficients == "projection" else None)
+    return model, {**stats, "resolution": resolution}
 
 
 __all__ = ["fit_hsh", "fit_rbf", "fit_bilinear", "fit_table", "least_squares", "project_numpy", "project_opencl",

@@ -29,6 +29,9 @@ KERNELS = Path(__file__).with_name("bases.cl")
 KINDS = ("hsh", "rbf", "bilinear")
 COLORSPACES = ("rgb", "ycc")
 HSH_TERMS = (4, 9)
+SRGB_STEPS = 4096
+SRGB_TABLE = srgb_to_linear(np.linspace(0.0, 1.0, SRGB_STEPS + 1)).astype(np.float32)
+EVAL_OPTIONS = (f"-DSRGB_STEPS={SRGB_STEPS}",)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -133,7 +136,8 @@ class LightTableModel(ReflectanceModel):
 
 
 def evaluate_numpy(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
-    """Twin of kernel ``basis_eval``: ``coeffs [T, P]``, ``lw [L, P + 1, 3]`` -> linear ``[L, T, 3]`` float32."""
+    """Twin of kernel ``basis_eval``: ``coeffs [T, P]``, ``lw [L, P + 1, 3]`` -> linear ``[L, T, 3]`` float32
+    (the exact sRGB curve; the kernel interpolates a table of it)."""
     value = lw[:, None, 0, :] + np.einsum("tp,lpk->ltk", coeffs.astype(np.float64), lw[:, 1:].astype(np.float64))
     return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
 
@@ -146,11 +150,11 @@ def evaluate_opencl(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
     out = np.empty((n_light, n_texel, 3), np.float32)
     if out.size == 0:
         return out
-    kernel = backend.kernel(KERNELS, "basis_eval")
+    kernel = backend.kernel(KERNELS, "basis_eval", EVAL_OPTIONS)
     o_dev = backend.host_output(out)
-    backend.run(kernel, (n_texel, n_light), backend.to_device(np.ascontiguousarray(coeffs, np.float32)),
-                backend.to_device(np.ascontiguousarray(lw, np.float32)), np.int32(n_plane), np.int32(n_texel),
-                np.int32(n_light), o_dev)
+    backend.run(kernel, (n_texel, n_light), backend.host_input(np.ascontiguousarray(coeffs, np.float32)),
+                backend.to_device(np.ascontiguousarray(lw, np.float32)), backend.to_device(SRGB_TABLE),
+                np.int32(n_plane), np.int32(n_texel), np.int32(n_light), o_dev)
     backend.finish_output(o_dev, out)
     return out
 
