@@ -8,6 +8,7 @@ how the table is built and how a light direction weighs its entries (:mod:`.ligh
 from __future__ import annotations
 
 from btforge import Expect, Param, declare_stage, hookimpl
+from btforge.backend import single_threaded_blas
 
 from .fit import fit_bilinear, fit_hsh, fit_rbf
 from .model import LightTableModel
@@ -62,8 +63,9 @@ def _report(ctx, model, stats):
     params=[
         Param("planes", "int", 27, "12 (order 2: 4 terms x 3 channels) or 27 (order 3: 9 terms x 3), relight's -p",
               low=12, high=27),
-        Param("colorspace", "choice", "rgb", "rgb: every channel has all terms; ycc: luma has all terms and each "
-              "chroma component one constant term (planes/3 + 2 planes in all)", choices=("rgb", "ycc")),
+        Param("colorspace", "choice", "rgb", "rgb: every channel has all terms; ycc (YCoCg): luma has all terms and "
+              "each chroma component those of the order below (27: 9 + 4 + 4 = 17 planes; 12: 4 + 1 + 1 = 6)",
+              choices=("rgb", "ycc")),
     ],
     per_texel=True,
     expects={"stack": ONE_VIEW},
@@ -89,14 +91,15 @@ def hsh_fit(ctx, stack, *, planes, colorspace):
     if planes not in (12, 27):
         raise BtforgeInputError("hsh.fit 'planes'", f"expected 12 or 27, found {planes}",
                                 "12 for second-order HSH, 27 for third order")
-    model, stats = fit_hsh(stack, planes, colorspace)
+    with single_threaded_blas():  # small dense algebra: threads only contend
+        model, stats = fit_hsh(stack, planes, colorspace)
     return _report(ctx, model, stats)
 
 
 @declare_stage(
     "rbf.fit",
     role="fit",
-    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
+    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
     params=[PLANES, COLORSPACE, YPLANES, RBF_SIGMA, TABLE, RBF_COEFFICIENTS],
@@ -120,7 +123,8 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
     -----
     ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
-    model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table)
+    with single_threaded_blas():  # small dense algebra: threads only contend
+        model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table)
     ctx.note("sigma", round(stats["sigma"], 4))
     return _report(ctx, model, stats)
 
@@ -128,7 +132,7 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
 @declare_stage(
     "bilinear.fit",
     role="fit",
-    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 18, "colorspace": "ycc"}],
+    sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
     params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
@@ -162,7 +166,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, 
     if resolution == 1:
         raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
                                 "a grid needs at least 2 x 2 nodes")
-    model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients)
+    with single_threaded_blas():  # small dense algebra: threads only contend
+        model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients)
     ctx.note("resolution", stats["resolution"])
     return _report(ctx, model, stats)
 
