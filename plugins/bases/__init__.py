@@ -137,12 +137,19 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
     outputs={"model": "LightTableModel"},
     params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
                           "(relight's -r); 0: the side (4 to 12) that predicts held-out lights best", low=0, high=20),
-            COLORSPACE, YPLANES, SIGMA,
-            Param("regularization", "float", 0.1, "pull of grid nodes the lights leave undetermined towards their "
-                  "Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS],
+            COLORSPACE, YPLANES,
+            Param("resampling", "choice", "smooth", "how samples become grid values: smooth: the grid whose "
+                  "interpolation reproduces the samples while bending least (weight smoothness); relight: relight's, "
+                  "pulled towards the Gaussian estimate (weights sigma, regularization)", choices=("smooth", "relight")),
+            Param("smoothness", "float", 0.003, "resampling smooth: weight of the grid's bending (squared Laplacian) "
+                  "against the samples", low=1e-6, high=1e3),
+            SIGMA,
+            Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
+                  "undetermined towards their Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS],
     expects={"stack": ONE_VIEW},
 )
-def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients):
+def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampling, smoothness, sigma, regularization,
+                 coefficients):
     """PCA planes on a ``resolution x resolution`` grid of light directions, interpolated bilinearly: relight's
     ``-b bilinear`` (``colorspace: ycc`` is ``-b ybilinear``).
 
@@ -167,7 +174,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, sigma, 
         raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
                                 "a grid needs at least 2 x 2 nodes")
     with single_threaded_blas():  # small dense algebra: threads only contend
-        model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients)
+        model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization,
+                                     coefficients, resampling, smoothness)
     ctx.note("resolution", stats["resolution"])
     return _report(ctx, model, stats)
 

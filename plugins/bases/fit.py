@@ -27,7 +27,8 @@ from btforge.backend import get_backend, single_threaded_blas
 from btforge.buffers import SampleStack, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
-from .lightfuncs import RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix, table_weights
+from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
+                         smooth_resample_matrix, table_weights)
 from .model import KERNELS, LightTableModel
 
 SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
@@ -71,8 +72,8 @@ def ycc_split(planes: int, yplanes: int) -> tuple[int, int, int]:
 
 
 def _principal(x: np.ndarray, count: int) -> np.ndarray:
-    """The ``count`` leading unit eigenvectors ``[count, dim]`` of the covariance of centred rows ``x``, each
-    signed so its largest component is positive (deterministic)."""
+    """The ``count`` leading unit eigenvectors ``[count, dim]`` of the second moments of the (centred) rows ``x``,
+    each signed so its largest component is positive (deterministic)."""
     # float32 products (half the time of float64; display values in [0, 1] lose nothing an eigenvector notices)
     x32 = np.ascontiguousarray(x, np.float32)
     cov = (x32.T @ x32).astype(np.float64) / max(len(x), 1)
@@ -86,19 +87,21 @@ def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tu
     """Table ``[planes + 1, D, 3]`` from display ``responses [N, D, 3]`` (relight's plane order for ycc:
     (Y, Co, Cg) triplets while chroma planes last, then the remaining Y planes)."""
     n, d, _ = responses.shape
+    # The stored mean must lie in [0, 1] (the web layout keeps it as bytes); the components are taken about that
+    # clipped mean, so whatever the clipping removed is a direction of the data they capture.
     if colorspace == "rgb":
-        mean = responses.mean(axis=0)
+        mean = np.clip(responses.mean(axis=0), 0.0, 1.0)
         vectors = _principal((responses - mean).reshape(n, -1), planes).reshape(planes, d, 3)
-        return np.concatenate([np.clip(mean, 0.0, 1.0)[None], vectors])
+        return np.concatenate([mean[None], vectors])
     ycc = responses @ RGB_TO_YCC.T
-    mean = ycc.mean(axis=0)
+    mean = np.clip(ycc.mean(axis=0), 0.0, 1.0)
     table = np.zeros((planes + 1, d, 3))
     for comp, count in enumerate(yccplanes):
         vectors = _principal(ycc[:, :, comp] - mean[:, comp], count)
         for yp in range(count):
             p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
             table[p + 1, :, comp] = vectors[yp]
-    table[0] = np.clip(mean, 0.0, 1.0)
+    table[0] = mean
     return table
 
 
@@ -297,14 +300,19 @@ def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplane
 
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
-                 engine: str = "opencl"):
+                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl"):
+    """bilinear.fit: PCA table on the light grid (``resolution`` 0: chosen on held-out lights)."""
     _check_stack(stack, "bilinear.fit")
     if not resolution:
         fits = [r for r in RESOLUTIONS if planes <= (3 if colorspace == "rgb" else 1) * r * r]
         resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
-            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, engine)[0])
+            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
+            engine)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
-    resample = resample_matrix(stack.lights, resolution, sigma, regularization)
+    if resampling == "smooth":
+        resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
+    else:
+        resample = resample_matrix(stack.lights, resolution, sigma, regularization)
     responses = np.einsum("dl,nlk->ndk", resample, pca_responses(stack))
     table = pca_table(responses, planes, colorspace, ycc)
     model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,

@@ -20,6 +20,7 @@ from btforge.plugins.web.hsh import hsh_basis
 
 RBF_DROP = 0.001      # relight drops interpolation weights below this share of the total, then renormalises
 RESAMPLE_DROP = 0.005  # ... and, building the bilinear grid, weights below this share
+MEAN_PULL = 1e-4      # smooth resampling: weight pulling every grid node towards the texel's mean response
 
 # YCoCg (relight's and OpenLIME's "ycc"): Y = (r + 2g + b) / 4, Co = r - b, Cg = g - (r + b) / 2.
 RGB_TO_YCC = np.array([[0.25, 0.5, 0.25], [1.0, 0.0, -1.0], [-0.5, 1.0, -0.5]])
@@ -96,6 +97,35 @@ def resample_matrix(lights: np.ndarray, resolution: int, sigma: float, regulariz
     n = resolution * resolution
     inverse = np.linalg.inv(a.T @ a + regularization * np.eye(n))
     return b + inverse @ (a.T @ (np.eye(len(lights)) - a @ b))
+
+
+def grid_laplacian(resolution: int) -> np.ndarray:
+    """The 4-neighbour graph Laplacian ``[n, n]`` of the ``resolution x resolution`` grid (free borders)."""
+    n = resolution * resolution
+    lap = np.zeros((n, n))
+    for y in range(resolution):
+        for x in range(resolution):
+            i = x + y * resolution
+            for nx, ny in ((x + 1, y), (x - 1, y), (x, y + 1), (x, y - 1)):
+                if 0 <= nx < resolution and 0 <= ny < resolution:
+                    lap[i, i] += 1.0
+                    lap[i, nx + ny * resolution] -= 1.0
+    return lap
+
+
+def smooth_resample_matrix(lights: np.ndarray, resolution: int, smoothness: float) -> np.ndarray:
+    """``R [resolution^2, L]``: the grid whose bilinear interpolation best reproduces the samples at ``lights``
+    while bending least, ``argmin |A g - y|^2 + smoothness |Lap g|^2 + MEAN_PULL |g - mean(y)|^2`` (a thin plate
+    through the samples).
+    Nodes no light reaches take the smooth continuation of their neighbours, where relight's Gaussian pull
+    (:func:`resample_matrix`) leaves them at a local average - a visible error between rings of lights."""
+    a = bilinear_weights(lights, resolution)
+    lap = grid_laplacian(resolution)
+    n = resolution * resolution
+    # A faint pull (MEAN_PULL) of every node towards the texel's mean response keeps nodes far from clustered
+    # lights from extrapolating without bound; a constant response still gives the constant grid exactly.
+    system = a.T @ a + smoothness * lap.T @ lap + MEAN_PULL * np.eye(n)
+    return np.linalg.solve(system, a.T + MEAN_PULL / len(lights))
 
 
 def table_weights(kind: str, lights: np.ndarray, *, terms: int = 9, table_lights: np.ndarray | None = None,

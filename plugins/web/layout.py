@@ -12,7 +12,9 @@ OpenLIME's order:
 - ``ptm``: ``1, lx, ly, lx^2, lx ly, ly^2``;
 - ``sh``: real spherical harmonics of bands 0-2 (``Y00; x, z, y; xy, xz, 3z^2 - 1, yz, y^2 - x^2`` with their
   usual normalisations);
-- ``hsh``: hemispherical harmonics (see :mod:`.hsh`).
+- ``hsh``: hemispherical harmonics (see :mod:`.hsh`);
+- ``rbf`` and ``bilinear`` (colorspace ``mrgb`` / ``mycc``): a light table in ``basis``, laid out and read by the
+  model class that declares them in ``web_types`` (``btforge.plugins.bases.weblayout``).
 
 Each plane's scale and bias cover its whole range (relight's exporter clips at a quantile), so the export is
 exact up to the 8-bit rounding.  A model of linear radiance (every SH fit, a PTM fitted in ``space: linear``)
