@@ -110,9 +110,13 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
     basis (``-b rbf``; ``colorspace: ycc`` is ``-b yrbf``).
 
     The leading principal components of the texels' responses over all lights (display values, up to 65536
-    texels sampled) are the planes; each texel keeps ``planes`` coefficients, fitted by least squares against the
-    interpolated basis at the capture's lights (on OpenCL).  Relighting interpolates the mean and the components
-    between the capture's lights with normalised weights ``exp(-|l - l_i|^2 / sigma^2)``.
+    texels sampled) are the planes.  The table of components over the capture's lights is stored in the web
+    layout and interpolated at any light with relight's normalised weights ``exp(-|l - l_i|^2 / sigma^2)``.
+    By default (``table: interpolating``) the table is solved so that this interpolation passes through the
+    components at the lights, and ``sigma`` is chosen among multiples of the lights' spacing by held-out
+    lights: relit images between the lights are then blends, not averages of neighbours.  Each texel's
+    ``planes`` coefficients are fitted by least squares against the interpolated basis at the capture's lights,
+    on OpenCL.  ``sigma: 0.125, table: responses, coefficients: projection`` is relight's own fit.
 
     Outputs
     -------
@@ -121,7 +125,7 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
 
     Notes
     -----
-    ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    ``sigma`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
     with single_threaded_blas():  # small dense algebra: threads only contend
         model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table)
@@ -153,12 +157,14 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     """PCA planes on a ``resolution x resolution`` grid of light directions, interpolated bilinearly: relight's
     ``-b bilinear`` (``colorspace: ycc`` is ``-b ybilinear``).
 
-    Each texel's samples are resampled onto the grid (relight's regularised resampling: the grid whose bilinear
-    interpolation best reproduces the samples, pulled towards the Gaussian estimate by ``regularization``), the
-    leading principal components of the resampled responses are the planes, and each texel's coefficients are
-    fitted by least squares against the bilinearly interpolated basis at the capture's lights (on OpenCL).  The
-    grid is the octahedral map of the hemisphere rotated 45 degrees, so the zenith is its centre and the
-    horizon its border.
+    The grid is the octahedral map of the hemisphere rotated 45 degrees (the zenith at its centre, the horizon
+    its border).  Each texel's samples are resampled onto the grid - by default as the thin plate through them
+    (the grid whose bilinear interpolation reproduces the samples while bending least), or with
+    ``resampling: relight`` as relight does (pulled towards a Gaussian estimate) - the leading principal
+    components of the resampled responses become the planes, and each texel's coefficients are its resampled
+    responses projected on them (``coefficients: lsq``: fitted at the capture's lights instead), on OpenCL.
+    ``resolution: 0`` picks the grid side by held-out lights.  ``resolution: 8, resampling: relight`` is
+    relight's own fit.
 
     Outputs
     -------
@@ -167,7 +173,7 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
 
     Notes
     -----
-    ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    ``resolution`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
     from btforge.errors import BtforgeInputError
     if resolution == 1:

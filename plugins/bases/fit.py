@@ -13,9 +13,14 @@ matrix ``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``b
 (NumPy twin :func:`project_numpy`), reading an 8-bit capture's bytes in place.
 
 PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values, over
-the lights or resampled onto the bilinear grid) are centred on their mean and the leading eigenvectors of
-their covariance become the planes; ``ycc`` runs one PCA per YCoCg component.  The mean row is clipped to
-[0, 1] (so the web layout's 8-bit basis holds it); the least-squares coefficients absorb the difference.
+the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
+layout's 8-bit basis holds it, and the leading eigenvectors of their second moments about it become the
+planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coefficients = the resampled
+responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
+it is the default for bilinear, whose resampling already fits the samples.
+
+The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
+``resolution`` can be chosen by held-out lights (:func:`held_out_choice`).
 """
 from __future__ import annotations
 

@@ -162,12 +162,14 @@ def read_info(path) -> dict:
         if not isinstance(info.get(key), kind):
             problems.append(f"'{key}' missing or not {kind.__name__}")
     if not problems:
-        plugin = info["type"] not in ("ptm", "hsh", "sh") and layout_class(info["type"]) is not None
-        if info["type"] not in ("ptm", "hsh", "sh") and not plugin:
+        plugin = layout_class(info["type"]) if info["type"] not in ("ptm", "hsh", "sh") else None
+        if info["type"] not in ("ptm", "hsh", "sh") and plugin is None:
             problems.append(f"'type' {info['type']!r} is not ptm, hsh, sh, rbf or bilinear")
-        # a plugin's model class (rbf, bilinear) checks its own colour space
-        elif not plugin and (info["colorspace"] not in ("rgb", "lrgb")
-                             or (info["colorspace"] == "lrgb" and info["type"] != "ptm")):
+        elif plugin is not None and info["colorspace"] not in plugin.web_colorspaces:
+            problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
+                            f"({' or '.join(plugin.web_colorspaces)})")
+        elif plugin is None and (info["colorspace"] not in ("rgb", "lrgb")
+                                 or (info["colorspace"] == "lrgb" and info["type"] != "ptm")):
             problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
                             "(rgb, or lrgb for ptm)")
         material = info["materials"][0] if info["materials"] else {}
@@ -185,7 +187,8 @@ def read_info(path) -> dict:
 
 
 def layout_class(kind: str):
-    """The installed model class that reads web layouts of type ``kind`` (its ``web_types``), or None."""
+    """The installed model class that reads web layouts of type ``kind`` (its ``web_types``, with the colour
+    spaces it reads in ``web_colorspaces``), or None."""
     from btforge.registry import default_registry
     for cls in default_registry().types.values():
         if kind in getattr(cls, "web_types", ()) and hasattr(cls, "from_web"):
