@@ -256,6 +256,21 @@ def test_synthesis_takes_a_fitted_basis_as_exemplar():
     np.testing.assert_allclose(out.evaluate(lights), model.evaluate(lights)[:, :, rows, cols], atol=1e-6)
 
 
+@pytest.mark.parametrize("stage,params", FITS[::2])
+def test_renders_like_relight_on_the_plane_and_refuses_bad_lookups(stage, params):
+    from test_render import draw, plane_scene
+    model = fitted(stage, params)
+    light = np.array([[-0.4, 0.5, 0.7]]) / np.linalg.norm([-0.4, 0.5, 0.7])
+    image, _ = draw(plane_scene(model.width, model.height,
+                                lights=[{"type": "directional", "direction": light[0].tolist(), "intensity": 1.0}]),
+                    {"stone": model})
+    np.testing.assert_allclose(image, model.evaluate(light)[0, 0], rtol=2e-4, atol=2e-5)
+    with pytest.raises(BtforgeInputError, match="inside the"):
+        model.evaluate_texels(np.array([model.height]), np.array([0]), np.array([[0, 0, 1.0]]))
+    with pytest.raises(BtforgeInputError, match=r"lights \[N, 3\]"):
+        model.evaluate_texels(np.array([0, 1]), np.array([0, 1]), np.array([[0, 0, 1.0]]))
+
+
 def test_the_representation_bench_sweeps_the_new_fits():
     from btforge.registry import default_registry
     names = {s.name for s in default_registry().stages_with_role("fit")}

@@ -18,7 +18,8 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.backend import get_backend
-from btforge.buffers import ReflectanceModel, check_array, frozen, srgb_to_linear, unit_directions
+from btforge.buffers import (ReflectanceModel, check_array, frozen, scattered_lookup, srgb_to_linear,
+                             unit_directions)
 from btforge.errors import BtforgeInputError
 from btforge.numerics import texel_chunks
 
@@ -129,9 +130,10 @@ class LightTableModel(ReflectanceModel):
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
                         views_local: np.ndarray | None = None) -> np.ndarray:
         """Linear radiance ``[N, 3]`` of texels ``(rows[i], cols[i])``, each at its own light ``[N, 3]``."""
-        lights = unit_directions("lights", lights_local, owner=f"{self.kind} evaluation")
-        lw = self.light_weights(lights)
-        c = self.coeffs[np.asarray(rows), np.asarray(cols)]
+        rows, cols, lights, _ = scattered_lookup(self, rows, cols, lights_local, views_local)
+        norm = np.linalg.norm(lights, axis=1, keepdims=True)
+        lw = self.light_weights(lights / np.where(norm > 0, norm, 1.0))
+        c = self.coeffs[rows, cols]
         value = lw[:, 0] + np.einsum("np,npk->nk", c, lw[:, 1:])
         return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
 
