@@ -256,6 +256,22 @@ def test_synthesis_takes_a_fitted_basis_as_exemplar():
     np.testing.assert_allclose(out.evaluate(lights), model.evaluate(lights)[:, :, rows, cols], atol=1e-6)
 
 
+def test_a_graph_with_bad_parameters_names_every_problem_before_running(tmp_path, capsys):
+    from btforge.cli import main
+    lights = Path(__file__).resolve().parents[1] / "graphs" / "data" / "icon_san_michele" / "dirs.lp"
+    graph = tmp_path / "bad.yaml"
+    graph.write_text(f"""nodes:
+  read: {{stage: stack.read, params: {{path: {lights}}}}}
+  hsh:  {{stage: hsh.fit, params: {{planes: 15}}, inputs: {{stack: read.stack}}}}
+  rbf:  {{stage: rbf.fit, params: {{colorspace: ycc, planes: 9, yplanes: 4}}, inputs: {{stack: read.stack}}}}
+  grid: {{stage: bilinear.fit, params: {{resolution: 1}}, inputs: {{stack: read.stack}}}}
+""")
+    assert main(["run", str(graph), "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")]) == 2
+    err = capsys.readouterr().err
+    assert "3 problems" in err and "line 3, node 'hsh'" in err and "yplanes" in err and "line 5" in err
+    assert "Traceback" not in err
+
+
 @pytest.mark.parametrize("stage,params", FITS[::2])
 def test_renders_like_relight_on_the_plane_and_refuses_bad_lookups(stage, params):
     from test_render import draw, plane_scene

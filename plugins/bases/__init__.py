@@ -9,8 +9,9 @@ from __future__ import annotations
 
 from btforge import Expect, Param, declare_stage, hookimpl
 from btforge.backend import single_threaded_blas
+from btforge.errors import BtforgeInputError
 
-from .fit import fit_bilinear, fit_hsh, fit_rbf
+from .fit import fit_bilinear, fit_hsh, fit_rbf, ycc_split
 from .model import LightTableModel
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
@@ -45,6 +46,20 @@ COEFFICIENTS = Param("coefficients", "choice", "projection", "projection: each t
                      choices=("projection", "lsq"))
 
 
+def _hsh_precheck(params, paths=None):
+    if params["planes"] not in (12, 27):
+        raise BtforgeInputError("hsh.fit 'planes'", f"expected 12 or 27, found {params['planes']}",
+                                "12 for second-order HSH, 27 for third order")
+
+
+def _pca_precheck(params, paths=None):
+    if params["colorspace"] == "ycc":
+        ycc_split(params["planes"], params["yplanes"])
+    if params.get("resolution") == 1:
+        raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
+                                "a grid needs at least 2 x 2 nodes")
+
+
 def _report(ctx, model, stats):
     ctx.note("planes", stats["planes"])
     ctx.note("condition_number", round(stats["condition_number"], 3))
@@ -69,6 +84,7 @@ def _report(ctx, model, stats):
     ],
     per_texel=True,
     expects={"stack": ONE_VIEW},
+    precheck=_hsh_precheck,
 )
 def hsh_fit(ctx, stack, *, planes, colorspace):
     """Fit hemispherical harmonics (HSH, Gautron et al. 2004) per texel, as relight's ``-b hsh`` does.
@@ -87,10 +103,7 @@ def hsh_fit(ctx, stack, *, planes, colorspace):
     -----
     ``planes``, ``condition_number`` of the light design.
     """
-    from btforge.errors import BtforgeInputError
-    if planes not in (12, 27):
-        raise BtforgeInputError("hsh.fit 'planes'", f"expected 12 or 27, found {planes}",
-                                "12 for second-order HSH, 27 for third order")
+    _hsh_precheck({"planes": planes})
     with single_threaded_blas():  # small dense algebra: threads only contend
         model, stats = fit_hsh(stack, planes, colorspace)
     return _report(ctx, model, stats)
@@ -104,6 +117,7 @@ def hsh_fit(ctx, stack, *, planes, colorspace):
     outputs={"model": "LightTableModel"},
     params=[PLANES, COLORSPACE, YPLANES, RBF_SIGMA, TABLE, RBF_COEFFICIENTS],
     expects={"stack": ONE_VIEW},
+    precheck=_pca_precheck,
 )
 def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficients):
     """PCA-compressed light responses with Gaussian (RBF) interpolation over the light set: relight's default
@@ -151,6 +165,7 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
             Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
                   "undetermined towards their Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS],
     expects={"stack": ONE_VIEW},
+    precheck=_pca_precheck,
 )
 def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampling, smoothness, sigma, regularization,
                  coefficients):
@@ -175,10 +190,7 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     -----
     ``resolution`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
-    from btforge.errors import BtforgeInputError
-    if resolution == 1:
-        raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
-                                "a grid needs at least 2 x 2 nodes")
+    _pca_precheck({"planes": planes, "colorspace": colorspace, "yplanes": yplanes, "resolution": resolution})
     with single_threaded_blas():  # small dense algebra: threads only contend
         model, stats = fit_bilinear(stack, planes, resolution, colorspace, yplanes, sigma, regularization,
                                      coefficients, resampling, smoothness)
