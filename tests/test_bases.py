@@ -256,6 +256,13 @@ def test_synthesis_takes_a_fitted_basis_as_exemplar():
     np.testing.assert_allclose(out.evaluate(lights), model.evaluate(lights)[:, :, rows, cols], atol=1e-6)
 
 
+def test_automatic_choices_survive_lights_too_few_for_the_held_out_split():
+    stack = capture(n=10, size=(6, 6))   # 8 lights left when two are held out: too few for 27 planes
+    assert fitted("rbf.fit", {"planes": 27}, stack).n_plane == 27
+    model = fitted("bilinear.fit", {"planes": 27, "colorspace": "ycc", "yplanes": 9}, stack)
+    assert model.n_plane == 27 and model.resolution >= 3
+
+
 def test_a_graph_with_bad_parameters_names_every_problem_before_running(tmp_path, capsys):
     from btforge.cli import main
     lights = Path(__file__).resolve().parents[1] / "graphs" / "data" / "icon_san_michele" / "dirs.lp"

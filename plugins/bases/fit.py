@@ -264,7 +264,10 @@ def held_out_choice(stack: SampleStack, candidates, fit):
     target = display_values(truth)
     errors = []
     for value in candidates:
-        predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+        try:
+            predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+        except BtforgeInputError:  # the lights left for fitting cannot hold that many planes: nothing to judge
+            return candidates[len(candidates) // 2]
         errors.append(float(np.mean((predicted - target) ** 2)))
     return candidates[int(np.argmin(errors))]
 
@@ -309,7 +312,8 @@ def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, color
     """bilinear.fit: PCA table on the light grid (``resolution`` 0: chosen on held-out lights)."""
     _check_stack(stack, "bilinear.fit")
     if not resolution:
-        fits = [r for r in RESOLUTIONS if planes <= (3 if colorspace == "rgb" else 1) * r * r]
+        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
+        fits = [r for r in RESOLUTIONS if need <= 3 * r * r]
         resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
             part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
             engine)[0])
