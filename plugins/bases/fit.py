@@ -95,14 +95,14 @@ def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tu
     # The stored mean must lie in [0, 1] (the web layout keeps it as bytes); the components are taken about that
     # clipped mean, so whatever the clipping removed is a direction of the data they capture.
     if colorspace == "rgb":
-        mean = np.clip(responses.mean(axis=0), 0.0, 1.0)
-        vectors = _principal((responses - mean).reshape(n, -1), planes).reshape(planes, d, 3)
+        mean = np.clip(responses.mean(axis=0, dtype=np.float64), 0.0, 1.0)
+        vectors = _principal((responses - mean.astype(responses.dtype)).reshape(n, -1), planes).reshape(planes, d, 3)
         return np.concatenate([mean[None], vectors])
-    ycc = responses @ RGB_TO_YCC.T
-    mean = np.clip(ycc.mean(axis=0), 0.0, 1.0)
+    ycc = responses @ RGB_TO_YCC.T.astype(responses.dtype)
+    mean = np.clip(ycc.mean(axis=0, dtype=np.float64), 0.0, 1.0)
     table = np.zeros((planes + 1, d, 3))
     for comp, count in enumerate(yccplanes):
-        vectors = _principal(ycc[:, :, comp] - mean[:, comp], count)
+        vectors = _principal(ycc[:, :, comp] - mean[:, comp].astype(ycc.dtype), count)
         for yp in range(count):
             p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
             table[p + 1, :, comp] = vectors[yp]
@@ -119,10 +119,10 @@ def display_values(stack: SampleStack, rows=slice(None), cols=slice(None), step:
 
 
 def pca_responses(stack: SampleStack) -> np.ndarray:
-    """Display responses ``[N, L, 3]`` of at most :data:`PCA_SAMPLES` texels on a regular grid."""
+    """Display responses ``[N, L, 3]`` float32 of at most :data:`PCA_SAMPLES` texels on a regular grid."""
     step = max(1, math.ceil(math.sqrt(stack.height * stack.width / PCA_SAMPLES)))
     y = display_values(stack, step=step)
-    return np.moveaxis(y, 0, 2).reshape(-1, stack.n_light, 3).astype(np.float64)
+    return np.ascontiguousarray(np.moveaxis(y, 0, 2).reshape(-1, stack.n_light, 3), np.float32)
 
 
 # ----------------------------------------------------------------------------------------------- solving
@@ -148,7 +148,7 @@ def pca_projection(table: np.ndarray, resample: np.ndarray, colorspace: str) -> 
     projected on each plane (the planes are orthonormal, so this is the least-squares fit on the table)."""
     to_space = RGB_TO_YCC if colorspace == "ycc" else np.eye(3)
     planes = table[1:].astype(np.float64)                                 # [P, D, 3] in the table's space
-    proj = np.einsum("pdc,dl,ck->plk", planes, resample, to_space)
+    proj = np.einsum("pdc,dl,ck->plk", planes, resample, to_space, optimize=True)
     offset = np.einsum("pdc,dc->p", planes, table[0].astype(np.float64))
     return proj, offset
 
@@ -322,7 +322,11 @@ def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, color
         resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
     else:
         resample = resample_matrix(stack.lights, resolution, sigma, regularization)
-    responses = np.einsum("dl,nlk->ndk", resample, pca_responses(stack))
+    sampled = pca_responses(stack)                                                   # [N, L, 3]
+    n = len(sampled)
+    # one matrix product (einsum would loop): [D, L] @ [L, N * 3]
+    responses = (resample.astype(np.float32) @ sampled.transpose(1, 0, 2).reshape(stack.n_light, -1)).reshape(-1, n, 3)
+    responses = responses.transpose(1, 0, 2)
     table = pca_table(responses, planes, colorspace, ycc)
     model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
                                      "resolution": resolution}, engine,
