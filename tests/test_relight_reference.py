@@ -102,9 +102,9 @@ def test_relight_cli_left_out_with_a_note_when_absent(capture, tmp_path, capsys,
     monkeypatch.setattr("btforge.plugins.relight.relightcli.shutil.which", lambda name: None)  # not on PATH
     assert find_relight_cli() is None
     args = types.SimpleNamespace(stack=str(capture[0]), test=None, out=str(tmp_path / "bench"), crop=0, repeat=1,
-                                 only=["ptm"])
+                                 only=["ptm"], defaults=True)
     rows = bench_representations(args)
-    assert rows and all(r["representation"] == "ptm" for r in rows)
+    assert [(r["representation"], r["params"]) for r in rows] == [("ptm", "defaults")]   # once, at its defaults
     assert "relight-cli: not found" in capsys.readouterr().err
 
 

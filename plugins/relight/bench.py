@@ -23,7 +23,7 @@ DEFAULT_CROP = 128  # central texels: every fit of a full 1024^2 capture would t
 
 
 def _label(family: str, params: dict) -> str:
-    return family + " " + " ".join(f"{k}={v}" for k, v in params.items())
+    return family + " " + (" ".join(f"{k}={v}" for k, v in params.items()) or "(defaults)")
 
 
 def crop_window(height: int, width: int, size: int) -> tuple[int, int, int, int] | None:
@@ -44,14 +44,15 @@ def central_crop(stack, size: int):
     return SampleStack(part, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
 
-def _configurations(registry, only, overrides: dict):
-    """(family, stage, params) of every fit to compare: each ``role="fit"`` stage at each of its sweep's settings,
-    with ``--set`` overrides applied to the stages that have such a parameter."""
+def _configurations(registry, only, overrides: dict, defaults: bool = False):
+    """(family, stage, params) of every fit to compare: each ``role="fit"`` stage at each of its sweep's settings
+    (``defaults``: at its default settings alone), with ``--set`` overrides applied to the stages that have such
+    a parameter."""
     for st in registry.stages_with_role("fit"):
         family = st.name.split(".")[0]
         if only and family not in only:
             continue
-        for setting in st.sweep or ({},):
+        for setting in ({},) if defaults else st.sweep or ({},):
             params = {**setting, **{k: v for k, v in overrides.items() if st.param(k) is not None}}
             yield family, st, params
 
@@ -142,14 +143,15 @@ def measure_capture(args, registry, stack_path: str, test_path: str | None, plot
           file=sys.stderr)
     fit, test = _split(stack, test_path, args.crop)
     rows = []
-    for family, st, params in _configurations(registry, args.only, getattr(args, "set", None) or {}):
+    for family, st, params in _configurations(registry, args.only, getattr(args, "set", None) or {},
+                                              getattr(args, "defaults", False)):
         label = _label(family, params)
         try:
             st(stack=central_crop(fit, 8), **params)  # build kernels outside the timing
         except BtforgeInputError as exc:  # e.g. too few fitting lights for 4 lobes, or a PTM of a BTF
             print(f"  {label:28s} skipped: {exc.problem}", file=sys.stderr)
             continue
-        rows.append({"representation": family, "params": " ".join(f"{k}={v}" for k, v in params.items()),
+        rows.append({"representation": family, "params": " ".join(f"{k}={v}" for k, v in params.items()) or "defaults",
                      **_measure(st, params, fit, test, args.repeat)})
         _print_row(label, rows[-1])
     rows += _relight_rows(args, stack_path, test_path, full, test)
@@ -229,6 +231,8 @@ def bench_representations_command(argv: list[str]) -> int:
     p.add_argument("--only", action="append", help="only these representation families (e.g. ptm, sh)")
     p.add_argument("--set", action="append", type=_setting, default=[], metavar="PARAM=VALUE",
                    help="set a parameter of every fit that has it (e.g. view_order=3 for a BTF)")
+    p.add_argument("--defaults", action="store_true",
+                   help="each fit once, at its default settings, instead of at its sweep's settings")
     p.add_argument("--relight-cli", metavar="PATH", help="relight-cli's executable, run on the same split as a "
                    "reference (default: $BTFORGE_RELIGHT_CLI, else relight-cli on PATH; left out when absent)")
     p.add_argument("--no-relight", action="store_true", help="leave relight-cli out even when it is installed")
