@@ -115,9 +115,9 @@ def bench_representations(args, registry=None) -> list[dict]:
         name = capture_name(stack_path) if len(stacks) > 1 else ""
         found = measure_capture(args, registry, stack_path, test_path if test_path != "-" else None,
                                 Path(args.out) / (f"representations-{name}.png" if name else "representations.png"))
-        rows += [{"capture": capture_name(stack_path), **row} for row in found]
+        rows += [{**row, "capture": capture_name(stack_path)} for row in found]
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["capture", "representation"])
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["representation", "capture"])
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_text(Path(args.out) / "representations.csv", buffer.getvalue())
