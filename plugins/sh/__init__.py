@@ -84,7 +84,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     the energy bound are unchanged.  ``auto`` (the default) tries, after the order is chosen, that order and
     the higher ones at smoothness 0.003, 0.01 and 0.03 on the same held-out folds and keeps the best
     setting, no smoothing included: a smoothed higher order often predicts held-out lights better than a
-    truncated lower one (docs: accuracy figures).
+    truncated lower one (the accuracy figures in the docs).
 
     With ``quantize`` each coefficient is stored as ``uint8`` with a scale and bias per coefficient index,
     covering its range over all texels and channels; coefficients are then within half a step of the fit.

@@ -71,7 +71,7 @@ SPACES = ("linear", "srgb")
 AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses among
 # Held-out errors within this fraction of the lowest count as a tie, won by the higher order: the whole stack has
 # a quarter more lights than each fold fits, and more lights carry higher orders (measured on the shared real
-# captures, docs/incoming/accuracy.md).
+# captures: the accuracy figures in the docs).
 AUTO_ORDER_TIE = 0.05
 AUTO_SMOOTHNESS = (0.003, 0.01, 0.03)  # the smoothness weights ``smoothness="auto"`` tries (0 is tried too)
 
