@@ -13,7 +13,7 @@ from .buffers import SampleStack, linear_to_srgb
 
 
 AUTO_TEXELS = 4096       # texels (a regular grid over the capture) on which `auto` compares the spaces
-AUTO_HOLD_EVERY = 5      # ... holding out every fifth light
+AUTO_HOLD_EVERY = 5      # ... in five folds, each holding out every fifth light
 AUTO_MIN_LIGHTS = 10     # fewer lights than this: no held-out test, 8-bit captures are fitted in display space
 
 
@@ -22,8 +22,9 @@ def held_out_space(stack: SampleStack, predict) -> str:
 
     ``predict(fit_stack, space, lights, views)`` fits ``fit_stack`` in ``space`` and returns linear radiance
     ``[V, L, h, w, C]`` at the held-out lights.  On a regular grid of at most ``AUTO_TEXELS`` texels, every
-    ``AUTO_HOLD_EVERY``-th light is held out, both spaces are fitted to the rest, and the one with the lower
-    mean squared error of the held-out display values (the bytes the capture holds) wins.  Neither space wins
+    light is held out once (in ``AUTO_HOLD_EVERY`` folds), both spaces are fitted to the rest, and the one with
+    the lower mean squared error of the held-out display values (the bytes the capture holds) wins
+    (:func:`best_held_out`).  Neither space wins
     everywhere: real captures (camera tone curves, gloss) fit better as display values, a computer-generated matte relief
     (SynthRTI: radiance linear in n . l, then sRGB-encoded) as linear radiance.  A linear capture is fitted
     linearly; one with fewer than ``AUTO_MIN_LIGHTS`` lights in display space.
@@ -32,8 +33,7 @@ def held_out_space(stack: SampleStack, predict) -> str:
         return "linear"
     if stack.n_light < AUTO_MIN_LIGHTS:
         return "srgb"
-    step = auto_grid_step(stack.height, stack.width)
-    return space_from_grid(np.ascontiguousarray(stack.samples[:, :, ::step, ::step]), stack, predict)
+    return space_from_grid(held_out_grid(stack), stack, predict)
 
 
 def auto_grid_step(height: int, width: int) -> int:
@@ -45,12 +45,50 @@ def space_from_grid(grid: np.ndarray, like: SampleStack, predict) -> str:
     """:func:`held_out_space` on 8-bit samples ``[V, L, h, w, C]`` of a texel grid (lights, views and channels
     those of ``like``): whoever read the grid - a whole stack, or a pass over a capture's images - gets the
     same answer."""
-    held = np.arange(like.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
-    fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), like.lights[~held], like.views, like.channels, "srgb8")
-    target = grid[:, held].astype(np.float64) / 255.0
-    errors = {space: float(np.mean((linear_to_srgb(predict(fit, space, like.lights[held], like.views)) - target) ** 2))
-              for space in ("srgb", "linear")}
-    return min(errors, key=errors.get)
+    return best_held_out(grid, like, ("srgb", "linear"), predict)[0]
+
+
+def best_held_out(grid: np.ndarray, like: SampleStack, candidates, predict) -> tuple[object, dict]:
+    """The candidate whose fits predict held-out lights of a texel grid best, and every candidate's error.
+
+    ``grid [V, L, h, w, C]`` holds samples of ``like``'s lights, views and channels in ``like``'s encoding;
+    ``predict(fit_stack, candidate, lights, views)`` fits ``fit_stack`` and returns linear radiance
+    ``[V, L', h, w, C]`` at ``lights``.  Every light is held out once: fold ``k`` holds out the lights whose index
+    is ``k`` modulo ``AUTO_HOLD_EVERY`` and fits the rest.  The error is the mean squared error over all held-out
+    samples of display values for an 8-bit capture (what it holds, and what held-out PSNR is scored on) and of
+    linear radiance otherwise.  One fold alone judges on a fifth of the lights, and a few lights at one
+    elevation can then pick the wrong candidate; all folds together judge on every light.  Ties go to the
+    earlier candidate.
+    """
+    display = like.encoding == "srgb8"
+    errors = dict.fromkeys(candidates, 0.0)
+    lights = np.arange(like.n_light)
+    for fold in range(min(AUTO_HOLD_EVERY, like.n_light)):
+        held = lights % AUTO_HOLD_EVERY == fold
+        fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), like.lights[~held], like.views, like.channels,
+                          like.encoding)
+        target = _scored(np.ascontiguousarray(grid[:, held]), like.encoding)
+        for candidate in candidates:
+            predicted = predict(fit, candidate, like.lights[held], like.views)
+            predicted = linear_to_srgb(predicted) if display else predicted
+            errors[candidate] += float(np.sum((predicted - target) ** 2, dtype=np.float64))
+    count = max(grid.size, 1)
+    errors = {candidate: error / count for candidate, error in errors.items()}
+    return min(errors, key=errors.get), errors
+
+
+def _scored(samples: np.ndarray, encoding: str) -> np.ndarray:
+    """Held-out samples as scored: an 8-bit capture's display values in [0, 1], a linear one's radiance."""
+    if encoding == "srgb8":
+        return samples.astype(np.float64) / 255.0
+    return samples.astype(np.float64)
+
+
+def held_out_grid(stack: SampleStack) -> np.ndarray:
+    """The samples ``[V, L, h, w, C]`` of the regular texel grid (at most about ``AUTO_TEXELS`` texels) that
+    ``auto`` choices judge on."""
+    step = auto_grid_step(stack.height, stack.width)
+    return np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
 
 
 def resolve_space(stack: SampleStack, space: str, predict=None) -> str:

@@ -65,7 +65,7 @@ def test_representations_bench_writes_csv_and_plot(tmp_path):
     from btforge.plugins.relight.bench import bench_representations
     write_stack(btforge.stage("demo.material")(size=[16, 16], lights=20)["stack"], tmp_path / "cap", fmt="exr")
     args = types.SimpleNamespace(stack=str(tmp_path / "cap" / "lights.lp"), test=None, out=str(tmp_path / "bench"),
-                                 crop=0, repeat=1, only=None)
+                                 crop=0, repeat=1, only=["ptm", "sh", "lafortune"])
     rows = bench_representations(args)
     with open(tmp_path / "bench" / "representations.csv") as handle:
         table = list(csv.DictReader(handle))

@@ -54,7 +54,7 @@ from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb,
                              scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import resolve_space
+from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, best_held_out, held_out_grid, resolve_space
 from btforge.spill import finite_range, release, spilled_empty
 
 KERNELS = Path(__file__).with_name("sh.cl")
@@ -68,6 +68,12 @@ LAMBDA_ITERS = 32
 BUILD_OPTIONS = (f"-DLAMBDA_SPAN={LAMBDA_SPAN!r}f", f"-DLAMBDA_ITERS={LAMBDA_ITERS}")
 FOUR_PI = 4.0 * math.pi
 SPACES = ("linear", "srgb")
+AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses among
+# Held-out errors within this fraction of the lowest count as a tie, won by the higher order: the whole stack has
+# a quarter more lights than each fold fits, and more lights carry higher orders (measured on the shared real
+# captures: the accuracy figures in the docs).
+AUTO_ORDER_TIE = 0.05
+AUTO_SMOOTHNESS = (0.003, 0.01, 0.03)  # the smoothness weights ``smoothness="auto"`` tries (0 is tried too)
 
 
 # ----------------------------------------------------------------------------------------------- basis
@@ -325,7 +331,8 @@ class SHSolver:
         # Two plain matrix products (one over the views, then one per view coefficient over the lights) on
         # C-ordered factors: a batched product with a transposed factor runs 5-10x slower in NumPy.
         t = np.ascontiguousarray(self.u_v.T, np.float32) @ y.reshape(n_view, -1)      # [r_v, L * N]
-        p = np.matmul(np.ascontiguousarray(self.u_l.T, np.float32), t.reshape(len(self.s_v), n_light, n))
+        # (rows of u_l past the lights belong to penalty rows, whose samples are zero)
+        p = np.matmul(np.ascontiguousarray(self.u_l[:n_light].T, np.float32), t.reshape(len(self.s_v), n_light, n))
         return np.ascontiguousarray(p.transpose(2, 0, 1)).reshape(n, -1)             # [N, r_v * r_l]
 
 
@@ -337,9 +344,22 @@ def _factor_svd(basis: np.ndarray):
     return u[:, keep], s[keep], vt[keep].T
 
 
-def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int) -> SHSolver:
-    """SVD of the light and view SH design matrices (the design matrix's Kronecker factors)."""
-    u_l, s_l, v_l = _factor_svd(real_sh(light_order, lights))
+def smoothness_rows(light_order: int, n_light: int, smoothness: float) -> np.ndarray:
+    """Rows appended to the light design matrix (with zero samples) whose squared residual is the smoothness
+    penalty ``smoothness (n_light / 4 pi) sum_lm l (l + 1) c_lm^2``: the squared gradient of the function over
+    the sphere, in units of the data term (``n_light / 4 pi`` is ``A^T A`` for lights spread evenly over it)."""
+    bands = np.repeat(np.arange(light_order), 2 * np.arange(light_order) + 1)
+    return np.diag(np.sqrt(smoothness * n_light / FOUR_PI * bands * (bands + 1.0)))
+
+
+def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int,
+              smoothness: float = 0.0) -> SHSolver:
+    """SVD of the light and view SH design matrices (the design matrix's Kronecker factors); with
+    ``smoothness`` the light factor carries the rows of :func:`smoothness_rows` below the lights."""
+    design = real_sh(light_order, lights)
+    if smoothness > 0:
+        design = np.vstack([design, smoothness_rows(light_order, len(lights), smoothness)])
+    u_l, s_l, v_l = _factor_svd(design)
     u_v, s_v, v_v = _factor_svd(real_sh(view_order, views))
     return SHSolver(u_v, s_v, v_v, u_l, s_l, v_l)
 
@@ -466,9 +486,69 @@ def _fit_blocks(stack: SampleStack, solver: SHSolver, solve, space: str, energy_
         release(coeffs[rows, cols])
 
 
-def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quantize: bool = False, *,
+def auto_orders(n_light: int) -> tuple[int, ...]:
+    """The light orders ``auto`` tries on ``n_light`` lights: those of :data:`AUTO_ORDERS` with no more
+    coefficients than the lights each held-out fold fits (more would be fitted by the energy bound alone)."""
+    n_fit = n_light - math.ceil(n_light / AUTO_HOLD_EVERY)
+    return tuple(order for order in AUTO_ORDERS if order * order <= n_fit) or AUTO_ORDERS[:1]
+
+
+def few_lights_order(n_light: int) -> int:
+    """``auto``'s light order when there are too few lights to hold any out: the largest order up to 4 with at
+    least two lights per light coefficient (at least 1)."""
+    return max([order for order in range(1, 5) if 2 * order * order <= n_light] or [1])
+
+
+def resolve_choices(stack: SampleStack, light_order, view_order: int, space: str, smoothness, engine: str,
+                    energy_factor: float) -> tuple[int, str, float, dict]:
+    """The light order, space and smoothness to fit, and the held-out error of each setting ``auto`` compared
+    (keyed ``"order space smoothness"``).
+
+    ``light_order="auto"`` fits every order of :func:`auto_orders` (in each space ``space`` allows) to a grid of
+    texels with every light held out once (:func:`btforge.fitspace.best_held_out`) and keeps the pair whose fits
+    predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`).
+    ``smoothness="auto"`` then tries that order and the higher ones, in that space, at each smoothness of
+    :data:`AUTO_SMOOTHNESS`, and keeps the best setting, unsmoothed included.  With fewer than
+    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, and the space
+    ``auto`` takes without a test.
+    """
+    def predict(fit, candidate, lights, views):
+        order, sp, smooth = candidate
+        return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor, space=sp,
+                      smoothness=smooth)[0].evaluate(lights, views)
+
+    orders = auto_orders(stack.n_light) if light_order == "auto" else (light_order,)
+    spaces = (space,) if space != "auto" else ("srgb", "linear") if stack.encoding == "srgb8" else ("linear",)
+    smooth = 0.0 if smoothness == "auto" else float(smoothness)
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        order = few_lights_order(stack.n_light) if light_order == "auto" else light_order
+        return order, resolve_space(stack, space), smooth, {}
+    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto":
+        return orders[0], spaces[0], smooth, {}
+    grid = held_out_grid(stack)
+    _, errors = best_held_out(grid, stack, [(o, sp, smooth) for o in orders for sp in spaces], predict)
+    order, sp = highest_near_best({(o, sp): e for (o, sp, _), e in errors.items()})
+    best = (order, sp, smooth)
+    if smoothness == "auto":
+        smoothed = [(o, sp, value) for o in orders if o >= order for value in AUTO_SMOOTHNESS]
+        errors.update(best_held_out(grid, stack, smoothed, predict)[1])
+        best = min([best] + smoothed, key=errors.get)
+    return (*best, {f"{o} {sp} {value:g}": e for (o, sp, value), e in errors.items()})
+
+
+def highest_near_best(errors: dict) -> tuple[int, str]:
+    """Of ``{(order, space): held-out error}``, the highest order within :data:`AUTO_ORDER_TIE` of the lowest
+    error, in its better space."""
+    lowest = min(errors.values())
+    near = [(order, -error, sp) for (order, sp), error in errors.items() if error <= lowest * (1 + AUTO_ORDER_TIE)]
+    order, _, sp = max(near)
+    return order, sp
+
+
+def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
-           energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto") -> tuple[SHModel, dict]:
+           energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto",
+           smoothness: float | str = 0.0) -> tuple[SHModel, dict]:
     """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
 
     ``view_order`` is forced to 1 for a single-view stack.  Returns the model and a dict of statistics:
@@ -479,8 +559,14 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
     ``view_order^2``: nothing would then choose among the exact fits.
     """
     for name, value in (("light_order", light_order), ("view_order", view_order)):
+        if name == "light_order" and value == "auto":
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_ORDER:
-            raise BtforgeInputError(f"sh.fit '{name}'", f"expected an int in [1, {MAX_ORDER}], found {value!r}")
+            allowed = "'auto' or " * (name == "light_order")
+            raise BtforgeInputError(f"sh.fit '{name}'", f"expected {allowed}an int in [1, {MAX_ORDER}], found {value!r}")
+    if smoothness != "auto" and (isinstance(smoothness, bool) or not isinstance(smoothness, (int, float))
+                                 or not 0 <= smoothness < math.inf):
+        raise BtforgeInputError("sh.fit 'smoothness'", f"expected 'auto' or a number >= 0, found {smoothness!r}")
     if not energy_factor > 0:
         raise BtforgeInputError("sh.fit 'energy_factor'", f"expected a positive number, found {energy_factor!r}")
     if engine not in ("opencl", "numpy"):
@@ -489,6 +575,8 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         raise BtforgeInputError("sh.fit 'space'", f"expected one of auto, linear, srgb, found {space!r}")
     if stack.n_view == 1:
         view_order = 1
+    light_order, space, smoothness, held_out_errors = resolve_choices(stack, light_order, view_order, space,
+                                                                      smoothness, engine, energy_factor)
     k_l, k_v = light_order ** 2, view_order ** 2
     if math.isinf(energy_factor) and (stack.n_light < k_l or stack.n_view < k_v):
         # Without the energy bound nothing picks among the exact fits: the minimum-norm one is arbitrary.
@@ -498,9 +586,7 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
-    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_sh(
-        fit, light_order, view_order, engine=engine, energy_factor=energy_factor, space=sp)[0].evaluate(lights, views))
-    solver = sh_solver(stack.lights, stack.views, light_order, view_order)
+    solver = sh_solver(stack.lights, stack.views, light_order, view_order, smoothness)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
     n_samples = stack.n_view * stack.n_light
@@ -537,6 +623,9 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
         "view_order": view_order,
         "energy_factor": energy_factor,
         "space": space,
+        "light_order": light_order,
+        "smoothness": smoothness,
+        "held_out_errors": held_out_errors,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
     }
     return model, stats

@@ -12,7 +12,9 @@ OpenLIME's order:
 - ``ptm``: ``1, lx, ly, lx^2, lx ly, ly^2``;
 - ``sh``: real spherical harmonics of bands 0-2 (``Y00; x, z, y; xy, xz, 3z^2 - 1, yz, y^2 - x^2`` with their
   usual normalisations);
-- ``hsh``: hemispherical harmonics (see :mod:`.hsh`).
+- ``hsh``: hemispherical harmonics (see :mod:`.hsh`);
+- ``rbf`` and ``bilinear`` (colorspace ``mrgb`` / ``mycc``): a light table in ``basis``, laid out and read by the
+  model class that declares them in ``web_types`` (``btforge.plugins.bases.weblayout``).
 
 Each plane's scale and bias cover its whole range (relight's exporter clips at a quantile), so the export is
 exact up to the 8-bit rounding.  A model of linear radiance (every SH fit, a PTM fitted in ``space: linear``)
@@ -84,9 +86,12 @@ def _model_planes(model) -> tuple[dict, np.ndarray]:
     elif kind == "HSHModel":
         planes = model.coeffs.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)
         info, linear = {"type": "hsh", "colorspace": "rgb"}, model.space == "linear"
+    elif hasattr(model, "web_layout"):  # a plugin's model that lays itself out (hsh, rbf, bilinear fits)
+        info, planes = model.web_layout()
+        linear = False
     else:
-        raise BtforgeInputError("model.export_web 'model'", f"expected a PTM, SH or HSH model, found {kind}",
-                                "fit ptm.fit or sh.fit (light_order 3) for the web layout")
+        raise BtforgeInputError("model.export_web 'model'", f"expected a PTM, SH, HSH or light-table model, found "
+                                f"{kind}", "fit ptm.fit, sh.fit (light_order 3), hsh.fit, rbf.fit or bilinear.fit")
     if len(model.channel_names) != 3:
         raise BtforgeInputError("model.export_web 'model'", f"expected 3 colour channels, found "
                                 f"{len(model.channel_names)}")
@@ -112,6 +117,7 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
     if image_format not in FORMATS:
         raise BtforgeInputError("model.export_web 'format'", f"expected png or jpg, found {image_format!r}")
     info, planes = _model_planes(model)
+    material = info.pop("material", {})
     levels, scale, bias = quantize_planes(planes)
     n = len(planes)
     padded = np.concatenate([levels, np.zeros(((-n) % 3,) + levels.shape[1:], np.uint8)])
@@ -130,7 +136,7 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
     scale += [1.0] * (len(padded) - n)
     bias += [0.0] * (len(padded) - n)
     content = {"width": model.width, "height": model.height, "format": image_format, **info, "nplanes": n,
-               "quality": quality, "materials": [{"scale": scale, "bias": bias}]}
+               "quality": quality, "materials": [{**material, "scale": scale, "bias": bias}]}
     atomic_write_text(folder / "info.json", json.dumps(content, indent=1) + "\n")
     return written + [folder / "info.json"]
 
@@ -163,9 +169,14 @@ def read_info(path) -> dict:
         if isinstance(info.get(key), int) and not 1 <= info[key] <= top:
             problems.append(f"'{key}' must be 1 to {top}, found {info[key]}")
     if not problems:
-        if info["type"] not in ("ptm", "hsh", "sh"):
-            problems.append(f"'type' {info['type']!r} is not ptm, hsh or sh")
-        if info["colorspace"] not in ("rgb", "lrgb") or (info["colorspace"] == "lrgb" and info["type"] != "ptm"):
+        plugin = layout_class(info["type"]) if info["type"] not in ("ptm", "hsh", "sh") else None
+        if info["type"] not in ("ptm", "hsh", "sh") and plugin is None:
+            problems.append(f"'type' {info['type']!r} is not ptm, hsh, sh, rbf or bilinear")
+        elif plugin is not None and info["colorspace"] not in plugin.web_colorspaces:
+            problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
+                            f"({' or '.join(plugin.web_colorspaces)})")
+        elif plugin is None and (info["colorspace"] not in ("rgb", "lrgb")
+                                 or (info["colorspace"] == "lrgb" and info["type"] != "ptm")):
             problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
                             "(rgb, or lrgb for ptm)")
         material = info["materials"][0] if info["materials"] else {}
@@ -180,6 +191,16 @@ def read_info(path) -> dict:
         raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or model.export_web)")
     info["_folder"] = str(path.parent)
     return info
+
+
+def layout_class(kind: str):
+    """The installed model class that reads web layouts of type ``kind`` (its ``web_types``, with the colour
+    spaces it reads in ``web_colorspaces``), or None."""
+    from btforge.registry import default_registry
+    for cls in default_registry().types.values():
+        if kind in getattr(cls, "web_types", ()) and hasattr(cls, "from_web"):
+            return cls
+    return None
 
 
 def _read_planes(info: dict) -> np.ndarray:
@@ -217,6 +238,8 @@ def read_web(path):
     h, w = info["height"], info["width"]
     linear = (info.get("btforge") or {}).get("transfer") == "linear"
     kind, space = info["type"], "linear" if linear else "srgb"
+    if kind not in ("ptm", "hsh", "sh"):
+        return layout_class(kind).from_web(info, planes)
     if kind == "ptm":
         inverse = np.argsort(PTM_ORDER)
         if info["colorspace"] == "rgb":

@@ -61,6 +61,74 @@ function planeWeights(info, l) {
   return out;
 }
 
+// rbf and bilinear (relight's mrgb / mycc): per-plane colour weights read from a light table in info.json.
+// basis: (nplanes + 1) x D x 3 bytes, row 0 the mean (byte / 255), row p + 1 component p ((byte - 127) / range[p]).
+function lightTable(info) {
+  if (info._table) return info._table;
+  const n = info.nplanes, d = info.type === "rbf" ? info.lights.length / 3 : info.resolution * info.resolution;
+  const range = info.materials[0].range, table = new Float32Array((n + 1) * d * 3);
+  for (let i = 0; i < table.length; i++) {
+    const p = Math.floor(i / (d * 3));
+    table[i] = p === 0 ? info.basis[i] / 255 : (info.basis[i] - 127) / range[p - 1];
+  }
+  info._table = { table, d };
+  return info._table;
+}
+
+// Normalised Gaussian weights exp(-|l - l_i|^2 / sigma^2) over the lights; shares below 0.001 are dropped.
+function rbfWeights(info, l) {
+  const n = info.lights.length / 3, d2 = new Float64Array(n);
+  let least = Infinity;
+  for (let i = 0; i < n; i++) {
+    const dx = l[0] - info.lights[3 * i], dy = l[1] - info.lights[3 * i + 1], dz = l[2] - info.lights[3 * i + 2];
+    d2[i] = dx * dx + dy * dy + dz * dz;
+    least = Math.min(least, d2[i]);
+  }
+  const w = d2.map((v) => Math.exp(-(v - least) / (info.sigma * info.sigma)));
+  const total = w.reduce((a, b) => a + b, 0);
+  const kept = w.map((v) => (v / total > 0.001 ? v : 0));
+  const sum = kept.reduce((a, b) => a + b, 0);
+  return kept.map((v) => v / sum);
+}
+
+// Bilinear weights over the resolution^2 grid of the octahedral map (rotated 45 degrees), node x + y * res.
+function bilinearWeights(info, l) {
+  const res = info.resolution, w = new Float64Array(res * res);
+  const z = Math.max(l[2], 0), s = Math.abs(l[0]) + Math.abs(l[1]) + z || 1;
+  const clampTo = (v, hi) => Math.min(hi, Math.max(0, v));
+  const x = clampTo(((l[0] + l[1]) / s + 1) * 0.5 * (res - 1), res - 1);
+  const y = clampTo(((l[1] - l[0]) / s + 1) * 0.5 * (res - 1), res - 1);
+  const sx = clampTo(Math.floor(x), res - 2), sy = clampTo(Math.floor(y), res - 2), dx = x - sx, dy = y - sy;
+  w[sx + sy * res] += (1 - dx) * (1 - dy);
+  w[sx + 1 + sy * res] += dx * (1 - dy);
+  w[sx + (sy + 1) * res] += (1 - dx) * dy;
+  w[sx + 1 + (sy + 1) * res] += dx * dy;
+  return w;
+}
+
+// The basis at the light in RGB: (nplanes + 1) triples, the mean first (YCoCg converted for mycc).
+function tableWeights(info, l) {
+  const { table, d } = lightTable(info), n = info.nplanes, out = new Float32Array((n + 1) * 3);
+  const w = info.type === "rbf" ? rbfWeights(info, l) : bilinearWeights(info, l);
+  for (let p = 0; p <= n; p++) {
+    const acc = [0, 0, 0];
+    for (let i = 0; i < d; i++) {
+      if (!w[i]) continue;
+      for (let k = 0; k < 3; k++) acc[k] += w[i] * table[(p * d + i) * 3 + k];
+    }
+    if (info.colorspace === "mycc") {
+      const [y, co, cg] = acc, g = y + cg / 2, b = y - cg / 2 - co / 2;
+      acc[0] = b + co; acc[1] = g; acc[2] = b;
+    }
+    out.set(acc, 3 * p);
+  }
+  return out;
+}
+
+function usesTable(info) {
+  return info.type === "rbf" || info.type === "bilinear" || info.type === "bln";
+}
+
 // ---------------------------------------------------------------------------------------------- WebGL
 
 const VERTEX = `
@@ -77,11 +145,12 @@ void main() {
 function fragmentSource(info) {
   const n = info.nplanes, images = Math.ceil(n / 3);
   let src = "precision highp float;\nvarying vec2 v_uv;\n";
-  src += `uniform float u_w[${n}], u_scale[${n}], u_bias[${n}];\n`;
+  src += `uniform float u_w[${n}], u_scale[${n}], u_bias[${n}];\nuniform vec3 u_w3[${n + 1}];\n`;
   for (let j = 0; j < images; j++) src += `uniform sampler2D u_plane${j};\n`;
   src += "vec3 toSrgb(vec3 c) { c = clamp(c, 0.0, 1.0);\n" +
          "  return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c)); }\n";
   src += "void main() {\n  vec3 rgb = vec3(0.0); float lum = 0.0; vec3 t; vec3 albedo = vec3(1.0);\n";
+  if (usesTable(info)) src += "  rgb = u_w3[0];\n";
   const lrgb = info.type === "ptm" && info.colorspace === "lrgb";
   for (let j = 0; j < images; j++) {
     src += `  t = texture2D(u_plane${j}, v_uv).rgb;\n`;
@@ -89,7 +158,8 @@ function fragmentSource(info) {
       const p = 3 * j + c;
       if (p >= n) break;
       const coeff = `(t[${c}] - u_bias[${p}]) * u_scale[${p}]`;
-      if (lrgb && p < 3) src += `  albedo[${c}] = ${coeff};\n`;
+      if (usesTable(info)) src += `  rgb += u_w3[${p + 1}] * ${coeff};\n`;
+      else if (lrgb && p < 3) src += `  albedo[${c}] = ${coeff};\n`;
       else if (lrgb) src += `  lum += u_w[${p}] * ${coeff};\n`;
       else src += `  rgb[${c}] += u_w[${p}] * ${coeff};\n`;
     }
@@ -141,7 +211,10 @@ async function loadModel(index) {
     info = await response.json();
     for (const key of ["width", "height", "nplanes", "type", "colorspace"])
       if (info[key] === undefined) throw new Error(`info.json has no '${key}'`);
-    if (!["ptm", "sh", "hsh"].includes(info.type)) throw new Error(`type '${info.type}' is not supported`);
+    if (!["ptm", "sh", "hsh", "rbf", "bilinear", "bln"].includes(info.type))
+      throw new Error(`type '${info.type}' is not supported`);
+    if (usesTable(info) && !(info.basis && info.materials && info.materials[0].range))
+      throw new Error(`a ${info.type} layout needs 'basis' and materials[0].range`);
     const material = (info.materials || [])[0] || {};
     if (!material.scale || material.scale.length < info.nplanes || !material.bias || material.bias.length < info.nplanes)
       throw new Error("materials[0] must give a scale and a bias per plane");
@@ -208,7 +281,8 @@ function draw() {
   gl.uniform2f(gl.getUniformLocation(prog, "u_canvas"), canvas.width, canvas.height);
   gl.uniform1f(gl.getUniformLocation(prog, "u_zoom"), state.zoom);
   const m = info.materials[0];
-  gl.uniform1fv(gl.getUniformLocation(prog, "u_w[0]"), planeWeights(info, state.light));
+  if (usesTable(info)) gl.uniform3fv(gl.getUniformLocation(prog, "u_w3[0]"), tableWeights(info, state.light));
+  else gl.uniform1fv(gl.getUniformLocation(prog, "u_w[0]"), planeWeights(info, state.light));
   gl.uniform1fv(gl.getUniformLocation(prog, "u_scale[0]"), new Float32Array(m.scale.slice(0, info.nplanes)));
   gl.uniform1fv(gl.getUniformLocation(prog, "u_bias[0]"), new Float32Array(m.bias.slice(0, info.nplanes)));
   state.textures.forEach((tex, j) => {

@@ -1,0 +1,338 @@
+"""Fitting light-table bases: build the table (HSH terms, or PCA of the light responses), then project every
+texel's samples on it by one shared regularised least-squares inverse.
+
+The table (:mod:`.model`) is evaluated at the capture's lights, giving per light ``g0 [3]`` (the mean) and
+``G [P, 3]`` (the planes), in RGB.  A texel's coefficients minimise
+
+    sum_{l, k} (g0[l, k] + sum_p c[p] G[l, p, k] - y[l, k])^2 + lambda |c|^2
+
+over its display samples ``y [L, 3]``, with ``lambda = (RIDGE * s_max)^2`` for ``s_max`` the largest singular
+value of ``G``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
+(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  The solution is one
+matrix ``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them
+(NumPy twin :func:`project_numpy`), reading an 8-bit capture's bytes in place.
+
+PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values, over
+the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
+layout's 8-bit basis holds it, and the leading eigenvectors of their second moments about it become the
+planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coefficients = the resampled
+responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
+it is the default for bilinear, whose resampling already fits the samples.
+
+The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
+``resolution`` can be chosen by held-out lights (:func:`held_out_choice`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from btforge.backend import get_backend, single_threaded_blas
+from btforge.buffers import SampleStack, linear_to_srgb
+from btforge.errors import BtforgeInputError
+
+from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
+                         smooth_resample_matrix, table_weights)
+from .model import KERNELS, LightTableModel
+
+SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
+RESOLUTIONS = (4, 5, 6, 8, 10, 12)          # resolution auto: these grid sides are tried
+TABLE_DAMPING = 0.1   # the interpolating rbf table stays this close (relatively) to the components at the lights
+RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
+PCA_SAMPLES = 1 << 16  # texels whose responses the PCA sees (relight samples 65536 by default)
+
+
+# ----------------------------------------------------------------------------------------------- tables
+
+
+def hsh_table(terms: int, colorspace: str) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The one-hot table of an HSH fit: rgb has plane ``3k + c`` = term k of channel c; ycc gives luma all
+    ``terms`` and each chroma component the order below (9 luma terms: 4 chroma terms; 4: 1), in relight's
+    order: (Y, Co, Cg) triplets of the terms chroma has, then the remaining luma terms."""
+    if colorspace == "rgb":
+        table = np.zeros((3 * terms + 1, terms, 3))
+        for k in range(terms):
+            for c in range(3):
+                table[3 * k + c + 1, k, c] = 1.0
+        return table, (0, 0, 0)
+    chroma = 4 if terms == 9 else 1
+    table = np.zeros((terms + 2 * chroma + 1, terms, 3))
+    for k in range(chroma):
+        for c in range(3):
+            table[3 * k + c + 1, k, c] = 1.0
+    for k in range(chroma, terms):
+        table[2 * chroma + k + 1, k, 0] = 1.0
+    return table, (terms, chroma, chroma)
+
+
+def ycc_split(planes: int, yplanes: int) -> tuple[int, int, int]:
+    """(Y, Co, Cg) plane counts for ``planes`` in all; ``yplanes`` 0 picks about half for Y."""
+    y = yplanes or planes - 2 * (planes // 4)
+    if not 1 <= y <= planes or (planes - y) % 2:
+        raise BtforgeInputError("param 'yplanes'", f"expected Y planes in [1, {planes}] leaving an even number for "
+                                f"the two chroma components, found {y} of {planes}",
+                                "give yplanes with planes - yplanes even (or 0 for the default split)")
+    return y, (planes - y) // 2, (planes - y) // 2
+
+
+def _principal(x: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` leading unit eigenvectors ``[count, dim]`` of the second moments of the (centred) rows ``x``,
+    each signed so its largest component is positive (deterministic)."""
+    # float32 products (half the time of float64; display values in [0, 1] lose nothing an eigenvector notices)
+    x32 = np.ascontiguousarray(x, np.float32)
+    cov = (x32.T @ x32).astype(np.float64) / max(len(x), 1)
+    values, vectors = np.linalg.eigh(cov)
+    top = vectors[:, np.argsort(values)[::-1][:count]].T
+    pivot = top[np.arange(count), np.argmax(np.abs(top), axis=1)]
+    return top * np.where(pivot < 0, -1.0, 1.0)[:, None]
+
+
+def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tuple[int, int, int]) -> np.ndarray:
+    """Table ``[planes + 1, D, 3]`` from display ``responses [N, D, 3]`` (relight's plane order for ycc:
+    (Y, Co, Cg) triplets while chroma planes last, then the remaining Y planes)."""
+    n, d, _ = responses.shape
+    # The stored mean must lie in [0, 1] (the web layout keeps it as bytes); the components are taken about that
+    # clipped mean, so whatever the clipping removed is a direction of the data they capture.
+    if colorspace == "rgb":
+        mean = np.clip(responses.mean(axis=0, dtype=np.float64), 0.0, 1.0)
+        vectors = _principal((responses - mean.astype(responses.dtype)).reshape(n, -1), planes).reshape(planes, d, 3)
+        return np.concatenate([mean[None], vectors])
+    ycc = responses @ RGB_TO_YCC.T.astype(responses.dtype)
+    mean = np.clip(ycc.mean(axis=0, dtype=np.float64), 0.0, 1.0)
+    table = np.zeros((planes + 1, d, 3))
+    for comp, count in enumerate(yccplanes):
+        vectors = _principal(ycc[:, :, comp] - mean[:, comp].astype(ycc.dtype), count)
+        for yp in range(count):
+            p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
+            table[p + 1, :, comp] = vectors[yp]
+    table[0] = mean
+    return table
+
+
+def display_values(stack: SampleStack, rows=slice(None), cols=slice(None), step: int = 1) -> np.ndarray:
+    """Display values ``[L, h, w, 3]`` float32 of a single-view stack (an 8-bit capture's bytes / 255)."""
+    raw = np.asarray(stack.samples[0, :, rows, cols][:, ::step, ::step])
+    if stack.encoding == "srgb8":
+        return np.divide(raw, np.float32(255.0), dtype=np.float32)
+    return linear_to_srgb(raw).astype(np.float32)
+
+
+def pca_responses(stack: SampleStack) -> np.ndarray:
+    """Display responses ``[N, L, 3]`` float32 of at most :data:`PCA_SAMPLES` texels on a regular grid."""
+    step = max(1, math.ceil(math.sqrt(stack.height * stack.width / PCA_SAMPLES)))
+    y = display_values(stack, step=step)
+    return np.ascontiguousarray(np.moveaxis(y, 0, 2).reshape(-1, stack.n_light, 3), np.float32)
+
+
+# ----------------------------------------------------------------------------------------------- solving
+
+
+def least_squares(lw: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``(proj [P, L, 3], offset [P], stats)`` of the regularised fit to the basis ``lw [L, P + 1, 3]`` (RGB)."""
+    n_light, n_plane = lw.shape[0], lw.shape[1] - 1
+    a = lw[:, 1:, :].transpose(0, 2, 1).reshape(n_light * 3, n_plane)   # row (l, k), column p
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    lam = (RIDGE * s[0]) ** 2 if s.size and s[0] > 0 else 0.0
+    gain = np.where(s > 0, s / (s * s + lam), 0.0) if lam > 0 else np.zeros_like(s)
+    inverse = (vt.T * gain) @ u.T                                        # [P, L * 3]
+    offset = inverse @ lw[:, 0, :].reshape(-1)
+    stats = {"condition_number": float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf,
+             "rank": int(np.count_nonzero(s > 1e-6 * s[0])) if s.size and s[0] > 0 else 0}
+    return inverse.reshape(n_plane, n_light, 3), offset, stats
+
+
+def pca_projection(table: np.ndarray, resample: np.ndarray, colorspace: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(proj [P, L, 3], offset [P])`` of relight's PCA projection: a texel's samples resampled onto the table
+    (``resample [D, L]``; the identity for rbf), taken to the table's colour space, centred on the mean row and
+    projected on each plane (the planes are orthonormal, so this is the least-squares fit on the table)."""
+    to_space = RGB_TO_YCC if colorspace == "ycc" else np.eye(3)
+    planes = table[1:].astype(np.float64)                                 # [P, D, 3] in the table's space
+    proj = np.einsum("pdc,dl,ck->plk", planes, resample, to_space, optimize=True)
+    offset = np.einsum("pdc,dc->p", planes, table[0].astype(np.float64))
+    return proj, offset
+
+
+def project_numpy(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Twin of kernel ``basis_project``: ``samples [L, T, 3]`` -> ``coeffs [T, P]`` float32."""
+    return (np.einsum("ltk,plk->tp", samples.astype(np.float64), proj.astype(np.float64)) - offset).astype(np.float32)
+
+
+def project_opencl(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Kernel ``basis_project``; uint8 samples are read as bytes (``proj`` must then carry the 1/255)."""
+    backend = get_backend()
+    n_light, n_texel, _ = samples.shape
+    n_plane = proj.shape[0]
+    out = np.empty((n_texel, n_plane), np.float32)
+    if out.size == 0:
+        return out
+    options = ("-DBYTES",) if samples.dtype == np.uint8 else ()
+    kernel = backend.kernel(KERNELS, "basis_project", options)
+    o_dev = backend.host_output(out)
+    data = samples if samples.dtype == np.uint8 else samples.astype(np.float32, copy=False)
+    backend.run(kernel, (n_texel, n_plane), backend.host_input(np.ascontiguousarray(data)),
+                backend.to_device(np.ascontiguousarray(proj, np.float32)),
+                backend.to_device(np.ascontiguousarray(offset, np.float32)), np.int32(n_light), np.int32(n_texel),
+                np.int32(n_plane), o_dev)
+    backend.finish_output(o_dev, out)
+    return out
+
+
+def project_stack(stack: SampleStack, proj: np.ndarray, offset: np.ndarray, engine: str = "opencl",
+                  budget_bytes: int = 64 << 20) -> np.ndarray:
+    """Coefficients ``[H, W, P]`` of every texel, band by band (bytes read in place for an 8-bit capture)."""
+    run = project_numpy if engine == "numpy" else project_opencl
+    coeffs = np.empty((stack.height, stack.width, proj.shape[0]), np.float32)
+    for rows, cols in stack.texel_blocks(budget_bytes):
+        if stack.encoding == "srgb8":
+            block = np.asarray(stack.samples[0, :, rows, cols])
+            scaled = proj / 255.0
+        else:
+            block, scaled = display_values(stack, rows, cols), proj
+        h, w = block.shape[1:3]
+        samples = np.ascontiguousarray(block).reshape(stack.n_light, h * w, 3)
+        coeffs[rows, cols] = run(samples, scaled, offset).reshape(h, w, -1)
+    return coeffs
+
+
+# ----------------------------------------------------------------------------------------------- the fits
+
+
+def _check_stack(stack: SampleStack, stage: str) -> None:
+    if stack.n_view != 1 or stack.n_channel != 3:
+        raise BtforgeInputError(f"{stage} 'stack'", f"expected a single-view RGB stack, found {stack.n_view} view(s) "
+                                f"and {stack.n_channel} channel(s)", "select one view with stack.select")
+
+
+def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
+              resample: np.ndarray | None = None) -> tuple[LightTableModel, dict]:
+    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``: by
+    least squares against the table at the capture's lights, or, given ``resample``, by relight's projection."""
+    table = np.asarray(model_args["table"], np.float32)
+    args = {**model_args, "table": table}
+    probe = LightTableModel(coeffs=np.zeros((0, 0, table.shape[0] - 1), np.float32), **args)
+    lw = probe.light_weights(stack.lights).astype(np.float64)
+    proj, offset, stats = least_squares(lw)
+    if resample is not None:
+        proj, offset = pca_projection(table, resample, args.get("colorspace", "rgb"))
+    with single_threaded_blas():
+        coeffs = project_stack(stack, proj, offset, engine)
+    stats["planes"] = table.shape[0] - 1
+    return LightTableModel(coeffs=coeffs, **args), stats
+
+
+def fit_hsh(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", engine: str = "opencl"):
+    _check_stack(stack, "hsh.fit")
+    table, ycc = hsh_table(planes // 3, colorspace)
+    return fit_table(stack, {"kind": "hsh", "table": table, "colorspace": colorspace, "yccplanes": ycc}, engine)
+
+
+def _pca_planes(stack: SampleStack, stage: str, planes: int, colorspace: str, yplanes: int, dims: int):
+    ycc = ycc_split(planes, yplanes) if colorspace == "ycc" else (0, 0, 0)
+    limit = dims * 3 if colorspace == "rgb" else dims
+    if (planes if colorspace == "rgb" else max(ycc)) > limit:
+        raise BtforgeInputError(f"{stage} 'planes'", f"expected at most {limit} planes per PCA for {dims} table "
+                                f"directions, found {planes} ({colorspace}, split {ycc})",
+                                "lower planes (or use more lights / a finer resolution)")
+    return ycc
+
+
+def light_spacing(lights: np.ndarray) -> float:
+    """The median distance from a light to its nearest neighbour (unit directions)."""
+    d = np.asarray(lights, np.float64)
+    if len(d) < 2:
+        return 1.0
+    dist = np.linalg.norm(d[:, None] - d[None], axis=2)
+    np.fill_diagonal(dist, np.inf)
+    return float(max(np.median(dist.min(axis=1)), 1e-3))
+
+
+def held_out_choice(stack: SampleStack, candidates, fit):
+    """The candidate whose ``fit(part, candidate)`` model predicts held-out lights best: on a grid of at most
+    4096 texels, every fifth light held out (as ``space: auto`` judges), mean squared error of display values.
+    With fewer than 10 lights there is nothing to hold out: the middle candidate."""
+    from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, auto_grid_step
+    if stack.n_light < AUTO_MIN_LIGHTS:
+        return candidates[len(candidates) // 2]
+    step = auto_grid_step(stack.height, stack.width)
+    grid = np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
+    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
+    part = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels,
+                       stack.encoding)
+    truth = SampleStack(np.ascontiguousarray(grid[:, held]), stack.lights[held], stack.views, stack.channels,
+                        stack.encoding)
+    target = display_values(truth)
+    errors = []
+    for value in candidates:
+        try:
+            predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+        except BtforgeInputError:  # the lights left for fitting cannot hold that many planes: nothing to judge
+            return candidates[len(candidates) // 2]
+        errors.append(float(np.mean((predicted - target) ** 2)))
+    return candidates[int(np.argmin(errors))]
+
+
+def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, damping: float) -> np.ndarray:
+    """The table whose Gaussian interpolation passes (nearly) through ``table`` at ``lights``: ``T`` minimising
+    ``|W T - table|^2 + damping^2 |T - table|^2`` per plane and component, ``W`` the interpolation weights
+    between the lights (relight's viewer then reproduces the components at the lights and blends them smoothly
+    between, instead of averaging neighbours)."""
+    w = rbf_weights(lights, lights, sigma)
+    n = len(lights)
+    lhs = w.T @ w + damping ** 2 * np.eye(n)
+    flat = table.transpose(1, 0, 2).reshape(n, -1)                   # [L, (P + 1) * 3]
+    solved = np.linalg.solve(lhs, w.T @ flat + damping ** 2 * flat)
+    out = solved.reshape(n, table.shape[0], 3).transpose(1, 0, 2)
+    out[0] = np.clip(out[0], 0.0, 1.0)
+    return out
+
+
+def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.0,
+            coefficients: str = "lsq", table_mode: str = "interpolating", engine: str = "opencl"):
+    """rbf.fit: PCA table over the lights (``sigma`` 0: chosen on held-out lights; see the stage's docs)."""
+    _check_stack(stack, "rbf.fit")
+    ycc = _pca_planes(stack, "rbf.fit", planes, colorspace, yplanes, stack.n_light)
+    if not sigma:
+        candidates = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS]
+        sigma = held_out_choice(stack, candidates, lambda part, value: fit_rbf(
+            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine)[0])
+    table = pca_table(pca_responses(stack), planes, colorspace, ycc)
+    if table_mode == "interpolating":
+        table = interpolating_table(table, stack.lights, sigma, TABLE_DAMPING)
+    projection = coefficients == "projection" and table_mode == "responses"
+    model, stats = fit_table(stack, {"kind": "rbf", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                                     "table_lights": stack.lights.astype(np.float32), "sigma": sigma}, engine,
+                             np.eye(stack.n_light) if projection else None)
+    return model, {**stats, "sigma": sigma}
+
+
+def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
+                 sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
+                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl"):
+    """bilinear.fit: PCA table on the light grid (``resolution`` 0: chosen on held-out lights)."""
+    _check_stack(stack, "bilinear.fit")
+    if not resolution:
+        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
+        fits = [r for r in RESOLUTIONS if need <= 3 * r * r]
+        resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
+            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
+            engine)[0])
+    ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
+    if resampling == "smooth":
+        resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
+    else:
+        resample = resample_matrix(stack.lights, resolution, sigma, regularization)
+    sampled = pca_responses(stack)                                                   # [N, L, 3]
+    n = len(sampled)
+    # one matrix product (einsum would loop): [D, L] @ [L, N * 3]
+    responses = (resample.astype(np.float32) @ sampled.transpose(1, 0, 2).reshape(stack.n_light, -1)).reshape(-1, n, 3)
+    responses = responses.transpose(1, 0, 2)
+    table = pca_table(responses, planes, colorspace, ycc)
+    model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
+                                     "resolution": resolution}, engine,
+                             resample if coefficients == "projection" else None)
+    return model, {**stats, "resolution": resolution}
+
+
+__all__ = ["fit_hsh", "fit_rbf", "fit_bilinear", "fit_table", "least_squares", "project_numpy", "project_opencl",
+           "hsh_table", "pca_table", "octa_directions", "table_weights", "colour_matrix"]

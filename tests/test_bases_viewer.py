@@ -1,0 +1,47 @@
+"""btforge view shows the hsh, rbf and bilinear fits as relight shows them (headless Chromium; skipped, with the
+reason, without a browser or Playwright)."""
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import btforge
+from btforge.plugins.web.server import start
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_viewer import SIZE, browser, open_page, psnr, relit_display, screenshot  # noqa: E402,F401
+from test_web_export import capture  # noqa: E402
+
+FITS = {"hsh": ("hsh.fit", {}), "hsh_ycc": ("hsh.fit", {"colorspace": "ycc"}), "rbf": ("rbf.fit", {}),
+        "yrbf": ("rbf.fit", {"colorspace": "ycc", "planes": 12}), "bilinear": ("bilinear.fit", {}),
+        "ybilinear": ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 6})}
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    root = tmp_path_factory.mktemp("view_bases")
+    stack = capture(n=40, size=SIZE, seed=4)
+    models = {}
+    for name, (stage, params) in FITS.items():
+        models[name] = btforge.stage(stage)(stack=stack, **params)["model"]
+        btforge.stage("model.export_web")(model=models[name], dir=str(root / name))
+    server, thread, scratch = start([root / name for name in FITS], 0)
+    yield server, models
+    server.shutdown()
+    shutil.rmtree(scratch, ignore_errors=True)
+
+
+@pytest.mark.parametrize("index,name", list(enumerate(FITS)))
+def test_page_matches_relight_at_three_lights(served, browser, index, name):
+    server, models = served
+    for x, y in [(0.0, 0.0), (0.5, 0.3), (-0.4, -0.6)]:
+        page = open_page(browser, f"{server.url}?model={index}&bar=0&zoom=1&light={x},{y}")
+        assert page.evaluate("document.body.dataset.state") == "ready"
+        light = [x, y, float(np.sqrt(1 - x * x - y * y))]
+        # 8-bit planes and basis: a couple of levels off at worst, far above 35 dB on average
+        assert psnr(screenshot(page), relit_display(models[name], light)) >= 35
+        page.close()
