@@ -11,6 +11,7 @@ For an ordinary array both are plain iteration and no-ops.
 from __future__ import annotations
 
 import mmap
+import os
 import tempfile
 from typing import Iterator, Sequence
 
@@ -30,7 +31,31 @@ def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
     root.mkdir(parents=True, exist_ok=True)
     handle = tempfile.TemporaryFile(prefix="spill-", dir=root)
     handle.truncate(nbytes)
-    return np.memmap(handle, dtype, "r+", 0, shape)
+    array = np.memmap(handle, dtype, "r+", 0, shape)
+    array.spill_file = handle  # for read_block: plain reads of parts, without mapping their pages
+    return array
+
+
+def read_block(array: np.ndarray, axis: int, part: slice) -> np.ndarray:
+    """``array[..., part, ...]`` (``part`` a step-1 slice along ``axis``) as a new in-memory array.
+
+    For a spilled array (as :func:`spilled_empty` made it, C-contiguous) the block is read from its file with
+    plain reads, one per contiguous run: touching the mapping instead would make resident not only the block but
+    whatever the kernel maps around each fault (on this machine half of a capture for a band of 27 rows).
+    """
+    handle = getattr(array, "spill_file", None)
+    start, stop, _ = part.indices(array.shape[axis])
+    if handle is None or not array.flags.c_contiguous:
+        return np.ascontiguousarray(array[(slice(None),) * axis + (slice(start, stop),)])
+    outer = int(np.prod(array.shape[:axis]))
+    inner = int(np.prod(array.shape[axis + 1:])) * array.itemsize
+    out = np.empty(array.shape[:axis] + (max(0, stop - start),) + array.shape[axis + 1:], array.dtype)
+    runs = out.reshape(outer, -1).view(np.uint8)
+    for index in range(outer):
+        offset = (index * array.shape[axis] + start) * inner
+        if os.preadv(handle.fileno(), [runs[index]], offset) != runs[index].nbytes:
+            raise OSError(f"short read from a spill file at byte {offset}")
+    return out
 
 
 def _shared_map(array: np.ndarray) -> tuple[mmap.mmap, int] | None:

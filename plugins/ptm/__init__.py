@@ -37,8 +37,8 @@ FIT_PARAMS = (
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
     params=list(FIT_PARAMS),
-    # auto judges its space on a sample of the whole stack; a band alone could choose another
-    per_texel=lambda params: params["space"] != "auto",
+    per_texel=True,
+    settle=lambda inputs, params: _settle_space(inputs["stack"], params),
     expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
@@ -58,6 +58,15 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """
     model, solver = fit_ptm(stack, variant, space, rcond=rcond)
     return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
+
+
+def _settle_space(stack, params):
+    """``space: auto`` judged once on a grid of texels of the whole stack, so every band of a streamed or
+    distributed fit fits in the space the whole-stack fit would choose."""
+    from .model import ptm_space
+    if params["space"] != "auto" or stack.n_view != 1:  # a multi-view stack is refused by the fit itself
+        return params
+    return {**params, "space": ptm_space(stack, params["variant"], "auto", rcond=params["rcond"])}
 
 
 def _report_fit(ctx, model, solver, rcond):

@@ -61,6 +61,7 @@ import numpy as np
 from btforge.atomic import atomic_write
 from btforge.buffers import unit_directions
 from btforge.errors import BtforgeInputError
+from btforge.spill import finite_range, release
 
 from .model import ptm_terms
 
@@ -201,7 +202,7 @@ def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = Tru
             "lrgb models have one luminance polynomial per pixel (K = 1), rgb models one per channel (K = 3)")
     height, width = coeffs.shape[:2]
     # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the model
-    if check_values and not (np.isfinite(coeffs.min()) and np.isfinite(coeffs.max())):
+    if check_values and not finite_range(coeffs):  # page by page: a spilled model is not made resident
         bad = np.argwhere(~np.isfinite(coeffs))[0]
         raise BtforgeInputError(f"{owner} 'coeffs'",
                                 f"expected finite values, found NaN/Inf at row {bad[0]}, column {bad[1]}",
@@ -763,6 +764,26 @@ def _column_range(flat: np.ndarray, rows_per_block: int = 512) -> tuple[np.ndarr
     return np.min(lows, axis=0), np.max(highs, axis=0)
 
 
+def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
+    """About ``GRID_SAMPLE`` rows of ``[N, K]`` in ``runs`` contiguous runs spread over it: a strided sample would
+    touch (and, in a spilled model, make resident) pages all over the array."""
+    step = max(1, flat.shape[0] // runs)
+    length = max(1, GRID_SAMPLE // runs)
+    parts = [np.array(flat[start:start + length]) for start in range(0, flat.shape[0], step)]
+    release(flat)
+    return np.concatenate(parts)
+
+
+def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_column_range` a block of rows at a time, each block's pages handed back after it (a spilled model
+    is never made resident whole)."""
+    parts = []
+    for start in range(0, flat.shape[0], rows):
+        parts.append(_column_range(flat[start:start + rows]))
+        release(flat[start:start + rows])
+    return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
+
+
 class _Quantizer:
     """Per-coefficient scale and bias over a whole model ``coeffs [H, W, K, 6]``, and the bytes of any band of it.
 
@@ -774,13 +795,13 @@ class _Quantizer:
     def __init__(self, coeffs: np.ndarray):
         self.coeffs = coeffs
         flat = coeffs.reshape(-1, N_COEFFS)
-        stride = max(1, flat.shape[0] // GRID_SAMPLE)
-        lows, highs = _column_range(flat)
+        sample = _spread_sample(flat)
+        lows, highs = _paged_column_range(flat)
         self.scales, self.biases, self.steps, self.whole = [], [], [], {}
         for i in range(N_COEFFS):
             low, high = float(lows[i]), float(highs[i])
             quantized = None
-            if _grid_possible(flat[::stride, i], low, high):
+            if _grid_possible(sample[:, i], low, high):
                 quantized = _grid_quantization(np.ascontiguousarray(coeffs[..., i], dtype=np.float64))
             if quantized is not None:
                 scale, bias, self.whole[i] = quantized
@@ -797,6 +818,7 @@ class _Quantizer:
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
         band = self.coeffs[rows, :, channel, :].astype(np.float64)
+        release(self.coeffs[rows])  # a spilled model (a streamed fit) stays out of resident memory
         np.divide(band, steps, out=band)  # in place: the same operations as _range_levels, without temporaries
         np.add(band, np.array(self.biases, np.float64), out=band)
         np.rint(band, out=band)

@@ -28,8 +28,9 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
     ],
-    # quantization scales over all texels, and auto judges its space on a sample of all of them
-    per_texel=lambda params: not params["quantize"] and params["space"] != "auto",
+    # quantization scales over all texels; auto judges its space on a grid of all of them, first (settle)
+    per_texel=lambda params: not params["quantize"],
+    settle=lambda inputs, params: _settle_space(inputs["stack"], params),
 )
 def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.
@@ -100,6 +101,16 @@ the bound also caps the relit value in every direction, below the horizon includ
     ctx.note("rank", stats["rank"])
     ctx.note("space", stats["space"])
     return {"model": model}
+
+
+def _settle_space(stack, params):
+    """``space: auto`` judged once on a grid of texels of the whole stack, so every band of a streamed or
+    distributed fit fits in the space the whole-stack fit would choose."""
+    from .model import sh_space
+    if params["space"] != "auto":
+        return params
+    return {**params, "space": sh_space(stack, params["light_order"], params["view_order"], "auto",
+                                        energy_factor=params["energy_factor"])}
 
 
 @hookimpl

@@ -466,6 +466,14 @@ def _fit_blocks(stack: SampleStack, solver: SHSolver, solve, space: str, energy_
         release(coeffs[rows, cols])
 
 
+def sh_space(stack: SampleStack, light_order: int, view_order: int, space: str, *, engine: str = "opencl",
+             energy_factor: float = DEFAULT_ENERGY_FACTOR) -> str:
+    """The space ``fit_sh`` fits in: ``space``, or for ``auto`` the one whose fit predicts held-out lights of a
+    grid of texels better (``btforge.fitspace``)."""
+    return resolve_space(stack, space, lambda fit, sp, lights, views: fit_sh(
+        fit, light_order, view_order, engine=engine, energy_factor=energy_factor, space=sp)[0].evaluate(lights, views))
+
+
 def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
            energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto") -> tuple[SHModel, dict]:
@@ -498,8 +506,7 @@ def fit_sh(stack: SampleStack, light_order: int = 4, view_order: int = 1, quanti
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
-    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_sh(
-        fit, light_order, view_order, engine=engine, energy_factor=energy_factor, space=sp)[0].evaluate(lights, views))
+    space = sh_space(stack, light_order, view_order, space, engine=engine, energy_factor=energy_factor)
     solver = sh_solver(stack.lights, stack.views, light_order, view_order)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel

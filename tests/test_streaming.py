@@ -1,0 +1,99 @@
+"""Streaming by default: stack.read -> per-texel fits runs band by band when no node needs the stack whole.
+
+The decision is the runner's, from the graph (who reads the stack); a streamed fit must equal the fit of the
+whole stack, and a graph where any node reads the stack whole must stream nothing and still run.
+"""
+import numpy as np
+import pytest
+
+import btforge
+import btforge.streaming
+from btforge.graph import check_graph, load_graph
+from btforge.registry import default_registry
+from btforge.runner import DEFAULT_OUT
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """A 24 x 20, 14-light 8-bit PNG capture of the procedural material (written by btforge itself)."""
+    folder = tmp_path_factory.mktemp("capture")
+    btforge.run({"nodes": {
+        "m": {"stage": "demo.material", "params": {"size": [24, 20], "lights": 14, "bumps": 6, "seed": 3}},
+        "w": {"stage": "stack.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
+        out_dir=folder, use_cache=False)
+    return next((folder / "cap").glob("*.lp"))
+
+
+def _graph(capture, *, whole_reader=False, sh_params=None):
+    nodes = {
+        "read": {"stage": "stack.read", "params": {"path": str(capture)}},
+        "ptm": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}},
+        "sh": {"stage": "sh.fit", "params": dict(sh_params or {"light_order": 3}), "inputs": {"stack": "read.stack"}},
+    }
+    if whole_reader:  # a node that needs every light of every texel at once
+        nodes["split"] = {"stage": "stack.split", "inputs": {"stack": "read.stack"}}
+    return {"nodes": nodes}
+
+
+def _by_node(result):
+    return {r.node: r for r in result.report}
+
+
+@pytest.fixture
+def small_bands(monkeypatch):
+    # 5 rows a band of the 24-row capture (linear float32 bytes of 5 rows): 5 bands, the last one short
+    monkeypatch.setattr(btforge.streaming, "BAND_BYTES", 5 * 20 * 14 * 3 * 4)
+
+
+def test_streamed_fits_equal_the_fits_of_the_whole_stack(capture, tmp_path, small_bands):
+    streamed = btforge.run(_graph(capture), only=["ptm", "sh"], out_dir=tmp_path, use_cache=False)
+    whole = btforge.run(_graph(capture, whole_reader=True), only=["ptm", "sh", "split"], out_dir=tmp_path,
+                        use_cache=False)
+    s, w = _by_node(streamed), _by_node(whole)
+    assert s["read"].notes.get("streamed") is True
+    assert s["ptm"].placement == {"where": "local", "bands": 5} and s["sh"].placement["bands"] == 5
+    assert "streamed" not in w["read"].notes
+    assert w["ptm"].placement == {"where": "local"} and w["sh"].placement == {"where": "local"}
+    # auto decided once on the whole stack, before the bands: the same space as the whole-stack fit chose
+    assert s["ptm"].notes["space"] == w["ptm"].notes["space"]
+    assert s["ptm"].notes["settled"] == {"space": w["ptm"].notes["space"]}
+    assert s["sh"].notes["space"] == w["sh"].notes["space"]
+    # Each texel's fit reads only its own samples with the same float32 operations in both runs; bands change
+    # only how texels are grouped into launches, so differences stay within a few float32 roundings of values
+    # of order 1 (an 8-bit capture's samples are at most 1).
+    a, b = streamed["ptm"]["model"], whole["ptm"]["model"]
+    assert a.space == b.space
+    np.testing.assert_allclose(a.coeffs, b.coeffs, rtol=0, atol=1e-5)
+    a, b = streamed["sh"]["model"], whole["sh"]["model"]
+    np.testing.assert_allclose(a.coeffs, b.coeffs, rtol=0, atol=1e-4 * max(1.0, float(np.abs(b.coeffs).max())))
+
+
+def test_a_graph_that_needs_the_stack_whole_streams_nothing(capture, tmp_path):
+    graph = _graph(capture, whole_reader=True)
+    checked = check_graph(load_graph(graph), default_registry(), DEFAULT_OUT)
+    order = checked.needed_for(None)
+    assert btforge.streaming.streamed_outputs(checked, order, {"ptm", "sh", "split"}) == {}
+    result = btforge.run(graph, out_dir=tmp_path, use_cache=False)
+    assert result["split"]["fit"].n_light + result["split"]["test"].n_light == 14
+
+
+def test_streaming_is_decided_from_the_readers(capture):
+    registry = default_registry()
+
+    def streamed(graph, targets):
+        checked = check_graph(load_graph(graph), registry, DEFAULT_OUT)
+        return btforge.streaming.streamed_outputs(checked, checked.needed_for(None), set(targets))
+
+    assert streamed(_graph(capture), {"ptm", "sh"}) == {"read": frozenset({"stack"})}
+    # the stack itself asked for as a result: it must be whole
+    assert streamed(_graph(capture), {"ptm", "sh", "read"}) == {}
+    # quantized SH scales over all texels: not per texel, so the stack is read whole
+    assert streamed(_graph(capture, sh_params={"light_order": 3, "quantize": True}), {"ptm", "sh"}) == {}
+
+
+def test_a_quantized_fit_beside_a_streamable_one_still_runs(capture, tmp_path):
+    result = btforge.run(_graph(capture, sh_params={"light_order": 2, "quantize": True}), out_dir=tmp_path,
+                         use_cache=False)
+    nodes = _by_node(result)
+    assert "streamed" not in nodes["read"].notes and nodes["sh"].placement == {"where": "local"}
+    assert result["sh"]["model"].coeffs.dtype == np.uint8
