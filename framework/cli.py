@@ -159,7 +159,12 @@ def cmd_bench(args) -> int:
     return bench.main(args)
 
 
-def build_parser() -> argparse.ArgumentParser:
+BUILT_IN_COMMANDS = ("run", "validate", "stages", "info", "bench")
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command-line parser; plugins' subcommands are added unless ``argv`` names a built-in command (their
+    hooks import what the commands need, which a ``btforge run`` should not pay for at start-up)."""
     parser = argparse.ArgumentParser(prog="btforge", description="Reflectance textures as a graph of stages.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     parser.add_argument("--device", help="OpenCL device: part of its platform or device name (or BTFORGE_DEVICE)")
@@ -199,7 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from . import bench
     bench.add_parser(sub).set_defaults(func=cmd_bench)
-    _add_plugin_commands(sub)
+    words = [word for word in (sys.argv[1:] if argv is None else argv) if not word.startswith("-")]
+    if not words or words[0] not in BUILT_IN_COMMANDS:
+        _add_plugin_commands(sub)
     return parser
 
 
@@ -235,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         record_phase("interpreter_and_imports_s", started)
     _unmap_large_blocks()
     try:
-        parser = build_parser()  # loads the plugins (their commands are subcommands): a bad plugin stops here
+        parser = build_parser(argv)  # loads the plugins (their commands are subcommands): a bad plugin stops here
     except BtforgeInputError as exc:
         if argv is not None and "--debug" in argv or argv is None and "--debug" in sys.argv[1:]:
             raise
