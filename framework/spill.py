@@ -36,6 +36,24 @@ def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
     return array
 
 
+def write_items(array: np.ndarray, first: int, data: np.ndarray) -> None:
+    """Write ``data`` into C-contiguous ``array`` as its items ``first, first + 1, ...`` in C order, an item being
+    one ``data[0]`` (e.g. images ``[n, H, W, C]`` into a stack ``[V, L, H, W, C]``, counting views x lights).
+    A spilled array is written in its file with plain writes, so its pages are never mapped into the process
+    (see :func:`read_block`)."""
+    item = data[0].size if len(data) else 1
+    handle = getattr(array, "spill_file", None)
+    if handle is None or not array.flags.c_contiguous:
+        flat = array.reshape(-1)  # a view for a C-contiguous array
+        flat[first * item:(first + len(data)) * item] = data.reshape(-1)
+        return
+    view = memoryview(np.ascontiguousarray(data, array.dtype)).cast("B")
+    offset = first * item * array.itemsize
+    while view.nbytes:
+        written = os.pwrite(handle.fileno(), view, offset)
+        view, offset = view[written:], offset + written
+
+
 def read_block(array: np.ndarray, axis: int, part: slice) -> np.ndarray:
     """``array[..., part, ...]`` (``part`` a step-1 slice along ``axis``) as a new in-memory array.
 

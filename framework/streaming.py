@@ -23,7 +23,7 @@ import numpy as np
 
 from .buffers import Buffer, PerTexel, SampleStack
 from .errors import BtforgeInputError
-from .spill import read_block, release, spilled_empty
+from .spill import read_block, release, spilled_empty, write_items
 
 BAND_BYTES = 64 << 20  # linear float32 samples of one band of rows (a uint8 capture reads a quarter of it)
 
@@ -154,6 +154,9 @@ class Joiner:
             if name not in self.arrays:  # spilled: the joined result never becomes resident (framework/spill.py)
                 shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
                 self.arrays[name] = spilled_empty(shape, piece.dtype)
+            if axis == 0:  # whole rows: plain writes to the file, no pages mapped
+                write_items(self.arrays[name], self.starts[band], piece)
+                continue
             index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
             self.arrays[name][index] = piece
             release(self.arrays[name][index])

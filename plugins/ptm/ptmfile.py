@@ -812,20 +812,21 @@ class _Quantizer:
             self.biases.append(bias)
             self.steps.append(step)
 
-    def levels(self, rows: slice, channel: int) -> np.ndarray:
-        """Bytes ``[rows, W, 6]`` of channel ``channel``'s coefficients."""
-        # All six coefficients in one pass (the arithmetic of _range_levels, column by column), then the
+    def levels(self, rows: slice) -> np.ndarray:
+        """Bytes ``[rows, W, K, 6]`` of every channel's coefficients of a band of rows."""
+        # All coefficients in one pass (the arithmetic of _range_levels, column by column), then the
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
-        band = self.coeffs[rows, :, channel, :].astype(np.float64)
-        release(self.coeffs[rows])  # a spilled model (a streamed fit) stays out of resident memory
-        np.divide(band, steps, out=band)  # in place: the same operations as _range_levels, without temporaries
+        part = self.coeffs[rows]
+        band = np.empty(part.shape, np.float64)
+        np.divide(part, steps, out=band)  # float32 read as float64: the same operations as _range_levels
+        release(part)  # a spilled model (a streamed fit) stays out of resident memory
         np.add(band, np.array(self.biases, np.float64), out=band)
         np.rint(band, out=band)
         out = np.clip(band, 0, 255, out=band).astype(np.uint8)
         for i in range(N_COEFFS):
             if i in self.whole:
-                out[..., i] = self.whole[i][rows, :, channel]
+                out[..., i] = self.whole[i][rows]
             elif self.steps[i] == 0.0:
                 out[..., i] = 0
         return out
@@ -864,14 +865,19 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
         " ".join(_scale_text(s) for s in quantizer.scales),
         " ".join(str(b) for b in quantizer.biases),
     ]) + "\n"
-    rows_per_band = max(1, WRITE_BAND_BYTES // (width * N_COEFFS * 8))
+    rows_per_band = max(1, WRITE_BAND_BYTES // (width * coeffs.shape[2] * N_COEFFS * 8))
+    plane = height * width * N_COEFFS  # bytes of one channel's coefficients
     with atomic_write(path, "wb") as handle:
-        handle.write(header.encode("ascii"))
+        start = handle.write(header.encode("ascii"))
         # Files store the bottom row first; an rgb file holds each channel's plane in turn, then lrgb its colours.
-        for channel in range(coeffs.shape[2]):
-            for stop in range(height, 0, -rows_per_band):
-                band = quantizer.levels(slice(max(0, stop - rows_per_band), stop), channel)
-                handle.write(memoryview(np.ascontiguousarray(band[::-1])).cast("B"))
+        # Each band of rows is read once and its bytes placed in every channel's plane.
+        for stop in range(height, 0, -rows_per_band):
+            rows = slice(max(0, stop - rows_per_band), stop)
+            band = quantizer.levels(rows)
+            for channel in range(coeffs.shape[2]):
+                handle.seek(start + channel * plane + (height - stop) * width * N_COEFFS)
+                handle.write(memoryview(np.ascontiguousarray(band[::-1, :, channel])).cast("B"))
+        handle.seek(start + coeffs.shape[2] * plane)
         if variant == "lrgb":
             for stop in range(height, 0, -rows_per_band):
                 rows = albedo[max(0, stop - rows_per_band):stop][::-1]

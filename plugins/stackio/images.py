@@ -496,25 +496,37 @@ def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads
                        encoding=reader.encoding, names=reader.names)
 
 
-def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto", threads: int = 2,
-                       batch: int = 8):
+def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto", threads: int = 2):
     """:func:`load_stack` into a spilled file: a :class:`~btforge.store.SpilledSampleStack` whose samples stay
     in the operating system's file cache, to be read band by band of rows.
 
-    Images decode ``threads`` at a time straight into the file's pages, ``batch`` images per pass, and each
-    pass's pages are handed back as soon as it is written, so the process holds a few images, never the
-    capture.  Same samples, lights and errors as :func:`load_stack`.
+    ``threads`` threads each decode one image at a time into their own buffer and write it to the file (plain
+    writes: its pages are never mapped into the process), so the process holds ``threads`` images, never the
+    capture, and decoding never waits for a batch to fill.  Same samples, lights and errors as
+    :func:`load_stack` (the error reported is the one of the earliest line).
     """
-    from btforge.spill import release, spilled_empty
+    from btforge.spill import spilled_empty, write_items
     from btforge.store import SpilledSampleStack
     reader = CaptureReader(light_file, transfer=transfer)
     samples = spilled_empty((reader.n_view, reader.n_light) + reader.shape, reader.dtype)
-    images = samples.reshape((-1,) + reader.shape)
     slots = [(v, l) for v in range(reader.n_view) for l in range(reader.n_light)]
-    for start in range(0, len(slots), batch):
-        part = images[start:start + batch]
-        reader.read_into(slots[start:start + batch], part, threads=threads)
-        release(part)
+    own = threading.local()
+
+    def decode(index: int) -> None:
+        if not hasattr(own, "image"):
+            own.image = np.empty((1,) + reader.shape, reader.dtype)
+        reader.read_into([slots[index]], own.image, threads=1)
+        write_items(samples, index, own.image)
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="btforge-decode") as pool:
+        futures = [pool.submit(decode, index) for index in range(len(slots))]
+        try:
+            for future in futures:  # in line order: the error reported is the earliest line's
+                future.result()
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
     return SpilledSampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
                               encoding=reader.encoding, names=reader.names)
 
