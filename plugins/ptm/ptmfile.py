@@ -61,7 +61,7 @@ import numpy as np
 from btforge.atomic import atomic_write
 from btforge.buffers import unit_directions
 from btforge.errors import BtforgeInputError
-from btforge.spill import finite_range, release
+from btforge.spill import finite_range, read_block
 
 from .model import ptm_terms
 
@@ -766,21 +766,17 @@ def _column_range(flat: np.ndarray, rows_per_block: int = 512) -> tuple[np.ndarr
 
 def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
     """About ``GRID_SAMPLE`` rows of ``[N, K]`` in ``runs`` contiguous runs spread over it: a strided sample would
-    touch (and, in a spilled model, make resident) pages all over the array."""
+    touch every page of the array (and a spilled model's are read from its file)."""
     step = max(1, flat.shape[0] // runs)
     length = max(1, GRID_SAMPLE // runs)
-    parts = [np.array(flat[start:start + length]) for start in range(0, flat.shape[0], step)]
-    release(flat)
-    return np.concatenate(parts)
+    return np.concatenate([read_block(flat, 0, slice(start, start + length))
+                           for start in range(0, flat.shape[0], step)])
 
 
 def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_column_range` a block of rows at a time, each block's pages handed back after it (a spilled model
-    is never made resident whole)."""
-    parts = []
-    for start in range(0, flat.shape[0], rows):
-        parts.append(_column_range(flat[start:start + rows]))
-        release(flat[start:start + rows])
+    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file,
+    never made resident)."""
+    parts = [_column_range(read_block(flat, 0, slice(start, start + rows))) for start in range(0, flat.shape[0], rows)]
     return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
 
 
@@ -817,10 +813,9 @@ class _Quantizer:
         # All coefficients in one pass (the arithmetic of _range_levels, column by column), then the
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
-        part = self.coeffs[rows]
+        part = read_block(self.coeffs, 0, rows)  # a spilled model (a streamed fit) is read from its file
         band = np.empty(part.shape, np.float64)
         np.divide(part, steps, out=band)  # float32 read as float64: the same operations as _range_levels
-        release(part)  # a spilled model (a streamed fit) stays out of resident memory
         np.add(band, np.array(self.biases, np.float64), out=band)
         np.rint(band, out=band)
         out = np.clip(band, 0, 255, out=band).astype(np.uint8)
