@@ -117,6 +117,8 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     targets = set(only) if only else {n for n in order if graph.dag.out_degree(n) == 0}
     consumers = {n: sum(1 for s in graph.dag.successors(n) if s in order) for n in order}
     streamed = streamed_outputs(graph, order, targets)  # read band by band: only per-texel nodes read them
+    if not use_cache and any(graph.stages[n].device for n in order):
+        _start_device_early()  # nothing comes from the cache: a node on the device will run
 
     values: dict[str, dict[str, Any]] = {}
     reports = {n: NodeReport(n, graph.stages[n].name, "not needed") for n in graph.spec.nodes}
@@ -142,6 +144,8 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             values[name] = {port: _Deferred(run_node, key, port) for port in st.outputs}
             report.status = "deferred"
         else:
+            if st.device:
+                _start_device_early()  # overlaps reading the inputs that were deferred until now
             inputs = {port: _materialize(values[src], src_port) for port, (src, src_port) in wired.items()}
             values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet, scheduler,
                                      streamed.get(name, frozenset()))
@@ -168,6 +172,24 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             report.status = "not needed"
     result.report = [reports[n] for n in graph.spec.nodes]
     return result
+
+
+_device_starting: list[threading.Thread] = []
+
+
+def _start_device_early() -> None:
+    """Start the OpenCL device (importing pyopencl, choosing the device: a few tenths of a second) in a thread,
+    once per process, while this one reads inputs.  A failure is left for the node that needs the device to
+    report."""
+    def start() -> None:
+        try:
+            from .backend import get_backend
+            get_backend()
+        except Exception:  # noqa: BLE001 - reported where the device is used
+            pass
+    if not _device_starting:
+        _device_starting.append(threading.Thread(target=start, name="btforge-device-start"))
+        _device_starting[0].start()
 
 
 def _node_key(graph: CheckedGraph, name: str, values: Mapping[str, Mapping[str, Any]], cache: NodeCache,

@@ -182,6 +182,7 @@ class Stage:
     keeps_facts: Mapping[str, str] = dataclasses.field(default_factory=dict)
     settle: Callable[[Mapping[str, Any], Mapping[str, Any]], Mapping[str, Any]] | None = None
     streams: frozenset[str] = frozenset()
+    device: bool = False
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
         """Whether, with these params (once :attr:`settle` has decided what depends on the whole input), each
@@ -265,6 +266,7 @@ def declare_stage(
     keeps_facts: Mapping[str, str] | None = None,
     settle: Callable | None = None,
     streams: Sequence[str] = (),
+    device: bool = False,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -300,6 +302,8 @@ def declare_stage(
     ``streams=(port, ...)`` names outputs the stage can hand over as a stack read band by band
     (``stack.chunked``) instead of whole: the runner asks for it (``ctx.streamed``) when every node reading the
     port runs per texel, so no node ever needs it whole.
+    ``device=True`` says the stage runs OpenCL kernels: the runner starts the device in the background as soon as
+    it knows such a node will run, so the device's start overlaps the nodes before it (reading a capture).
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -317,7 +321,7 @@ def declare_stage(
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
             expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}), settle=settle,
-            streams=frozenset(streams),
+            streams=frozenset(streams), device=device,
         )
 
     return wrap

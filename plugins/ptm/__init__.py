@@ -39,6 +39,7 @@ FIT_PARAMS = (
     params=list(FIT_PARAMS),
     per_texel=True,
     settle=lambda inputs, params: _settle_space(inputs["stack"], params),
+    device=True,
     expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
@@ -103,6 +104,7 @@ def _capture_precheck(params, paths):
                   choices=("auto", "srgb", "linear")),
             *FIT_PARAMS],
     precheck=_capture_precheck,
+    device=True,
 )
 def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
     """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``

@@ -31,6 +31,7 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
     # quantization scales over all texels; auto judges its space on a grid of all of them, first (settle)
     per_texel=lambda params: not params["quantize"],
     settle=lambda inputs, params: _settle_space(inputs["stack"], params),
+    device=True,
 )
 def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.
