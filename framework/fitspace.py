@@ -33,7 +33,7 @@ def held_out_space(stack: SampleStack, predict) -> str:
     if stack.n_light < AUTO_MIN_LIGHTS:
         return "srgb"
     step = auto_grid_step(stack.height, stack.width)
-    return space_from_grid(np.ascontiguousarray(stack.samples[:, :, ::step, ::step]), stack, predict)
+    return space_from_grid(stack.texel_grid(step), stack, predict)
 
 
 def auto_grid_step(height: int, width: int) -> int:

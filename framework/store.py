@@ -26,7 +26,7 @@ import numpy as np
 
 from .buffers import SampleStack, unit_directions, upper_hemisphere
 from .errors import BtforgeInputError
-from .spill import finite_range
+from .spill import finite_range, read_block
 
 FORMAT = "btforge.samples"
 FORMAT_VERSION = 1
@@ -228,6 +228,11 @@ class SpilledSampleStack(SampleStack):
 
     def in_memory(self) -> SampleStack:
         return SampleStack(self.samples, self.lights, self.views, self.channels, self.encoding, self.names)
+
+    def texel_grid(self, step: int) -> np.ndarray:
+        # row by row from the file: a strided read of the mapping would make the whole capture resident
+        return np.concatenate([read_block(self.samples, 2, slice(row, row + 1))[:, :, :, ::step]
+                               for row in range(0, self.height, step)], axis=2)
 
 
 def open_stored_stack(path: str | os.PathLike) -> StoredSampleStack:

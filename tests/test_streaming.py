@@ -97,3 +97,36 @@ def test_a_quantized_fit_beside_a_streamable_one_still_runs(capture, tmp_path):
     nodes = _by_node(result)
     assert "streamed" not in nodes["read"].notes and nodes["sh"].placement == {"where": "local"}
     assert result["sh"]["model"].coeffs.dtype == np.uint8
+
+
+def test_a_spilled_capture_reads_like_the_capture_in_memory(capture):
+    """Bands, the texel grid auto judges on, and the whole stack of a capture decoded into a spill file are the
+    samples load_stack gives, read by plain reads (never paging the capture in)."""
+    from btforge.plugins.stackio.images import load_stack, load_stack_spilled
+    whole = load_stack(capture)
+    spilled = load_stack_spilled(capture, threads=2)
+    assert spilled.chunked and not whole.chunked and spilled.type_name == "SampleStack"
+    assert spilled.names == whole.names and np.array_equal(spilled.lights, whole.lights)
+    for rows in (slice(0, 5), slice(5, 24), slice(23, 24)):
+        np.testing.assert_array_equal(btforge.streaming.band_stack(spilled, rows).samples, whole.samples[:, :, rows])
+    for step in (1, 3, 7):
+        np.testing.assert_array_equal(spilled.texel_grid(step), whole.texel_grid(step))
+    np.testing.assert_array_equal(np.asarray(spilled.in_memory().samples), whole.samples)
+
+
+def test_spilled_arrays_move_by_plain_reads_and_writes():
+    from btforge.spill import finite_range, pages, read_block, spilled_empty, write_items
+    rng = np.random.default_rng(5)
+    data = rng.standard_normal((2, 3, 7, 5, 2)).astype(np.float32)
+    spilled = spilled_empty(data.shape, np.float32)
+    write_items(spilled, 0, data.reshape(6, 7, 5, 2)[:4])  # items: images of views x lights
+    write_items(spilled, 4, data.reshape(6, 7, 5, 2)[4:])
+    np.testing.assert_array_equal(np.asarray(spilled), data)
+    for axis, part in ((2, slice(2, 6)), (0, slice(1, 2)), (4, slice(0, 1))):
+        index = (slice(None),) * axis + (part,)
+        np.testing.assert_array_equal(read_block(spilled, axis, part), data[index])
+    flat = np.concatenate([p.copy() for p in pages(spilled, page_bytes=100)])
+    np.testing.assert_array_equal(flat, data.reshape(-1))
+    assert finite_range(spilled)
+    write_items(spilled, 5, np.full((1, 7, 5, 2), np.nan, np.float32))
+    assert not finite_range(spilled)
