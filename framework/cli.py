@@ -30,14 +30,22 @@ def _parse_sets(items: list[str]) -> dict:
 
 
 def _print_report(result, stream) -> None:
-    rows = [("node", "stage", "status", "seconds", "peak MB", "notes")]
+    rows = [("node", "stage", "status", "seconds", "peak MB", "where", "notes")]
     for r in result.report:
         notes = ", ".join(f"{k}={v}" for k, v in r.notes.items() if k != "warnings")
         rows.append((r.node, r.stage, r.status, f"{r.seconds:.2f}" if r.status == "ran" else "-",
-                     f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb else "-", notes[:90]))
-    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+                     f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb else "-", _where(r.placement), notes[:90]))
+    widths = [max(len(row[i]) for row in rows) for i in range(6)]
     for row in rows:
-        print("  ".join(cell.ljust(w) for cell, w in zip(row[:5], widths)) + "  " + row[5], file=stream)
+        print("  ".join(cell.ljust(w) for cell, w in zip(row[:6], widths)) + "  " + row[6], file=stream)
+
+
+def _where(placement: dict) -> str:
+    """Where a node ran, for the report table: local (with its bands when streamed), a scheduler with its tasks."""
+    if not placement:
+        return "-"
+    counts = [f"{placement[k]} {k[:-1]}{'s' * (placement[k] != 1)}" for k in ("bands", "tasks") if k in placement]
+    return ", ".join([placement["where"], *counts])
 
 
 def cmd_run(args) -> int:
