@@ -23,7 +23,7 @@ import numpy as np
 
 from .buffers import Buffer, SampleStack
 from .errors import BtforgeInputError
-from .streaming import Joiner, merge_band_notes
+from .streaming import Joiner, band_stack, merge_band_notes
 
 SCHEDULERS = ("local", "dask")
 BAND_BYTES = 64 << 20  # linear float32 samples of one task's band of rows
@@ -92,7 +92,7 @@ def _band_source(stack, rows: slice):
     """What a task gets for a band: the store and rows to read (the samples never pass through the client), or
     the band's samples themselves (a capture streamed in this process)."""
     store = getattr(stack, "store", "")
-    return (store, rows) if store else np.ascontiguousarray(stack.samples[:, :, rows])
+    return (store, rows) if store else band_stack(stack, rows).samples
 
 
 def run_distributed(scheduler: str, stage, port: str, stack, params: Mapping[str, Any],

@@ -107,3 +107,24 @@ def test_default_fits_of_a_store_run_on_the_cluster(tmp_path, loopback_scheduler
     assert any("node" not in w and "quantize: True" in w and f"not on {loopback_scheduler}" in w
                for w in notes["quantized"]["warnings"])
     np.testing.assert_array_equal(remote["quantized"]["model"].coeffs, local["quantized"]["model"].coeffs)
+
+
+def test_a_streamed_capture_is_fitted_on_the_cluster(tmp_path, loopback_scheduler, monkeypatch):
+    """stack.read of images with only per-texel readers streams; on a cluster each band's samples are sent from
+    this process to the workers, and the result equals the local run's."""
+    import btforge.scheduler
+    btforge.run({"nodes": {
+        "m": {"stage": "demo.material", "params": {"size": [18, 12], "lights": 16, "bumps": 4}},
+        "w": {"stage": "stack.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
+        out_dir=tmp_path, use_cache=False)
+    monkeypatch.setattr(btforge.scheduler, "BAND_BYTES", 8 * 16 * 12 * 3 * 4)  # 8 rows a band: 3 tasks
+    graph = {"nodes": {
+        "read": {"stage": "stack.read", "params": {"path": str(next((tmp_path / "cap").glob("*.lp")))}},
+        "ptm": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}}
+    local = btforge.run(graph, out_dir=tmp_path, use_cache=False)
+    remote = btforge.run(graph, out_dir=tmp_path, use_cache=False, scheduler=loopback_scheduler)
+    nodes = {r.node: r for r in remote.report}
+    assert nodes["read"].notes["streamed"] is True
+    assert nodes["ptm"].placement == {"where": loopback_scheduler, "tasks": 3, "workers": 2}
+    # the same bytes per texel and the same float32 operations: a few roundings of coefficients of order 1
+    np.testing.assert_allclose(remote["ptm"]["model"].coeffs, local["ptm"]["model"].coeffs, rtol=0, atol=1e-5)
