@@ -163,6 +163,12 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             if consumers[src] == 0 and src not in targets:
                 values.pop(src, None)
 
+    return _result(graph, order, targets, values, reports)
+
+
+def _result(graph: CheckedGraph, order: list[str], targets: set[str], values: Mapping[str, Mapping[str, Any]],
+            reports: Mapping[str, NodeReport]) -> RunResult:
+    """The requested nodes' outputs, loaded, with the report of every node."""
     result = RunResult()
     for name in order:
         if name in targets:
