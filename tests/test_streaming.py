@@ -130,3 +130,22 @@ def test_spilled_arrays_move_by_plain_reads_and_writes():
     assert finite_range(spilled)
     write_items(spilled, 5, np.full((1, 7, 5, 2), np.nan, np.float32))
     assert not finite_range(spilled)
+
+
+def test_a_run_imports_no_subcommand_or_bench_module(capture, tmp_path):
+    """Start-up: `btforge run` builds no plugin subcommand (the viewer's HTTP server) and collects no bench."""
+    import subprocess
+    import sys
+    graph = tmp_path / "g.yaml"
+    graph.write_text(f"nodes:\n  read: {{stage: stack.read, params: {{path: '{capture}'}}}}\n"
+                     "  fit: {stage: ptm.fit, params: {space: srgb}, inputs: {stack: read.stack}}\n"
+                     "  save: {stage: ptm.write, params: {path: out.ptm}, inputs: {model: fit.model}}\n")
+    code = ("import sys; from btforge.cli import main\n"
+            f"assert main(['run', {str(graph)!r}, '--no-cache', '--out', {str(tmp_path)!r}]) == 0\n"
+            "loaded = sorted(m for m in sys.modules if m in ('http.server', 'numpy.ma')\n"
+            "          or m.startswith('btforge.plugins.') and m.endswith('.bench'))\n"
+            "print('loaded:', loaded)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "loaded: []" in proc.stdout, proc.stdout
+    assert (tmp_path / "out.ptm").is_file()
