@@ -132,8 +132,9 @@ def test_spilled_arrays_move_by_plain_reads_and_writes():
     assert not finite_range(spilled)
 
 
-def test_a_run_imports_no_subcommand_or_bench_module(capture, tmp_path):
-    """Start-up: `btforge run` builds no plugin subcommand (the viewer's HTTP server) and collects no bench."""
+def test_a_run_imports_no_subcommand_bench_or_networkx(capture, tmp_path):
+    """Start-up: `btforge run` builds no plugin subcommand (the viewer's HTTP server), collects no bench and
+    imports no networkx."""
     import subprocess
     import sys
     graph = tmp_path / "g.yaml"
@@ -142,7 +143,7 @@ def test_a_run_imports_no_subcommand_or_bench_module(capture, tmp_path):
                      "  save: {stage: ptm.write, params: {path: out.ptm}, inputs: {model: fit.model}}\n")
     code = ("import sys; from btforge.cli import main\n"
             f"assert main(['run', {str(graph)!r}, '--no-cache', '--out', {str(tmp_path)!r}]) == 0\n"
-            "loaded = sorted(m for m in sys.modules if m in ('http.server', 'numpy.ma')\n"
+            "loaded = sorted(m for m in sys.modules if m in ('http.server', 'numpy.ma', 'networkx')\n"
             "          or m.startswith('btforge.plugins.') and m.endswith('.bench'))\n"
             "print('loaded:', loaded)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
