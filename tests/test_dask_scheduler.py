@@ -112,7 +112,9 @@ def test_default_fits_of_a_store_run_on_the_cluster(tmp_path, loopback_scheduler
 def test_a_streamed_capture_is_fitted_on_the_cluster(tmp_path, loopback_scheduler, monkeypatch):
     """stack.read of images with only per-texel readers streams; on a cluster each band's samples are sent from
     this process to the workers, and the result equals the local run's."""
+    import btforge.plugins.stackio.images
     import btforge.scheduler
+    monkeypatch.setattr(btforge.plugins.stackio.images, "STREAM_MIN_BYTES", 0)  # stream even this tiny capture
     btforge.run({"nodes": {
         "m": {"stage": "demo.material", "params": {"size": [18, 12], "lights": 16, "bumps": 4}},
         "w": {"stage": "stack.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},

@@ -164,5 +164,6 @@ def test_stream_bench_measures_every_way_and_compares_the_files(tmp_path, capsys
     assert figures["same_ptm_file"] is True
     for label in ("streamed (default)", "stack read whole", "fit while reading"):
         assert figures[label]["seconds"] > 0 and figures[label]["peak_rss_mb"] > 10
-    assert figures["streamed (default)"]["fit_placement"] == {"where": "local", "bands": 1}
+    # a capture this small is held in memory even where it could stream (STREAM_MIN_BYTES)
+    assert figures["streamed (default)"]["fit_placement"] == {"where": "local"}
     assert figures["stack read whole"]["fit_placement"] == {"where": "local"}

@@ -39,6 +39,13 @@ def _by_node(result):
     return {r.node: r for r in result.report}
 
 
+@pytest.fixture(autouse=True)
+def stream_small_captures(monkeypatch):
+    """These captures are a few kB: stream them all the same (by default captures under 64 MB are held)."""
+    import btforge.plugins.stackio.images as images
+    monkeypatch.setattr(images, "STREAM_MIN_BYTES", 0)
+
+
 @pytest.fixture
 def small_bands(monkeypatch):
     # 5 rows a band of the 24-row capture (linear float32 bytes of 5 rows): 5 bands, the last one short
@@ -104,7 +111,7 @@ def test_a_spilled_capture_reads_like_the_capture_in_memory(capture):
     samples load_stack gives, read by plain reads (never paging the capture in)."""
     from btforge.plugins.stackio.images import load_stack, load_stack_spilled
     whole = load_stack(capture)
-    spilled = load_stack_spilled(capture, threads=2)
+    spilled = load_stack_spilled(capture, threads=2, min_bytes=0)
     assert spilled.chunked and not whole.chunked and spilled.type_name == "SampleStack"
     assert spilled.names == whole.names and np.array_equal(spilled.lights, whole.lights)
     for rows in (slice(0, 5), slice(5, 24), slice(23, 24)):
@@ -150,3 +157,11 @@ def test_a_run_imports_no_subcommand_bench_or_networkx(capture, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "loaded: []" in proc.stdout, proc.stdout
     assert (tmp_path / "out.ptm").is_file()
+
+
+def test_a_capture_under_the_streaming_size_is_held_in_memory(capture, tmp_path, monkeypatch):
+    import btforge.plugins.stackio.images as images
+    monkeypatch.setattr(images, "STREAM_MIN_BYTES", 64 << 20)
+    result = btforge.run(_graph(capture), only=["ptm"], out_dir=tmp_path, use_cache=False)
+    nodes = _by_node(result)
+    assert nodes["read"].notes["streamed"] is False and nodes["ptm"].placement == {"where": "local"}

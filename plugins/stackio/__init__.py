@@ -55,8 +55,9 @@ def stack_read(ctx, *, path, transfer):
 
     When every node reading the stack runs per texel (``ptm.fit``, ``sh.fit``, ``lafortune.fit`` ...), the
     images are decoded into a spilled file instead of memory and those nodes fit it band by band of rows, so
-    the process never holds the capture (the run report notes ``streamed``); a node that needs the stack whole
-    (``stack.split``, ``stack.compare``, a relight) gets it in memory.
+    the process never holds the capture (the run report notes ``streamed``; a capture under 64 MB is held all
+    the same, which costs less); a node that needs the stack whole (``stack.split``, ``stack.compare``, a
+    relight) gets it in memory.
     """
     from btforge.store import is_store, open_stored_stack
 
@@ -71,7 +72,7 @@ def stack_read(ctx, *, path, transfer):
     elif "stack" in ctx.streamed:  # every reader runs per texel: decoded into a file, fitted band by band
         from .images import load_stack_spilled
         stack = load_stack_spilled(source, transfer=transfer)
-        ctx.note("streamed", True)
+        ctx.note("streamed", stack.chunked)  # a small capture is read into memory all the same
     else:
         stack = load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
