@@ -441,6 +441,11 @@ class SampleStack(PerTexel):
         """Linear radiance under every light and view, per texel."""
         return np.moveaxis(self.linear(), (2, 3), (0, 1)).reshape(self.height, self.width, -1)
 
+    def texel_grid(self, step: int) -> np.ndarray:
+        """The stored samples ``[V, L, h, w, C]`` of every ``step``-th row and column: texels spread over the whole
+        stack, on which choices about all of them are judged (``space: auto``)."""
+        return np.ascontiguousarray(self.samples[:, :, ::step, ::step])
+
     def row_bands(self, budget_bytes: int = 128 << 20) -> Iterator[slice]:
         """Bands of rows whose linear float32 samples fit in ``budget_bytes``: the unit of streamed work."""
         row_bytes = self.n_view * self.n_light * self.width * self.n_channel * 4

@@ -30,14 +30,22 @@ def _parse_sets(items: list[str]) -> dict:
 
 
 def _print_report(result, stream) -> None:
-    rows = [("node", "stage", "status", "seconds", "peak MB", "notes")]
+    rows = [("node", "stage", "status", "seconds", "peak MB", "where", "notes")]
     for r in result.report:
         notes = ", ".join(f"{k}={v}" for k, v in r.notes.items() if k != "warnings")
         rows.append((r.node, r.stage, r.status, f"{r.seconds:.2f}" if r.status == "ran" else "-",
-                     f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb else "-", notes[:90]))
-    widths = [max(len(row[i]) for row in rows) for i in range(5)]
+                     f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb else "-", _where(r.placement), notes[:90]))
+    widths = [max(len(row[i]) for row in rows) for i in range(6)]
     for row in rows:
-        print("  ".join(cell.ljust(w) for cell, w in zip(row[:5], widths)) + "  " + row[5], file=stream)
+        print("  ".join(cell.ljust(w) for cell, w in zip(row[:6], widths)) + "  " + row[6], file=stream)
+
+
+def _where(placement: dict) -> str:
+    """Where a node ran, for the report table: local (with its bands when streamed), a scheduler with its tasks."""
+    if not placement:
+        return "-"
+    counts = [f"{placement[k]} {k[:-1]}{'s' * (placement[k] != 1)}" for k in ("bands", "tasks") if k in placement]
+    return ", ".join([placement["where"], *counts])
 
 
 def _shown(path: Path) -> str:
@@ -223,7 +231,12 @@ def cmd_bench(args) -> int:
     return bench.main(args)
 
 
-def build_parser() -> argparse.ArgumentParser:
+BUILT_IN_COMMANDS = ("run", "validate", "stages", "info", "bench")
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command-line parser; plugins' subcommands are added unless ``argv`` names a built-in command (their
+    hooks import what the commands need, which a ``btforge run`` should not pay for at start-up)."""
     parser = argparse.ArgumentParser(prog="btforge", description="Reflectance textures as a graph of stages.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     parser.add_argument("--device", help="OpenCL device: part of its platform or device name (or BTFORGE_DEVICE)")
@@ -270,7 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     from . import bench
     bench.add_parser(sub).set_defaults(func=cmd_bench)
-    _add_plugin_commands(sub)
+    words = [word for word in (sys.argv[1:] if argv is None else argv) if not word.startswith("-")]
+    if not words or words[0] not in BUILT_IN_COMMANDS:
+        _add_plugin_commands(sub)
     return parser
 
 
@@ -306,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         record_phase("interpreter_and_imports_s", started)
     _unmap_large_blocks()
     try:
-        parser = build_parser()  # loads the plugins (their commands are subcommands): a bad plugin stops here
+        parser = build_parser(argv)  # loads the plugins (their commands are subcommands): a bad plugin stops here
     except BtforgeInputError as exc:
         if argv is not None and "--debug" in argv or argv is None and "--debug" in sys.argv[1:]:
             raise

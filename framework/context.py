@@ -23,12 +23,16 @@ class StageContext:
         Resolves input paths against the graph's folder and output paths against the run's output folder.
     notes
         Facts the stage reports (condition numbers, counts, compression rates); they land in the run report.
+    streamed
+        The outputs (of those the stage declares ``streams``) the runner wants as stacks read band by band,
+        because every node reading them runs per texel.
     """
 
     node: str
     paths: RunPaths = dataclasses.field(default_factory=lambda: RunPaths(Path.cwd(), Path.cwd()))
     notes: dict[str, Any] = dataclasses.field(default_factory=dict)
     quiet: bool = False
+    streamed: frozenset[str] = frozenset()
 
     def note(self, key: str, value: Any) -> None:
         self.notes[key] = value

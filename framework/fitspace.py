@@ -87,8 +87,7 @@ def _scored(samples: np.ndarray, encoding: str) -> np.ndarray:
 def held_out_grid(stack: SampleStack) -> np.ndarray:
     """The samples ``[V, L, h, w, C]`` of the regular texel grid (at most about ``AUTO_TEXELS`` texels) that
     ``auto`` choices judge on."""
-    step = auto_grid_step(stack.height, stack.width)
-    return np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
+    return stack.texel_grid(auto_grid_step(stack.height, stack.width))
 
 
 def resolve_space(stack: SampleStack, space: str, predict=None) -> str:

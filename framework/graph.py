@@ -3,7 +3,8 @@
 A graph file is a mapping ``nodes: {name: {stage, params, inputs}}``; an input is wired as ``node.port``.
 :func:`load_graph` parses it (keeping line numbers for messages), and :func:`check_graph` validates stages,
 parameters, ports, port types, cycles and input files against the registry, collecting every problem it finds
-into one :class:`BtforgeInputError`.  The checked graph is a networkx ``DiGraph`` whose edges carry the ports.
+into one :class:`BtforgeInputError`.  The checked graph is a ``DiGraph`` (``framework/dag.py``) whose edges
+carry the ports.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-import networkx as nx
+from . import dag as nx  # networkx's names, without its import cost
 import yaml
 
 from .errors import BtforgeInputError, collect_warnings

@@ -40,6 +40,22 @@ class Registry:
     def register(self, plugin: Any, name: str | None = None) -> None:
         self.pm.register(plugin, name=name)
         self._collect()
+        self._collect_commands()  # a plugin registered later is checked whole at once
+
+    @property
+    def cli_commands(self) -> dict[str, tuple[Any, Any]]:
+        """``{name: (add_arguments, run)}`` of the plugins' subcommands, collected when first asked for: the hooks
+        import the commands' modules (a web server, benches), which a ``btforge run`` does not need."""
+        if self._cli_commands is None:
+            self._collect_commands()
+        return self._cli_commands
+
+    @property
+    def bench_commands(self) -> dict[str, Any]:
+        """``{name: bench(args) -> int}`` of the plugins' benches, collected when first asked for."""
+        if self._bench_commands is None:
+            self._collect_commands()
+        return self._bench_commands
 
     def _plugin_name(self, plugin: Any) -> str:
         return self.pm.get_name(plugin) or repr(plugin)
@@ -113,33 +129,38 @@ class Registry:
                                                 f"known types: {', '.join(sorted(self.types))}")
                 self.stages[st.name] = st
                 self._stage_sources[st.name] = impl.plugin
-        self.cli_commands: dict[str, tuple[Any, Any]] = {}
-        for impl in self.pm.hook.btforge_cli_commands.get_hookimpls():
-            plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
-            for name, command in (impl.function() or {}).items():
-                if name in self.cli_commands:
-                    raise BtforgeInputError(f"command '{name}'", f"is defined by two plugins (one is {plugin_name})",
-                                            "uninstall one of the plugins or rename the command")
-                self.cli_commands[name] = command
         self.info_readers: dict[str, Any] = {}
         for result in self.pm.hook.btforge_info_readers():
             self.info_readers.update(result or {})
+        self._cli_commands = self._bench_commands = None
+
+    def _collect_commands(self) -> None:
+        commands: dict[str, tuple[Any, Any]] = {}
+        for impl in self.pm.hook.btforge_cli_commands.get_hookimpls():
+            plugin_name = self.pm.get_name(impl.plugin) or repr(impl.plugin)
+            for name, command in (impl.function() or {}).items():
+                if name in commands:
+                    raise BtforgeInputError(f"command '{name}'", f"is defined by two plugins (one is {plugin_name})",
+                                            "uninstall one of the plugins or rename the command")
+                commands[name] = command
+        self._cli_commands = commands
         self._collect_benches()
 
     def _collect_benches(self) -> None:
-        self.bench_commands: dict[str, Any] = {}
+        benches: dict[str, Any] = {}
         bench_owner: dict[str, str] = {}
         for impl in self.pm.hook.btforge_bench_commands.get_hookimpls():
             plugin_name = self._plugin_name(impl.plugin)
             for bench_name, fn in (impl.function() or {}).items():
-                if bench_name in self.bench_commands:
+                if bench_name in benches:
                     raise BtforgeInputError(f"bench '{bench_name}'", f"is contributed by both plugin "
                                             f"'{bench_owner[bench_name]}' and plugin '{plugin_name}'",
                                             "rename one of the benches")
                 if not callable(fn):
                     raise BtforgeInputError(f"plugin '{plugin_name}', bench '{bench_name}'",
                                             f"expected a function bench(args) -> int, found {fn!r}")
-                self.bench_commands[bench_name], bench_owner[bench_name] = fn, plugin_name
+                benches[bench_name], bench_owner[bench_name] = fn, plugin_name
+        self._bench_commands = benches
 
     def stage(self, name: str) -> Stage:
         try:

@@ -22,6 +22,7 @@ from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_war
 from .graph import CheckedGraph, check_graph, load_graph
 from .registry import Registry, default_registry
 from .stages import RunPaths
+from .streaming import not_split_reason, per_texel_input, run_banded, streamed_outputs
 
 
 DEFAULT_OUT = Path("out")  # relative: resolved against the current folder when a stage writes
@@ -68,6 +69,9 @@ class NodeReport:
     seconds: float = 0.0
     peak_rss_mb: float | None = None
     notes: dict[str, Any] = dataclasses.field(default_factory=dict)
+    # where it ran: {"where": "local"} (with "bands" when streamed band by band), {"where": SCHEDULER, "tasks",
+    # "workers"} on a cluster, {"where": "cache"}; empty when it did not run
+    placement: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 class RunResult(dict):
@@ -113,6 +117,9 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     order = graph.needed_for(only)
     targets = set(only) if only else {n for n in order if graph.dag.out_degree(n) == 0}
     consumers = {n: sum(1 for s in graph.dag.successors(n) if s in order) for n in order}
+    streamed = streamed_outputs(graph, order, targets)  # read band by band: only per-texel nodes read them
+    if not use_cache and any(graph.stages[n].device for n in order):
+        _start_device_early()  # nothing comes from the cache: a node on the device will run
 
     values: dict[str, dict[str, Any]] = {}
     reports = {n: NodeReport(n, graph.stages[n].name, "not needed") for n in graph.spec.nodes}
@@ -129,17 +136,20 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         if manifest is not None:
             values[name] = {port: _Lazy(cache, key, port, info["content_key"], registry)
                             for port, info in manifest["outputs"].items()}
-            report.status, report.notes = "cached", manifest.get("notes", {})
+            report.status, report.notes, report.placement = "cached", manifest.get("notes", {}), {"where": "cache"}
         elif cacheable and not st.cache_outputs:  # cheaper to recompute than to store: run only if data is needed
             sources = {port: values[src][src_port] for port, (src, src_port) in wired.items()}
             run_node = functools.cache(lambda name=name, sources=sources: _evaluate(
                 graph, name, {p: _materialize(sources, p) for p in sources}, paths, reports[name], registry, quiet,
-                scheduler))
+                scheduler, streamed.get(name, frozenset())))
             values[name] = {port: _Deferred(run_node, key, port) for port in st.outputs}
             report.status = "deferred"
         else:
+            if st.device:
+                _start_device_early()  # overlaps reading the inputs that were deferred until now
             inputs = {port: _materialize(values[src], src_port) for port, (src, src_port) in wired.items()}
-            values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet, scheduler)
+            values[name] = _evaluate(graph, name, inputs, paths, report, registry, quiet, scheduler,
+                                     streamed.get(name, frozenset()))
             if cacheable:
                 started = time.perf_counter()
                 cache.store(key, values[name], report.notes)
@@ -154,6 +164,12 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             if consumers[src] == 0 and src not in targets:
                 values.pop(src, None)
 
+    return _result(graph, order, targets, values, reports)
+
+
+def _result(graph: CheckedGraph, order: list[str], targets: set[str], values: Mapping[str, Mapping[str, Any]],
+            reports: Mapping[str, NodeReport]) -> RunResult:
+    """The requested nodes' outputs, loaded, with the report of every node."""
     result = RunResult()
     for name in order:
         if name in targets:
@@ -164,6 +180,24 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
     result.report = [reports[n] for n in graph.spec.nodes]
     result.output_paths = list(dict.fromkeys(paths.requested))
     return result
+
+
+_device_starting: list[threading.Thread] = []
+
+
+def _start_device_early() -> None:
+    """Start the OpenCL device (importing pyopencl, choosing the device: a few tenths of a second) in a thread,
+    once per process, while this one reads inputs.  A failure is left for the node that needs the device to
+    report."""
+    def start() -> None:
+        try:
+            from .backend import get_backend
+            get_backend()
+        except Exception:  # noqa: BLE001 - reported where the device is used
+            pass
+    if not _device_starting:
+        _device_starting.append(threading.Thread(target=start, name="btforge-device-start"))
+        _device_starting[0].start()
 
 
 def _node_key(graph: CheckedGraph, name: str, values: Mapping[str, Mapping[str, Any]], cache: NodeCache,
@@ -178,14 +212,16 @@ def _node_key(graph: CheckedGraph, name: str, values: Mapping[str, Mapping[str, 
 
 
 def _evaluate(graph: CheckedGraph, name: str, inputs: Mapping[str, Buffer], paths: RunPaths, report: NodeReport,
-              registry: Registry, quiet: bool, scheduler: str = "local") -> dict[str, Buffer]:
-    """Run one node's stage; fill its report (time, peak memory, notes and every warning raised meanwhile)."""
+              registry: Registry, quiet: bool, scheduler: str = "local",
+              streamed: frozenset[str] = frozenset()) -> dict[str, Buffer]:
+    """Run one node's stage; fill its report (time, peak memory, notes and every warning raised meanwhile).
+    ``streamed`` are the outputs to hand over band by band (``framework/streaming.py``)."""
     st = graph.stages[name]
-    ctx = StageContext(node=name, paths=paths, quiet=quiet)
+    ctx = StageContext(node=name, paths=paths, quiet=quiet, streamed=streamed)
     start = time.perf_counter()
     with _PeakMemory() as mem, collect_warnings() as raised:
         try:
-            outputs = _execute(st, ctx, inputs, graph.params[name], scheduler, registry)
+            outputs = _execute(st, ctx, inputs, graph.params[name], scheduler, registry, report)
         except BtforgeInputError as exc:
             raise exc.located(graph.spec.where(name, graph.spec.nodes[name].line)) from exc
         except BtforgeError:
@@ -228,17 +264,40 @@ def _cached_manifest(cache: NodeCache, key: str, name: str, st) -> dict[str, Any
 
 
 def _execute(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[str, Any], scheduler: str,
-             registry: Registry):
-    """Run one node: in this process, or - a per-texel stage on a stored stack with a distributed scheduler -
-    as dask tasks over bands of texels (``framework/scheduler.py``)."""
+             registry: Registry, report: NodeReport):
+    """Run one node: whole in this process; band by band in this process (a per-texel stage whose one input is a
+    stack read band by band, ``framework/streaming.py``); or, with a distributed scheduler, the same bands as
+    tasks on the cluster (``framework/scheduler.py``).  Fill the report's placement."""
+    port = per_texel_input(st, params, inputs)
+    banded = port is not None and inputs[port].chunked
+    if scheduler != "local" and banded:
+        from .scheduler import run_distributed
+        outputs, notes = run_distributed(scheduler, st, port, inputs[port], _settled(st, ctx, inputs, params),
+                                         registry.types)
+        ctx.notes.update(notes)
+        report.placement = {"where": scheduler, "tasks": notes["tasks"], "workers": notes["workers"]}
+        return outputs
     if scheduler != "local":
-        from .scheduler import distributable, run_distributed
-        port = distributable(st, params, inputs)
-        if port is not None:
-            outputs, notes = run_distributed(scheduler, st, port, inputs[port], params, registry.types)
-            ctx.notes.update(notes)
-            return outputs
+        reason = not_split_reason(st, params, inputs) if port is None else (
+            "its stack is held whole in this process (another node reads it whole, or it is not a capture "
+            "stack.read streams); read a store made by stack.import to fit it on the cluster")
+        if reason:
+            ctx.warn(f"runs in this process, not on {scheduler}: {reason}")
+    if banded:
+        outputs, bands = run_banded(st, ctx, port, inputs[port], _settled(st, ctx, inputs, params), registry.types)
+        report.placement = {"where": "local", "bands": bands}
+        return outputs
+    report.placement = {"where": "local"}
     return st.fn(ctx, **inputs, **params)
+
+
+def _settled(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
+    """The params with what depends on all texels decided once on the whole input (noted when it changed)."""
+    settled = st.settled(inputs, params)
+    changed = {key: value for key, value in settled.items() if params.get(key) != value}
+    if changed:
+        ctx.note("settled", changed)
+    return settled
 
 
 def _key_of(value: Any) -> str:

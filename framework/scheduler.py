@@ -1,13 +1,15 @@
 """Running per-texel stages on dask.distributed: ``btforge run --scheduler dask|tcp://HOST:PORT``.
 
-A node whose stage is declared ``per_texel`` and whose input stack is read from a chunked store
-(``stack.chunked``) becomes a dask.array computation: the store's samples are a ``dask.array`` (``from_zarr``)
-split into bands of chunk rows, and each band is one task that runs the stage on that band of texels.  Each
-worker reads its band from the store itself (the store must be on a filesystem every worker sees), opens its
-own OpenCL context in its own process (contexts cannot be pickled), and runs one kernel at a time (a lock per
-worker process, and LocalCluster workers have one thread).  The client joins the bands' outputs along the
-texel grid; the run report gets the tasks, the workers and the bytes that came back to the client (the samples
-themselves are read by the workers from the store and never pass through the client).
+A node whose stage is per texel with its params (``per_texel``, once ``settle`` has decided ``space: auto`` on
+a sample of the whole input) and whose one input is a stack read band by band (``stack.chunked``: a chunked
+store, or a capture ``stack.read`` streams because only per-texel nodes read it) runs as one task per band of
+rows of texels.  A worker reads its band of a store itself (the store must be on a filesystem every worker
+sees); the bands of a streamed capture are sent from this process, two per worker at a time.  Each worker opens
+its own OpenCL context in its own process (contexts cannot be pickled) and runs one kernel at a time (a lock
+per worker process, and LocalCluster workers have one thread).  The client joins the bands' outputs along the
+texel grid (``framework/streaming.py``); the run report gets where each node ran (``placement``), the tasks,
+the workers and the bytes that came back to the client.  A node that reads stacks but cannot be split runs in
+this process with a warning that says why.
 
 ``dask`` starts a LocalCluster of 2 worker processes on the loopback interface; ``tcp://HOST:PORT`` connects to
 a running scheduler (``dask scheduler`` and ``dask worker tcp://HOST:PORT --nthreads 1`` on each machine).
@@ -19,12 +21,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .buffers import Buffer, PerTexel, SampleStack
+from .buffers import Buffer, SampleStack
 from .errors import BtforgeInputError
-from .spill import release, spilled_empty
+from .streaming import Joiner, band_stack, merge_band_notes
 
 SCHEDULERS = ("local", "dask")
-BAND_BYTES = 64 << 20
+BAND_BYTES = 64 << 20  # linear float32 samples of one task's band of rows
 _kernel_lock = threading.Lock()  # per worker process: one OpenCL kernel at a time
 _clients: dict[str, Any] = {}
 
@@ -63,18 +65,19 @@ def close_clients() -> None:
     _clients.clear()
 
 
-def distributable(stage, params: Mapping[str, Any], inputs: Mapping[str, Any]) -> str | None:
-    """The input port a distributed run splits (a chunked stack), or None when the node runs locally."""
-    if not stage.is_per_texel(params):
-        return None
-    chunked = [port for port, value in inputs.items() if getattr(value, "chunked", False)]
-    return chunked[0] if len(chunked) == 1 and len(inputs) == 1 else None
+def _band_meta(stack) -> dict:
+    return {"lights": stack.lights.tolist(), "views": stack.views.tolist(), "channels": list(stack.channels),
+            "encoding": stack.encoding, "names": list(stack.names)}
 
 
-def _run_band(samples: np.ndarray, stage_name: str, meta: dict, port: str, params: dict) -> dict:
-    """On a worker: the stage on one band of texels; returns each output's payload and the notes."""
+def _run_band(samples, stage_name: str, meta: dict, port: str, params: dict) -> dict:
+    """On a worker: the stage on one band of texels (its samples, or ``(store, rows)`` to read them from a
+    store every worker sees); returns each output's payload and the notes."""
     from .context import StageContext
     from .registry import default_registry
+    if isinstance(samples, tuple):
+        from .store import open_store, read_samples
+        samples = read_samples(open_store(samples[0])[0], samples[1])
     band = SampleStack(samples, np.asarray(meta["lights"]), np.asarray(meta["views"]), tuple(meta["channels"]),
                        meta["encoding"], tuple(meta.get("names") or ()))
     stage = default_registry().stage(stage_name)
@@ -85,87 +88,48 @@ def _run_band(samples: np.ndarray, stage_name: str, meta: dict, port: str, param
             "notes": ctx.notes}
 
 
-class _Joiner:
-    """Assembles one output port from bands of texels as they arrive, in any order: texel fields are copied into
-    their rows of one array (allocated on the first band, filled band by band, so the bands are not held twice);
-    every other field must be the same in every band.  The joined arrays are spilled to a file, as a store's
-    single-process fit is."""
-
-    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
-        self.types, self.starts, self.height = types, starts, height
-        self.type_name = self.meta = None
-        self.arrays: dict[str, np.ndarray] = {}
-
-    def add(self, band: int, part: tuple[str, dict, dict]) -> None:
-        type_name, meta, arrays = part
-        if self.type_name is None:
-            self.type_name, self.meta = type_name, meta
-            self.cls = self.types[type_name]
-            if not issubclass(self.cls, PerTexel):
-                raise BtforgeInputError(type_name, "is not a per-texel buffer, so bands of it cannot be joined",
-                                        "declare the stage per_texel only if its outputs are per-texel buffers")
-        if meta != self.meta:
-            raise BtforgeInputError(type_name, "bands disagree on parameters that are not per-texel",
-                                    "a bug in the stage's per_texel declaration")
-        axis = self.cls.texel_axis
-        for name, piece in arrays.items():
-            if name not in self.cls.texel_fields:
-                known = self.arrays.setdefault(name, piece)
-                if not np.array_equal(known, piece):
-                    raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
-                                            "a bug in the stage's per_texel declaration")
-                continue
-            if name not in self.arrays:  # spilled: the joined result never becomes resident (framework/spill.py)
-                shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
-                self.arrays[name] = spilled_empty(shape, piece.dtype)
-            index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
-            self.arrays[name][index] = piece
-            release(self.arrays[name][index])
-
-    def buffer(self) -> Buffer:
-        return self.cls.from_payload(self.meta, self.arrays)
+def _band_source(stack, rows: slice):
+    """What a task gets for a band: the store and rows to read (the samples never pass through the client), or
+    the band's samples themselves (a capture streamed in this process)."""
+    store = getattr(stack, "store", "")
+    return (store, rows) if store else band_stack(stack, rows).samples
 
 
 def run_distributed(scheduler: str, stage, port: str, stack, params: Mapping[str, Any],
                     types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], dict[str, Any]]:
-    """Run a per-texel stage on bands of a stored stack as dask.array tasks; return outputs and report notes."""
-    import dask
-    import dask.array as da
+    """Run a per-texel stage (``params`` settled) on bands of rows of a stack read band by band, one task per
+    band on the cluster, at most two bands per worker in flight; return the joined outputs and report notes."""
+    from dask.distributed import as_completed
 
     client = client_for(scheduler)
-    rows = [band.stop - band.start for band in stack.row_bands(BAND_BYTES)]
-    samples = da.from_zarr(stack.samples).rechunk((-1, -1, tuple(rows), -1, -1))
-    meta = {"lights": stack.lights.tolist(), "views": stack.views.tolist(), "channels": list(stack.channels),
-            "encoding": stack.encoding, "names": list(stack.names)}
-    blocks = samples.to_delayed().ravel()
-    run = dask.delayed(_run_band, pure=True)
-    tasks = [run(block, stage.name, meta, port, dict(params)) for block in blocks]
-    graph_tasks = len(dask.delayed(list)(tasks).__dask_graph__())
-    from dask.distributed import as_completed
-    futures = client.compute(tasks)
-    band_of = {future.key: band for band, future in enumerate(futures)}
-    starts = list(np.cumsum([0] + rows[:-1]))
-    joiners: dict[str, _Joiner] = {}
-    moved, band_notes = 0, {}
-    for future, result in as_completed(futures, with_results=True):  # joined as they come: held once
-        band = band_of[future.key]
+    bands = list(stack.row_bands(BAND_BYTES))
+    workers = max(1, len(client.scheduler_info()["workers"]))
+    meta, params = _band_meta(stack), dict(params)
+    joiners: dict[str, Joiner] = {}
+    moved, band_notes, band_of = 0, {}, {}
+
+    def submit(index: int):
+        future = client.submit(_run_band, _band_source(stack, bands[index]), stage.name, meta, port, params,
+                               pure=False)
+        band_of[future.key] = index
+        return future
+
+    waiting = iter(range(len(bands)))
+    running = as_completed([submit(i) for _, i in zip(range(2 * workers), waiting)], with_results=True)
+    for future, result in running:  # joined as they come: held once
+        band = band_of.pop(future.key)
         for name, part in result["outputs"].items():
-            joiners.setdefault(name, _Joiner(types, starts, stack.height)).add(band, part)
+            joiners.setdefault(name, Joiner(types, [b.start for b in bands], stack.height)).add(band, part)
             moved += sum(a.nbytes for a in part[2].values())
         band_notes[band] = result["notes"]
         del result
-    futures.clear()
-    outputs = {name: joiner.buffer() for name, joiner in joiners.items()}
-    results = [{"notes": band_notes[band]} for band in sorted(band_notes)]
-    notes = {"scheduler": scheduler, "tasks": graph_tasks, "bands": len(tasks),
-             "workers": len(client.scheduler_info()["workers"]), "bytes_to_client": int(moved)}
-    notes.update(results[0]["notes"])
-    warnings = sorted({w for r in results for w in r["notes"].get("warnings", [])})
-    if warnings:
-        notes["warnings"] = warnings
-    if len(results) > 1:
-        notes["notes_from"] = "the first band of texels (each band reports its own)"
-    return outputs, notes
+        following = next(waiting, None)
+        if following is not None:
+            running.add(submit(following))
+    notes = {"scheduler": scheduler, "tasks": len(bands), "bands": len(bands), "workers": workers,
+             "bytes_to_client": int(moved)}
+    notes.update(merge_band_notes([band_notes[band] for band in sorted(band_notes)]))
+    return {name: joiner.buffer() for name, joiner in joiners.items()}, notes
 
 
-__all__ = ["run_distributed", "distributable", "check_scheduler", "client_for", "close_clients"]
+__all__ = ["run_distributed", "check_scheduler", "client_for", "close_clients"]

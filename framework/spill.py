@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import math
 import mmap
+import os
 import tempfile
-from typing import Iterator, Sequence
+import weakref
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 PAGE_BYTES = 32 << 20
+READ_BYTES = 4 << 20  # parts read from a spill file: small, since each is a copy
 
 
 def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
@@ -31,7 +34,65 @@ def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
     root.mkdir(parents=True, exist_ok=True)
     handle = tempfile.TemporaryFile(prefix="spill-", dir=root)
     handle.truncate(nbytes)
-    return np.memmap(handle, dtype, "r+", 0, shape)
+    array = np.memmap(handle, dtype, "r+", 0, shape)
+    key = id(array.base)
+    _files[key] = handle  # for plain reads and writes of its parts (_file_part), as long as the array lives
+    weakref.finalize(array, _files.pop, key, None)
+    return array
+
+
+_files: dict[int, Any] = {}  # id of a spilled array's mapping -> its file
+
+
+def _file_part(array: np.ndarray):
+    """``(file, offset)`` of a C-contiguous part of a spilled array (its file and where its first byte lies), or
+    None.  Moving such a part with plain reads and writes never maps its pages into the process: touching the
+    mapping would make resident not only the part but whatever the kernel maps around each fault (on this
+    machine half of a capture for a band of 27 rows of it)."""
+    found = _shared_map(array) if isinstance(array, np.ndarray) and array.flags.c_contiguous else None
+    handle = _files.get(id(found[0])) if found else None
+    return (handle, array.ctypes.data - found[1]) if handle is not None else None
+
+
+def write_items(array: np.ndarray, first: int, data: np.ndarray) -> None:
+    """Write ``data`` into C-contiguous ``array`` as its items ``first, first + 1, ...`` in C order, an item being
+    one ``data[0]`` (e.g. images ``[n, H, W, C]`` into a stack ``[V, L, H, W, C]``, counting views x lights); a
+    spilled array's file is written with plain writes (see :func:`_file_part`)."""
+    item = data[0].size if len(data) else 1
+    found = _file_part(array)
+    if found is None:
+        flat = array.reshape(-1)  # a view: the array is C-contiguous
+        flat[first * item:(first + len(data)) * item] = data.reshape(-1)
+        return
+    handle, offset = found
+    view = memoryview(np.ascontiguousarray(data, array.dtype)).cast("B")
+    offset += first * item * array.itemsize
+    while view.nbytes:
+        written = os.pwrite(handle.fileno(), view, offset)
+        view, offset = view[written:], offset + written
+
+
+def _read_into(handle, offset: int, out: np.ndarray) -> np.ndarray:
+    if os.preadv(handle.fileno(), [out.reshape(-1).view(np.uint8)], offset) != out.nbytes:
+        raise OSError(f"short read from a spill file at byte {offset}")
+    return out
+
+
+def read_block(array: np.ndarray, axis: int, part: slice) -> np.ndarray:
+    """``array[..., part, ...]`` (``part`` a step-1 slice along ``axis``) as a new in-memory array; a spilled
+    array's block is read from its file with plain reads, one per contiguous run (see :func:`_file_part`)."""
+    start, stop, _ = part.indices(array.shape[axis])
+    found = _file_part(array)
+    if found is None:
+        return np.ascontiguousarray(array[(slice(None),) * axis + (slice(start, stop),)])
+    handle, offset = found
+    outer = int(np.prod(array.shape[:axis]))
+    inner = int(np.prod(array.shape[axis + 1:])) * array.itemsize
+    out = np.empty(array.shape[:axis] + (max(0, stop - start),) + array.shape[axis + 1:], array.dtype)
+    runs = out.reshape(outer, -1)
+    for index in range(outer):
+        _read_into(handle, offset + (index * array.shape[axis] + start) * inner, runs[index])
+    return out
 
 
 def _shared_map(array: np.ndarray) -> tuple[mmap.mmap, int] | None:
@@ -70,14 +131,22 @@ def is_spilled(array: np.ndarray) -> bool:
 
 def pages(array: np.ndarray, page_bytes: int = PAGE_BYTES) -> Iterator[np.ndarray]:
     """``array`` in consecutive parts of at most about ``page_bytes`` (flat for a C-contiguous array, else along
-    axis 0); a part of a spilled array is released when the caller asks for the next."""
+    axis 0), to read: a part of a spilled array is read from its file (C-contiguous; each part is then valid
+    until the caller asks for the next) or released when the caller asks for the next."""
     if array.ndim == 0 or array.size == 0:
         yield array
         return
     parts = array.reshape(-1) if array.flags.c_contiguous else array
+    found = _file_part(parts)
+    if found is not None:  # read from the file into one small buffer: the pages are never mapped
+        page_bytes = min(page_bytes, READ_BYTES)
     step = max(1, page_bytes // max(1, parts[:1].nbytes))
+    buffer = np.empty(parts[:step].shape, parts.dtype) if found is not None else None
     for start in range(0, parts.shape[0], step):
         part = parts[start:start + step]
+        if found is not None:
+            yield _read_into(found[0], found[1] + start * parts.itemsize, buffer[:len(part)])
+            continue
         yield part
         release(part)
 

@@ -180,11 +180,19 @@ class Stage:
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
     expects: Mapping[str, Expect] = dataclasses.field(default_factory=dict)
     keeps_facts: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    settle: Callable[[Mapping[str, Any], Mapping[str, Any]], Mapping[str, Any]] | None = None
+    streams: frozenset[str] = frozenset()
+    device: bool = False
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
-        """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
-        run on blocks of texels anywhere and the blocks be joined: ``--scheduler dask``)."""
+        """Whether, with these params (once :attr:`settle` has decided what depends on the whole input), each
+        texel's output depends only on that texel's input, so the stage can run on bands of texels - in this
+        process band by band, or on a cluster - and the bands be joined."""
         return bool(self.per_texel(params) if callable(self.per_texel) else self.per_texel)
+
+    def settled(self, inputs: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
+        """``params`` with every choice that needs the whole input (``space: auto``) decided on ``inputs``."""
+        return dict(self.settle(inputs, params) if self.settle is not None else params)
 
     @property
     def doc(self) -> str:
@@ -260,6 +268,9 @@ def declare_stage(
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
     expects: Mapping[str, Expect] | None = None,
     keeps_facts: Mapping[str, str] | None = None,
+    settle: Callable | None = None,
+    streams: Sequence[str] = (),
+    device: bool = False,
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -288,7 +299,15 @@ def declare_stage(
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
     has one port per material its scene names); the function then takes them as ``**kwargs``.
     ``per_texel`` (or ``per_texel(params) -> bool``) declares that each texel's outputs depend only on that
-    texel's inputs, so a distributed scheduler may run the stage on blocks of texels and join the results.
+    texel's inputs, so the runner may run the stage on bands of texels - streamed in this process, or as tasks
+    on a cluster - and join the results.  ``settle(inputs, params) -> params`` decides, once on the whole input,
+    the choices that depend on all texels (``space: auto`` judged on a grid of texels); ``per_texel`` then
+    speaks of the params as the graph gives them, with ``settle`` run first.
+    ``streams=(port, ...)`` names outputs the stage can hand over as a stack read band by band
+    (``stack.chunked``) instead of whole: the runner asks for it (``ctx.streamed``) when every node reading the
+    port runs per texel, so no node ever needs it whole.
+    ``device=True`` says the stage runs OpenCL kernels: the runner starts the device in the background as soon as
+    it knows such a node will run, so the device's start overlaps the nodes before it (reading a capture).
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -305,7 +324,8 @@ def declare_stage(
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
-            expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}),
+            expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}), settle=settle,
+            streams=frozenset(streams), device=device,
         )
 
     return wrap

@@ -26,6 +26,7 @@ import numpy as np
 
 from .buffers import SampleStack, unit_directions, upper_hemisphere
 from .errors import BtforgeInputError
+from .spill import finite_range, read_block
 
 FORMAT = "btforge.samples"
 FORMAT_VERSION = 1
@@ -126,23 +127,7 @@ class StoredSampleStack(SampleStack):
     digest: str = ""
 
     def __post_init__(self):
-        owner = f"StoredSampleStack {self.store}"
-        shape = tuple(self.samples.shape)
-        want = {"srgb8": np.uint8, "linear": np.float32}.get(self.encoding)
-        if want is None or np.dtype(self.samples.dtype) != want:
-            raise BtforgeInputError(owner, f"expected uint8 samples for encoding 'srgb8' or float32 for 'linear', "
-                                    f"found {self.samples.dtype} with {self.encoding!r}", "import the capture again")
-        lights = upper_hemisphere("lights", unit_directions("lights", self.lights, owner=owner), owner)
-        views = upper_hemisphere("views", unit_directions("views", self.views, owner=owner), owner)
-        if len(shape) != 5 or lights.shape[0] != shape[1] or views.shape[0] != shape[0] \
-                or len(self.channels) != shape[4] or (self.names and len(self.names) != shape[1]):
-            raise BtforgeInputError(owner, f"samples {shape} do not match {lights.shape[0]} lights, {views.shape[0]} "
-                                    f"views and channels {tuple(self.channels)}", "the store is damaged; import it again")
-        for name, value in (("lights", lights), ("views", views)):
-            value.flags.writeable = False
-            object.__setattr__(self, name, value)
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "names", tuple(self.names))
+        _check_lazy_stack(self, f"StoredSampleStack {self.store}", "the store is damaged; import it again")
 
     def payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         return ({"store": self.store, "digest": self.digest, "channels": list(self.channels),
@@ -198,6 +183,56 @@ class StoredSampleStack(SampleStack):
         for r0 in range(0, self.height, step_r):
             for c0 in range(0, self.width, cols):
                 yield slice(r0, min(self.height, r0 + step_r)), slice(c0, min(self.width, c0 + cols))
+
+
+def _check_lazy_stack(stack: SampleStack, owner: str, hint: str) -> None:
+    """The checks of a :class:`~btforge.buffers.SampleStack` for one whose samples are not in memory: shapes,
+    types and directions, never a pass over the samples that would page them in."""
+    shape = tuple(stack.samples.shape)
+    want = {"srgb8": np.uint8, "linear": np.float32}.get(stack.encoding)
+    if want is None or np.dtype(stack.samples.dtype) != want:
+        raise BtforgeInputError(owner, f"expected uint8 samples for encoding 'srgb8' or float32 for 'linear', "
+                                f"found {stack.samples.dtype} with {stack.encoding!r}", hint)
+    lights = upper_hemisphere("lights", unit_directions("lights", stack.lights, owner=owner), owner)
+    views = upper_hemisphere("views", unit_directions("views", stack.views, owner=owner), owner)
+    if len(shape) != 5 or lights.shape[0] != shape[1] or views.shape[0] != shape[0] \
+            or len(stack.channels) != shape[4] or (stack.names and len(stack.names) != shape[1]):
+        raise BtforgeInputError(owner, f"samples {shape} do not match {lights.shape[0]} lights, {views.shape[0]} "
+                                f"views and channels {tuple(stack.channels)}", hint)
+    for name, value in (("lights", lights), ("views", views)):
+        value.flags.writeable = False
+        object.__setattr__(stack, name, value)
+    object.__setattr__(stack, "channels", tuple(stack.channels))
+    object.__setattr__(stack, "names", tuple(stack.names))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SpilledSampleStack(SampleStack):
+    """A :class:`~btforge.buffers.SampleStack` whose samples were decoded into a spilled file
+    (``framework/spill.py``): they live in the operating system's file cache, not in this process, and a stage
+    reading a band of rows pages in only that band (the runner hands the band's pages back afterwards).
+
+    What ``stack.read`` gives when every node reading the stack runs per texel: the capture is decoded once,
+    in parallel, and fitted band by band, so the process never holds it whole.  It is an ordinary stack
+    otherwise (its ``samples`` is a memory map of the whole capture), with the type name ``SampleStack``.
+    """
+
+    chunked: ClassVar[bool] = True
+
+    def __post_init__(self):
+        _check_lazy_stack(self, "SampleStack", "a bug in the reader: decode the capture again")
+        if self.encoding == "linear" and not finite_range(self.samples):
+            raise BtforgeInputError("SampleStack", "expected finite radiance, found NaN/Inf samples",
+                                    "repair or mask the images before fitting")
+        self.samples.flags.writeable = False
+
+    def in_memory(self) -> SampleStack:
+        return SampleStack(self.samples, self.lights, self.views, self.channels, self.encoding, self.names)
+
+    def texel_grid(self, step: int) -> np.ndarray:
+        # row by row from the file: a strided read of the mapping would make the whole capture resident
+        return np.concatenate([read_block(self.samples, 2, slice(row, row + 1))[:, :, :, ::step]
+                               for row in range(0, self.height, step)], axis=2)
 
 
 def open_stored_stack(path: str | os.PathLike) -> StoredSampleStack:

@@ -155,12 +155,15 @@ def test_jpeg_decoder_gives_pillows_pixels(tmp_path, grey):
         np.testing.assert_array_equal(read_image(tmp_path / "c.jpg")[0], np.asarray(image.convert("RGB")))
 
 
-def test_stream_bench_measures_both_ways_and_compares_the_files(tmp_path, capsys):
+def test_stream_bench_measures_every_way_and_compares_the_files(tmp_path, capsys):
     from btforge.plugins.ptm.bench_stream import bench_ptm_stream
     lp = _capture(tmp_path, "jpg", n_light=8, size=(12, 10))
     assert bench_ptm_stream(["--stack", str(lp), "--repeat", "1", "--json", str(tmp_path / "f.json")]) == 0
     import json
     figures = json.loads((tmp_path / "f.json").read_text())
     assert figures["same_ptm_file"] is True
-    for label in ("read then fit", "fit while reading"):
+    for label in ("streamed (default)", "stack read whole", "fit while reading"):
         assert figures[label]["seconds"] > 0 and figures[label]["peak_rss_mb"] > 10
+    # a capture this small is held in memory even where it could stream (STREAM_MIN_BYTES)
+    assert figures["streamed (default)"]["fit_placement"] == {"where": "local"}
+    assert figures["stack read whole"]["fit_placement"] == {"where": "local"}

@@ -18,6 +18,7 @@ NOT_CONVERGED_WARN = 0.05  # warn when more than this fraction of texels ran out
     sweep=[{"lobes": k} for k in (1, 2, 3, 4)],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LafortuneModel"},
+    device=True,
     per_texel=True,          # each texel's normal, scale and lobes come from its own samples alone
     params=[
         Param("lobes", "int", 0, "lobes per fitted signal: on the luminance (variant lum, 1 to 7) or on each "

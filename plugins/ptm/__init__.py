@@ -37,8 +37,9 @@ FIT_PARAMS = (
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
     params=list(FIT_PARAMS),
-    # auto judges its space on a sample of the whole stack; a band alone could choose another
-    per_texel=lambda params: params["space"] != "auto",
+    per_texel=True,
+    settle=lambda inputs, params: _settle_space(inputs["stack"], params),
+    device=True,
     expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
@@ -46,8 +47,9 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
     matrix.  The kernel reads an 8-bit capture in place (bytes as numbers for display values, through a table
-    for linear radiance) and writes straight into the result, so memory stays near the stack plus its
-    coefficients; ``ptm.fit_capture`` fits while reading, without the stack.  A light set whose
+    for linear radiance) and writes straight into the result.  Fed by ``stack.read`` with no other node reading
+    the stack, the fit runs band by band of rows and the capture is never held whole (``space: auto`` is decided
+    first, on a grid of texels of the whole capture).  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
     singular values (the minimum-norm solution), with a warning naming the condition number.
 
@@ -58,6 +60,15 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     """
     model, solver = fit_ptm(stack, variant, space, rcond=rcond)
     return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
+
+
+def _settle_space(stack, params):
+    """``space: auto`` judged once on a grid of texels of the whole stack, so every band of a streamed or
+    distributed fit fits in the space the whole-stack fit would choose."""
+    from .model import ptm_space
+    if params["space"] != "auto" or stack.n_view != 1:  # a multi-view stack is refused by the fit itself
+        return params
+    return {**params, "space": ptm_space(stack, params["variant"], "auto", rcond=params["rcond"])}
 
 
 def _report_fit(ctx, model, solver, rcond):
@@ -94,10 +105,13 @@ def _capture_precheck(params, paths):
                   choices=("auto", "srgb", "linear")),
             *FIT_PARAMS],
     precheck=_capture_precheck,
+    device=True,
 )
 def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
-    """Fit a PTM to a capture while its images decode, never holding the capture: ``stack.read`` + ``ptm.fit``
-    in the memory of the coefficients alone.
+    """Fit a PTM to a capture while its images decode, never holding the capture or a file of it.
+
+    ``stack.read`` -> ``ptm.fit`` streams too (band by band of a file the images are decoded into), and is what
+    to use; this stage skips the file, for captures larger than the disk space a decoded copy needs.
 
     The fit is linear in the samples, so images are decoded into two 8 MB batches in turn: while one decodes,
     the other is projected onto the light set's pseudo-inverse on OpenCL and added onto the sums of the lights

@@ -414,6 +414,14 @@ def _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coef
             projection.finish()
 
 
+def ptm_space(stack: SampleStack, variant: str, space: str, *, engine: str = "opencl",
+              rcond: float = DEFAULT_RCOND) -> str:
+    """The space ``fit_ptm`` fits in: ``space``, or for ``auto`` the one whose fit predicts held-out lights of a
+    grid of texels better (``btforge.fitspace``)."""
+    return resolve_space(stack, space, lambda fit, sp, lights, views: fit_ptm(
+        fit, variant, sp, engine=engine, rcond=rcond)[0].evaluate(lights))
+
+
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
             rcond: float = DEFAULT_RCOND, budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
     """Least-squares PTM fit of a single-view stack.
@@ -430,8 +438,7 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
             "view-dependent representation such as sh.fit or lafortune.fit")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
-    space = resolve_space(stack, space, lambda fit, sp, lights, views: fit_ptm(
-        fit, variant, sp, engine=engine, rcond=rcond)[0].evaluate(lights))
+    space = ptm_space(stack, variant, space, engine=engine, rcond=rcond)
     solver = ptm_solver(stack.lights, rcond)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c

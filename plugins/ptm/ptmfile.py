@@ -61,6 +61,7 @@ import numpy as np
 from btforge.atomic import atomic_write
 from btforge.buffers import unit_directions
 from btforge.errors import BtforgeInputError
+from btforge.spill import finite_range, read_block
 
 from .model import ptm_terms
 
@@ -201,7 +202,7 @@ def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = Tru
             "lrgb models have one luminance polynomial per pixel (K = 1), rgb models one per channel (K = 3)")
     height, width = coeffs.shape[:2]
     # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the model
-    if check_values and not (np.isfinite(coeffs.min()) and np.isfinite(coeffs.max())):
+    if check_values and not finite_range(coeffs):  # page by page: a spilled model is not made resident
         bad = np.argwhere(~np.isfinite(coeffs))[0]
         raise BtforgeInputError(f"{owner} 'coeffs'",
                                 f"expected finite values, found NaN/Inf at row {bad[0]}, column {bad[1]}",
@@ -743,7 +744,7 @@ def _range_levels(values: np.ndarray, bias: int, step: float) -> np.ndarray:
 def _grid_possible(sample: np.ndarray, low: float, high: float) -> bool:
     """Whether values with this sample, minimum and maximum might lie on a byte grid - the first test of
     :func:`_grid_quantization`, on the sample alone: dense float data answers no at once."""
-    gaps = np.diff(np.unique(sample.astype(np.float64)))
+    gaps = np.diff(np.sort(sample.astype(np.float64)))  # sorted, not np.unique: that imports numpy.ma (~20 ms)
     gaps = gaps[gaps > 0]
     span = max(high, 0.0) - min(low, 0.0)
     return bool(gaps.size) and span > 0 and int(255 * (1 + 1e-3) * float(gaps.min()) / span) >= 1
@@ -763,6 +764,22 @@ def _column_range(flat: np.ndarray, rows_per_block: int = 512) -> tuple[np.ndarr
     return np.min(lows, axis=0), np.max(highs, axis=0)
 
 
+def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
+    """About ``GRID_SAMPLE`` rows of ``[N, K]`` in ``runs`` contiguous runs spread over it: a strided sample would
+    touch every page of the array (and a spilled model's are read from its file)."""
+    step = max(1, flat.shape[0] // runs)
+    length = max(1, GRID_SAMPLE // runs)
+    return np.concatenate([read_block(flat, 0, slice(start, start + length))
+                           for start in range(0, flat.shape[0], step)])
+
+
+def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file,
+    never made resident)."""
+    parts = [_column_range(read_block(flat, 0, slice(start, start + rows))) for start in range(0, flat.shape[0], rows)]
+    return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
+
+
 class _Quantizer:
     """Per-coefficient scale and bias over a whole model ``coeffs [H, W, K, 6]``, and the bytes of any band of it.
 
@@ -774,13 +791,13 @@ class _Quantizer:
     def __init__(self, coeffs: np.ndarray):
         self.coeffs = coeffs
         flat = coeffs.reshape(-1, N_COEFFS)
-        stride = max(1, flat.shape[0] // GRID_SAMPLE)
-        lows, highs = _column_range(flat)
+        sample = _spread_sample(flat)
+        lows, highs = _paged_column_range(flat)
         self.scales, self.biases, self.steps, self.whole = [], [], [], {}
         for i in range(N_COEFFS):
             low, high = float(lows[i]), float(highs[i])
             quantized = None
-            if _grid_possible(flat[::stride, i], low, high):
+            if _grid_possible(sample[:, i], low, high):
                 quantized = _grid_quantization(np.ascontiguousarray(coeffs[..., i], dtype=np.float64))
             if quantized is not None:
                 scale, bias, self.whole[i] = quantized
@@ -791,19 +808,20 @@ class _Quantizer:
             self.biases.append(bias)
             self.steps.append(step)
 
-    def levels(self, rows: slice, channel: int) -> np.ndarray:
-        """Bytes ``[rows, W, 6]`` of channel ``channel``'s coefficients."""
-        # All six coefficients in one pass (the arithmetic of _range_levels, column by column), then the
+    def levels(self, rows: slice) -> np.ndarray:
+        """Bytes ``[rows, W, K, 6]`` of every channel's coefficients of a band of rows."""
+        # All coefficients in one pass (the arithmetic of _range_levels, column by column), then the
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
-        band = self.coeffs[rows, :, channel, :].astype(np.float64)
-        np.divide(band, steps, out=band)  # in place: the same operations as _range_levels, without temporaries
+        part = read_block(self.coeffs, 0, rows)  # a spilled model (a streamed fit) is read from its file
+        band = np.empty(part.shape, np.float64)
+        np.divide(part, steps, out=band)  # float32 read as float64: the same operations as _range_levels
         np.add(band, np.array(self.biases, np.float64), out=band)
         np.rint(band, out=band)
         out = np.clip(band, 0, 255, out=band).astype(np.uint8)
         for i in range(N_COEFFS):
             if i in self.whole:
-                out[..., i] = self.whole[i][rows, :, channel]
+                out[..., i] = self.whole[i][rows]
             elif self.steps[i] == 0.0:
                 out[..., i] = 0
         return out
@@ -842,14 +860,19 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
         " ".join(_scale_text(s) for s in quantizer.scales),
         " ".join(str(b) for b in quantizer.biases),
     ]) + "\n"
-    rows_per_band = max(1, WRITE_BAND_BYTES // (width * N_COEFFS * 8))
+    rows_per_band = max(1, WRITE_BAND_BYTES // (width * coeffs.shape[2] * N_COEFFS * 8))
+    plane = height * width * N_COEFFS  # bytes of one channel's coefficients
     with atomic_write(path, "wb") as handle:
-        handle.write(header.encode("ascii"))
+        start = handle.write(header.encode("ascii"))
         # Files store the bottom row first; an rgb file holds each channel's plane in turn, then lrgb its colours.
-        for channel in range(coeffs.shape[2]):
-            for stop in range(height, 0, -rows_per_band):
-                band = quantizer.levels(slice(max(0, stop - rows_per_band), stop), channel)
-                handle.write(memoryview(np.ascontiguousarray(band[::-1])).cast("B"))
+        # Each band of rows is read once and its bytes placed in every channel's plane.
+        for stop in range(height, 0, -rows_per_band):
+            rows = slice(max(0, stop - rows_per_band), stop)
+            band = quantizer.levels(rows)
+            for channel in range(coeffs.shape[2]):
+                handle.seek(start + channel * plane + (height - stop) * width * N_COEFFS)
+                handle.write(memoryview(np.ascontiguousarray(band[::-1, :, channel])).cast("B"))
+        handle.seek(start + coeffs.shape[2] * plane)
         if variant == "lrgb":
             for stop in range(height, 0, -rows_per_band):
                 rows = albedo[max(0, stop - rows_per_band):stop][::-1]

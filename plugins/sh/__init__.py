@@ -33,9 +33,11 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
     ],
-    # quantization scales over all texels, and auto judges its order and space on a sample of all of them
-    per_texel=lambda params: not params["quantize"] and params["space"] != "auto" and "auto" not in (
-        params["light_order"], params["smoothness"]),
+    # quantization scales over all texels; auto judges its order, space and smoothness on a grid of all of
+    # them, once, before the texels are split (settle)
+    per_texel=lambda params: not params["quantize"],
+    settle=lambda inputs, params: _settle_choices(inputs["stack"], params),
+    device=True,
 )
 def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, smoothness, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.
@@ -130,6 +132,18 @@ the bound also caps the relit value in every direction, below the horizon includ
     if stats["held_out_errors"]:
         ctx.note("held_out_mse", {key: float(f"{value:.4g}") for key, value in stats["held_out_errors"].items()})
     return {"model": model}
+
+
+def _settle_choices(stack, params):
+    """``auto`` order, space and smoothness judged once on a grid of texels of the whole stack, so every band of
+    a streamed or distributed fit uses the settings the whole-stack fit would choose."""
+    from .model import resolve_choices
+    if "auto" not in (params["light_order"], params["space"], params["smoothness"]):
+        return params
+    view_order = 1 if stack.n_view == 1 else params["view_order"]
+    order, space, smoothness, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
+                                                  params["smoothness"], "opencl", params["energy_factor"])
+    return {**params, "light_order": order, "space": space, "smoothness": smoothness}
 
 
 @hookimpl

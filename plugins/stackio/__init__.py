@@ -43,6 +43,7 @@ def light_file_precheck(params, paths):
     ],
     precheck=light_file_precheck,
     cache_outputs=False,
+    streams=("stack",),
 )
 def stack_read(ctx, *, path, transfer):
     """Read a multi-light (and multi-view) capture: a light file and the images it lists, or a BTF folder.
@@ -51,6 +52,12 @@ def stack_read(ctx, *, path, transfer):
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
     8-bit in memory (decoded to linear on use), a quarter of the float size.  A store made by ``stack.import``
     is opened lazily: its samples are read band by band as stages need them.
+
+    When every node reading the stack runs per texel (``ptm.fit``, ``sh.fit``, ``lafortune.fit`` ...), the
+    images are decoded into a spilled file instead of memory and those nodes fit it band by band of rows, so
+    the process never holds the capture (the run report notes ``streamed``; a capture under 64 MB is held all
+    the same, which costs less); a node that needs the stack whole (``stack.split``, ``stack.compare``, a
+    relight) gets it in memory.
     """
     from btforge.store import is_store, open_stored_stack
 
@@ -60,8 +67,14 @@ def stack_read(ctx, *, path, transfer):
     source = ctx.paths.input(path)
     if is_store(source):
         stack = open_stored_stack(source)
+    elif is_dfmf_path(source):
+        stack = load_dfmf_stack(source)
+    elif "stack" in ctx.streamed:  # every reader runs per texel: decoded into a file, fitted band by band
+        from .images import load_stack_spilled
+        stack = load_stack_spilled(source, transfer=transfer)
+        ctx.note("streamed", stack.chunked)  # a small capture is read into memory all the same
     else:
-        stack = load_dfmf_stack(source) if is_dfmf_path(source) else load_stack(source, transfer=transfer)
+        stack = load_stack(source, transfer=transfer)
     ctx.note("lights", stack.n_light)
     ctx.note("size", [stack.height, stack.width])
     return {"stack": stack}

@@ -488,12 +488,60 @@ def load_stack(light_file: str | os.PathLike, *, transfer: str = "auto", threads
     """
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise BtforgeInputError("load_stack 'threads'", f"expected a positive integer, found {threads!r}")
-    reader = CaptureReader(light_file, transfer=transfer)
+    return _read_whole(CaptureReader(light_file, transfer=transfer), threads)
+
+
+def _read_whole(reader: CaptureReader, threads: int) -> SampleStack:
     samples = np.empty((reader.n_view, reader.n_light) + reader.shape, dtype=reader.dtype)
     slots = [(v, l) for v in range(reader.n_view) for l in range(reader.n_light)]
     reader.read_into(slots, samples.reshape((-1,) + reader.shape), threads=threads)
     return SampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
                        encoding=reader.encoding, names=reader.names)
+
+
+# A capture smaller than this is read into memory even where it could stream: writing it to a file and reading
+# it back costs more than holding it (a 300 x 300, 38-light capture: 0.1 s of CPU for 10 MB).
+STREAM_MIN_BYTES = 64 << 20
+
+
+def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto", threads: int = 2,
+                       min_bytes: int | None = None) -> SampleStack:
+    """:func:`load_stack` into a spilled file: a :class:`~btforge.store.SpilledSampleStack` whose samples stay
+    in the operating system's file cache, to be read band by band of rows.  A capture of fewer than
+    ``min_bytes`` (default :data:`STREAM_MIN_BYTES`) is read into memory instead, as :func:`load_stack` reads it.
+
+    ``threads`` threads each decode one image at a time into their own buffer and write it to the file (plain
+    writes: its pages are never mapped into the process), so the process holds ``threads`` images, never the
+    capture, and decoding never waits for a batch to fill.  Same samples, lights and errors as
+    :func:`load_stack` (the error reported is the one of the earliest line).
+    """
+    from btforge.spill import spilled_empty, write_items
+    from btforge.store import SpilledSampleStack
+    reader = CaptureReader(light_file, transfer=transfer)
+    nbytes = reader.n_view * reader.n_light * int(np.prod(reader.shape)) * reader.dtype.itemsize
+    if nbytes < (STREAM_MIN_BYTES if min_bytes is None else min_bytes):
+        return _read_whole(reader, threads)
+    samples = spilled_empty((reader.n_view, reader.n_light) + reader.shape, reader.dtype)
+    slots = [(v, l) for v in range(reader.n_view) for l in range(reader.n_light)]
+    own = threading.local()
+
+    def decode(index: int) -> None:
+        if not hasattr(own, "image"):
+            own.image = np.empty((1,) + reader.shape, reader.dtype)
+        reader.read_into([slots[index]], own.image, threads=1)
+        write_items(samples, index, own.image)
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="btforge-decode") as pool:
+        futures = [pool.submit(decode, index) for index in range(len(slots))]
+        try:
+            for future in futures:  # in line order: the error reported is the earliest line's
+                future.result()
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+    return SpilledSampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
+                              encoding=reader.encoding, names=reader.names)
 
 
 # ----------------------------------------------------------------------------------------------- writing

@@ -1,0 +1,169 @@
+"""Streaming stacks through per-texel stages: decided from the graph, run band by band of rows.
+
+A capture read whole costs the process its full size (a 1024 x 1024, 49-light RGB capture is 154 MB of bytes)
+although a per-texel fit only ever needs the samples of a band of texels at a time.  So, before a run, the
+runner looks at who reads each output a stage can stream (declared ``streams``, as ``stack.read`` does): when
+every node reading it in this run is per texel (declared ``per_texel`` for its params) and reads nothing else,
+the reader is asked for a stack read band by band (``ctx.streamed``; ``stack.chunked`` is then true), and each
+of those nodes runs band by band (:func:`run_banded`): a band of rows of every image is paged in, the stage runs
+on it as on a small stack, its outputs are copied into their rows of spilled arrays (``framework/spill.py``),
+and the band's pages are handed back.  A graph in which any node reads the stack whole (a split, a compare, a
+relight, the stack asked for as a result) streams nothing.
+
+Choices a stage makes from all texels (``space: auto``, judged on a grid of texels) are made first, on the
+whole input, by the stage's ``settle``; every band then runs with the settled params, so the result equals the
+whole-stack fit's.  A distributed run (``framework/scheduler.py``) uses the same bands and the same joiner.
+"""
+from __future__ import annotations
+
+import warnings
+from typing import Any, Mapping
+
+import numpy as np
+
+from .buffers import Buffer, PerTexel, SampleStack
+from .errors import BtforgeInputError
+from .spill import read_block, release, spilled_empty, write_items
+
+BAND_BYTES = 64 << 20  # linear float32 samples of one band of rows (a uint8 capture reads a quarter of it)
+
+
+def streamed_outputs(graph, order: list[str], targets: set[str]) -> dict[str, frozenset[str]]:
+    """For each node of ``order``, the outputs it should hand over band by band: those it declares ``streams``,
+    that are not asked for as results, and whose every reader in this run is per texel on that input alone."""
+    readers: dict[tuple[str, str], list[tuple[str, str]]] = {}
+    for name in order:
+        for port, (source, source_port) in graph.spec.nodes[name].inputs.items():
+            readers.setdefault((source, source_port), []).append((name, port))
+    result = {}
+    for name in order:
+        ports = frozenset(port for port in graph.stages[name].streams if name not in targets
+                          and readers.get((name, port))
+                          and all(_reads_per_texel(graph, node, port_in) for node, port_in in readers[(name, port)]))
+        if ports:
+            result[name] = ports
+    return result
+
+
+def _reads_per_texel(graph, node: str, port: str) -> bool:
+    stage = graph.stages[node]
+    return set(graph.spec.nodes[node].inputs) == {port} and stage.is_per_texel(graph.params[node])
+
+
+def per_texel_input(stage, params: Mapping[str, Any], inputs: Mapping[str, Any]) -> str | None:
+    """The input a node can be split along texels (its one stack input, the stage per texel with these params),
+    or None."""
+    if len(inputs) != 1 or not stage.is_per_texel(params):
+        return None
+    (port, value), = inputs.items()
+    return port if isinstance(value, SampleStack) else None
+
+
+def not_split_reason(stage, params: Mapping[str, Any], inputs: Mapping[str, Any]) -> str | None:
+    """Why a stage that fits stacks cannot be split into bands of texels with these params (None for stages that
+    are not about stacks at all, which need no explanation)."""
+    if stage.per_texel is False and stage.role != "fit":
+        return None
+    if not any(isinstance(value, SampleStack) for value in inputs.values()):
+        return None
+    if len(inputs) != 1:
+        return f"it reads {len(inputs)} inputs; only a stage reading one stack is split into bands of texels"
+    if stage.per_texel is False:
+        return f"stage '{stage.name}' is not declared per texel"
+    return f"stage '{stage.name}' is not per texel with these params ({_params_text(params)})"
+
+
+def _params_text(params: Mapping[str, Any]) -> str:
+    return ", ".join(f"{key}: {value}" for key, value in params.items())
+
+
+def band_stack(stack: SampleStack, rows: slice) -> SampleStack:
+    """An in-memory stack of the samples of a band of rows (decompressed from a store, or paged in)."""
+    samples = read_block(stack.samples, 2, rows) if isinstance(stack.samples, np.ndarray) \
+        else np.asarray(stack.samples[:, :, rows])
+    return SampleStack(samples, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
+
+
+def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, Any],
+               types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], int]:
+    """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled);
+    return its outputs joined along the texel grid, and the number of bands.  Each band's pages are handed back
+    after it ran."""
+    from .context import StageContext
+    bands = list(stack.row_bands(BAND_BYTES))
+    joiners: dict[str, Joiner] = {}
+    notes = []
+    for index, rows in enumerate(bands):
+        band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True)
+        with warnings.catch_warnings():
+            if index:  # every band warns alike: the first band's warnings are raised, the others' noted
+                warnings.simplefilter("ignore")
+            outputs = stage.fn(band_ctx, **{port: band_stack(stack, rows)}, **params)
+        for name, buffer in outputs.items():
+            joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height)).add(
+                index, (type(buffer).type_name, *buffer.payload()))
+        del outputs
+        notes.append(band_ctx.notes)
+        if isinstance(stack.samples, np.ndarray):
+            release(stack.samples[:, :, rows])
+    ctx.notes.update(merge_band_notes(notes))
+    return {name: joiner.buffer() for name, joiner in joiners.items()}, len(bands)
+
+
+def merge_band_notes(band_notes: list[dict[str, Any]]) -> dict[str, Any]:
+    """One node's notes from its bands' notes: the first band's, with every band's distinct warnings."""
+    merged = dict(band_notes[0]) if band_notes else {}
+    found = sorted({w for notes in band_notes for w in notes.get("warnings", [])})
+    if found:
+        merged["warnings"] = found
+    if len(band_notes) > 1:
+        merged["notes_from"] = "the first band of texels (each band reports its own)"
+    return merged
+
+
+class Joiner:
+    """Assembles one output port from bands of texels as they arrive, in any order: texel fields are copied into
+    their rows of one array (allocated on the first band, filled band by band, so the bands are not held twice);
+    every other field must be the same in every band.  The joined arrays are spilled to a file, so the result
+    never becomes resident until a stage reads it."""
+
+    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
+        self.types, self.starts, self.height = types, starts, height
+        self.type_name = self.meta = None
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def add(self, band: int, part: tuple[str, dict, dict]) -> None:
+        type_name, meta, arrays = part
+        if self.type_name is None:
+            self.type_name, self.meta = type_name, meta
+            self.cls = self.types[type_name]
+            if not issubclass(self.cls, PerTexel):
+                raise BtforgeInputError(type_name, "is not a per-texel buffer, so bands of it cannot be joined",
+                                        "declare the stage per_texel only if its outputs are per-texel buffers")
+        if meta != self.meta:
+            raise BtforgeInputError(type_name, "bands disagree on parameters that are not per-texel",
+                                    "a bug in the stage's per_texel declaration")
+        axis = self.cls.texel_axis
+        for name, piece in arrays.items():
+            if name not in self.cls.texel_fields:
+                known = self.arrays.setdefault(name, piece)
+                if not np.array_equal(known, piece):
+                    raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
+                                            "a bug in the stage's per_texel declaration")
+                continue
+            if name not in self.arrays:  # spilled: the joined result never becomes resident (framework/spill.py)
+                shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
+                self.arrays[name] = spilled_empty(shape, piece.dtype)
+            if axis == 0:  # whole rows: plain writes to the file, no pages mapped
+                write_items(self.arrays[name], self.starts[band], piece)
+                continue
+            index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
+            self.arrays[name][index] = piece
+            release(self.arrays[name][index])
+
+    def buffer(self) -> Buffer:
+        return self.cls.from_payload(self.meta, self.arrays)
+
+
+__all__ = ["streamed_outputs", "per_texel_input", "not_split_reason", "run_banded", "band_stack",
+           "merge_band_notes", "Joiner", "BAND_BYTES"]
