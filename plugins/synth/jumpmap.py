@@ -351,6 +351,9 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coherent copies than the interior (the closing row more visibly than the closing column); use
     ``kcoherence`` when seams matter most.
 
+    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
+    texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
+
     Outputs
     -------
     coords : CoordMap

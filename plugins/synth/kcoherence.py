@@ -535,6 +535,9 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     seams of the blocks too); with ``blocks: 0`` the coarsest level gets a second, toroidal causal pass in which
     pixels not yet redone (across the seams) are read from the first pass; the result tiles seamlessly.
 
+    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
+    texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
+
     Outputs
     -------
     coords : CoordMap

@@ -280,9 +280,10 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
     the orthonormal Legendre coefficients, where vector distance equals function distance - Hel-Or, Malzbender &
-    Gelb 2003; for a stack the radiance under every light; PCA-reduced to 32 dimensions when longer).  Each block is chosen at random among the exemplar
+    Gelb 2003; for a stack the radiance under every light; PCA-reduced to 32 dimensions when longer).  Each block is chosen among the exemplar
     blocks (every position lying wholly inside the exemplar) whose overlap with the already synthesized texture has
-    a sum of squared differences within ``(1 + tolerance)`` x the best, and joined by a minimum-error boundary cut
+    a sum of squared differences within ``(1 + tolerance)`` x the best (with ``spread``, one whose exemplar area
+    is copied least so far; else any, at random), and joined by a minimum-error boundary cut
     (``seam: cut``) or linear blending (``seam: blend``, recorded as the map's blend weights).  With ``wrap`` the
     last row and column of blocks are also matched against the first, so the result tiles seamlessly; block
     overlaps are then spread evenly and may be a texel wider than ``overlap``.
@@ -292,6 +293,9 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     block, the sum of squared projected differences is a lower bound on the full distance and rules out almost all
     candidates, and only the survivors get full distances.  Safety margins make it exact: it returns the same
     eligible blocks, hence the same picks, as ``search: brute``.  The stored projections take up to 128 MB.
+
+    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
+    texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
 
     Outputs
     -------
