@@ -545,6 +545,8 @@ class CoordMap(Buffer):
     blends (overlapping blocks), ``blend_coords`` names the second texel and ``blend_weight`` its weight in
     [0, 1]; both are empty (``[0, 0, 2]``, ``[0, 0]``) when nothing is blended.  A map is a few bytes per texel,
     so a large synthesized texture costs a map rather than a copy, and replays on any per-texel buffer.
+    ``tile`` is the side in texels of the square tiles a tiling lays out (0: not a tiling): their borders are
+    straight by design, which the scores of straight seams leave out.
     """
 
     type_name: ClassVar[str] = "CoordMap"
@@ -554,9 +556,14 @@ class CoordMap(Buffer):
     blend_coords: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))
     blend_weight: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0), np.float32))
     wrap: bool = False
+    tile: int = 0
 
     def __post_init__(self):
         check_array("coords", self.coords, ("H", "W", 2), np.int32, owner="CoordMap")
+        if isinstance(self.tile, bool) or int(self.tile) != self.tile or self.tile < 0:
+            raise BtforgeInputError("CoordMap 'tile'", f"expected the tile side as an int >= 0, found {self.tile!r}",
+                                    "give the side in texels of a tiling's square tiles, or 0 for any other map")
+        object.__setattr__(self, "tile", int(self.tile))
         src_h, src_w = (int(v) for v in self.source_size)
         for name in ("coords",) + (("blend_coords",) if self.blend_weight.size else ()):
             c = getattr(self, name)
