@@ -1,7 +1,8 @@
-"""Geometric consistency of a synthesized BTF: do its dark regions fall where the template's shadows are?
+"""Testing helpers of the Liu family: the geometric-consistency measurement and the fixture it runs on.
 
-The measurement behind the "IoU >= 0.7 over at least 10 lights" figure, shared by the test and by
-``btforge bench liu`` so that both measure the same thing.  A quilted height field is synthesized under a ring of
+Do a synthesized BTF's dark regions fall where the template's shadows are?  The measurement behind the
+"IoU >= 0.7 over at least 10 lights" figure, shared by the tests and by ``btforge bench liu`` so that both
+measure the same thing.  A quilted height field is synthesized under a ring of
 target lights that lie between the references' azimuths (so every reference is rotated by eq. 7); each image's
 dark pixels are compared with its template's shadow mask.  The baseline quilts each light's nearest reference on
 its own, as a per-light 2D synthesis would.
@@ -38,9 +39,9 @@ class Consistency:
     shadow_fraction: np.ndarray  # [L] fraction of the template in shadow
 
 
-def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int = 1) -> Consistency:
-    """Shadow IoU over ``len(tilts) x 6`` target lights on a quilted ``size^2`` height field (see module);
-    references: the built-in material under the same tilts at 5 other azimuths."""
+def shadow_fixture(size: int = 112, tilts=LOW_TILTS, seed: int = 1):
+    """``(references, field)``: the built-in material rendered under ``tilts`` at the 5 reference azimuths, and
+    its height field quilted to ``size^2``."""
     from btforge import SampleStack, stage
     from btforge.plugins.demo.procedural import make_material, render_lights
     from btforge.plugins.height.field import HeightField
@@ -52,7 +53,24 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
     refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
     exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
     coords = stage("quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
-    field = stage("materialize")(coords=coords, source=exemplar)["output"]
+    return refs, stage("materialize")(coords=coords, source=exemplar)["output"]
+
+
+def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: int) -> float:
+    """Shadow IoU of quilting the reference nearest ``light`` on its own (the per-light 2D baseline)."""
+    from btforge import SampleStack, stage
+    nearest = int(np.argmax(refs.lights @ light))
+    one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
+    coords = stage("quilt")(exemplar=one, size=[size, size], block=24, seed=seed)["coords"]
+    flat = stage("materialize")(coords=coords, source=one)["output"]
+    return iou(dark_mask(flat.samples[0, 0]), shadow)
+
+
+def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int = 1) -> Consistency:
+    """Shadow IoU over ``len(tilts) x 6`` target lights on a quilted ``size^2`` height field (see module);
+    references: the built-in material under the same tilts at 5 other azimuths."""
+    from btforge import stage
+    refs, field = shadow_fixture(size, tilts, seed)
     grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": list(tilts),
             "light_azimuths": list(TARGET_AZIMUTHS)}
     out = stage("liu.synthesize")(height=field, references=refs, grid=grid, nearest=1)
@@ -63,9 +81,5 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
         fraction.append(shadow.mean())
         ours.append(iou(dark_mask(stack.samples[0, l]), shadow))
         if baseline:
-            nearest = int(np.argmax(refs.lights @ stack.lights[l]))
-            one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
-            c2 = stage("quilt")(exemplar=one, size=[size, size], block=24, seed=l)["coords"]
-            flat = stage("materialize")(coords=c2, source=one)["output"]
-            independent.append(iou(dark_mask(flat.samples[0, 0]), shadow))
+            independent.append(per_light_iou(refs, stack.lights[l], shadow, size, l))
     return Consistency(stack.lights, np.array(ours), np.array(independent), np.array(fraction))
