@@ -540,6 +540,8 @@ class CoordMap(Buffer):
     blends (overlapping blocks), ``blend_coords`` names the second texel and ``blend_weight`` its weight in
     [0, 1]; both are empty (``[0, 0, 2]``, ``[0, 0]``) when nothing is blended.  A map is a few bytes per texel,
     so a large synthesized texture costs a map rather than a copy, and replays on any per-texel buffer.
+    ``tile`` is the side of the square tiles the map is laid out in (a Wang tiling), 0 when it has none: seams
+    along tile borders are straight by design, and measures of block edges leave them out.
     """
 
     type_name: ClassVar[str] = "CoordMap"
@@ -549,9 +551,12 @@ class CoordMap(Buffer):
     blend_coords: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 2), np.int32))
     blend_weight: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0), np.float32))
     wrap: bool = False
+    tile: int = 0
 
     def __post_init__(self):
         check_array("coords", self.coords, ("H", "W", 2), np.int32, owner="CoordMap")
+        if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) or self.tile < 0:
+            raise BtforgeInputError("CoordMap", f"'tile' must be an int >= 0 (0: no tiles), found {self.tile!r}")
         src_h, src_w = (int(v) for v in self.source_size)
         for name in ("coords",) + (("blend_coords",) if self.blend_weight.size else ()):
             c = getattr(self, name)
@@ -568,6 +573,7 @@ class CoordMap(Buffer):
                                         f"{self.blend_weight.min():g}..{self.blend_weight.max():g}",
                                         "give the blend partner's share of each texel, clipped to [0, 1]")
         object.__setattr__(self, "source_size", (src_h, src_w))
+        object.__setattr__(self, "tile", int(self.tile))
         for name in ("coords", "blend_coords", "blend_weight"):
             object.__setattr__(self, name, frozen(getattr(self, name)))
 
