@@ -41,7 +41,7 @@ LARGE_POSITIONS = 15000  # ... for blocks larger than 3 x 3: neighbouring positi
 # and on the 256^2 bench image halving them kept the mean block SSD (0.000424 against 0.000426) at 16 % less time
 HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
-GUIDE_SPREAD = 0.25    # feathering follows the template within this share of its spread (feather_seams)
+GUIDE_SPREAD = 0.5     # feathering follows the template within this share of its spread (feather_seams)
 FEATHER = 2            # texels on each side of a block boundary blended with the other block's continuation
 
 
@@ -397,7 +397,7 @@ def feather_seams(source: np.ndarray, reference: np.ndarray, valid: np.ndarray, 
     boundary both sides show the mean of the two blocks, so the jump across it is that of the reference, while
     pixels further in keep more of their own texel.  Continuations outside the reference's valid pixels are
     skipped.  With a ``guide [H, W]`` (the histogram-matched template), a continuation's weight also falls with
-    its grey level's distance from the guide's, ``exp(-(grey - guide)^2 / (2 s^2))`` with ``s`` a quarter of the
+    its grey level's distance from the guide's, ``exp(-(grey - guide)^2 / (2 s^2))`` with ``s`` half the
     guide's spread: a block boundary along a shadow's edge stays sharp where the template says it is.  Returns ``[H, W, C]`` float32; ``source`` is unchanged (it still names each pixel's own texel).
     """
     H, W = source.shape[:2]
