@@ -540,8 +540,8 @@ class CoordMap(Buffer):
     blends (overlapping blocks), ``blend_coords`` names the second texel and ``blend_weight`` its weight in
     [0, 1]; both are empty (``[0, 0, 2]``, ``[0, 0]``) when nothing is blended.  A map is a few bytes per texel,
     so a large synthesized texture costs a map rather than a copy, and replays on any per-texel buffer.
-    ``tile`` is the side of the square tiles the map is laid out in (a Wang tiling), 0 when it has none: seams
-    along tile borders are straight by design, and measures of block edges leave them out.
+    ``tile`` is the side in texels of the square tiles a tiling lays out (0: not a tiling): their borders are
+    straight by design, which the scores of straight seams leave out.
     """
 
     type_name: ClassVar[str] = "CoordMap"
@@ -555,8 +555,10 @@ class CoordMap(Buffer):
 
     def __post_init__(self):
         check_array("coords", self.coords, ("H", "W", 2), np.int32, owner="CoordMap")
-        if isinstance(self.tile, bool) or not isinstance(self.tile, (int, np.integer)) or self.tile < 0:
-            raise BtforgeInputError("CoordMap", f"'tile' must be an int >= 0 (0: no tiles), found {self.tile!r}")
+        if isinstance(self.tile, bool) or int(self.tile) != self.tile or self.tile < 0:
+            raise BtforgeInputError("CoordMap 'tile'", f"expected the tile side as an int >= 0, found {self.tile!r}",
+                                    "give the side in texels of a tiling's square tiles, or 0 for any other map")
+        object.__setattr__(self, "tile", int(self.tile))
         src_h, src_w = (int(v) for v in self.source_size)
         for name in ("coords",) + (("blend_coords",) if self.blend_weight.size else ()):
             c = getattr(self, name)
@@ -573,7 +575,6 @@ class CoordMap(Buffer):
                                         f"{self.blend_weight.min():g}..{self.blend_weight.max():g}",
                                         "give the blend partner's share of each texel, clipped to [0, 1]")
         object.__setattr__(self, "source_size", (src_h, src_w))
-        object.__setattr__(self, "tile", int(self.tile))
         for name in ("coords", "blend_coords", "blend_weight"):
             object.__setattr__(self, name, frozen(getattr(self, name)))
 

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from btforge.plugins.synth import bench as synth_bench
 from btforge import BtforgeInputError
 from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
@@ -18,7 +19,7 @@ LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1]]
 
 @pytest.fixture(scope="module")
 def material():
-    return kc.benchmark_exemplar(32, lights=8)
+    return synth_bench.benchmark_exemplar(32, lights=8)
 
 
 def tiled_exemplar(period=16, copies=3, seed=0) -> SampleStack:
@@ -74,7 +75,7 @@ def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, bala
 
 def test_balance_evens_out_the_use_of_the_exemplar():
     """The plain walk drifts right and down and piles up in pockets; the balanced one spreads its copies."""
-    from btforge.plugins.synth.kcoherence import benchmark_exemplar
+    from btforge.plugins.synth.bench import benchmark_exemplar
     jm = build_jump_map(texel_features(benchmark_exemplar(64, lights=8)), jumps=3, jump_probability=0.02)
     spread = {}
     for balance in (False, True):

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from btforge.plugins.synth import bench as synth_bench
 from btforge import BtforgeInputError
 from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
@@ -22,7 +23,7 @@ def stack_of(values: np.ndarray) -> SampleStack:
 
 @pytest.fixture(scope="module")
 def material():
-    return kc.benchmark_exemplar(32, lights=8)
+    return synth_bench.benchmark_exemplar(32, lights=8)
 
 
 def tiled_exemplar(period=16, copies=3, seed=0) -> SampleStack:
@@ -287,7 +288,7 @@ def test_synthesize_checks_what_the_stage_params_bound(material, params, name):
 
 
 def test_benchmark_reports_figures():
-    figures = kc.benchmark_kcoherence(exemplar_size=16, size=24, levels=1, repeat=1)
+    figures = synth_bench.benchmark_kcoherence(exemplar_size=16, size=24, levels=1, repeat=1)
     for key in ("median_s", "analysis_median_s", "synthesis_median_s", "device"):
         assert key in figures
     assert figures["median_s"] > 0
@@ -304,7 +305,7 @@ def test_analysis_is_kept_per_exemplar_and_params(material):
 
 
 def test_search_param_switches_the_engine():
-    exemplar = kc.benchmark_exemplar(48, lights=8)   # 2304 texels: more than the fast engine searches exactly
+    exemplar = synth_bench.benchmark_exemplar(48, lights=8)   # 2304 texels: more than the fast engine searches exactly
     features = textons.normalise_features(texel_features(exemplar))
     fast = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="fast")[0]
     exact = kc.analyse_exemplar(features, k=6, neighborhood=5, levels=1, search="exact")[0]

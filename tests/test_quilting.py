@@ -14,7 +14,8 @@ from btforge.plugins.synth.quilt_search import (
     shape_texels, ssd_numpy, ssd_opencl, summed_area,
 )
 from btforge.plugins.synth.quilt_seams import min_cut
-from btforge.plugins.synth.quilting import axis_layout, benchmark_quilt, quilt, quilt_features, smooth_fields
+from btforge.plugins.synth.bench import benchmark_quilt, smooth_fields
+from btforge.plugins.synth.quilting import axis_layout, quilt, quilt_features
 
 BLOCK, OVERLAP = 8, 2
 SMALL = dict(block=BLOCK, overlap=OVERLAP)

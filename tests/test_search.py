@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from btforge.plugins.synth import bench as synth_bench
 from btforge import BtforgeInputError
 from btforge.plugins.synth import kcoherence as kc
 from btforge.plugins.synth import search
@@ -101,7 +102,7 @@ def test_candidate_distance_kernel_matches_numpy_twin():
 def texture_vectors():
     """5 x 5 neighbourhoods of a 48 x 48 procedural material's 9-D appearance vectors (more rows than the
     fast engine searches exactly)."""
-    features = normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
+    features = normalise_features(texel_features(synth_bench.benchmark_exemplar(48, lights=12), max_dims=9))
     return search.neighbourhood_vectors(features, search.square_window(5))
 
 
@@ -292,7 +293,7 @@ def test_settled_steps_skip_only_texels_whose_candidates_repeat():
 
 def test_coherent_selfjoin_recall_meets_the_floor():
     # 48 x 48 texels: more than are searched exactly, so similar_texels runs the self-join seeded at random
-    features = normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
+    features = normalise_features(texel_features(synth_bench.benchmark_exemplar(48, lights=12), max_dims=9))
     fast_idx, fast_d = search.similar_texels(features, 5, 5, exclude=1, search="coherent")
     true_idx, true_d = search.similar_texels(features, 5, 5, exclude=1, search="exact")
     assert search.recall(fast_idx, true_idx) >= search.FAST_RECALL_FLOOR
@@ -308,7 +309,7 @@ def test_coherent_selfjoin_recall_meets_the_floor():
 
 @pytest.fixture(scope="module")
 def texture_features():
-    return normalise_features(texel_features(kc.benchmark_exemplar(48, lights=12), max_dims=9))
+    return normalise_features(texel_features(synth_bench.benchmark_exemplar(48, lights=12), max_dims=9))
 
 
 @pytest.mark.parametrize("masked", [False, True])

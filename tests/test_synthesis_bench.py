@@ -45,7 +45,7 @@ def test_synthesizers_reach_the_texture_statistics_targets(held_out):
 
 def test_quilting_beats_shuffled_blocks_on_sliced_wasserstein(held_out):
     m = held_out
-    baseline = bench.score_map(m, bench.shuffled_blocks((64, 64), (96, 96), seed=1), LIGHTS)
+    baseline = bench.score_map(m, bench.shuffled_blocks((64, 64), (96, 96), block=16, seed=1), LIGHTS)
     quilted = bench.score_map(m, stage("quilt")(exemplar=m, size=[96, 96], seed=1, block=16)["coords"], LIGHTS)
     assert quilted["swd"] < baseline["swd"], (quilted, baseline)
 
@@ -61,7 +61,7 @@ SWD_SIZE, SWD_SEEDS = (256, 256), (0, 1)
 
 @pytest.fixture(scope="module")
 def baseline_swd_192(held_out_192):
-    return float(np.median([bench.score_map(held_out_192, bench.shuffled_blocks((192, 192), SWD_SIZE, seed=s),
+    return float(np.median([bench.score_map(held_out_192, bench.shuffled_blocks((192, 192), SWD_SIZE, block=16, seed=s),
                                             LIGHTS)["swd"] for s in SWD_SEEDS]))
 
 

@@ -1,4 +1,4 @@
-"""Built-in demo data: a procedural bumpy, textured material rendered under many lights on OpenCL."""
+"""Built-in demo data: procedural materials (bumps, stones, plaster, fibres) rendered under many lights on OpenCL."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,7 +7,18 @@ import numpy as np
 
 from btforge import Fact, Param, SampleStack, declare_stage, hookimpl
 
+from .patterns import PATTERNS
+
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
+
+
+def pattern_material(pattern: str, size, *, bumps: int = 40, bump_height: float = 4.0, seed: int = 0):
+    """The :class:`~.procedural.ProceduralMaterial` of a ``pattern`` at ``size = [H, W]``."""
+    from .procedural import make_material
+    if pattern == "bumps":
+        return make_material(size[0], size[1], bumps=bumps, bump_height=bump_height, seed=seed)
+    from .patterns import make_pattern
+    return make_pattern(pattern, size[0], size[1], seed=seed, relief=bump_height)
 
 
 @declare_stage(
@@ -21,16 +32,21 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
         Param("bump_height", "float", 4.0, "bump height in texel widths", low=0.0),
         Param("shadows", "bool", True, "cast shadows from the height field"),
         Param("seed", "int", 0, "random seed of the material"),
+        Param("pattern", "choice", "bumps", "the kind of material: bumps (cosine-cap bumps with a fine weave on "
+              "soft colour regions), stones (raised stones with sharp edges and dark grout), plaster (grainy relief, "
+              "mottled colour) or fibres (strands mostly along one direction); 'bumps' is the only one that reads "
+              "the param 'bumps', 'bump_height' scales every pattern's relief", choices=PATTERNS),
     ],
 )
-def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shadows, seed):
-    """Render a procedural material (bumps on a coloured texture) under a dome of lights, on OpenCL.
+def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shadows, seed, pattern):
+    """Render a procedural material under a dome of lights, on OpenCL.
 
     Lambertian shading with cast shadows found by marching the height field toward each light.  The result
-    is linear float32 radiance, so a graph can be tried with no capture at hand.
+    is linear float32 radiance, so a graph can be tried with no capture at hand.  Every pattern tiles and is
+    stationary (the same kind of texture everywhere), as texture synthesis expects of an exemplar.
     """
-    from .procedural import hemisphere_lights, make_material, render_lights
-    material = make_material(size[0], size[1], bumps=bumps, bump_height=bump_height, seed=seed)
+    from .procedural import hemisphere_lights, render_lights
+    material = pattern_material(pattern, size, bumps=bumps, bump_height=bump_height, seed=seed)
     directions = hemisphere_lights(lights, min_elevation_deg=min_elevation)
     radiance = render_lights(material, directions, shadows=shadows)
     names = tuple(f"light_{i:03d}" for i in range(lights))

@@ -19,21 +19,41 @@ from pathlib import Path
 
 import numpy as np
 
+from btforge.backend import get_backend
+from btforge.buffers import PerTexel
+
+from . import visibility
+from .features import texel_features
+from .kcoherence import CAUSAL_ORDER, KSET_EXCLUDE, analyse_exemplar, kcoherence
+from .quilt_search import SEARCHES
+from .quilting import quilt_features
+from .textons import normalise_features
+
 SIZES = (64, 128, 192, 256)
-SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio")
-BASELINE_BLOCK = 16
+SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio",
+              "seam_visibility", "straight_seam_visibility", "straight_seam_share", "evenness",
+              "swd_vs_shuffled_blocks")
+#: The four measures of what the eye sees, with the column titles of the sheets.
+EYE_KEYS = {"seam_visibility": "seams", "straight_seam_visibility": "straight", "evenness": "even",
+            "swd_vs_shuffled_blocks": "swd/shuffled"}
 RECALL_QUERIES = 2000   # queries whose exact neighbours are computed for the recall
 PROCEDURAL = "procedural"
+#: Lights of the sheets: from the upper left and from the right, both fairly low (relief shows).
+SHEET_LIGHTS = ((-0.5, 0.5, 0.707), (0.8, -0.1, 0.59))
 
 
 def exemplar_model(path: str, crop: int):
     """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture
-    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar; a ``.ptm`` file:
-    that model, cropped)."""
+    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar;
+    ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file: that model,
+    cropped)."""
     from btforge import stage
     if path == PROCEDURAL:
-        from .kcoherence import benchmark_exemplar
         stack = benchmark_exemplar(crop, lights=16, seed=7)
+        return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
+    if str(path).startswith(PROCEDURAL + ":"):
+        pattern = str(path).split(":", 1)[1]
+        stack = stage("demo.material")(size=[crop, crop], lights=16, pattern=pattern, seed=7)["stack"]
         return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
     if str(path).endswith(".ptm"):
         return central_crop(stage("ptm.read")(path=str(path))["model"], crop)
@@ -49,19 +69,11 @@ def central_crop(buffer, crop: int):
     return stage("crop")(input=buffer, origin=[(buffer.height - h) // 2, (buffer.width - w) // 2], size=[h, w])["output"]
 
 
-def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
+def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int | None = None,
                     seed: int = 0):
-    """The baseline a synthesizer must beat: ``block x block`` exemplar blocks laid at random, without matching."""
-    from btforge.buffers import CoordMap
-    (eh, ew), (h, w) = exemplar_size, size
-    rng = np.random.default_rng(seed)
-    by, bx = -(-h // block), -(-w // block)
-    oy = rng.integers(0, eh - block + 1, (by, bx))
-    ox = rng.integers(0, ew - block + 1, (by, bx))
-    rows, cols = np.mgrid[0:h, 0:w]
-    coords = np.stack([oy[rows // block, cols // block] + rows % block,
-                       ox[rows // block, cols // block] + cols % block], axis=-1).astype(np.int32)
-    return CoordMap(coords, (eh, ew), wrap=False)
+    """The shuffled-block baseline of ``score`` (:func:`.visibility.shuffled_blocks`), by default with its
+    block side for this exemplar."""
+    return visibility.shuffled_blocks(exemplar_size, size, block or visibility.baseline_block(exemplar_size), seed)
 
 
 def synthesizers() -> dict:
@@ -103,8 +115,6 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
     self-join of every texel (itself left out) and its recall."""
     from . import search
     from .selfjoin import self_join
-    from .features import texel_features
-    from .textons import normalise_features
     features = normalise_features(texel_features(model))
     vectors = search.neighbourhood_vectors(features, search.square_window(5))
     rng = np.random.default_rng(0)
@@ -140,13 +150,17 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
     p.add_argument("--exemplar", required=True, help="the capture (.lp) or PTM file (.ptm) whose central "
-                   "crops are the exemplars, or 'procedural' for the demo material")
-    p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv and synthesis.png")
+                   "crops are the exemplars, 'procedural' for the demo material, or 'procedural:PATTERN' for one of "
+                   "its patterns (stones, plaster, fibres)")
+    p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv, synthesis.png and one sheet per "
+                   "exemplar size (sheet_NAME_HxW.png: the exemplar and every output at two lights, with the "
+                   "measures of what the eye sees)")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
     p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")
     p.add_argument("--repeat", type=int, default=1, help="re-syntheses with cached analysis; the median is reported")
     p.add_argument("--only", action="append", help="only these synthesizers (stage names)")
     p.add_argument("--lights", type=int, default=8, help="probe lights of the scores (default 8)")
+    p.add_argument("--no-search", action="store_true", help="leave out the shared search's figures (search.csv)")
     p.add_argument("--seeds", type=int, default=1, help="score seeds 0 .. N-1 (and N baselines) and report "
                    "each score's median: one seed's sliced-Wasserstein distance varies by up to 2x (default 1)")
     return p
@@ -154,38 +168,77 @@ def _parser() -> argparse.ArgumentParser:
 
 def bench_synthesis(args: list[str]) -> int:
     """Synthesis quality (scores) against analysis and synthesis time, per synthesizer and exemplar size."""
-    from btforge.atomic import atomic_write_text
-    from btforge.plot import scatter_png
-
     from .features import probe_lights
     opts = _parser().parse_args(args)
     lights = [list(map(float, light)) for light in probe_lights(opts.lights)]
     chosen = {n: st for n, st in synthesizers().items() if not opts.only or n in opts.only}
+    target = Path(opts.out)
     rows, search_rows = [], []
     for crop in opts.sizes:
         model = exemplar_model(opts.exemplar, crop)
         label = f"{model.height}x{model.width}"
-        found = measure_search(model)
-        search_rows.append({"exemplar": label, **{k: _round(v) for k, v in found.items()}})
-        print(f"{label} search: recall {found['recall']:.3f}, distance ratio {found['distance_ratio']:.4f}, "
-              f"fast build {found['fast_build_s']:.2f} s + {found['fast_query_s_per_1000']:.3f} s / 1000 queries, "
-              f"exact {found['exact_query_s_per_1000']:.3f} s / 1000 queries; self-join {found['self_join_s']:.2f} s, "
-              f"recall {found['self_join_recall']:.3f}", file=sys.stderr)
+        if not opts.no_search:
+            search_rows.append({"exemplar": label, **_search_figures(model)})
         baseline = median_scores([score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size),
                                                                    seed=seed), lights) for seed in range(opts.seeds)])
         rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
                      **{k: _round(v) for k, v in baseline.items()}})
+        outputs = {}
         for name, st in chosen.items():
-            timed = time_synthesizer(st, model, opts.size, opts.repeat)
-            scores = median_scores([score_map(model, timed["coords"], lights)] + [
-                score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed)["coords"], lights)
-                for seed in range(1, opts.seeds)])
-            rows.append({"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
-                         "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}})
-            print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
-                  f"texture stats {scores['texture_statistics']:.3f}  swd {scores['swd']:.4f}", file=sys.stderr)
-    target = Path(opts.out)
+            row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+            rows.append(row)
+        write_sheet(target / f"sheet_{_slug(opts.exemplar)}_{label}.png", model, outputs,
+                    {r["synthesizer"]: r for r in rows if r["exemplar"] == label},
+                    f"{opts.size}x{opts.size} from {label} of {_slug(opts.exemplar)}")
+    _write_tables(target, opts, rows, search_rows)
+    print(_table(rows))
+    if search_rows:
+        print(_table(search_rows))
+    return 0
+
+
+def _slug(exemplar: str) -> str:
+    """A short name of an exemplar argument: the capture's folder, the .ptm file's stem, or the pattern."""
+    if exemplar.startswith(PROCEDURAL):
+        return exemplar.replace(":", "_")
+    path = Path(exemplar)
+    return path.stem if path.suffix == ".ptm" else path.parent.name or path.stem
+
+
+def _search_figures(model) -> dict:
+    found = measure_search(model)
+    print(f"{model.height}x{model.width} search: recall {found['recall']:.3f}, distance ratio "
+          f"{found['distance_ratio']:.4f}, fast build {found['fast_build_s']:.2f} s + "
+          f"{found['fast_query_s_per_1000']:.3f} s / 1000 queries, exact {found['exact_query_s_per_1000']:.3f} s / "
+          f"1000 queries; self-join {found['self_join_s']:.2f} s, recall {found['self_join_recall']:.3f}",
+          file=sys.stderr)
+    return {k: _round(v) for k, v in found.items()}
+
+
+def _synthesizer_row(st, name: str, model, label: str, opts, lights) -> tuple[dict, object]:
+    """One synthesizer's timings and median scores on one exemplar, and its first map."""
+    timed = time_synthesizer(st, model, opts.size, opts.repeat)
+    scores = median_scores([score_map(model, timed["coords"], lights)] + [
+        score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed)["coords"], lights)
+        for seed in range(1, opts.seeds)])
+    row = {"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
+           "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}}
+    eye = "  ".join(f"{title} {_short(scores[key])}" for key, title in EYE_KEYS.items())
+    print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
+          f"{eye}", file=sys.stderr)
+    return row, timed["coords"]
+
+
+def _short(value) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def _write_tables(target: Path, opts, rows: list[dict], search_rows: list[dict]) -> None:
+    from btforge.atomic import atomic_write_text
+    from btforge.plot import scatter_png
     for filename, table in (("synthesis.csv", rows), ("search.csv", search_rows)):
+        if not table:
+            continue
         buffer = io.StringIO()
         writer = csv.DictWriter(buffer, fieldnames=list(table[0]))
         writer.writeheader()
@@ -195,12 +248,50 @@ def bench_synthesis(args: list[str]) -> int:
     scatter_png(target / "synthesis.png", [r["analysis_s"] + r["synthesis_s"] for r in timed_rows],
                 [r["texture_statistics"] for r in timed_rows],
                 [f"{r['synthesizer']} {r['exemplar']}" for r in timed_rows], [r["synthesizer"] for r in timed_rows],
-                title=f"{opts.size}x{opts.size} outputs from crops of {Path(opts.exemplar).parent.name or opts.exemplar}",
+                title=f"{opts.size}x{opts.size} outputs from crops of {_slug(opts.exemplar)}",
                 xlabel="analysis + synthesis seconds", ylabel="texture statistics ratio (1 = exemplar vs itself)",
                 higher_is_better=False)
-    print(_table(rows))
-    print(_table(search_rows))
-    return 0
+
+
+def write_sheet(path: Path, model, outputs: dict, rows: dict, header: str) -> None:
+    """One labelled PNG: the exemplar and each synthesizer's output at the same scale (one texel, one pixel),
+    each under the two :data:`SHEET_LIGHTS` (rows), exposed alike (the exemplar's 99.5th percentile is white)."""
+    from btforge.atomic import atomic_write_bytes
+    from btforge.buffers import linear_to_srgb8
+    from btforge.plot import labelled_grid, light_label
+
+    from .scoring import _relight, _white_points
+    lights = np.array(SHEET_LIGHTS, np.float64)
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    exemplar = _relight(model, lights, "exemplar")
+    whites = _white_points(exemplar)[:, None, None, None]
+    images = {"exemplar": exemplar}
+    for name, coords in outputs.items():
+        images[name] = _relight(coords.apply(model), lights, "output")
+    h = max(im.shape[1] for im in images.values())
+    w = max(im.shape[2] for im in images.values())
+    tiles, labels = [], []
+    for li, light in enumerate(lights):
+        for name, im in images.items():
+            tile = np.zeros((h, w, 3), np.uint8)
+            tile[:im.shape[1], :im.shape[2]] = linear_to_srgb8(_rgb(im[li] / whites[li]))
+            tiles.append(tile)
+            labels.append(_sheet_label(name, rows.get(name), light_label(light), im.shape[1:3]))
+    sheet = labelled_grid(tiles, labels, columns=len(images), header=header, strip=24)
+    buffer = io.BytesIO()
+    sheet.save(buffer, format="PNG", optimize=True)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    return image if image.shape[-1] == 3 else np.repeat(image[..., :1], 3, axis=-1)
+
+
+def _sheet_label(name: str, row: dict | None, light: str, size) -> str:
+    first = f"{name} {size[0]}x{size[1]}, {light}"
+    if row is None:
+        return first
+    return first + "\n" + "  ".join(f"{title} {_short(row.get(key))}" for key, title in EYE_KEYS.items())
 
 
 def median_scores(runs: list[dict]) -> dict:
@@ -218,3 +309,187 @@ def _table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     lines += ["| " + " | ".join("-" if r[k] is None else str(r[k]) for k in keys) + " |" for r in rows]
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------- quilting benchmark
+
+
+def smooth_fields(size: int, channels: int, seed: int = 0, sigma: float = 3.0) -> np.ndarray:
+    """``[size, size, channels]`` float32 periodic random fields, Gaussian-smoothed, zero mean, unit variance."""
+    from scipy.ndimage import gaussian_filter
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal((channels, size, size))
+    fields = np.stack([gaussian_filter(n, sigma, mode="wrap") + 0.35 * gaussian_filter(n, sigma / 3, mode="wrap")
+                       for n in noise], axis=-1)
+    fields -= fields.mean(axis=(0, 1))
+    fields /= fields.std(axis=(0, 1)) + 1e-12
+    return fields.astype(np.float32)
+
+
+def smooth_ptm_exemplar(size: int = 128, seed: int = 0):
+    """An lrgb PTM (orthonormal basis) whose 6 coefficients and 3 colours are random smooth fields."""
+    from btforge.plugins.ptm.model import PTMModel
+    f = smooth_fields(size, 9, seed)
+    scale = np.array([0.15, 0.08, 0.08, 0.05, 0.04, 0.04], np.float32)
+    coeffs = f[..., :6] * scale
+    coeffs[..., 0] += 0.8  # the constant term: mean brightness
+    albedo = np.clip(0.55 + 0.15 * f[..., 6:], 0.0, 1.0)
+    return PTMModel(coeffs[:, :, None, :].astype(np.float32), albedo.astype(np.float32), "lrgb", "linear",
+                    basis="orthonormal")
+
+
+def benchmark_quilt(exemplar_size: int = 128, output_size: int = 512, block: int = 32, seed: int = 0,
+                    repeat: int = 3, *, exemplar: PerTexel | None = None, overlap: int = 6,
+                    tolerance: float = 0.1) -> dict:
+    """Time brute-force and rejection quilting on the same exemplar and check their picks are identical.
+
+    The exemplar is the central ``exemplar_size`` crop of ``exemplar`` when given, else an lrgb PTM of random smooth
+    fields (9-D appearance vectors: 6 orthonormal coefficients + 3 colours).  Kernels are compiled by a warm-up
+    run first; each search then runs ``repeat`` times and medians are reported (seconds), with the speed-up, the mean
+    fraction of candidates rejected after each projection, and the fraction whose full distance was computed.
+    """
+    if exemplar is not None:
+        source = central_crop(exemplar, exemplar_size)
+    else:
+        source = smooth_ptm_exemplar(exemplar_size, seed)
+    feats = texel_features(source)
+    size = (output_size, output_size)
+    small = feats[:min(feats.shape[0], 2 * block), :min(feats.shape[1], 2 * block)]
+    for method in SEARCHES:  # compile the kernels outside the timings
+        quilt_features(small, (block * 2, block * 2), block, overlap, search=method, seed=seed)
+    times: dict[str, list[float]] = {m: [] for m in SEARCHES}
+    cpu: dict[str, list[float]] = {m: [] for m in SEARCHES}
+    results = {}
+    for _ in range(repeat):  # interleaved, so both searches see the same machine load
+        for method in ("brute", "rejection"):
+            t0, c0 = time.perf_counter(), time.process_time()
+            res = quilt_features(feats, size, block, overlap, search=method, tolerance=tolerance, seed=seed)
+            times[method].append(time.perf_counter() - t0)
+            cpu[method].append(time.process_time() - c0)
+            if method in results and not np.array_equal(results[method].coords.coords, res.coords.coords):
+                raise AssertionError(f"{method} quilting is not deterministic")
+            results[method] = res
+    identical = bool(np.array_equal(results["brute"].coords.coords, results["rejection"].coords.coords))
+    rej = results["rejection"].stats
+    brute_s, rejection_s = statistics.median(times["brute"]), statistics.median(times["rejection"])
+    return {
+        "device": get_backend().description,
+        "exemplar": "given (central crop)" if exemplar is not None else "random smooth fields (lrgb PTM)",
+        "exemplar_size": list(feats.shape[:2]),
+        "features": int(feats.shape[2]),
+        "output_size": list(size),
+        "block": block,
+        "overlap": overlap,
+        "tolerance": tolerance,
+        "blocks": rej["blocks"],
+        "candidates": rej["candidates"],
+        "brute_s": round(brute_s, 3),
+        "rejection_s": round(rejection_s, 3),
+        "speedup": round(brute_s / rejection_s, 2),
+        "brute_cpu_s": round(statistics.median(cpu["brute"]), 3),
+        "rejection_cpu_s": round(statistics.median(cpu["rejection"]), 3),
+        "speedup_cpu": round(statistics.median(cpu["brute"]) / statistics.median(cpu["rejection"]), 2),
+        "brute_search_s": results["brute"].stats["search_s"],
+        "rejection_search_s": rej["search_s"],
+        "rejection_precompute_s": rej["precompute_s"],
+        "rejected_after_projection": rej["rejected_after_projection"],
+        "full_distance_fraction": rej["full_distance_fraction"],
+        "identical_picks": identical,
+        "times": {m: [round(t, 3) for t in v] for m, v in times.items()},
+    }
+
+
+# ----------------------------------------------------------------------------------------------- k-coherence benchmark
+
+
+def benchmark_exemplar(size: int = 64, lights: int = 16, seed: int = 1) -> PerTexel:
+    """A ``size x size`` single-view stack of the procedural demo material under ``lights`` lights."""
+    from btforge.buffers import SampleStack
+    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+
+    material = make_material(size, size, bumps=max(8, size * size // 200), seed=seed)
+    dirs = hemisphere_lights(lights, min_elevation_deg=20.0)
+    images = render_lights(material, dirs)                      # [L, H, W, 3]
+    return SampleStack(np.ascontiguousarray(images[None], np.float32), dirs, [[0.0, 0.0, 1.0]])
+
+
+def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6, neighborhood: int = 5,
+                         levels: int = 3, wrap: bool = False, repeat: int = 3, seed: int = 0,
+                         search: str = "fast", cold: bool = True, texels: str = "stack",
+                         recall_samples: int = 0, blocks: int = 0) -> dict:
+    """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
+    analyses the exemplar again, else the cached analysis is reused).  ``blocks`` is the stage's param: 0 (the
+    default here) times the hierarchical synthesis over ``levels`` levels, the configuration the issue names;
+    the stage's own default (-1) starts from stratified blocks and analyses the finest level only.
+
+    ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
+    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
+    ``.ptm`` file (its central ``exemplar_size`` square).  ``recall_samples`` > 0 also measures the finest
+    level's coherence sets against the exact search at that many texels.
+
+    Returns the figures as a dict: ``median_s`` (the whole stage call), ``analysis_median_s`` (textons and
+    coherence sets of every level), ``synthesis_median_s`` (all passes), ``other_median_s`` (appearance vectors,
+    building the CoordMap), ``cpu_median_s`` (process CPU time, all threads), the configuration and the device.
+    """
+    from btforge.context import StageContext
+
+    from .search import clear_caches
+    exemplar = _bench_texels(texels, exemplar_size)
+    exemplar_size = exemplar.height
+    params = dict(size=[size, size], k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
+                  search=search, blocks=blocks)
+    kcoherence(exemplar=exemplar, **{**params, "size": [16, 16]})  # warm-up: kernel builds
+    totals, analysis, synthesis, cpu = [], [], [], []
+    for _ in range(repeat):
+        if cold:
+            clear_caches()
+        ctx = StageContext(node="bench", quiet=True)
+        start, start_cpu = time.perf_counter(), time.process_time()
+        kcoherence(ctx=ctx, exemplar=exemplar, **params)
+        totals.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+        analysis.append(ctx.notes["seconds_analysis"])
+        synthesis.append(ctx.notes["seconds_synthesis"])
+    total = statistics.median(totals)
+    return {
+        "exemplar": [exemplar_size, exemplar_size], "size": [size, size], "k": k, "neighborhood": neighborhood,
+        "levels": levels, "blocks": blocks, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold,
+        "device": get_backend().description,
+        "median_s": total, "analysis_median_s": statistics.median(analysis),
+        "synthesis_median_s": statistics.median(synthesis),
+        "other_median_s": total - statistics.median(analysis) - statistics.median(synthesis),
+        "cpu_median_s": statistics.median(cpu), "coherent_fraction": ctx.notes["coherent_fraction"],
+        "causal_order": CAUSAL_ORDER, "texels": texels,
+        **(kset_recall(texel_features(exemplar), k=k, neighborhood=neighborhood, levels=levels, search=search,
+                       samples=recall_samples) if recall_samples and k > 1 else {}),
+    }
+
+
+def _bench_texels(texels: str, size: int) -> PerTexel:
+    from btforge import stage
+    if texels == "stack":
+        return benchmark_exemplar(size)
+    if texels == "ptm":
+        return stage("ptm.fit")(stack=benchmark_exemplar(size), variant="lrgb", basis="orthonormal")["model"]
+    return central_crop(stage("ptm.read")(path=texels)["model"], size)
+
+
+def kset_recall(features: np.ndarray, *, k: int, neighborhood: int, levels: int, search: str,
+                samples: int) -> dict:
+    """The finest level's coherence sets (from the cached analysis) against the exact search at ``samples``
+    texels: share of the true k - 1 most similar texels found, and the distance ratio (found over true)."""
+    from .search import distance_ratio, knn, neighbourhood_vectors, recall, square_window
+    level = analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels, search=search)[0]
+    h, w = level.height, level.width
+    rows = np.sort(np.random.default_rng(0).choice(h * w, min(samples, h * w), replace=False))
+    vectors = neighbourhood_vectors(normalise_features(features), square_window(neighborhood))
+    ask = k - 1 + (2 * KSET_EXCLUDE + 1) ** 2
+    idx, dist = knn(vectors, vectors[rows], ask, engine="exact")
+    ys, xs = np.divmod(rows, w)
+    ty, tx = np.divmod(idx, w)
+    far = np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None])) > KSET_EXCLUDE
+    order = np.argsort(~far, axis=1, kind="stable")[:, :k - 1]   # the first k - 1 far entries, in list order
+    true_idx, true_d = np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1)
+    return {"kset_recall": round(recall(level.ksets[rows, 1:], true_idx), 4),
+            "kset_distance_ratio": round(distance_ratio(level.kset_cost[rows], true_d), 4),
+            "kset_recall_samples": len(rows)}

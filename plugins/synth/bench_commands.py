@@ -11,7 +11,7 @@ def _parser(name: str, fn) -> argparse.ArgumentParser:
 
 def bench_quilt(argv: list[str]) -> int:
     """Quilting 512 x 512 from a 128 x 128 9-D PTM exemplar: rejection vs brute force."""
-    from .quilting import benchmark_quilt
+    from .bench import benchmark_quilt
     p = _parser("quilt", bench_quilt)
     p.add_argument("--ptm", help="take the exemplar from the centre of this .ptm file (default: random smooth fields)")
     p.add_argument("--repeat", type=positive_count, default=5)
@@ -27,7 +27,7 @@ def bench_quilt(argv: list[str]) -> int:
 
 def bench_kcoherence(argv: list[str]) -> int:
     """K-coherence 256 x 256, 3 levels, k = 6, 5 x 5 neighbourhood."""
-    from .kcoherence import benchmark_kcoherence
+    from .bench import benchmark_kcoherence
     p = _parser("kcoherence", bench_kcoherence)
     p.add_argument("--exemplar-size", type=int, default=64, help="exemplar side in texels (default 64)")
     p.add_argument("--repeat", type=positive_count, default=5)

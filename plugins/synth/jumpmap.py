@@ -22,7 +22,7 @@ from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, search_param
+from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")
@@ -301,7 +301,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "jumpmap",
-    version="6",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree
+    version="7",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -318,10 +318,11 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
+        *refine_params(),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance):
+            coverage, balance, refine, occurrence):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -367,7 +368,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
                                 f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",
                                 "use a larger exemplar or a smaller neighborhood")
     start = time.perf_counter()
-    jm = cached_jump_map(texel_features(exemplar), jumps=jumps, jump_probability=jump_probability,
+    features = texel_features(exemplar)
+    jm = cached_jump_map(features, jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
     coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance)
@@ -378,7 +380,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ctx.note("coherent_fraction", round(coherent_fraction(coords, wrap), 4))
     ctx.note("seconds_analysis", round(analysed - start, 3))
     ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
-    return {"coords": CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)}
+    coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
+    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, seed=seed)}
 
 
 STAGES = [jumpmap]

@@ -15,7 +15,6 @@ same order, so ``engine="numpy"`` gives bit-identical results (tests compare the
 from __future__ import annotations
 
 import dataclasses
-import statistics
 import time
 from pathlib import Path
 
@@ -23,14 +22,15 @@ import numpy as np
 
 from btforge import Param
 from btforge.backend import get_backend
-from btforge.buffers import CoordMap, PerTexel
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
 from .device import LOCAL, launch, round_up
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import MAX_K, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, search_param
+from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined,
+                          search_param)
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("kcoherence.cl")
@@ -458,7 +458,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
 
 @declare_synthesizer(
     "kcoherence",
-    version="6",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image
+    version="7",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -482,10 +482,11 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
+        *refine_params(),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, keep):
+               coverage, blocks, keep, refine, occurrence):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -563,104 +564,8 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     ctx.note("coherent_fraction", round(coherent_fraction(result.coords, wrap), 4))
     ctx.note("seconds_analysis", round(result.seconds_analysis, 3))
     ctx.note("seconds_synthesis", round(result.seconds_synthesis, 3))
-    return {"coords": CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)}
+    coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
+    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, seed=seed)}
 
 
 STAGES = [kcoherence]
-
-
-# ============================================================================================ benchmark
-
-
-def benchmark_exemplar(size: int = 64, lights: int = 16, seed: int = 1) -> PerTexel:
-    """A ``size x size`` single-view stack of the procedural demo material under ``lights`` lights."""
-    from btforge.buffers import SampleStack
-    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
-
-    material = make_material(size, size, bumps=max(8, size * size // 200), seed=seed)
-    dirs = hemisphere_lights(lights, min_elevation_deg=20.0)
-    images = render_lights(material, dirs)                      # [L, H, W, 3]
-    return SampleStack(np.ascontiguousarray(images[None], np.float32), dirs, [[0.0, 0.0, 1.0]])
-
-
-def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6, neighborhood: int = 5,
-                         levels: int = 3, wrap: bool = False, repeat: int = 3, seed: int = 0,
-                         search: str = "fast", cold: bool = True, texels: str = "stack",
-                         recall_samples: int = 0, blocks: int = 0) -> dict:
-    """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
-    analyses the exemplar again, else the cached analysis is reused).  ``blocks`` is the stage's param: 0 (the
-    default here) times the hierarchical synthesis over ``levels`` levels, the configuration the issue names;
-    the stage's own default (-1) starts from stratified blocks and analyses the finest level only.
-
-    ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
-    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
-    ``.ptm`` file (its central ``exemplar_size`` square).  ``recall_samples`` > 0 also measures the finest
-    level's coherence sets against the exact search at that many texels.
-
-    Returns the figures as a dict: ``median_s`` (the whole stage call), ``analysis_median_s`` (textons and
-    coherence sets of every level), ``synthesis_median_s`` (all passes), ``other_median_s`` (appearance vectors,
-    building the CoordMap), ``cpu_median_s`` (process CPU time, all threads), the configuration and the device.
-    """
-    from btforge.context import StageContext
-
-    from .search import clear_caches
-    exemplar = _bench_texels(texels, exemplar_size)
-    exemplar_size = exemplar.height
-    params = dict(size=[size, size], k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
-                  search=search, blocks=blocks)
-    kcoherence(exemplar=exemplar, **{**params, "size": [16, 16]})  # warm-up: kernel builds
-    totals, analysis, synthesis, cpu = [], [], [], []
-    for _ in range(repeat):
-        if cold:
-            clear_caches()
-        ctx = StageContext(node="bench", quiet=True)
-        start, start_cpu = time.perf_counter(), time.process_time()
-        kcoherence(ctx=ctx, exemplar=exemplar, **params)
-        totals.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-        analysis.append(ctx.notes["seconds_analysis"])
-        synthesis.append(ctx.notes["seconds_synthesis"])
-    total = statistics.median(totals)
-    return {
-        "exemplar": [exemplar_size, exemplar_size], "size": [size, size], "k": k, "neighborhood": neighborhood,
-        "levels": levels, "blocks": blocks, "wrap": wrap, "repeat": repeat, "search": search, "cold": cold,
-        "device": get_backend().description,
-        "median_s": total, "analysis_median_s": statistics.median(analysis),
-        "synthesis_median_s": statistics.median(synthesis),
-        "other_median_s": total - statistics.median(analysis) - statistics.median(synthesis),
-        "cpu_median_s": statistics.median(cpu), "coherent_fraction": ctx.notes["coherent_fraction"],
-        "causal_order": CAUSAL_ORDER, "texels": texels,
-        **(kset_recall(texel_features(exemplar), k=k, neighborhood=neighborhood, levels=levels, search=search,
-                       samples=recall_samples) if recall_samples and k > 1 else {}),
-    }
-
-
-def _bench_texels(texels: str, size: int) -> PerTexel:
-    from btforge import stage
-    if texels == "stack":
-        return benchmark_exemplar(size)
-    if texels == "ptm":
-        return stage("ptm.fit")(stack=benchmark_exemplar(size), variant="lrgb", basis="orthonormal")["model"]
-    from .bench import central_crop
-    return central_crop(stage("ptm.read")(path=texels)["model"], size)
-
-
-def kset_recall(features: np.ndarray, *, k: int, neighborhood: int, levels: int, search: str,
-                samples: int) -> dict:
-    """The finest level's coherence sets (from the cached analysis) against the exact search at ``samples``
-    texels: share of the true k - 1 most similar texels found, and the distance ratio (found over true)."""
-    from .search import distance_ratio, knn, neighbourhood_vectors, recall, square_window
-    level = analyse_exemplar(features, k=k, neighborhood=neighborhood, levels=levels, search=search)[0]
-    h, w = level.height, level.width
-    rows = np.sort(np.random.default_rng(0).choice(h * w, min(samples, h * w), replace=False))
-    vectors = neighbourhood_vectors(normalise_features(features), square_window(neighborhood))
-    ask = k - 1 + (2 * KSET_EXCLUDE + 1) ** 2
-    idx, dist = knn(vectors, vectors[rows], ask, engine="exact")
-    ys, xs = np.divmod(rows, w)
-    ty, tx = np.divmod(idx, w)
-    far = np.maximum(np.abs(ty - ys[:, None]), np.abs(tx - xs[:, None])) > KSET_EXCLUDE
-    order = np.argsort(~far, axis=1, kind="stable")[:, :k - 1]   # the first k - 1 far entries, in list order
-    true_idx, true_d = np.take_along_axis(idx, order, 1), np.take_along_axis(dist, order, 1)
-    return {"kset_recall": round(recall(level.ksets[rows, 1:], true_idx), 4),
-            "kset_distance_ratio": round(distance_ratio(level.kset_cost[rows], true_d), 4),
-            "kset_recall_samples": len(rows)}

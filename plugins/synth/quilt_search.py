@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .search import band_window
+from .search_base import band_window
 
 KERNELS = Path(__file__).with_name("quilting.cl")
 
@@ -559,11 +559,13 @@ class QuiltSearch:
         return float(self._host_distances(shape, np.fromiter(nominees, np.int64), q64).min())
 
     def pick(self, shape: OverlapShape, block_feats: np.ndarray, rng: np.random.Generator,
-             hints: tuple[int, ...] = ()) -> int:
+             hints: tuple[int, ...] = (), usage: np.ndarray | None = None) -> int:
         """One candidate drawn uniformly from those within (1 + tolerance) x the best overlap distance.
 
         ``block_feats`` is the synthesized ``[B, B, D]`` block region; only its overlap texels are compared.
-        ``hints`` may name candidates likely to match well (they only speed up the rejection).
+        ``hints`` may name candidates likely to match well (they only speed up the rejection).  With ``usage``
+        (per candidate: how much of its exemplar area the output already copies), the draw is among the
+        eligible candidates used least.
         """
         start = time.perf_counter()
         self.queries += 1
@@ -575,6 +577,9 @@ class QuiltSearch:
             idx, d = np.arange(self.n_cand), self.distances(shape, query)
         d = d.astype(np.float64)
         eligible = idx[d <= (1 + self.tolerance) * d.min()]  # ascending candidate order: ties resolve by the seed
+        if usage is not None:
+            use = usage[eligible]
+            eligible = eligible[use <= use.min() + 1e-9]
         self.search_s += time.perf_counter() - start
         return int(eligible[rng.integers(len(eligible))])
 

@@ -17,19 +17,18 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
-import statistics
 import time
 
 import numpy as np
 
 from btforge import Param
-from btforge.buffers import CoordMap, PerTexel
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
 from .features import texel_features
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
-from .synthesizer import declare_synthesizer
+from .synthesizer import declare_synthesizer, refine_params, refined
 
 
 SEAMS = ("cut", "blend")
@@ -118,13 +117,48 @@ class QuiltResult:
 
 def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *, search: str = "rejection",
                    seam: str = "cut", tolerance: float = 0.1, wrap: bool = False, seed: int = 0,
-                   engine: str = "opencl") -> QuiltResult:
+                   engine: str = "opencl", spread: bool = False) -> QuiltResult:
     """Quilt appearance vectors ``feats [H, W, D]`` into a coordinate map of ``size = (H, W)``.
 
-    ``engine='numpy'`` runs the searches on the NumPy references instead of OpenCL.  Returns the map and
+    ``engine='numpy'`` runs the searches on the NumPy references instead of OpenCL.  ``spread``: among the
+    eligible blocks, the one whose exemplar area the output copies least so far.  Returns the map and
     statistics (blocks, candidates, per-projection rejected fractions, timings).
     """
     start_time = time.perf_counter()
+    feats = _checked_features(feats, search, seam)
+    height, width = (int(v) for v in size)
+    validate(feats.shape[:2], (height, width), block, overlap, wrap, tolerance)
+    lay_y = axis_layout(height, block, overlap, wrap)
+    lay_x = axis_layout(width, block, overlap, wrap)
+    uses = collections.Counter((ty, by, lx, rx) for ty, by in zip(lay_y.before, lay_y.after)
+                               for lx, rx in zip(lay_x.before, lay_x.after))
+    uses.pop((0, 0, 0, 0), None)  # the first block is not searched
+    searcher = QuiltSearch(feats, block, method=search, tolerance=tolerance, engine=engine)
+    projections = searcher.budget(uses)
+    quilt = _Canvas(feats, block, (lay_y.canvas, lay_x.canvas), blend=seam == "blend")
+    rng = np.random.default_rng(seed)
+    placed: dict[tuple[int, int], tuple[int, int]] = {}
+    for i, y in enumerate(lay_y.starts):
+        rows = _span(y, block, lay_y.canvas)
+        for j, x in enumerate(lay_x.starts):
+            region = _region(rows, _span(x, block, lay_x.canvas))
+            key = (lay_y.before[i], lay_y.after[i], lay_x.before[j], lay_x.after[j])
+            if key == (0, 0, 0, 0):
+                pick = int(rng.integers(searcher.n_cand))
+            else:
+                # Blocks continuing the neighbours' exemplar positions often match well: they seed the threshold.
+                hints = tuple(searcher.candidate(placed[(a, b)][0] + y - lay_y.starts[a],
+                                                 placed[(a, b)][1] + x - lay_x.starts[b])
+                              for a, b in ((i, j - 1), (i - 1, j), (i - 1, j - 1)) if (a, b) in placed)
+                pick = searcher.pick(searcher.shape(key, projections[key]), quilt.canvas[region], rng, hints,
+                                     quilt.block_usage() if spread else None)
+            placed[(i, j)] = divmod(pick, searcher.cols)
+            quilt.place(region, placed[(i, j)], key)
+    stats = _quilt_stats(searcher, search, len(lay_y.starts) * len(lay_x.starts), feats.shape[2], start_time)
+    return QuiltResult(quilt.coord_map((height, width), wrap), stats)
+
+
+def _checked_features(feats: np.ndarray, search: str, seam: str) -> np.ndarray:
     feats = np.ascontiguousarray(feats, np.float32)
     if feats.ndim != 3:
         raise BtforgeInputError("quilt 'exemplar'", f"expected [H, W, D] appearance vectors, found shape {feats.shape}",
@@ -138,81 +172,73 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
     if seam not in SEAMS:
         raise BtforgeInputError("quilt 'seam'", f"expected one of {SEAMS}, found {seam!r}",
                                 "use 'cut' (minimum-error boundary) or 'blend' (linear blending)")
-    height, width = (int(v) for v in size)
-    validate(feats.shape[:2], (height, width), block, overlap, wrap, tolerance)
+    return feats
 
-    lay_y = axis_layout(height, block, overlap, wrap)
-    lay_x = axis_layout(width, block, overlap, wrap)
-    uses = collections.Counter((ty, by, lx, rx) for ty, by in zip(lay_y.before, lay_y.after)
-                               for lx, rx in zip(lay_x.before, lay_x.after))
-    uses.pop((0, 0, 0, 0), None)  # the first block is not searched
-    searcher = QuiltSearch(feats, block, method=search, tolerance=tolerance, engine=engine)
-    projections = searcher.budget(uses)
-    canvas_h, canvas_w = lay_y.canvas, lay_x.canvas
-    dims = feats.shape[2]
-    primary = np.zeros((canvas_h, canvas_w, 2), np.int32)
-    second = np.zeros((canvas_h, canvas_w, 2), np.int32)
-    weight = np.zeros((canvas_h, canvas_w), np.float32)
-    canvas = np.zeros((canvas_h, canvas_w, dims), np.float32)   # what the output's appearance vectors will be
-    grid = np.indices((block, block), dtype=np.int32).transpose(1, 2, 0)
-    rng = np.random.default_rng(seed)
-    blend = seam == "blend"
-    placed: dict[tuple[int, int], tuple[int, int]] = {}
 
-    for i, y in enumerate(lay_y.starts):
-        rows = _span(y, block, canvas_h)
-        for j, x in enumerate(lay_x.starts):
-            region = _region(rows, _span(x, block, canvas_w))
-            key = (lay_y.before[i], lay_y.after[i], lay_x.before[j], lay_x.after[j])
-            first = key == (0, 0, 0, 0)
-            if first:
-                pick = int(rng.integers(searcher.n_cand))
-            else:
-                shape = searcher.shape(key, projections[key])
-                # Blocks continuing the neighbours' exemplar positions often match well: they seed the threshold.
-                hints = tuple(searcher.candidate(placed[(a, b)][0] + y - lay_y.starts[a],
-                                                 placed[(a, b)][1] + x - lay_x.starts[b])
-                              for a, b in ((i, j - 1), (i - 1, j), (i - 1, j - 1)) if (a, b) in placed)
-                pick = searcher.pick(shape, canvas[region], rng, hints)
-            r0, c0 = divmod(pick, searcher.cols)
-            placed[(i, j)] = (r0, c0)
-            new_feats = feats[r0:r0 + block, c0:c0 + block]
-            new_coords = grid + np.array([r0, c0], np.int32)
-            if first:
-                primary[region] = new_coords
-                second[region] = new_coords
-                weight[region] = 0
-                canvas[region] = new_feats
-            elif not blend:
-                old = canvas[region]
-                err = np.einsum("ijk,ijk->ij", old - new_feats, old - new_feats)
-                show = cut_mask(err, key)
-                primary[region] = np.where(show[..., None], new_coords, primary[region])
-                canvas[region] = np.where(show[..., None], new_feats, old)
-            else:
-                alpha = blend_alpha(block, key)
-                old_w = weight[region]
-                dominant = np.where((old_w > 0.5)[..., None], second[region], primary[region])
-                whole = alpha >= 1
-                first_texel = np.where(whole[..., None], new_coords, dominant)
-                w = np.where(whole, np.float32(0), alpha)
-                primary[region] = first_texel
-                second[region] = new_coords
-                weight[region] = w
-                canvas[region] = ((1 - w)[..., None] * feats[first_texel[..., 0], first_texel[..., 1]]
-                                  + w[..., None] * new_feats)
+class _Canvas:
+    """The quilt being laid: per canvas texel its exemplar source (and blend partner and weight), its
+    appearance vector, and how often each exemplar texel has been copied."""
 
-    coords = primary[:height, :width]
-    if blend:
-        w = weight[:height, :width]
-        other = np.where((w > 0)[..., None], second[:height, :width], coords)
-        result = CoordMap(np.ascontiguousarray(coords), (feats.shape[0], feats.shape[1]), np.ascontiguousarray(other),
-                          np.ascontiguousarray(w), wrap=wrap)
-    else:
-        result = CoordMap(np.ascontiguousarray(coords), (feats.shape[0], feats.shape[1]), wrap=wrap)
-    stats = {
+    def __init__(self, feats: np.ndarray, block: int, shape: tuple[int, int], blend: bool):
+        self.feats, self.block, self.blend = feats, block, blend
+        self.primary = np.zeros(shape + (2,), np.int32)
+        self.second = np.zeros(shape + (2,), np.int32)
+        self.weight = np.zeros(shape, np.float32)
+        self.canvas = np.zeros(shape + (feats.shape[2],), np.float32)   # what the output's vectors will be
+        self.grid = np.indices((block, block), dtype=np.int32).transpose(1, 2, 0)
+        self.copied = np.zeros(feats.shape[:2], np.int64)
+
+    def block_usage(self) -> np.ndarray:
+        """Per candidate block (flat, row-major over origins): texels of its exemplar area copied so far."""
+        b = self.block
+        table = np.zeros((self.copied.shape[0] + 1, self.copied.shape[1] + 1), np.int64)
+        table[1:, 1:] = self.copied.cumsum(0).cumsum(1)
+        return (table[b:, b:] - table[:-b, b:] - table[b:, :-b] + table[:-b, :-b]).ravel()
+
+    def place(self, region, origin: tuple[int, int], key: tuple[int, int, int, int]) -> None:
+        r0, c0 = origin
+        b = self.block
+        self.copied[r0:r0 + b, c0:c0 + b] += 1
+        new_feats = self.feats[r0:r0 + b, c0:c0 + b]
+        new_coords = self.grid + np.array([r0, c0], np.int32)
+        if key == (0, 0, 0, 0):
+            self.primary[region] = new_coords
+            self.second[region] = new_coords
+            self.weight[region] = 0
+            self.canvas[region] = new_feats
+        elif not self.blend:
+            old = self.canvas[region]
+            err = np.einsum("ijk,ijk->ij", old - new_feats, old - new_feats)
+            show = cut_mask(err, key)
+            self.primary[region] = np.where(show[..., None], new_coords, self.primary[region])
+            self.canvas[region] = np.where(show[..., None], new_feats, old)
+        else:
+            alpha = blend_alpha(b, key)
+            dominant = np.where((self.weight[region] > 0.5)[..., None], self.second[region], self.primary[region])
+            whole = alpha >= 1
+            first_texel = np.where(whole[..., None], new_coords, dominant)
+            w = np.where(whole, np.float32(0), alpha)
+            self.primary[region] = first_texel
+            self.second[region] = new_coords
+            self.weight[region] = w
+            self.canvas[region] = ((1 - w)[..., None] * self.feats[first_texel[..., 0], first_texel[..., 1]]
+                                   + w[..., None] * new_feats)
+
+    def coord_map(self, size: tuple[int, int], wrap: bool) -> CoordMap:
+        height, width = size
+        source = (self.feats.shape[0], self.feats.shape[1])
+        coords = np.ascontiguousarray(self.primary[:height, :width])
+        if not self.blend:
+            return CoordMap(coords, source, wrap=wrap)
+        w = self.weight[:height, :width]
+        other = np.where((w > 0)[..., None], self.second[:height, :width], coords)
+        return CoordMap(coords, source, np.ascontiguousarray(other), np.ascontiguousarray(w), wrap=wrap)
+
+
+def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, start_time: float) -> dict:
+    return {
         "search": search,
-        "blocks": len(lay_y.starts) * len(lay_x.starts),
+        "blocks": blocks,
         "candidates": searcher.n_cand,
         "features": dims,
         "overlap_shapes": len(searcher.shapes),
@@ -226,7 +252,6 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
         "search_s": round(searcher.search_s, 4),
         "total_s": round(time.perf_counter() - start_time, 4),
     }
-    return QuiltResult(result, stats)
 
 
 # ----------------------------------------------------------------------------------------------- stage
@@ -234,6 +259,7 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
 
 @declare_synthesizer(
     "quilt",
+    version="2",  # 2: the shared refinement
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -242,11 +268,14 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
               "candidate's full distance (reference)", choices=SEARCHES),
         Param("seam", "choice", "cut", "cut: minimum-error boundary cut; blend: linear blending across overlaps",
               choices=SEAMS),
-        Param("tolerance", "float", 0.1, "candidates within (1 + tolerance) x the best overlap error are eligible; "
-              "one is picked at random", low=0.0),
+        Param("tolerance", "float", 0.5, "candidates within (1 + tolerance) x the best overlap error are eligible; "
+              "one is picked among them (see 'spread')", low=0.0),
+        Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
+              "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
+        *refine_params(),
     ],
 )
-def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance):
+def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, spread, refine, occurrence):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
@@ -278,106 +307,10 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     validate((exemplar.height, exemplar.width), size, block, overlap, wrap, tolerance)  # before any work
     feats = texel_features(exemplar)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
-                            seed=seed)
+                            seed=seed, spread=spread)
     for key, value in result.stats.items():
         ctx.note(key, value)
-    return {"coords": result.coords}
+    return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, seed=seed)}
 
 
 STAGES = [quilt]
-
-
-# ----------------------------------------------------------------------------------------------- benchmark
-
-
-def smooth_fields(size: int, channels: int, seed: int = 0, sigma: float = 3.0) -> np.ndarray:
-    """``[size, size, channels]`` float32 periodic random fields, Gaussian-smoothed, zero mean, unit variance."""
-    from scipy.ndimage import gaussian_filter
-    rng = np.random.default_rng(seed)
-    noise = rng.standard_normal((channels, size, size))
-    fields = np.stack([gaussian_filter(n, sigma, mode="wrap") + 0.35 * gaussian_filter(n, sigma / 3, mode="wrap")
-                       for n in noise], axis=-1)
-    fields -= fields.mean(axis=(0, 1))
-    fields /= fields.std(axis=(0, 1)) + 1e-12
-    return fields.astype(np.float32)
-
-
-def smooth_ptm_exemplar(size: int = 128, seed: int = 0):
-    """An lrgb PTM (orthonormal basis) whose 6 coefficients and 3 colours are random smooth fields."""
-    from btforge.plugins.ptm.model import PTMModel
-    f = smooth_fields(size, 9, seed)
-    scale = np.array([0.15, 0.08, 0.08, 0.05, 0.04, 0.04], np.float32)
-    coeffs = f[..., :6] * scale
-    coeffs[..., 0] += 0.8  # the constant term: mean brightness
-    albedo = np.clip(0.55 + 0.15 * f[..., 6:], 0.0, 1.0)
-    return PTMModel(coeffs[:, :, None, :].astype(np.float32), albedo.astype(np.float32), "lrgb", "linear",
-                    basis="orthonormal")
-
-
-def _central_crop(exemplar: PerTexel, size: int) -> PerTexel:
-    h, w = min(size, exemplar.height), min(size, exemplar.width)
-    y0, x0 = (exemplar.height - h) // 2, (exemplar.width - w) // 2
-    rows, cols = np.meshgrid(np.arange(y0, y0 + h), np.arange(x0, x0 + w), indexing="ij")
-    return exemplar.remap(rows, cols)
-
-
-def benchmark_quilt(exemplar_size: int = 128, output_size: int = 512, block: int = 32, seed: int = 0,
-                    repeat: int = 3, *, exemplar: PerTexel | None = None, overlap: int = 6,
-                    tolerance: float = 0.1) -> dict:
-    """Time brute-force and rejection quilting on the same exemplar and check their picks are identical.
-
-    The exemplar is the central ``exemplar_size`` crop of ``exemplar`` when given, else an lrgb PTM of random smooth
-    fields (9-D appearance vectors: 6 orthonormal coefficients + 3 colours).  Kernels are compiled by a warm-up
-    run first; each search then runs ``repeat`` times and medians are reported (seconds), with the speed-up, the mean
-    fraction of candidates rejected after each projection, and the fraction whose full distance was computed.
-    """
-    from btforge.backend import get_backend
-    if exemplar is not None:
-        source = _central_crop(exemplar, exemplar_size)
-    else:
-        source = smooth_ptm_exemplar(exemplar_size, seed)
-    feats = texel_features(source)
-    size = (output_size, output_size)
-    small = feats[:min(feats.shape[0], 2 * block), :min(feats.shape[1], 2 * block)]
-    for method in SEARCHES:  # compile the kernels outside the timings
-        quilt_features(small, (block * 2, block * 2), block, overlap, search=method, seed=seed)
-    times: dict[str, list[float]] = {m: [] for m in SEARCHES}
-    cpu: dict[str, list[float]] = {m: [] for m in SEARCHES}
-    results = {}
-    for _ in range(repeat):  # interleaved, so both searches see the same machine load
-        for method in ("brute", "rejection"):
-            t0, c0 = time.perf_counter(), time.process_time()
-            res = quilt_features(feats, size, block, overlap, search=method, tolerance=tolerance, seed=seed)
-            times[method].append(time.perf_counter() - t0)
-            cpu[method].append(time.process_time() - c0)
-            if method in results and not np.array_equal(results[method].coords.coords, res.coords.coords):
-                raise AssertionError(f"{method} quilting is not deterministic")
-            results[method] = res
-    identical = bool(np.array_equal(results["brute"].coords.coords, results["rejection"].coords.coords))
-    rej = results["rejection"].stats
-    brute_s, rejection_s = statistics.median(times["brute"]), statistics.median(times["rejection"])
-    return {
-        "device": get_backend().description,
-        "exemplar": "given (central crop)" if exemplar is not None else "random smooth fields (lrgb PTM)",
-        "exemplar_size": list(feats.shape[:2]),
-        "features": int(feats.shape[2]),
-        "output_size": list(size),
-        "block": block,
-        "overlap": overlap,
-        "tolerance": tolerance,
-        "blocks": rej["blocks"],
-        "candidates": rej["candidates"],
-        "brute_s": round(brute_s, 3),
-        "rejection_s": round(rejection_s, 3),
-        "speedup": round(brute_s / rejection_s, 2),
-        "brute_cpu_s": round(statistics.median(cpu["brute"]), 3),
-        "rejection_cpu_s": round(statistics.median(cpu["rejection"]), 3),
-        "speedup_cpu": round(statistics.median(cpu["brute"]) / statistics.median(cpu["rejection"]), 2),
-        "brute_search_s": results["brute"].stats["search_s"],
-        "rejection_search_s": rej["search_s"],
-        "rejection_precompute_s": rej["precompute_s"],
-        "rejected_after_projection": rej["rejected_after_projection"],
-        "full_distance_fraction": rej["full_distance_fraction"],
-        "identical_picks": identical,
-        "times": {m: [round(t, 3) for t in v] for m, v in times.items()},
-    }

@@ -21,6 +21,7 @@ from btforge.buffers import (SRGB8_TO_LINEAR, CoordMap, PerTexel, ReflectanceMod
                              unit_directions)
 from btforge.errors import BtforgeInputError
 
+from . import visibility
 from .features import downsample
 
 #: Patches per image that enter one sliced-Wasserstein comparison (all of them when there are fewer).
@@ -47,6 +48,8 @@ MAX_VERBATIM_OFFSETS = 64
 STATISTICS_BINS = 32
 #: Autocorrelation lags of the texture statistics: |dy|, |dx| up to this many texels.
 AUTOCORRELATION_RADIUS = 8
+#: Shuffled-block layouts whose sliced Wasserstein distances are averaged into the baseline.
+BASELINE_LAYOUTS = 2
 
 
 # ----------------------------------------------------------------------------------------------- relighting
@@ -273,14 +276,6 @@ class _CrossLight:
 
 
 # ----------------------------------------------------------------------------------------------- coords metrics
-
-
-def _dominant_source(coords: CoordMap) -> np.ndarray:
-    """``[H, W, 2]`` exemplar texel each output texel mostly copies (the blend partner where its weight > 0.5)."""
-    src = coords.coords
-    if coords.blend_weight.size:
-        src = np.where((coords.blend_weight > 0.5)[..., None], coords.blend_coords, src)
-    return src.astype(np.int64)
 
 
 def _island_share(keys: np.ndarray, min_size: float) -> float:
@@ -536,7 +531,7 @@ def verbatim_share_of_map(coords: CoordMap, min_island: float) -> float:
     """Share of output texels in 4-connected regions of constant source offset larger than ``min_island``."""
     h, w = coords.height, coords.width
     ew = coords.source_size[1]
-    src = _dominant_source(coords)
+    src = visibility.dominant_source(coords)
     rows, cols = np.mgrid[0:h, 0:w]
     keys = (src[..., 0] - rows + h) * (2 * w + ew + 1) + (src[..., 1] - cols + w)
     return _island_share(keys, min_island)
@@ -651,7 +646,27 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
             gradient between all other neighbouring texels, both averaged over lights; 1 means invisible
             seams.  Boundaries are every ``block`` texels (the block step: ``block - overlap`` for ``quilt``),
             else where ``coords`` is discontinuous (the seams exactly), plus the last-to-first row and column
-            when ``wrap`` (by default the map's own); empty (no value) when none of these is known.
+            when ``wrap`` (by default the map's own); empty (no value) when none of these is known.  It is
+            measured against the output's own texture, not the exemplar's, so it is not ``seam_visibility``.
+        ``seam_visibility``
+            With ``coords``: the mean radiance jump (colour norm, averaged over lights) between adjacent output
+            texels whose sources are not adjacent in the exemplar (a blended texel counts with its heavier
+            source; with a wrapping map the wrap-around pairs too), over the mean jump between adjacent exemplar
+            texels.  1 = seams are as visible as the exemplar's own texel-to-texel changes; above about 1.3
+            they show.  ``seam_edge_share`` is the share of output neighbour pairs that are seams.
+        ``straight_seam_visibility`` and ``straight_seam_share``
+            The same over the seam edges lying in straight runs of 12 or more texels (the edges of copied
+            blocks, which the eye picks out first), and their share of the seam edges.  A tiling's tile
+            borders (the map's ``tile``) are straight by design and left out.  Empty when no seam is straight.
+        ``evenness``
+            With ``coords``: ``exp(entropy) / n`` of the output's use of the exemplar's ``n`` cells of about
+            8 x 8 texels (blended texels count for both sources, by weight).  1 = every cell used equally; an
+            output that collapses onto a few exemplar regions scores low, a constant-source map ``1 / n``.
+        ``swd_vs_shuffled_blocks``
+            ``swd`` over ``swd_shuffled_blocks``: the same distance for exemplar blocks of
+            ``shuffled_block_side`` texels (32, at most half the exemplar's side) laid at random at the output's
+            size, replayed and relit like the output (mean of 2 layouts).  Below 1 the synthesis reproduces the
+            exemplar's patch statistics better than random blocks do.
         ``consistency`` and ``consistent``
             Whether each output texel comes from the same exemplar place under every light.  With ``coords``:
             the share of texels equal (within ``tolerance``, under every light) to what the map names, i.e. to
@@ -671,7 +686,8 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         ``seam_source``
             How the figures were found.
 
-    Costs: a 256 x 256 output against a 128 x 128 exemplar at 8 lights scores in about 3 s (measured with one
+    Costs: a 256 x 256 output against a 128 x 128 exemplar at 8 lights scores in about 3 s (plus about 1 s for
+    the shuffled-block baseline) (measured with one
     BLAS thread on a shared 2-core CPU).
 
     Everything is also noted in the run report, with the lights, the domain and how each figure was found.
@@ -685,95 +701,152 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         return _noted(ctx, layout)
     if wrap is None:
         wrap = bool(coords.wrap) if coords is not None else False
-    n_channel, out_channel = len(_channels(exemplar)), len(_channels(output))
-    if out_channel != n_channel:
-        raise BtforgeInputError("score", f"expected output and exemplar with the same channels, found {out_channel} "
-                                f"({', '.join(_channels(output))}) and {n_channel} ({', '.join(_channels(exemplar))})",
-                                "score textures of the same colour space")
+    _check_channels(ctx, output, exemplar)
     lights_used, lights_source = _score_lights(output, exemplar, lights, ctx.paths)
     ex_lin = _relight(exemplar, lights_used, "exemplar")
     out_lin = _relight(output, lights_used, "output")
-    n_light, eh, ew, n_channel = ex_lin.shape
-    _, h, w, _ = out_lin.shape
-    if _channels(output) != _channels(exemplar):
-        ctx.warn(f"channel names differ: {_channels(output)} vs {_channels(exemplar)}; compared in order")
-    for role, (hh, ww) in (("output", (h, w)), ("exemplar", (eh, ew))):
-        if min(hh, ww) < patch:
-            raise BtforgeInputError(f"score '{role}'", f"expected at least {patch} x {patch} texels (the patch size), "
-                                    f"found {hh} x {ww}", "lower 'patch'")
-    if coords is not None:
-        if coords.source_size != (eh, ew):
-            raise BtforgeInputError("score 'coords'", f"expected a map into the {eh} x {ew} exemplar, found one into "
-                                    f"{coords.source_size[0]} x {coords.source_size[1]}",
-                                    "wire the exemplar the map was synthesized from (the synthesizer's input)")
-        if (coords.height, coords.width) != (h, w):
-            raise BtforgeInputError("score 'coords'", f"expected a map of the output's size {h} x {w}, found "
-                                    f"{coords.height} x {coords.width}",
-                                    "wire the map whose materialized result is 'output'")
-
+    _check_sizes(ex_lin.shape[1:3], out_lin.shape[1:3], coords, patch, consistency_patch or patch)
     whites = _white_points(ex_lin)
     ex_enc = _encode(ex_lin, whites, domain)
     out_enc = _encode(out_lin, whites, domain)
+    relit = _Relit(exemplar, lights_used, whites, domain, ex_enc, out_enc)
 
     swd_per_level = sliced_wasserstein_levels(ex_enc, out_enc, patch=patch, scales=scales, projections=projections,
                                               seed=seed, wrap=wrap)
-
-    match_patch = consistency_patch or patch
-    for role, (hh, ww) in (("output", (h, w)), ("exemplar", (eh, ew))):
-        if min(hh, ww) < match_patch:
-            raise BtforgeInputError(f"score '{role}'", f"expected at least {match_patch} x {match_patch} texels (the "
-                                    f"consistency patch size), found {hh} x {ww}", "lower 'consistency_patch'")
-    found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=match_patch, samples=samples, seed=seed,
-                                  wrap=wrap, tolerance=tolerance)
-    matched, match_rms, out_positions, n_out_grid = found.matched, found.match_rms, found.out_positions, found.n_out_grid
-
-    consistency_matched = found.consistency_matched
-    if coords is not None:
-        # Replayed exactly as materialize does (records blended, then relit): blending relit radiance instead
-        # differs wherever evaluation is not linear in the records (clamps, sRGB codes, sRGB-space PTMs).
-        replay_enc = _encode(_relight(coords.apply(_relit_view(exemplar)), lights_used, "exemplar"), whites, domain)
-        consistency = float((np.abs(out_enc - replay_enc).max(axis=(0, 3)) <= tolerance).mean())
-        consistency_method = "coords"
-    else:
-        consistency, consistency_method = consistency_matched, "patch matches"
-    if n_light < 2:
+    found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=consistency_patch or patch,
+                                  samples=samples, seed=seed, wrap=wrap, tolerance=tolerance)
+    if ex_enc.shape[0] < 2:
         ctx.warn("consistency across lights needs at least 2 lights; with one it is trivially 1")
-
-    min_island = verbatim_area * eh * ew
-    if coords is not None:
-        verbatim, verbatim_method = verbatim_share_of_map(coords, min_island), "coords"
-    else:
-        exact = (match_rms <= tolerance).all(axis=0) & (np.abs(matched - matched[:1]).max(axis=(0, 2)) == 0)
-        verbatim = _verbatim_from_matches(out_enc, ex_enc, out_positions, matched[0], exact, min_island, tolerance,
-                                          n_out_grid)
-        verbatim_method = "patch matches"
-
     seam_ratio, seam_source = seam_ratio_of(out_enc, block, coords, wrap)
     statistics_ratio, statistics_self = texture_statistics_ratio(out_enc, ex_enc, wrap)
+    swd = float(np.mean(swd_per_level))
     values = {
-        "swd": float(np.mean(swd_per_level)),
+        "swd": swd,
         "texture_statistics": statistics_ratio,
         "texture_statistics_self": statistics_self,
         **{f"swd_{i}": v for i, v in enumerate(swd_per_level)},
         "coherence": found.coherence,
         "completeness": found.completeness,
-        "verbatim_share": verbatim,
-        "verbatim_method": verbatim_method,
+        **_verbatim(relit, coords, found, verbatim_area * ex_enc.shape[1] * ex_enc.shape[2], tolerance),
         "seam_ratio": seam_ratio,
         "seam_source": " + ".join(seam_source) if seam_source else "none",
-        "consistency": consistency,
-        "consistent": bool(consistency >= consistency_threshold),
-        "consistency_method": consistency_method,
-        "consistency_matched": consistency_matched,
-        "lights": n_light,
+        **_eye_measures(relit, coords),
+        **_swd_against_baseline(relit, swd, patch=patch, scales=scales, projections=projections, seed=seed),
+        **_consistency(relit, coords, found, tolerance, consistency_threshold),
+        "lights": ex_enc.shape[0],
         "lights_source": lights_source,
         "domain": domain,
         "wrap": bool(wrap),
         "scales_used": len(swd_per_level),
-        "sampled_patches": int(len(out_positions)),
+        "sampled_patches": int(len(found.out_positions)),
         **layout,
     }
     return _noted(ctx, values)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Relit:
+    """Both textures relit and encoded, and what is needed to relight anything else the same way."""
+
+    exemplar: PerTexel
+    lights: np.ndarray
+    whites: np.ndarray
+    domain: str
+    ex_enc: np.ndarray
+    out_enc: np.ndarray
+
+    def replay(self, coords: CoordMap) -> np.ndarray:
+        """The exemplar replayed through ``coords`` as ``materialize`` replays it (blended records, then
+        relit), encoded: blending relit radiance instead differs wherever evaluation is not linear in the
+        records (clamps, sRGB codes, sRGB-space PTMs)."""
+        replayed = coords.apply(_relit_view(self.exemplar))
+        return _encode(_relight(replayed, self.lights, "exemplar"), self.whites, self.domain)
+
+
+def _check_channels(ctx, output: PerTexel, exemplar: PerTexel) -> None:
+    n_channel, out_channel = len(_channels(exemplar)), len(_channels(output))
+    if out_channel != n_channel:
+        raise BtforgeInputError("score", f"expected output and exemplar with the same channels, found {out_channel} "
+                                f"({', '.join(_channels(output))}) and {n_channel} ({', '.join(_channels(exemplar))})",
+                                "score textures of the same colour space")
+    if _channels(output) != _channels(exemplar):
+        ctx.warn(f"channel names differ: {_channels(output)} vs {_channels(exemplar)}; compared in order")
+
+
+def _check_sizes(ex_size, out_size, coords: CoordMap | None, patch: int, match_patch: int) -> None:
+    """Every problem with the sizes at once: textures smaller than a patch, a map of another size."""
+    problems = []
+    for role, (hh, ww) in (("output", out_size), ("exemplar", ex_size)):
+        for size, what, hint in ((patch, "the patch size", "lower 'patch'"),
+                                 (match_patch, "the consistency patch size", "lower 'consistency_patch'")):
+            if min(hh, ww) < size:
+                problems.append((f"score '{role}'", f"expected at least {size} x {size} texels ({what}), found "
+                                 f"{hh} x {ww}", hint))
+    if coords is not None:
+        (eh, ew), (h, w) = ex_size, out_size
+        if coords.source_size != (eh, ew):
+            problems.append(("score 'coords'", f"expected a map into the {eh} x {ew} exemplar, found one into "
+                             f"{coords.source_size[0]} x {coords.source_size[1]}",
+                             "wire the exemplar the map was synthesized from (the synthesizer's input)"))
+        if (coords.height, coords.width) != (h, w):
+            problems.append(("score 'coords'", f"expected a map of the output's size {h} x {w}, found "
+                             f"{coords.height} x {coords.width}", "wire the map whose materialized result is 'output'"))
+    if problems:
+        where = "; ".join(p[0] for p in problems)
+        raise BtforgeInputError(where if len(problems) > 1 else problems[0][0],
+                                "; ".join(p[1] for p in problems), "; ".join(dict.fromkeys(p[2] for p in problems)))
+
+
+def _consistency(relit: _Relit, coords, found: "PatchMatches", tolerance: float, threshold: float) -> dict:
+    """Cross-light consistency: exact through the map when there is one, else the map-free estimate."""
+    if coords is not None:
+        replay_enc = relit.replay(coords)
+        consistency = float((np.abs(relit.out_enc - replay_enc).max(axis=(0, 3)) <= tolerance).mean())
+        method = "coords"
+    else:
+        consistency, method = found.consistency_matched, "patch matches"
+    return {"consistency": consistency, "consistent": bool(consistency >= threshold), "consistency_method": method,
+            "consistency_matched": found.consistency_matched}
+
+
+def _verbatim(relit: _Relit, coords, found: "PatchMatches", min_island: float, tolerance: float) -> dict:
+    """Share of the output copied in islands larger than ``min_island`` texels, and how it was found."""
+    if coords is not None:
+        return {"verbatim_share": verbatim_share_of_map(coords, min_island), "verbatim_method": "coords"}
+    matched, match_rms = found.matched, found.match_rms
+    exact = (match_rms <= tolerance).all(axis=0) & (np.abs(matched - matched[:1]).max(axis=(0, 2)) == 0)
+    share = _verbatim_from_matches(relit.out_enc, relit.ex_enc, found.out_positions, matched[0], exact, min_island,
+                                   tolerance, found.n_out_grid)
+    return {"verbatim_share": share, "verbatim_method": "patch matches"}
+
+
+def _eye_measures(relit: _Relit, coords: CoordMap | None) -> dict:
+    """Seam and straight-seam visibility and evenness, read from the map (None without one)."""
+    if coords is None:
+        return {"seam_visibility": None, "straight_seam_visibility": None, "straight_seam_share": None,
+                "seam_edge_share": None, "evenness": None}
+    seen = visibility.seam_visibility(relit.out_enc, relit.ex_enc, coords)
+    return {"seam_visibility": seen.seam_visibility, "straight_seam_visibility": seen.straight_seam_visibility,
+            "straight_seam_share": seen.straight_seam_share, "seam_edge_share": seen.seam_edge_share,
+            "evenness": visibility.evenness(coords)}
+
+
+def _swd_against_baseline(relit: _Relit, swd: float, *, patch: int, scales: int, projections: int,
+                          seed: int) -> dict:
+    """The sliced Wasserstein distance of shuffled exemplar blocks laid out at the output's size (mean of
+    :data:`BASELINE_LAYOUTS` layouts, the same projections), and the output's distance over it."""
+    ex_enc = relit.ex_enc
+    size = relit.out_enc.shape[1:3]
+    block = visibility.baseline_block(ex_enc.shape[1:3])
+    distances = []
+    for layout in range(BASELINE_LAYOUTS):
+        shuffled = visibility.shuffled_blocks(ex_enc.shape[1:3], size, block, seed=seed * BASELINE_LAYOUTS + layout)
+        levels = sliced_wasserstein_levels(ex_enc, relit.replay(shuffled), patch=patch, scales=scales,
+                                           projections=projections, seed=seed, wrap=False)
+        distances.append(float(np.mean(levels)))
+    baseline = float(np.mean(distances))
+    return {"swd_shuffled_blocks": baseline, "swd_vs_shuffled_blocks": swd / baseline if baseline > 0 else None,
+            "shuffled_block_side": block}
 
 
 def _noted(ctx, values: dict) -> dict:

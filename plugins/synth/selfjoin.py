@@ -28,7 +28,7 @@ import numpy as np
 
 from btforge.backend import get_backend, single_threaded_blas
 
-from .search import _NONE, _empty_lists
+from .search_base import NONE_KEY, empty_lists, packed, principal_projection, smallest, square_window
 
 KERNELS = Path(__file__).with_name("selfjoin.cl")
 TREE_DIMS = 8            #: principal components of the windows the kd-tree compares
@@ -123,7 +123,6 @@ def window_components(image: np.ndarray, h: int, w: int, radius: int, dims: int)
     leading principal axes ``[h * w, dims]`` float32 (fitted on :data:`PCA_SAMPLE` windows; the mean is not
     subtracted: a kd-tree does not need it), summed one window offset at a time so the ``[h * w, D x window]``
     vectors never exist."""
-    from .search import principal_projection, square_window
     d = image.shape[2]
     offsets = square_window(2 * radius + 1) + radius
     rng = np.random.default_rng(0)
@@ -155,7 +154,7 @@ class _Steps:
         ctx = self.backend.context
         self.buffers = [(cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n * top), cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n * top),
                          cl.Buffer(ctx, mf.READ_WRITE, size=self.n)) for _ in range(2)]
-        idx, dist = _empty_lists(self.n, top)
+        idx, dist = empty_lists(self.n, top)
         cl.enqueue_copy(self.backend.queue, self.buffers[0][0], idx)
         cl.enqueue_copy(self.backend.queue, self.buffers[0][1], dist)
         cl.enqueue_copy(self.backend.queue, self.buffers[0][2], np.ones(self.n, np.uint8))
@@ -188,7 +187,7 @@ class _NumpySteps:
 
     def __init__(self, image, h, w, radius, exclude, allowed, top):
         self.args = (image, h, w, radius, exclude, allowed)
-        self.idx, self.dist = _empty_lists(h * w, top)
+        self.idx, self.dist = empty_lists(h * w, top)
         self.changed = np.ones(h * w, bool)
 
     def step(self, seeds, step: int, n_random: int, skip_settled: bool, wide) -> int:
@@ -311,7 +310,6 @@ def improve_numpy(image, h, w, radius, exclude, allowed, idx, dist, changed, see
                   skip_settled, nprop, nn, chunk=2048):
     """Twin of ``selfjoin_step``: the ``TOPK`` smallest (distance, index) of the old list and the admissible
     candidates, and which lists changed."""
-    from .search import packed, smallest
     n, top = idx.shape
     active = sources_changed_numpy(changed, idx, h, w, min(nn, top)) if skip_settled else np.ones(n, bool)
     cand = candidates_numpy(idx, h, w, seeds, seed, step, n_random, min(nprop, top), min(nn, top))
@@ -329,7 +327,7 @@ def improve_numpy(image, h, w, radius, exclude, allowed, idx, dist, changed, see
                               axis=1)
         keys.sort(axis=1)
         repeat = np.zeros(keys.shape, bool)
-        repeat[:, 1:] = (keys[:, 1:] == keys[:, :-1]) & (keys[:, 1:] != _NONE)
-        keys[repeat] = _NONE
+        repeat[:, 1:] = (keys[:, 1:] == keys[:, :-1]) & (keys[:, 1:] != NONE_KEY)
+        keys[repeat] = NONE_KEY
         new_idx[rows], new_dist[rows] = smallest(keys, top)
     return new_idx.astype(np.int32), new_dist, (new_idx != idx).any(axis=1)

@@ -39,6 +39,34 @@ def search_param() -> Param:
                  choices=SEARCHES)
 
 
+#: Default texture-optimisation rounds of the refinement every built-in synthesizer's map goes through.
+REFINE = 3
+#: Default weight of the refinement's occurrence term.
+OCCURRENCE = 0.3
+
+
+def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE) -> list[Param]:
+    """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds and the ``occurrence`` weight."""
+    return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
+                  "overlapping 8 x 8 windows matched to the exemplar (with the occurrence term) and voted on, then "
+                  "corrections; seams follow the content and every exemplar region gets used (0: off)",
+                  low=0, high=20),
+            Param("occurrence", "float", occurrence, "weight of the refinement's occurrence term: an exemplar window "
+                  "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
+                  "squared distance of two random windows (0: plain texture optimisation)", low=0.0)]
+
+
+def refined(ctx, features, coords, *, refine: int, occurrence: float, seed: int):
+    """``coords`` through the shared refinement (:func:`.refine.refine_map`), with its time noted."""
+    import time
+
+    from .refine import refine_map
+    start = time.perf_counter()
+    out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed)
+    ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
+    return out
+
+
 def declare_synthesizer(name: str, *, params: Sequence[Param] = (), version: str = "1",
                         seed_doc: str | None = None) -> Callable:
     """:func:`~btforge.declare_stage` for a synthesizer: ``exemplar`` (PerTexel) in, ``coords`` (CoordMap) out,

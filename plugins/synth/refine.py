@@ -1,0 +1,220 @@
+"""Refinement of any synthesizer's coordinate map: texture optimisation in appearance space with an occurrence
+term, then coherence corrections that break straight seams.
+
+A map names, per output texel, the exemplar texel it copies; its output is the exemplar's appearance vectors
+gathered through it.  :func:`refine_map` improves the map where the eye looks first, in two alternating steps:
+
+1. *Texture optimisation* (Kwatra et al. 2005) with an *occurrence* term (Kaspar et al. 2015): the output is cut
+   into overlapping ``patch x patch`` windows (half a window apart, the grid jittered at each iteration); each
+   window is matched to the exemplar window whose appearance is nearest (a k-d tree on PCA-reduced windows; the
+   window it copies now is always a candidate) plus a penalty for exemplar windows already used more than
+   their fair share.  Every output texel then takes, among the sources its covering windows propose, the one whose
+   appearance is nearest the proposals' average (a discrete vote: a map names exemplar texels, so the average
+   itself cannot be stored; the texel nearest to it can, and replays on any representation).
+2. *Corrections* (as in Lefebvre & Hoppe 2005): each texel, in a random half of the texels per pass, may take
+   the continuation of a 4-neighbour's source (or keep its own), whichever makes its neighbourhood (itself and
+   its 4-neighbours) most like the exemplar's around that source.  Seams then follow the content instead of a grid.
+
+Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from btforge.buffers import CoordMap
+
+from .features import pca_reduce
+from .search import ContentCache, content_key
+from .search_base import leading_eigenpairs
+
+#: Appearance dimensions each texel keeps in the refinement (PCA of the synthesizer's features).
+TEXEL_DIMS = 6
+#: Dimensions of the PCA-reduced windows searched in the k-d tree.
+WINDOW_DIMS = 12
+#: Nearest exemplar windows found per output window before the occurrence term re-ranks them.
+CANDIDATES = 8
+#: Correction passes after each optimisation step.
+CORRECTIONS = 1
+#: Window positions sampled to fit the window PCA.
+PCA_SAMPLE = 4000
+
+_analyses = ContentCache(4)
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowIndex:
+    """The exemplar's windows of one size, PCA-reduced, in a k-d tree (made once per exemplar and size)."""
+
+    texels: np.ndarray      # [eh, ew, d] reduced appearance per exemplar texel
+    patch: int
+    mean: np.ndarray        # [p * p * d]
+    basis: np.ndarray       # [p * p * d, WINDOW_DIMS]
+    reduced: np.ndarray     # [gh * gw, WINDOW_DIMS]
+    tree: object            # scipy.spatial.cKDTree over ``reduced``
+    spread: float           # mean squared distance between two random windows (the occurrence term's unit)
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        return self.texels.shape[0] - self.patch + 1, self.texels.shape[1] - self.patch + 1
+
+
+def window_index(features: np.ndarray, patch: int) -> WindowIndex:
+    """The :class:`WindowIndex` of ``features [eh, ew, D]`` (cached by content)."""
+    return _analyses.get_or_make(content_key(features, extra=("refine", patch)), lambda: _index(features, patch))
+
+
+def _index(features: np.ndarray, patch: int) -> WindowIndex:
+    from numpy.lib.stride_tricks import sliding_window_view
+    from scipy.spatial import cKDTree
+    texels = pca_reduce(features, TEXEL_DIMS) if features.shape[2] > TEXEL_DIMS else features.astype(np.float32)
+    texels = np.ascontiguousarray(texels / max(float(texels.std()), 1e-12), dtype=np.float32)
+    windows = sliding_window_view(texels, (patch, patch), axis=(0, 1)).transpose(0, 1, 3, 4, 2)
+    flat = windows.reshape(-1, patch * patch * texels.shape[2])
+    rng = np.random.default_rng(0)
+    sample = flat[rng.choice(len(flat), min(PCA_SAMPLE, len(flat)), replace=False)].astype(np.float64)
+    mean = sample.mean(axis=0)
+    _, axes = leading_eigenpairs((sample - mean).T @ (sample - mean), WINDOW_DIMS)
+    basis = np.ascontiguousarray(axes, dtype=np.float32)
+    reduced = np.ascontiguousarray((flat - mean.astype(np.float32)) @ basis)
+    spread = 2.0 * float(reduced.var(axis=0).sum())
+    return WindowIndex(texels, patch, mean.astype(np.float32), basis, reduced, cKDTree(reduced), max(spread, 1e-12))
+
+
+def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
+               seed: int = 0) -> CoordMap:
+    """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
+    ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
+    The result has no blends (the dominant source of a blended texel is refined) and the input's wrap and
+    tile.  A map or exemplar smaller than a window is returned as it is."""
+    if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
+        return coords  # no whole window fits: nothing to match
+    index = window_index(features, patch)
+    eh, ew = coords.source_size
+    src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
+    if coords.blend_weight.size:
+        partner = coords.blend_coords[..., 0].astype(np.int64) * ew + coords.blend_coords[..., 1]
+        src = np.where(coords.blend_weight > 0.5, partner, src)
+    rng = np.random.default_rng([seed, 7])
+    for _ in range(iterations):
+        src = optimise_step(index, src, coords.wrap, occurrence, rng)
+        for _ in range(CORRECTIONS):
+            src = correction_pass(index.texels, src, coords.wrap, rng)
+    out = np.stack(np.divmod(src, ew), axis=-1).astype(np.int32)
+    return CoordMap(out, (eh, ew), wrap=coords.wrap, tile=coords.tile)
+
+
+def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool) -> np.ndarray:
+    """Window origins along one output axis, ``stride`` apart from ``offset`` (wrapping, or clamped inside)."""
+    if wrap:
+        return np.arange(offset, offset + length, stride) % length
+    starts = np.arange(offset - stride if offset else 0, length - patch + stride, stride)
+    return np.unique(np.clip(starts, 0, max(0, length - patch)))
+
+
+def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: float,
+                  rng: np.random.Generator) -> np.ndarray:
+    """One texture-optimisation round: every window matched (with the occurrence term), then the vote."""
+    p = index.patch
+    stride = max(1, p // 2)
+    h, w = src.shape
+    eh, ew = index.texels.shape[:2]
+    ys = window_starts(h, p, stride, int(rng.integers(stride)), wrap)
+    xs = window_starts(w, p, stride, int(rng.integers(stride)), wrap)
+    rows = (ys[:, None] + np.arange(p)) % h                      # [ny, p]
+    cols = (xs[:, None] + np.arange(p)) % w                      # [nx, p]
+    window_src = src[rows[:, None, :, None], cols[None, :, None, :]]          # [ny, nx, p, p]
+    texels = index.texels.reshape(eh * ew, -1)
+    query = texels[window_src].reshape(len(ys) * len(xs), -1)
+    query_reduced = (query - index.mean) @ index.basis
+    origin = _best_windows(index, query_reduced, window_src[:, :, 0, 0].ravel(), src, occurrence)
+    gy, gx = index.grid
+    oy, ox = np.divmod(origin, gx)
+    proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
+                 + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(len(ys), len(xs), p, p)
+    return _vote(texels, proposals, rows, cols, (h, w))
+
+
+def _best_windows(index: WindowIndex, query: np.ndarray, current_origin: np.ndarray, src: np.ndarray,
+                  occurrence: float) -> np.ndarray:
+    """Per query window, the exemplar window origin (flat in the window grid) of least cost: squared reduced
+    distance plus ``occurrence`` x (the mean squared distance of two random windows) x how far its texels are
+    used beyond their fair share.  Candidates: the nearest windows and the window copied now."""
+    eh, ew = index.texels.shape[:2]
+    gy, gx = index.grid
+    k = min(CANDIDATES, len(index.reduced))
+    _, cand = index.tree.query(query, k=k)
+    cand = cand.reshape(len(query), k)
+    cy, cx = np.divmod(current_origin, ew)
+    inside = (cy < gy) & (cx < gx)
+    current = np.where(inside, np.minimum(cy, gy - 1) * gx + np.minimum(cx, gx - 1), cand[:, 0])
+    overuse = _overuse(src, index)
+    cand = np.concatenate([cand, current[:, None]], axis=1)
+    diff = index.reduced[cand] - query[:, None, :]
+    dist = np.einsum("qkd,qkd->qk", diff, diff)
+    cost = dist + occurrence * index.spread * overuse[cand]
+    return cand[np.arange(len(cand)), np.argmin(cost, axis=1)]
+
+
+def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
+    """Per exemplar window, the mean use of its texels by ``src`` over their fair share, minus 1 (>= 0)."""
+    eh, ew = index.texels.shape[:2]
+    p = index.patch
+    use = np.bincount(src.ravel(), minlength=eh * ew).reshape(eh, ew).astype(np.float64)
+    fair = src.size / (eh * ew)
+    table = np.zeros((eh + 1, ew + 1))
+    table[1:, 1:] = use.cumsum(0).cumsum(1)
+    sums = table[p:, p:] - table[:-p, p:] - table[p:, :-p] + table[:-p, :-p]
+    return np.maximum(sums / (p * p * fair) - 1.0, 0.0).ravel()
+
+
+def _vote(texels: np.ndarray, proposals: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+          size: tuple[int, int]) -> np.ndarray:
+    """Each output texel's new source: among the sources its windows propose, the one nearest their mean."""
+    h, w = size
+    target = (rows[:, None, :, None] * w + cols[None, :, None, :]).ravel()          # [ny * nx * p * p]
+    order = np.argsort(target, kind="stable")
+    target, proposed = target[order], proposals.ravel()[order]
+    count = np.bincount(target, minlength=h * w)
+    slot = np.arange(len(target)) - (np.cumsum(count) - count)[target]
+    votes = np.full((h * w, int(count.max())), -1, np.int64)
+    votes[target, slot] = proposed
+    used = votes >= 0
+    vectors = texels[np.maximum(votes, 0)]                                            # [n, slots, d]
+    vectors[~used] = 0.0
+    mean = vectors.sum(axis=1) / np.maximum(count, 1)[:, None].astype(np.float32)
+    error = ((vectors - mean[:, None, :]) ** 2).sum(axis=2)
+    error[~used] = np.inf
+    return votes[np.arange(h * w), np.argmin(error, axis=1)].reshape(h, w)
+
+
+def correction_pass(texels: np.ndarray, src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:
+    """A random half of the texels each take, of its own source and the continuations of its 4-neighbours'
+    sources, the one whose exemplar neighbourhood (the texel and its 4-neighbours) best matches the output's."""
+    eh, ew, d = texels.shape
+    h, w = src.shape
+    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    out = texels.reshape(-1, d)[src]                                     # [h, w, d]
+    cross = [(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)]
+    seen = [np.roll(out, (-oy, -ox), axis=(0, 1)) for oy, ox in cross]
+    sr, sc = np.divmod(src, ew)
+    best_err = np.full((h, w), np.inf, np.float32)
+    best = src.copy()
+    for dy, dx in cross:
+        # the neighbour at (y + dy, x + dx) proposes its source moved back by (dy, dx)
+        nr = np.roll(sr, (-dy, -dx), axis=(0, 1)) - dy
+        nc = np.roll(sc, (-dy, -dx), axis=(0, 1)) - dx
+        ok = (nr >= 0) & (nr < eh) & (nc >= 0) & (nc < ew)
+        centre = (np.clip(nr, 0, eh - 1) + 1) * (ew + 2) + np.clip(nc, 0, ew - 1) + 1
+        err = np.zeros((h, w), np.float32)
+        for (oy, ox), there in zip(cross, seen):
+            err += ((pad[centre + oy * (ew + 2) + ox] - there) ** 2).sum(axis=2)
+        better = ok & (err < best_err)
+        best_err = np.where(better, err, best_err)
+        best = np.where(better, (centre // (ew + 2) - 1) * ew + centre % (ew + 2) - 1, best)
+    if not wrap:  # the rolled border rows and columns compare against the far side: leave them as they are
+        best[[0, -1], :] = src[[0, -1], :]
+        best[:, [0, -1]] = src[:, [0, -1]]
+    chosen = rng.random((h, w)) < 0.5
+    return np.where(chosen, best, src)

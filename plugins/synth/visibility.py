@@ -1,0 +1,192 @@
+"""What the eye sees in a synthesized texture: seams, straight block edges, uneven use of the exemplar.
+
+Each measure reads the coordinate map (which output neighbours come from exemplar neighbours) and the relit
+images (how large the radiance jump across each output neighbour pair is):
+
+* seam visibility: the mean radiance jump between adjacent output texels whose sources are not adjacent in the
+  exemplar, over the mean jump between adjacent exemplar texels (1: seams look like the exemplar's own edges);
+* straight-seam visibility: the same over the seam edges lying in straight runs of :data:`STRAIGHT_RUN` or more
+  texels (the edges of copied blocks, which the eye picks out first), left out along the borders of a tiling's
+  tiles (straight by design, named by the map's ``tile``);
+* evenness: ``exp(entropy) / n`` of the output's use of the exemplar's ``8 x 8``-texel cells (1: every cell used
+  equally; an output that collapses onto a few regions scores low);
+* the shuffled-block baseline: exemplar blocks laid at random, the layout a synthesizer's patch statistics are
+  compared with.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from btforge.buffers import CoordMap
+
+#: Seam edges in straight runs at least this long count as the edges of copied blocks.
+STRAIGHT_RUN = 12
+#: Side in texels of the exemplar cells whose use the evenness measures.
+EVENNESS_CELL = 8
+#: Side of the blocks of the shuffled-block baseline (capped at half the exemplar's shorter side).
+BASELINE_BLOCK = 32
+
+
+def dominant_source(coords: CoordMap) -> np.ndarray:
+    """``[H, W, 2]`` exemplar texel each output texel mostly copies (the blend partner where its weight > 0.5)."""
+    src = coords.coords
+    if coords.blend_weight.size:
+        src = np.where((coords.blend_weight > 0.5)[..., None], coords.blend_coords, src)
+    return src.astype(np.int64)
+
+
+@dataclasses.dataclass(frozen=True)
+class SeamEdges:
+    """Output neighbour pairs whose sources are not exemplar neighbours.
+
+    ``across_columns[r, c]`` is the pair ``(r, c), (r, c + 1)`` (``c`` up to ``W - 1``: the last column pairs
+    with the first when the map wraps), ``across_rows[r, c]`` the pair ``(r, c), (r + 1, c)``.  ``*_straight``
+    mark the seam edges in straight runs (a vertical run of ``across_columns`` edges, a horizontal one of
+    ``across_rows`` edges) of at least :data:`STRAIGHT_RUN`, tile borders left out.
+    """
+
+    across_columns: np.ndarray
+    across_rows: np.ndarray
+    columns_straight: np.ndarray
+    rows_straight: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.across_columns.sum() + self.across_rows.sum())
+
+    @property
+    def straight_count(self) -> int:
+        return int(self.columns_straight.sum() + self.rows_straight.sum())
+
+
+def seam_edges(coords: CoordMap, run: int = STRAIGHT_RUN) -> SeamEdges:
+    """The seam edges of a map (its dominant sources; with ``wrap`` the wrap-around pairs too)."""
+    src = dominant_source(coords)
+    nxt_c = np.roll(src, -1, axis=1)
+    nxt_r = np.roll(src, -1, axis=0)
+    across_columns = (nxt_c[..., 0] != src[..., 0]) | (nxt_c[..., 1] != src[..., 1] + 1)
+    across_rows = (nxt_r[..., 0] != src[..., 0] + 1) | (nxt_r[..., 1] != src[..., 1])
+    if not coords.wrap:
+        across_columns[:, -1] = False
+        across_rows[-1, :] = False
+    tile = int(getattr(coords, "tile", 0) or 0)
+    candidates_c, candidates_r = across_columns.copy(), across_rows.copy()
+    if tile > 0:  # a tiling's tile borders are straight by design
+        candidates_c[:, (np.arange(coords.width) + 1) % tile == 0] = False
+        candidates_r[(np.arange(coords.height) + 1) % tile == 0, :] = False
+    return SeamEdges(across_columns, across_rows, _in_long_runs(candidates_c, 0, run),
+                     _in_long_runs(candidates_r, 1, run))
+
+
+def _in_long_runs(mask: np.ndarray, axis: int, run: int) -> np.ndarray:
+    """Elements of ``mask`` in runs of at least ``run`` consecutive True values along ``axis``."""
+    from scipy.ndimage import label
+    structure = np.zeros((3, 3), bool)
+    if axis == 0:
+        structure[:, 1] = True
+    else:
+        structure[1, :] = True
+    labels, n = label(mask, structure=structure)
+    if n == 0:
+        return np.zeros_like(mask)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return sizes[labels] >= run
+
+
+def neighbour_jumps(images: np.ndarray, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance jumps ``[L, H, W]`` between each texel and its right and lower neighbours (colour norm, the last
+    column and row pairing with the first; those pairs are meaningful only when the image wraps)."""
+    across_columns = np.linalg.norm(np.roll(images, -1, axis=2) - images, axis=3)
+    across_rows = np.linalg.norm(np.roll(images, -1, axis=1) - images, axis=3)
+    if not wrap:
+        across_columns[:, :, -1] = 0.0
+        across_rows[:, -1, :] = 0.0
+    return across_columns, across_rows
+
+
+def exemplar_jump(ex_enc: np.ndarray) -> float:
+    """Mean radiance jump between adjacent exemplar texels (both directions, all lights)."""
+    gx = np.linalg.norm(np.diff(ex_enc, axis=2), axis=3)
+    gy = np.linalg.norm(np.diff(ex_enc, axis=1), axis=3)
+    return float((gx.sum() + gy.sum()) / max(1, gx.size + gy.size))
+
+
+@dataclasses.dataclass(frozen=True)
+class Visibility:
+    seam_visibility: float | None           # mean seam jump / mean exemplar jump
+    straight_seam_visibility: float | None  # the same over straight seam edges
+    straight_seam_share: float              # straight seam edges / seam edges
+    seam_edge_share: float                  # seam edges / all output neighbour pairs
+
+
+def seam_visibility(out_enc: np.ndarray, ex_enc: np.ndarray, coords: CoordMap) -> Visibility:
+    """Seam and straight-seam visibility of ``out_enc [L, H, W, C]`` (the map's relit output) against the
+    exemplar ``ex_enc``, in the same exposure-normalised domain."""
+    edges = seam_edges(coords)
+    jump_c, jump_r = neighbour_jumps(out_enc, coords.wrap)
+    reference = exemplar_jump(ex_enc)
+
+    def ratio(mask_c, mask_r):
+        n = int(mask_c.sum() + mask_r.sum())
+        if n == 0 or reference <= 0:
+            return None
+        total = jump_c[:, mask_c].sum() + jump_r[:, mask_r].sum()
+        return float(total / (n * out_enc.shape[0]) / reference)
+
+    pairs = coords.height * (coords.width - (0 if coords.wrap else 1)) + coords.width * (
+        coords.height - (0 if coords.wrap else 1))
+    return Visibility(ratio(edges.across_columns, edges.across_rows),
+                      ratio(edges.columns_straight, edges.rows_straight),
+                      edges.straight_count / edges.count if edges.count else 0.0,
+                      edges.count / max(1, pairs))
+
+
+def cell_bounds(length: int, cell: int = EVENNESS_CELL) -> np.ndarray:
+    """Cell index of each of ``length`` texels: ``round(length / cell)`` cells of near-equal size."""
+    n = max(1, round(length / cell))
+    return (np.arange(length) * n) // length
+
+
+def evenness(coords: CoordMap, cell: int = EVENNESS_CELL) -> float:
+    """``exp(entropy) / n`` of the use of the exemplar's ``n`` cells (about ``cell x cell`` texels each; a blended
+    texel counts for both its sources, by weight): 1 = every cell used equally, 1 / n = one cell only."""
+    eh, ew = coords.source_size
+    row_cell, col_cell = cell_bounds(eh, cell), cell_bounds(ew, cell)
+    n_cols = int(col_cell[-1]) + 1
+    n = (int(row_cell[-1]) + 1) * n_cols
+
+    def cells_of(c):
+        return (row_cell[c[..., 0]] * n_cols + col_cell[c[..., 1]]).ravel()
+
+    if coords.blend_weight.size:
+        w = coords.blend_weight.ravel().astype(np.float64)
+        use = (np.bincount(cells_of(coords.coords), 1 - w, n) + np.bincount(cells_of(coords.blend_coords), w, n))
+    else:
+        use = np.bincount(cells_of(coords.coords), minlength=n).astype(np.float64)
+    p = use[use > 0] / use.sum()
+    return float(np.exp(-(p * np.log(p)).sum()) / n)
+
+
+def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
+                    seed: int = 0) -> CoordMap:
+    """The baseline a synthesizer must beat: ``block x block`` exemplar blocks laid at random, without matching
+    (``block`` capped at the exemplar's shorter side)."""
+    (eh, ew), (h, w) = exemplar_size, size
+    block = max(1, min(block, eh, ew))
+    rng = np.random.default_rng(seed)
+    by, bx = -(-h // block), -(-w // block)
+    oy = rng.integers(0, eh - block + 1, (by, bx))
+    ox = rng.integers(0, ew - block + 1, (by, bx))
+    rows, cols = np.mgrid[0:h, 0:w]
+    coords = np.stack([oy[rows // block, cols // block] + rows % block,
+                       ox[rows // block, cols // block] + cols % block], axis=-1).astype(np.int32)
+    return CoordMap(coords, (eh, ew), wrap=False)
+
+
+def baseline_block(exemplar_size: tuple[int, int]) -> int:
+    """The shuffled-block baseline's block side for an exemplar: :data:`BASELINE_BLOCK`, at most half its
+    shorter side (so that a baseline has blocks to shuffle)."""
+    return max(1, min(BASELINE_BLOCK, min(exemplar_size) // 2))

@@ -1,0 +1,78 @@
+"""The shared refinement: texture optimisation with an occurrence term, then corrections, on any map."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from btforge.buffers import CoordMap, SampleStack
+from btforge.plugins.demo.patterns import make_pattern
+from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
+from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.refine import refine_map, window_starts
+from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
+
+SIZE, OUT = 40, 72
+
+
+@pytest.fixture(scope="module")
+def stones():
+    lights = hemisphere_lights(8)
+    stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
+                        np.array([[0.0, 0.0, 1.0]]))
+    return texel_features(stack)
+
+
+def seam_cost(features: np.ndarray, coords: CoordMap) -> float:
+    """Mean appearance jump across the map's seams (the feature-space twin of seam visibility)."""
+    out = features[coords.coords[..., 0], coords.coords[..., 1]]
+    edges = seam_edges(coords)
+    jc = np.linalg.norm(np.roll(out, -1, axis=1) - out, axis=2)[edges.across_columns]
+    jr = np.linalg.norm(np.roll(out, -1, axis=0) - out, axis=2)[edges.across_rows]
+    return float(np.concatenate([jc, jr]).mean())
+
+
+def test_refinement_hides_the_seams_of_shuffled_blocks(stones):
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
+    refined = refine_map(stones, start, iterations=3, occurrence=0.3, seed=0)
+    assert refined.coords.shape == start.coords.shape and refined.source_size == start.source_size
+    assert refined.coords.min() >= 0 and refined.coords[..., 0].max() < SIZE and refined.coords[..., 1].max() < SIZE
+    assert seam_cost(stones, refined) < 0.8 * seam_cost(stones, start)
+    before, after = seam_edges(start), seam_edges(refined)
+    assert after.straight_count < 0.5 * before.straight_count
+
+
+def test_occurrence_term_spreads_a_collapsed_map(stones):
+    rows, cols = np.mgrid[0:OUT, 0:OUT]
+    collapsed = CoordMap(np.stack([rows % 12, cols % 12], -1).astype(np.int32), (SIZE, SIZE))  # one corner only
+    plain = refine_map(stones, collapsed, iterations=3, occurrence=0.0, seed=0)
+    spread = refine_map(stones, collapsed, iterations=3, occurrence=1.0, seed=0)
+    assert evenness(spread) > evenness(plain)
+    assert evenness(spread) > 2 * evenness(collapsed)
+
+
+def test_refinement_is_deterministic_and_keeps_the_map_kind(stones):
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
+    wrapped = CoordMap(start.coords, start.source_size, wrap=True, tile=8)
+    a = refine_map(stones, wrapped, iterations=2, occurrence=0.3, seed=5)
+    b = refine_map(stones, wrapped, iterations=2, occurrence=0.3, seed=5)
+    assert np.array_equal(a.coords, b.coords)
+    assert a.wrap and a.tile == 8
+    assert refine_map(stones, wrapped, iterations=0, occurrence=0.3) is wrapped
+
+
+def test_blended_map_is_refined_from_its_heavier_sources(stones):
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
+    partner = np.roll(start.coords, 1, axis=1)
+    blended = CoordMap(start.coords, start.source_size, partner, np.full((OUT, OUT), 0.9, np.float32))
+    refined = refine_map(stones, blended, iterations=1, occurrence=0.3, seed=0)
+    assert refined.blend_weight.size == 0
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_window_starts_cover_every_texel(wrap):
+    for length, offset in ((72, 0), (72, 3), (37, 2), (8, 1)):
+        starts = window_starts(length, 8, 4, offset, wrap)
+        covered = np.zeros(length, bool)
+        for s in starts:
+            covered[(s + np.arange(8)) % length if wrap else slice(s, s + 8)] = True
+        assert covered.all(), (length, offset)

@@ -1,0 +1,101 @@
+"""The measures of what the eye sees (seam and straight-seam visibility, evenness, the shuffled-block baseline),
+each checked on constructed maps whose answer is known."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from btforge.buffers import CoordMap, SampleStack
+from btforge.errors import BtforgeInputError
+from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+from btforge.plugins.synth import materialize
+from btforge.plugins.synth.scoring import score
+from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
+
+SIZE, OUT = 48, 144
+TOP = np.array([[0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def tileable():
+    """A tileable procedural material (bumps and colour waves wrap around) under 8 lights."""
+    lights = hemisphere_lights(8)
+    return SampleStack(render_lights(make_material(SIZE, SIZE, bumps=10, seed=5), lights)[None], lights, TOP)
+
+
+def measured(exemplar, coords) -> dict:
+    output = materialize(coords=coords, source=exemplar)["output"]
+    return score(output=output, exemplar=exemplar, coords=coords)["scores"].values
+
+
+def periodic_copy(size: int, out: int, **kwargs) -> CoordMap:
+    rows, cols = np.mgrid[0:out, 0:out]
+    return CoordMap(np.stack([rows % size, cols % size], axis=-1).astype(np.int32), (size, size), **kwargs)
+
+
+def test_periodic_copy_of_a_tileable_exemplar_has_invisible_seams(tileable):
+    found = measured(tileable, periodic_copy(SIZE, OUT))
+    assert 0.8 <= found["seam_visibility"] <= 1.25
+    # every seam of a periodic copy is a whole straight row or column, and is as invisible
+    assert found["straight_seam_share"] == pytest.approx(1.0)
+    assert 0.8 <= found["straight_seam_visibility"] <= 1.25
+    assert found["evenness"] == pytest.approx(1.0)
+
+
+def test_shuffled_blocks_score_high_on_straight_seams(tileable):
+    found = measured(tileable, shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=16, seed=3))
+    assert found["straight_seam_share"] > 0.9
+    assert found["straight_seam_visibility"] > 1.6
+    assert found["seam_visibility"] > 1.6
+    assert found["swd_vs_shuffled_blocks"] is not None and found["swd_vs_shuffled_blocks"] > 0
+
+
+def test_constant_source_map_has_evenness_near_zero(tileable):
+    coords = CoordMap(np.full((OUT, OUT, 2), 7, np.int32), (SIZE, SIZE))
+    n_cells = (SIZE // 8) ** 2
+    assert evenness(coords) == pytest.approx(1 / n_cells)
+    assert measured(tileable, coords)["evenness"] < 0.05
+
+
+def test_evenness_counts_blends_by_weight():
+    coords = np.zeros((16, 16, 2), np.int32)
+    partner = np.full((16, 16, 2), 15, np.int32)
+    half = CoordMap(coords, (16, 16), partner, np.full((16, 16), 0.5, np.float32))
+    assert evenness(half) == pytest.approx(2 / 4)  # two of four cells, equally
+
+
+def test_tile_borders_are_not_straight_seams():
+    tile = 16
+    rng = np.random.default_rng(0)
+    coords = np.zeros((64, 64, 2), np.int32)
+    rows, cols = np.mgrid[0:tile, 0:tile]
+    for r in range(0, 64, tile):
+        for c in range(0, 64, tile):
+            r0, c0 = rng.integers(0, 48 - tile + 1, 2)
+            coords[r:r + tile, c:c + tile] = np.stack([rows + r0, cols + c0], -1)
+    plain = seam_edges(CoordMap(coords, (48, 48)))
+    tiled = seam_edges(CoordMap(coords, (48, 48), tile=tile))
+    assert plain.count == tiled.count > 0
+    assert plain.straight_count == plain.count
+    assert tiled.straight_count == 0
+
+
+def test_straight_runs_need_twelve_texels():
+    coords = np.stack(np.mgrid[0:32, 0:32], -1).astype(np.int32)
+    coords[:11, 16:, 1] += 8   # a vertical seam of 11 texels at column 15 | 16: not straight enough
+    coords[20:, 16:, 0] = (coords[20:, 16:, 0] + 4) % 40  # a shifted piece below: seams of 12 (vertical) and 16
+    edges = seam_edges(CoordMap(coords, (40, 40)))
+    assert not edges.columns_straight[:11, 15].any()
+    assert edges.columns_straight[20:, 15].all()
+    assert edges.rows_straight[19, 16:].all()
+
+
+def test_wrapping_map_counts_its_wrap_around_pairs(tileable):
+    wrapped = measured(tileable, periodic_copy(SIZE, 2 * SIZE, wrap=True))
+    assert wrapped["seam_edge_share"] > 0
+    assert 0.8 <= wrapped["seam_visibility"] <= 1.25
+
+
+def test_bad_tile_is_a_clear_error():
+    with pytest.raises(BtforgeInputError, match="tile"):
+        CoordMap(np.zeros((4, 4, 2), np.int32), (4, 4), tile=-2)
