@@ -44,7 +44,7 @@ from .cuts import grid_edges, min_cut, min_cut_edges
 from .placement import PlacementSearch
 from .relax import SWEEPS, relax_seams
 
-PICK_BEST = 4          # this many best placements by overlap error are cut in; the one leaving least error is kept
+PICK_BEST = 4          # a placement is drawn among this many best ones
 THRESHOLD = 0.5        # per-pixel error threshold, times the exemplar's median neighbouring-texel distance
 SEARCH_STRIDE = 2      # placements are searched on every second texel, then refined among their neighbours ...
 STRIDE_FROM = 96       # ... in exemplars at least this large
@@ -249,18 +249,10 @@ class Filler:
             x0 = int(np.clip(tx - pw // 2, 0, coords.shape[1] - pw))
             clock = time.perf_counter()
             candidates, refine = self._placements(coords, y0, x0, (ph, pw), PICK_BEST)
+            chosen = refine(candidates[int(self.rng.integers(len(candidates)))])
             self.placed += 1
             self.seconds["search"] += time.perf_counter() - clock
-            # seam-aware choice: of the best placements by overlap error, the one whose cut leaves the least error
-            trials = {placement: self._trial(coords, region, (y0, x0, ph, pw), placement) for placement in candidates}
-            chosen = min(trials, key=lambda placement: trials[placement][2])
-            clock = time.perf_counter()
-            refined = refine(chosen)
-            self.seconds["search"] += time.perf_counter() - clock
-            if refined != chosen:
-                trials[refined] = self._trial(coords, region, (y0, x0, ph, pw), refined)
-                chosen = min((chosen, refined), key=lambda placement: trials[placement][2])
-            trial, trial_err, after = trials[chosen]
+            trial, trial_err, after = self._trial(coords, region, (y0, x0, ph, pw), chosen)
             if after[0] < n_unfilled or (after[0] == n_unfilled and after[1] < total - 1e-9):
                 coords[...] = trial
                 err = trial_err
