@@ -39,25 +39,34 @@ def _neighbours(coords: np.ndarray) -> list[np.ndarray]:
     return [padded[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy, dx in STEPS]
 
 
-def texel_energy(feats: np.ndarray, coords: np.ndarray, candidate: np.ndarray, neighbours) -> np.ndarray:
-    """Summed seam cost ``[h, w]`` of each texel taking ``candidate [h, w, 2]`` against its present neighbours."""
-    total = np.zeros(coords.shape[:2])
-    for (dy, dx), other in zip(STEPS, neighbours):
-        present = other[..., 0] >= 0
-        cost = pair_cost(feats, candidate, other, (dy, dx))
-        total += np.where(present, cost, 0.0)
+def texel_energy(feats: np.ndarray, candidate: np.ndarray, neighbours) -> np.ndarray:
+    """Summed seam cost ``[n]`` of texels taking ``candidate [n, 2]`` against their neighbours' sources
+    (``neighbours``: per step ``[n, 2]``, ``-1`` where there is none)."""
+    total = np.zeros(len(candidate))
+    for step, other in zip(STEPS, neighbours):
+        present = other[:, 0] >= 0
+        total += np.where(present, pair_cost(feats, candidate, other, step), 0.0)
     return total
 
 
-def candidates(coords: np.ndarray, neighbours, source_size) -> list[np.ndarray]:
-    """The texel's own source and its neighbours' continuations (``-1`` where they leave the exemplar)."""
-    out = [coords]
-    for (dy, dx), other in zip(STEPS, neighbours):
-        cont = other - np.array([dy, dx], coords.dtype)
-        inside = (other[..., 0] >= 0) & (cont >= 0).all(-1) & (cont[..., 0] < source_size[0]) & \
-                 (cont[..., 1] < source_size[1])
-        out.append(np.where(inside[..., None], cont, -1))
+def candidates(own: np.ndarray, neighbours, source_size) -> list[np.ndarray]:
+    """The texels' own sources ``[n, 2]`` and their neighbours' continuations (``-1`` where they leave the
+    exemplar or there is no neighbour)."""
+    out = [own]
+    for step, other in zip(STEPS, neighbours):
+        cont = other - np.array(step, own.dtype)
+        inside = (other[:, 0] >= 0) & (cont >= 0).all(-1) & (cont[:, 0] < source_size[0]) & \
+                 (cont[:, 1] < source_size[1])
+        out.append(np.where(inside[:, None], cont, -1))
     return out
+
+
+def _on_seams(coords: np.ndarray, neighbours) -> np.ndarray:
+    """Texels with at least one neighbour that does not continue them: only those can lower their energy."""
+    seam = np.zeros(coords.shape[:2], bool)
+    for step, other in zip(STEPS, neighbours):
+        seam |= (other[..., 0] >= 0) & np.any(other != coords + np.array(step, coords.dtype), axis=-1)
+    return seam
 
 
 def relax_seams(coords: np.ndarray, feats: np.ndarray, movable: np.ndarray, sweeps: int = SWEEPS) -> np.ndarray:
@@ -68,18 +77,20 @@ def relax_seams(coords: np.ndarray, feats: np.ndarray, movable: np.ndarray, swee
     for _ in range(sweeps):
         changed = 0
         for parity in (False, True):
-            turn = movable & (colour == parity) & (coords[..., 0] >= 0)
             neighbours = _neighbours(coords)
-            options = candidates(coords, neighbours, feats.shape[:2])
-            energies = np.stack([np.where(o[..., 0] >= 0, texel_energy(feats, coords, o, neighbours), np.inf)
-                                 for o in options])
+            turn = movable & (colour == parity) & (coords[..., 0] >= 0) & _on_seams(coords, neighbours)
+            rows, cols = np.nonzero(turn)
+            if len(rows) == 0:
+                continue
+            around = [n[rows, cols] for n in neighbours]
+            options = candidates(coords[rows, cols], around, feats.shape[:2])
+            energies = np.stack([np.where(o[:, 0] >= 0, texel_energy(feats, o, around), np.inf) for o in options])
             best = energies.argmin(0)
             # keep the present source on ties, so a sweep only moves a texel when that lowers the energy
-            better = energies[best, np.arange(h)[:, None], np.arange(w)[None]] < energies[0] - 1e-9
-            move = turn & better
+            move = energies[best, np.arange(len(rows))] < energies[0] - 1e-9
             if move.any():
-                chosen = np.stack(options)[best, np.arange(h)[:, None], np.arange(w)[None]]
-                coords[move] = chosen[move]
+                chosen = np.stack(options)[best, np.arange(len(rows))]
+                coords[rows[move], cols[move]] = chosen[move]
                 changed += int(move.sum())
         if changed == 0:
             break
