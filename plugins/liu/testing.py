@@ -83,3 +83,44 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
         if baseline:
             independent.append(per_light_iou(refs, stack.lights[l], shadow, size, l))
     return Consistency(stack.lights, np.array(ours), np.array(independent), np.array(fraction))
+
+
+def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.ndarray, valid: np.ndarray) -> float:
+    """Seam visibility of a block copy: the mean radiance jump (colour norm) between adjacent pixels of
+    ``image [H, W, C]`` whose ``source [H, W, 2]`` pixels are not adjacent in the reference, over the mean jump
+    between adjacent ``valid`` pixels of ``reference [h, w, C]`` (1: block boundaries look like the reference's
+    own pixel-to-pixel changes)."""
+    img, ref = image.astype(np.float64), reference.astype(np.float64)
+    jumps, seams = [], []
+    for axis, step in ((1, (0, 1)), (0, (1, 0))):
+        a = [slice(None), slice(None)]
+        b = [slice(None), slice(None)]
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        jumps.append(np.linalg.norm(img[b] - img[a], axis=-1))
+        seams.append(np.any(source[b] != source[a] + np.array(step), axis=-1))
+        both = valid[a] & valid[b]
+        jumps.append(np.linalg.norm(ref[b] - ref[a], axis=-1)[both])
+    seam_jumps = np.concatenate([jumps[0][seams[0]], jumps[2][seams[1]]])
+    base = np.concatenate([jumps[1], jumps[3]]).mean()
+    return float(seam_jumps.mean() / base) if seam_jumps.size and base > 0 else 0.0
+
+
+def block_copy_seams(feather: int, size: int = 112, seed: int = 1) -> list[float]:
+    """:func:`block_seam_visibility` of single block copies (one reference each) of the shadow fixture at four
+    target lights between the references' azimuths."""
+    from . import blockcopy, settings, synthesis, template
+    refs, field = shadow_fixture(size, (45, 65), seed)
+    views, lights, pairs = synthesis.reference_table(refs)
+    view = np.float32([[0, 0, 1]])
+    out = []
+    for k, (tilt, azimuth) in enumerate(((65, 30), (45, 100), (70, 200), (30, 300))):
+        light = np.float32([settings.direction(tilt, azimuth)])
+        images, _ = template.render(field.heights, synthesis.grey_albedo(field), field.normals, view, light)
+        choice = synthesis.choose_references(view[0], light[0], views, lights, 1, True)
+        v, l = pairs[choice.indices[0]]
+        warped, valid = blockcopy.warp(refs.image(v, l), float(choice.rotations[0]), bool(choice.mirrored[0]),
+                                       images[0].shape)
+        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather)
+        out.append(block_seam_visibility(copy.image, copy.source, warped, valid))
+    return out
