@@ -1,4 +1,4 @@
-"""Wang tiles: seam relaxation, the usage term, busy texels, graph cuts on small cases, and the tiling's tile size."""
+"""Wang tiles: seam relaxation, the usage term, and graph cuts on small cases."""
 from __future__ import annotations
 
 import itertools
@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 
 from btforge.plugins.wang.cuts import grid_edges, min_cut
 from btforge.plugins.wang.relax import pair_cost, relax_seams
-from btforge.plugins.wang.synthesis import busy_texels, pixel_errors, usage_means
+from btforge.plugins.wang.synthesis import pixel_errors, usage_means
 
 
 def _seam_energy(coords, feats):
@@ -69,15 +69,6 @@ def test_usage_means_match_a_brute_force_window_mean():
                           for x in range(0, 17 - window[1] + 1, stride)]
                          for y in range(0, 13 - window[0] + 1, stride)])
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-
-
-def test_busy_texels_mark_a_thin_line_and_nothing_in_flat_texture():
-    rng = np.random.default_rng(3)
-    feats = (0.01 * rng.random((40, 40, 2))).astype(np.float32)
-    assert busy_texels(feats).max() < 1.0             # noise alone is ordinary
-    feats[:, 20, :] += 1.0                             # a thin line
-    busy = busy_texels(feats)
-    assert busy[:, 18:23].min() > 0 and busy[:, :10].max() == 0
 
 
 def test_min_cut_is_the_cheapest_split_on_small_grids():

@@ -72,8 +72,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, rela
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
     filled between their corners by graph-cut patch filling with per-pixel error bookkeeping (Kwatra et al.
     2003), frames from the strips' halves, interiors filled with the frame held.  A usage term (``usage``) spreads the
-    patches over the whole exemplar; busy texels (lines, spots) are kept out of the edge strips, which every
-    tile of a colour shows; a texel-level relaxation (``relax``) moves seams to where patches agree.  Distances are Euclidean in the
+    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree.  Distances are Euclidean in the
     exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel

@@ -28,7 +28,9 @@ window's rim stay old, unfilled ones take the new patch) and keeps the patch onl
 the summed per-pixel error of the region.  A pixel's error is its worst seam: for each 4-neighbour copied from
 elsewhere, the mean distance between each side and the other side's own continuation.  Filling stops when every
 pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
-the patch budget runs out.
+the patch budget runs out.  A placement's error also counts how often earlier patches already laid the exemplar
+texels under it (``usage_weight``, :func:`usage_means`), so the tile set spreads over the whole exemplar; each
+finished strip and interior is then relaxed texel by texel (:mod:`relax`).
 """
 from __future__ import annotations
 
@@ -52,8 +54,6 @@ REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered,
 REFINE_MIN = 2         # ... and at least this many
 USAGE_WEIGHT = 0.5     # per known texel, a placement over texels already used once costs this many squared median
 # neighbour distances more: spreads the tiles over the whole exemplar instead of its few best-matching places
-BUSY = 1.5             # texels busier than this times the median contrast are kept out of the edge strips
-BUSY_WEIGHT = 1.0      # ... at this many squared median neighbour distances per unit of excess contrast
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
 CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
@@ -137,19 +137,6 @@ def usage_means(usage: np.ndarray, window: tuple[int, int], stride: int = 1) -> 
     return (box[::stride, ::stride] / (ph * pw)).astype(np.float32)
 
 
-def busy_texels(feats: np.ndarray, radius: int = 2) -> np.ndarray:
-    """Per exemplar texel, how far its neighbourhood's contrast exceeds ``BUSY`` times the exemplar's median
-    (0 for ordinary texels): lines and spots stand out there.  Edge strips appear in many tiles at the same place,
-    so such texels cost more in them and rather go to the interiors, which are seen once per tile."""
-    from scipy import ndimage
-    f = feats.astype(np.float64)
-    grad = np.zeros(f.shape[:2])
-    grad[:, :-1] += np.linalg.norm(f[:, 1:] - f[:, :-1], axis=-1)
-    grad[:-1, :] += np.linalg.norm(f[1:] - f[:-1], axis=-1)
-    local = ndimage.uniform_filter(grad, 2 * radius + 1, mode="nearest")
-    return np.maximum(local / max(float(np.median(local)), 1e-30) - BUSY, 0.0)
-
-
 class Filler:
     """Graph-cut patch filling of canvases over one exemplar (see the module docstring)."""
 
@@ -158,9 +145,7 @@ class Filler:
         self.feats, self.search, self.rng, self.cut, self.threshold = feats, search, rng, cut, threshold
         self.placed = self.kept = 0
         self.usage = np.zeros(feats.shape[:2], np.float64)   # how often each exemplar texel has been laid so far
-        self.avoid = np.zeros(feats.shape[:2], np.float64)   # extra cost per known texel of laying each texel
         reference = float(np.median(neighbour_distances(feats)))
-        self.reference = reference
         self.usage_cost = usage_weight * reference * reference
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
 
@@ -192,9 +177,8 @@ class Filler:
         target = self.feats[part[known][:, 0], part[known][:, 1]]
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
-        if (self.usage_cost > 0 and self.usage.any()) or self.avoid.any():
-            penalty = self.usage_cost * self.usage + self.avoid
-            errors = errors + len(offsets) * usage_means(penalty, window, stride)
+        if self.usage_cost > 0 and self.usage.any():
+            errors = errors + self.usage_cost * len(offsets) * usage_means(self.usage, window, stride)
         flat = errors.ravel()
         k = min(count, flat.size)
         best = np.argpartition(flat, k - 1)[:k]
@@ -561,7 +545,7 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
                      seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
-                     relax: int = SWEEPS, busy_weight: float = BUSY_WEIGHT) -> Synthesis:
+                     relax: int = SWEEPS) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
@@ -600,9 +584,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
             return coords, err
         return job
 
-    filler.avoid = busy_weight * filler.reference ** 2 * busy_texels(feats)
     built = run("edges", [strip("h", a) for a in range(n_h)] + [strip("v", c) for c in range(n_v)])
-    filler.avoid = np.zeros_like(filler.avoid)
     strips_h = [c for c, _ in built[:n_h]]
     strips_v = [c for c, _ in built[n_h:]]
     unresolved = sum(int(((e > threshold) & np.isfinite(e)).sum()) for _, e in built)
