@@ -60,12 +60,17 @@ def test_refinement_is_deterministic_and_keeps_the_map_kind(stones):
     assert refine_map(stones, wrapped, iterations=0, occurrence=0.3) is wrapped
 
 
-def test_blended_map_is_refined_from_its_heavier_sources(stones):
+def test_blended_map_is_refined_from_its_heavier_sources_and_keeps_their_blends(stones):
     start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
     partner = np.roll(start.coords, 1, axis=1)
     blended = CoordMap(start.coords, start.source_size, partner, np.full((OUT, OUT), 0.9, np.float32))
     refined = refine_map(stones, blended, iterations=1, occurrence=0.3, seed=0)
-    assert refined.blend_weight.size == 0
+    kept = refined.blend_weight > 0      # the heavier source (the partner, weight 0.9) stayed
+    assert kept.any() and (~kept).any()
+    assert np.all(refined.blend_weight[kept] == np.float32(0.9))
+    assert np.array_equal(refined.blend_coords[kept], partner[kept])
+    assert np.array_equal(refined.coords[kept], start.coords[kept])
+    assert np.array_equal(refined.coords[~kept], refined.blend_coords[~kept])
 
 
 @pytest.mark.parametrize("wrap", [False, True])

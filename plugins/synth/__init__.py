@@ -50,7 +50,8 @@ def coords_write(ctx, coords, *, path):
 
     Channels: R = exemplar row, G = exemplar column, B = blend weight, and the layer ``blend`` (``blend.R``,
     ``blend.G``) = the row and column of the texel blended in (the texel itself where nothing is blended).  Header
-    attributes ``btforgeSourceSize`` (the exemplar's [H, W]) and ``btforgeWrap`` (1 when the map tiles).  An
+    attributes ``btforgeSourceSize`` (the exemplar's [H, W]), ``btforgeWrap`` (1 when the map tiles) and
+    ``btforgeTile`` (the side of a tiling's tiles, 0 for other maps).  An
     RGB viewer or reader shows the map and ignores the rest; float32 holds the coordinates exactly.
     """
     import OpenEXR
@@ -64,7 +65,8 @@ def coords_write(ctx, coords, *, path):
               "blend.R": partner[..., 0], "blend.G": partner[..., 1]}
     channels = {name: np.ascontiguousarray(plane, np.float32) for name, plane in planes.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              "btforgeSourceSize": np.array(coords.source_size, np.int32), "btforgeWrap": int(coords.wrap)}
+              "btforgeSourceSize": np.array(coords.source_size, np.int32), "btforgeWrap": int(coords.wrap),
+              "btforgeTile": int(coords.tile)}
     with atomic_output_path(ctx.paths.output(path)) as temporary:
         OpenEXR.File(header, channels).write(str(temporary))
     return {}

@@ -86,8 +86,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
                seed: int = 0) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
-    The result has no blends (the dominant source of a blended texel is refined) and the input's wrap and
-    tile.  A map or exemplar smaller than a window is returned as it is."""
+    A blended texel is refined from its heavier source and keeps its blend where that source stays; the
+    result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is."""
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
     index = window_index(features, patch)
@@ -101,8 +101,23 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = optimise_step(index, src, coords.wrap, occurrence, rng)
         for _ in range(CORRECTIONS):
             src = correction_pass(index.texels, src, coords.wrap, rng)
+    return _with_kept_blends(coords, src)
+
+
+def _with_kept_blends(coords: CoordMap, src: np.ndarray) -> CoordMap:
+    """The refined sources as a map; where a texel kept its (dominant) source, its blend record stays."""
+    eh, ew = coords.source_size
     out = np.stack(np.divmod(src, ew), axis=-1).astype(np.int32)
-    return CoordMap(out, (eh, ew), wrap=coords.wrap, tile=coords.tile)
+    if not coords.blend_weight.size:
+        return CoordMap(out, (eh, ew), wrap=coords.wrap, tile=coords.tile)
+    heavier = coords.blend_weight > 0.5
+    dominant = np.where(heavier[..., None], coords.blend_coords, coords.coords)
+    kept = (dominant == out).all(axis=-1)
+    first = np.where(kept[..., None], coords.coords, out)
+    partner = np.where(kept[..., None], coords.blend_coords, out)
+    weight = np.where(kept, coords.blend_weight, np.float32(0)).astype(np.float32)
+    return CoordMap(np.ascontiguousarray(first), (eh, ew), np.ascontiguousarray(partner), np.ascontiguousarray(weight),
+                    wrap=coords.wrap, tile=coords.tile)
 
 
 def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool) -> np.ndarray:

@@ -40,9 +40,9 @@ def search_param() -> Param:
 
 
 #: Default texture-optimisation rounds of the refinement every built-in synthesizer's map goes through.
-REFINE = 3
+REFINE = 2
 #: Default weight of the refinement's occurrence term.
-OCCURRENCE = 0.3
+OCCURRENCE = 0.05
 
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE) -> list[Param]:
