@@ -82,11 +82,67 @@ def test_block_copy_covers_every_pixel_from_real_reference_pixels():
     valid = np.ones((40, 44), bool)
     valid[:, :6] = False
     target = rng.random((37, 31)).astype(np.float32)
-    result = blockcopy.block_copy(target, reference, valid, (5, 9), seed=1)
+    result = blockcopy.block_copy(target, reference, valid, (5, 9), seed=1, feather=0)
     assert result.blocks > 0 and result.hole_pixels > 0
     src = result.source
     assert (src[..., 0] >= 0).all() and (src[..., 1] >= 6).all()  # only valid reference pixels are copied
     np.testing.assert_array_equal(result.image, reference[src[..., 0], src[..., 1]])
+    feathered = blockcopy.block_copy(target, reference, valid, (5, 9), seed=1)
+    np.testing.assert_array_equal(feathered.source, src)          # feathering blends, the blocks stay the same
+
+
+def _two_blocks(reference_shape, offset):
+    """A 12 x 16 source map: the left half copies the reference at (0, 0), the right half at ``offset``."""
+    rows, cols = np.mgrid[0:12, 0:16]
+    source = np.stack([rows, cols], -1).astype(np.int32)
+    source[:, 8:] += np.array(offset, np.int32)
+    return source
+
+
+def test_feathering_leaves_a_seamless_map_alone_and_softens_a_block_boundary():
+    rng = np.random.default_rng(5)
+    reference = rng.random((40, 40, 3)).astype(np.float32)
+    valid = np.ones((40, 40), bool)
+    rows, cols = np.mgrid[0:12, 0:16]
+    seamless = np.stack([rows + 3, cols + 2], -1).astype(np.int32)
+    np.testing.assert_array_equal(blockcopy.feather_seams(seamless, reference, valid, 2),
+                                  reference[seamless[..., 0], seamless[..., 1]])
+    ramp = np.repeat(np.linspace(0, 1, 40, dtype=np.float32)[None, :, None], 40, 0).repeat(3, 2)
+    source = _two_blocks(ramp.shape, (0, 20))                       # the right block is 20 columns brighter
+    hard = ramp[source[..., 0], source[..., 1]]
+    soft = blockcopy.feather_seams(source, ramp, valid, 2)
+    jump_hard, jump_soft = (np.abs(x[:, 8] - x[:, 7]).mean() for x in (hard, soft))
+    step = 1 / 39
+    assert jump_hard > 15 * step and jump_soft <= 1.01 * step      # at the boundary, the ramp's own step
+    assert np.abs(soft[:, :5] - hard[:, :5]).max() == 0            # beyond the band nothing changes
+
+
+def test_feathering_keeps_a_boundary_the_template_wants_sharp():
+    reference = np.zeros((40, 40, 3), np.float32)
+    reference[:, 20:] = 1.0                                          # dark left, bright right
+    valid = np.ones((40, 40), bool)
+    source = _two_blocks(reference.shape, (0, 20))                  # dark block | bright block
+    guide = np.where(np.arange(16) < 8, 0.0, 1.0)[None].repeat(12, 0).astype(np.float32)
+    out = blockcopy.feather_seams(source, reference, valid, 2, guide)
+    # the template has a shadow edge exactly there: each side's continuation disagrees with it by twice the
+    # guide's spread, so it gets exp(-8) of the weight: under 0.1 % of the jump leaks across
+    np.testing.assert_allclose(out, reference[source[..., 0], source[..., 1]], atol=1e-3)
+    unguided = blockcopy.feather_seams(source, reference, valid, 2)
+    assert np.abs(unguided - reference[source[..., 0], source[..., 1]]).max() > 0.3   # without the guide: blended
+
+
+@hsettings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.sampled_from([1e-30, 1.0, 1e30]))
+def test_feathering_is_a_convex_mix_of_reference_texels(seed, band, scale):
+    rng = np.random.default_rng(seed)
+    reference = (rng.random((20, 24, 2)) * scale).astype(np.float32)
+    valid = rng.random((20, 24)) > 0.2
+    source = np.stack([rng.integers(0, 20, (9, 11)), rng.integers(0, 24, (9, 11))], -1).astype(np.int32)
+    guide = rng.random((9, 11)).astype(np.float32)
+    out = blockcopy.feather_seams(source, reference, valid, band, guide)
+    assert np.isfinite(out).all()
+    low, high = reference.min((0, 1)), reference.max((0, 1))
+    assert (out >= low * (1 - 1e-5)).all() and (out <= high * (1 + 1e-5)).all()
 
 
 def test_block_copy_reproduces_a_reference_used_as_its_own_template():
@@ -272,7 +328,7 @@ def test_stage_grid_forms_and_shapes(tmp_path):
 
 
 def test_geometric_consistency_of_shadows_beats_per_light_2d_synthesis():
-    from btforge.plugins.liu import consistency
+    from btforge.plugins.liu import testing as consistency
     # 12 low lights (tilts 70 and 75 degrees, 6 azimuths between the references' 5): every reference is rotated
     result = consistency.measure()
     print(f"shadow IoU over {len(result.liu)} lights (tilts {consistency.LOW_TILTS}): liu {result.liu.mean():.3f} "
@@ -301,3 +357,23 @@ def test_reference_choice_and_weights_move_smoothly_with_the_target():
         previous = weights
     iso = choose_references(view, settings.direction(30, 20), ref_views, ref_lights, 1, isotropic=True)
     assert iso.distances[0] == pytest.approx(0, abs=1e-6)                     # a rotated reference matches exactly
+
+
+def test_block_seam_visibility_on_a_known_boundary():
+    from btforge.plugins.liu.testing import block_seam_visibility
+    ramp = np.repeat(np.linspace(0, 1, 40, dtype=np.float32)[None, :, None], 40, 0).repeat(3, 2)
+    valid = np.ones((40, 40), bool)
+    source = _two_blocks(ramp.shape, (0, 20))
+    image = ramp[source[..., 0], source[..., 1]]
+    # seams: 12 pairs jumping 21 columns of the ramp; the reference's mean jump: half a column (rows are flat)
+    assert block_seam_visibility(image, source, ramp, valid) == pytest.approx(42.0, rel=1e-4)
+    rows, cols = np.mgrid[0:12, 0:16]
+    seamless = np.stack([rows, cols], -1).astype(np.int32)
+    assert block_seam_visibility(ramp[:12, :16], seamless, ramp, valid) == 0.0
+
+
+def test_feathering_hides_block_boundaries_of_real_block_copies():
+    from btforge.plugins.liu.testing import block_copy_seams
+    hard, soft = np.mean(block_copy_seams(0)), np.mean(block_copy_seams(2))
+    print(f"block seam visibility: feather 0 {hard:.3f}, feather 2 {soft:.3f}")
+    assert soft < 0.6 * hard       # measured: 3.59 -> 1.54

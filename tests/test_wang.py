@@ -152,7 +152,7 @@ def test_seams_of_the_procedural_set_are_like_the_exemplar(procedural):
 
 
 def test_straight_cuts_fail_where_graph_cuts_pass():
-    from btforge.plugins.synth.quilting import smooth_fields
+    from btforge.plugins.synth.bench import smooth_fields
     from btforge.plugins.wang import seams
     feats = smooth_fields(SIZE, 6, 3, sigma=2.0)
     reference = seams.exemplar_reference(feats)

@@ -91,7 +91,8 @@ def _steps(table, opts, capture, refs):
     from btforge.plugins.height.field import HeightField
     from btforge.plugins.height.sfs import photometric_stereo_ls
     from btforge.plugins.height.synthetic import angular_error_degrees
-    from btforge.plugins.liu import consistency, settings, synthesis, template
+    from btforge.plugins.liu import settings, synthesis, template
+    from btforge.plugins.liu import testing as consistency
     n = opts.size
     stack = SampleStack(capture.images[None], capture.lights, [[0.0, 0.0, 1.0]])
     seconds, out = _median_seconds(lambda: stage("height.from_shading")(stack=stack), opts.repeat)

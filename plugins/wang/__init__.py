@@ -30,7 +30,7 @@ def texel_bytes(buffer) -> int:
 
 
 def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed=0, cut="graph",
-                   engine="opencl"):
+                   engine="opencl", **options):
     """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles``."""
     from . import seams
     from .features import appearance_features, search_features
@@ -38,7 +38,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     full = appearance_features(exemplar)
     feats = search_features(full, SEARCH_DIMS, seed)
     h = tile // 4 if edge == 0 else edge
-    synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine)
+    synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine, **options)
     measured = seams.tile_set_seams(synthesis.tile_coords, synthesis.tile_colors, full, h)
     reference = seams.exemplar_reference(full)
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
@@ -59,14 +59,20 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("colors", "ints", (2, 2), "edge colours [horizontal, vertical]", length=2, low=1, high=8),
         Param("variants", "int", 1, "tiles (interiors) per colour combination", low=1, high=16),
         Param("seed", "int", 0, "random seed"),
+        Param("usage", "float", 0.5, "how strongly placements avoid exemplar texels earlier patches used, so the "
+              "tiles spread over the whole exemplar (0: off; per known texel, in squared median neighbour "
+              "distances per earlier use)", low=0.0, high=100.0),
+        Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
+              "(0: off)", low=0, high=64),
     ],
 )
-def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed):
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
     filled between their corners by graph-cut patch filling with per-pixel error bookkeeping (Kwatra et al.
-    2003), frames from the strips' halves, interiors filled with the frame held.  Distances are Euclidean in the
+    2003), frames from the strips' halves, interiors filled with the frame held.  A usage term (``usage``) spreads the
+    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree.  Distances are Euclidean in the
     exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
@@ -81,7 +87,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed):
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed)
+                                              seed=seed, usage_weight=usage, relax=relax)
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())
@@ -106,13 +112,14 @@ def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
 
     Tile (i, j) covers rows ``i*w .. (i+1)*w - 1`` and columns ``j*w .. (j+1)*w - 1``.  Edge colours are drawn at
     random, so the tiling is not periodic; among draws, one that uses every tile is kept where there is room.
-    ``materialize`` and ``render``'s ``coord_map`` replay the map on the exemplar (or any buffer of it).
+    ``materialize`` and ``render``'s ``coord_map`` replay the map on the exemplar (or any buffer of it).  The map
+    carries the tile size (``CoordMap.tile``), so seam measures can leave the tile borders out.
     """
     from .seams import tiling_report
     from .tiling import plane_tiling, tiling_coords
     ids = plane_tiling(tiles, rows, cols, periodic, seed)
     ctx.note("tiling", tiling_report(ids, tiles.tile_colors, tiles.n_tiles, periodic))
-    return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic)}
+    return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic, tile=tiles.tile)}
 
 
 @declare_stage("tiles.write", inputs={"tiles": "TileSet"},

@@ -28,7 +28,9 @@ window's rim stay old, unfilled ones take the new patch) and keeps the patch onl
 the summed per-pixel error of the region.  A pixel's error is its worst seam: for each 4-neighbour copied from
 elsewhere, the mean distance between each side and the other side's own continuation.  Filling stops when every
 pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
-the patch budget runs out.
+the patch budget runs out.  A placement's error also counts how often earlier patches already laid the exemplar
+texels under it (``usage_weight``, :func:`usage_means`), so the tile set spreads over the whole exemplar; each
+finished strip and interior is then relaxed texel by texel (:mod:`relax`).
 """
 from __future__ import annotations
 
@@ -42,12 +44,16 @@ from btforge.plugins.synth.search import knn
 
 from .cuts import grid_edges, min_cut, min_cut_edges
 from .placement import PlacementSearch
+from .relax import SWEEPS, relax_seams
 
 PICK_BEST = 4          # a placement is drawn among this many best ones
 THRESHOLD = 0.5        # per-pixel error threshold, times the exemplar's median neighbouring-texel distance
 SEARCH_STRIDE = 2      # placements are searched on every second texel, then refined among their neighbours ...
 STRIDE_FROM = 96       # ... in exemplars at least this large
-REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it
+REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it ...
+REFINE_MIN = 2         # ... and at least this many
+USAGE_WEIGHT = 0.5     # per known texel, a placement over texels already used once costs this many squared median
+# neighbour distances more: spreads the tiles over the whole exemplar instead of its few best-matching places
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
 CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
@@ -121,13 +127,26 @@ def _region_cost(err: np.ndarray, region: np.ndarray) -> tuple[int, float]:
     return int((~finite).sum()), float(values[finite].sum())
 
 
+def usage_means(usage: np.ndarray, window: tuple[int, int], stride: int = 1) -> np.ndarray:
+    """Mean of ``usage [H, W]`` over the ``window`` at every placement on the grid of ``stride`` (the layout of
+    :func:`placement.placement_errors_numpy`)."""
+    ph, pw = window
+    sat = np.zeros((usage.shape[0] + 1, usage.shape[1] + 1))
+    sat[1:, 1:] = usage.cumsum(0).cumsum(1)
+    box = sat[ph:, pw:] - sat[:-ph, pw:] - sat[ph:, :-pw] + sat[:-ph, :-pw]
+    return (box[::stride, ::stride] / (ph * pw)).astype(np.float32)
+
+
 class Filler:
     """Graph-cut patch filling of canvases over one exemplar (see the module docstring)."""
 
     def __init__(self, feats: np.ndarray, search: PlacementSearch, rng: np.random.Generator, cut: str,
-                 threshold: float):
+                 threshold: float, usage_weight: float = USAGE_WEIGHT):
         self.feats, self.search, self.rng, self.cut, self.threshold = feats, search, rng, cut, threshold
         self.placed = self.kept = 0
+        self.usage = np.zeros(feats.shape[:2], np.float64)   # how often each exemplar texel has been laid so far
+        reference = float(np.median(neighbour_distances(feats)))
+        self.usage_cost = usage_weight * reference * reference
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
 
     def _target(self, coords, region, err):
@@ -148,7 +167,9 @@ class Filler:
         k = int(self.rng.integers(len(ys)))
         return ys[k], xs[k]
 
-    def _placement(self, coords, y0, x0, window):
+    def _placements(self, coords, y0, x0, window, count: int):
+        """The ``count`` placements of least error (plus the usage term) for the window at ``(y0, x0)``, on the
+        search grid, and a function that refines one of them to the best placement among its neighbours."""
         ph, pw = window
         part = coords[y0:y0 + ph, x0:x0 + pw]
         known = part[..., 0] >= 0
@@ -156,14 +177,21 @@ class Filler:
         target = self.feats[part[known][:, 0], part[known][:, 1]]
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
+        if self.usage_cost > 0 and self.usage.any():
+            errors = errors + self.usage_cost * len(offsets) * usage_means(self.usage, window, stride)
         flat = errors.ravel()
-        k = min(PICK_BEST, flat.size)
+        k = min(count, flat.size)
         best = np.argpartition(flat, k - 1)[:k]
         best = best[np.argsort(flat[best], kind="stable")]
-        gy, gx = divmod(int(best[self.rng.integers(k)]), errors.shape[1])
+        found = [(gy * stride, gx * stride) for gy, gx in (divmod(int(i), errors.shape[1]) for i in best)]
         if stride == 1:
-            return gy, gx
-        return self.search.refine(offsets, target, window, gy * stride, gx * stride, stride - 1)
+            return found, lambda placement: placement
+        return found, lambda placement: self.search.refine(offsets, target, window, *placement, stride - 1)
+
+    def record(self, coords: np.ndarray) -> None:
+        """Count the exemplar texels a finished canvas lays (they cost more in later placements)."""
+        laid = coords[coords[..., 0] >= 0]
+        np.add.at(self.usage, (laid[:, 0], laid[:, 1]), 1.0)
 
     def _edge_costs(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
         """Per neighbour pair of the window, what a seam between old and new content there would show:
@@ -184,16 +212,14 @@ class Filler:
 
     def fill(self, coords: np.ndarray, region: np.ndarray, window: tuple[int, int]) -> np.ndarray:
         """Fill ``region`` of ``coords [h, w, 2]`` (``-1`` unfilled) in place; pixels outside it stay fixed."""
-        ph, pw = min(window[0], coords.shape[0]), min(window[1], coords.shape[1])
         err = pixel_errors(coords, self.feats)
         covering, refining = 0, 0
         budget = None
-        rim = _rim((ph, pw))
         while True:
             n_unfilled, total = _region_cost(err, region)
             if n_unfilled == 0:
                 if budget is None:
-                    budget = max(2, int(np.ceil(REFINE_SHARE * covering)))
+                    budget = max(REFINE_MIN, int(np.ceil(REFINE_SHARE * covering)))
                 if err[region].max() <= self.threshold or refining >= budget:
                     break
                 refining += 1
@@ -201,37 +227,47 @@ class Filler:
                 covering += 1
                 if covering > 4 * region.sum():  # cannot happen while each kept patch fills a pixel
                     raise RuntimeError("patch filling made no progress")
+            ph, pw = min(window[0], coords.shape[0]), min(window[1], coords.shape[1])
             ty, tx = self._target(coords, region, err)
             y0 = int(np.clip(ty - ph // 2, 0, coords.shape[0] - ph))
             x0 = int(np.clip(tx - pw // 2, 0, coords.shape[1] - pw))
             clock = time.perf_counter()
-            py, px = self._placement(coords, y0, x0, (ph, pw))
+            candidates, refine = self._placements(coords, y0, x0, (ph, pw), PICK_BEST)
+            chosen = refine(candidates[int(self.rng.integers(len(candidates)))])
             self.placed += 1
             self.seconds["search"] += time.perf_counter() - clock
-            clock = time.perf_counter()
-            dy, dx = np.mgrid[0:ph, 0:pw]
-            new = np.stack([py + dy, px + dx], -1).astype(np.int32)
-            old = coords[y0:y0 + ph, x0:x0 + pw]
-            inside = region[y0:y0 + ph, x0:x0 + pw]
-            filled = old[..., 0] >= 0
-            take = inside & ~filled
-            if self.cut == "graph" and filled.any():
-                keep = filled & (~inside | rim)
-                mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
-            else:
-                mask = take if take.any() else inside & ~rim
-            self.seconds["cut"] += time.perf_counter() - clock
-            clock = time.perf_counter()
-            trial = coords.copy()
-            trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
-            trial_err = pixel_errors(trial, self.feats)
-            self.seconds["bookkeeping"] += time.perf_counter() - clock
-            after = _region_cost(trial_err, region)
+            trial, trial_err, after = self._trial(coords, region, (y0, x0, ph, pw), chosen)
             if after[0] < n_unfilled or (after[0] == n_unfilled and after[1] < total - 1e-9):
                 coords[...] = trial
                 err = trial_err
                 self.kept += 1
         return err
+
+    def _trial(self, coords, region, box, placement):
+        """``(canvas, per-pixel errors, region cost)`` after cutting the patch at exemplar ``placement`` into
+        the window ``box = (y0, x0, ph, pw)``: known pixels outside the region and on the window's rim stay old,
+        unfilled ones take the new patch, the minimum cut decides the rest."""
+        y0, x0, ph, pw = box
+        clock = time.perf_counter()
+        dy, dx = np.mgrid[0:ph, 0:pw]
+        new = np.stack([placement[0] + dy, placement[1] + dx], -1).astype(np.int32)
+        old = coords[y0:y0 + ph, x0:x0 + pw]
+        inside = region[y0:y0 + ph, x0:x0 + pw]
+        filled = old[..., 0] >= 0
+        take = inside & ~filled
+        rim = _rim((ph, pw))
+        if self.cut == "graph" and filled.any():
+            keep = filled & (~inside | rim)
+            mask = min_cut_edges((ph, pw), self._edge_costs(old, new), keep, take)[0] & inside
+        else:
+            mask = take if take.any() else inside & ~rim
+        self.seconds["cut"] += time.perf_counter() - clock
+        clock = time.perf_counter()
+        trial = coords.copy()
+        trial[y0:y0 + ph, x0:x0 + pw][mask] = new[mask]
+        trial_err = pixel_errors(trial, self.feats)
+        self.seconds["bookkeeping"] += time.perf_counter() - clock
+        return trial, trial_err, _region_cost(trial_err, region)
 
 
 # ----------------------------------------------------------------------------------------------- corners
@@ -508,7 +544,8 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 
 
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
-                     seed: int = 0, *, cut: str = "graph", engine: str = "opencl") -> Synthesis:
+                     seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
+                     relax: int = SWEEPS) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
@@ -520,7 +557,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     feats = np.ascontiguousarray(feats, np.float32)
     threshold = THRESHOLD * float(np.median(neighbour_distances(feats)))
     search = PlacementSearch(feats, engine)
-    filler = Filler(feats, search, rng, cut, threshold)
+    filler = Filler(feats, search, rng, cut, threshold, usage_weight)
     timings, counts = {}, {}
 
     start = time.perf_counter()
@@ -539,7 +576,12 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     def strip(kind, colour):
         def job():
             coords, region = _strip_canvas(corners, kind, colour, w)
-            return coords, filler.fill(coords, region, (h, h))
+            err = filler.fill(coords, region, (h, h))
+            if relax:
+                coords[...] = relax_seams(coords, feats, region, relax)
+                err = pixel_errors(coords, feats)
+            filler.record(np.where(region[..., None], coords, -1))
+            return coords, err
         return job
 
     built = run("edges", [strip("h", a) for a in range(n_h)] + [strip("v", c) for c in range(n_v)])
@@ -564,6 +606,10 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
         def job():
             tile = frames[combo].copy()
             err = filler.fill(tile, interior, window)
+            if relax:
+                tile = relax_seams(tile, feats, interior, relax)
+                err = pixel_errors(tile, feats)
+            filler.record(np.where(interior[..., None], tile, -1))
             index = tile_index(*combo, variant, n_h, n_v, variants)
             tiles[index], colors_out[index] = tile, combo
             return int(((err > threshold) & np.isfinite(err)).sum())

@@ -1,0 +1,126 @@
+"""Testing helpers of the Liu family: the geometric-consistency measurement and the fixture it runs on.
+
+Do a synthesized BTF's dark regions fall where the template's shadows are?  The measurement behind the
+"IoU >= 0.7 over at least 10 lights" figure, shared by the tests and by ``btforge bench liu`` so that both
+measure the same thing.  A quilted height field is synthesized under a ring of
+target lights that lie between the references' azimuths (so every reference is rotated by eq. 7); each image's
+dark pixels are compared with its template's shadow mask.  The baseline quilts each light's nearest reference on
+its own, as a per-light 2D synthesis would.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+DARK_FRACTION = 0.02      # a synthesized pixel is dark below this fraction of its image's median brightness
+LOW_TILTS = (70, 75)      # the consistency test's lights: low, where cast shadows are substantial
+TARGET_AZIMUTHS = (30, 90, 150, 210, 270, 330)
+REFERENCE_AZIMUTHS = (0, 72, 144, 216, 288)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean masks (0 when both are empty)."""
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def dark_mask(image: np.ndarray) -> np.ndarray:
+    """Pixels of ``image [H, W, C]`` below ``DARK_FRACTION`` of its median brightness: where a shadow (black in
+    the references) was copied."""
+    lum = image.mean(-1)
+    return lum < DARK_FRACTION * np.median(lum)
+
+
+@dataclasses.dataclass
+class Consistency:
+    lights: np.ndarray          # [L, 3] the target lights
+    liu: np.ndarray             # [L] shadow IoU of liu.synthesize per light
+    per_light_2d: np.ndarray    # [L] shadow IoU of quilting each light's nearest reference on its own
+    shadow_fraction: np.ndarray  # [L] fraction of the template in shadow
+
+
+def shadow_fixture(size: int = 112, tilts=LOW_TILTS, seed: int = 1):
+    """``(references, field)``: the built-in material rendered under ``tilts`` at the 5 reference azimuths, and
+    its height field quilted to ``size^2``."""
+    from btforge import SampleStack, stage
+    from btforge.plugins.demo.procedural import make_material, render_lights
+    from btforge.plugins.height.field import HeightField
+
+    from .settings import direction
+
+    m = make_material(96, 96, bumps=20, bump_height=5.0, seed=seed)
+    dirs = np.array([direction(t, a) for t in tilts for a in REFERENCE_AZIMUTHS], np.float32)
+    refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
+    exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
+    coords = stage("quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
+    return refs, stage("materialize")(coords=coords, source=exemplar)["output"]
+
+
+def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: int) -> float:
+    """Shadow IoU of quilting the reference nearest ``light`` on its own (the per-light 2D baseline)."""
+    from btforge import SampleStack, stage
+    nearest = int(np.argmax(refs.lights @ light))
+    one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
+    coords = stage("quilt")(exemplar=one, size=[size, size], block=24, seed=seed)["coords"]
+    flat = stage("materialize")(coords=coords, source=one)["output"]
+    return iou(dark_mask(flat.samples[0, 0]), shadow)
+
+
+def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int = 1) -> Consistency:
+    """Shadow IoU over ``len(tilts) x 6`` target lights on a quilted ``size^2`` height field (see module);
+    references: the built-in material under the same tilts at 5 other azimuths."""
+    from btforge import stage
+    refs, field = shadow_fixture(size, tilts, seed)
+    grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": list(tilts),
+            "light_azimuths": list(TARGET_AZIMUTHS)}
+    out = stage("liu.synthesize")(height=field, references=refs, grid=grid, nearest=1)
+    stack, templates = out["stack"], out["templates"]
+    ours, independent, fraction = [], [], []
+    for l in range(stack.n_light):
+        shadow = templates.samples[0, l, ..., 0] <= 0
+        fraction.append(shadow.mean())
+        ours.append(iou(dark_mask(stack.samples[0, l]), shadow))
+        if baseline:
+            independent.append(per_light_iou(refs, stack.lights[l], shadow, size, l))
+    return Consistency(stack.lights, np.array(ours), np.array(independent), np.array(fraction))
+
+
+def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.ndarray, valid: np.ndarray) -> float:
+    """Seam visibility of a block copy: the mean radiance jump (colour norm) between adjacent pixels of
+    ``image [H, W, C]`` whose ``source [H, W, 2]`` pixels are not adjacent in the reference, over the mean jump
+    between adjacent ``valid`` pixels of ``reference [h, w, C]`` (1: block boundaries look like the reference's
+    own pixel-to-pixel changes)."""
+    img, ref = image.astype(np.float64), reference.astype(np.float64)
+    jumps, seams = [], []
+    for axis, step in ((1, (0, 1)), (0, (1, 0))):
+        a = [slice(None), slice(None)]
+        b = [slice(None), slice(None)]
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        jumps.append(np.linalg.norm(img[b] - img[a], axis=-1))
+        seams.append(np.any(source[b] != source[a] + np.array(step), axis=-1))
+        both = valid[a] & valid[b]
+        jumps.append(np.linalg.norm(ref[b] - ref[a], axis=-1)[both])
+    seam_jumps = np.concatenate([jumps[0][seams[0]], jumps[2][seams[1]]])
+    base = np.concatenate([jumps[1], jumps[3]]).mean()
+    return float(seam_jumps.mean() / base) if seam_jumps.size and base > 0 else 0.0
+
+
+def block_copy_seams(feather: int, size: int = 112, seed: int = 1) -> list[float]:
+    """:func:`block_seam_visibility` of single block copies (one reference each) of the shadow fixture at four
+    target lights between the references' azimuths."""
+    from . import blockcopy, settings, synthesis, template
+    refs, field = shadow_fixture(size, (45, 65), seed)
+    views, lights, pairs = synthesis.reference_table(refs)
+    view = np.float32([[0, 0, 1]])
+    out = []
+    for k, (tilt, azimuth) in enumerate(((65, 30), (45, 100), (70, 200), (30, 300))):
+        light = np.float32([settings.direction(tilt, azimuth)])
+        images, _ = template.render(field.heights, synthesis.grey_albedo(field), field.normals, view, light)
+        choice = synthesis.choose_references(view[0], light[0], views, lights, 1, True)
+        v, l = pairs[choice.indices[0]]
+        warped, valid = blockcopy.warp(refs.image(v, l), float(choice.rotations[0]), bool(choice.mirrored[0]),
+                                       images[0].shape)
+        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather)
+        out.append(block_seam_visibility(copy.image, copy.source, warped, valid))
+    return out
