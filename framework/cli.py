@@ -189,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("stages", help="list the installed stages with their ports, params and docs")
     p.add_argument("name", nargs="*", help="only these stages")
     p.add_argument("--json", action="store_true")
-    p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in README)")
+    p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in docs/stages.md)")
     p.set_defaults(func=cmd_stages)
 
     p = sub.add_parser("info", help="describe a file (plugins provide the readers, by extension)")

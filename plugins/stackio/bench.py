@@ -35,7 +35,7 @@ def bench_btf_store(args: list[str]) -> int:
     """A synthetic BTF into a store (demo.btf), then double SH from it: whole-process time, CPU and peak memory."""
     from btforge.bench import fresh_run, write_json
     parser = argparse.ArgumentParser(prog="btforge bench btf-store")
-    parser.add_argument("--size", type=int, default=256, help="texels per side (default 256; the issue's 128 too)")
+    parser.add_argument("--size", type=int, default=256, help="texels per side (default 256; 128 for a quicker run)")
     parser.add_argument("--lights", type=int, default=81)
     parser.add_argument("--views", type=int, default=81)
     parser.add_argument("--order", type=int, default=5, help="SH order over light and view (5: 25 x 25 coefficients)")

@@ -589,11 +589,11 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
                          recall_samples: int = 0, blocks: int = 0) -> dict:
     """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
     analyses the exemplar again, else the cached analysis is reused).  ``blocks`` is the stage's param: 0 (the
-    default here) times the hierarchical synthesis over ``levels`` levels, the configuration the issue names;
+    default here) times the hierarchical synthesis over ``levels`` levels, as in Tong et al. 2002;
     the stage's own default (-1) starts from stratified blocks and analyses the finest level only.
 
     ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
-    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
+    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the headline benchmark's texels) or the path of a
     ``.ptm`` file (its central ``exemplar_size`` square).  ``recall_samples`` > 0 also measures the finest
     level's coherence sets against the exact search at that many texels.
 
