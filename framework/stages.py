@@ -180,6 +180,7 @@ class Stage:
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
     expects: Mapping[str, Expect] = dataclasses.field(default_factory=dict)
     keeps_facts: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    deprecated_names: tuple[str, ...] = ()
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
         """Whether, with these params, each texel's output depends only on that texel's input (so the stage can
@@ -256,6 +257,7 @@ def declare_stage(
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
     expects: Mapping[str, Expect] | None = None,
     keeps_facts: Mapping[str, str] | None = None,
+    deprecated_names: Sequence[str] = (),
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -285,6 +287,8 @@ def declare_stage(
     has one port per material its scene names); the function then takes them as ``**kwargs``.
     ``per_texel`` (or ``per_texel(params) -> bool``) declares that each texel's outputs depend only on that
     texel's inputs, so a distributed scheduler may run the stage on blocks of texels and join the results.
+    ``deprecated_names`` are old names of a renamed stage: graphs and ``btforge.stage()`` calls using one still
+    get this stage, with a warning naming the new name; ``btforge stages`` lists the new name only.
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -302,6 +306,7 @@ def declare_stage(
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
             expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}),
+            deprecated_names=tuple(deprecated_names),
         )
 
     return wrap
