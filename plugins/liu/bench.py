@@ -102,11 +102,11 @@ def _steps(table, opts, capture, refs):
          f"{ls_error.mean():.2f} / {np.median(ls_error):.2f}")
     recovered = out["height"]
 
-    exemplar = stage("crop")(input=recovered, origin=[0, 0], size=[n // 2, n // 2])["output"]
+    exemplar = stage("synth.crop")(input=recovered, origin=[0, 0], size=[n // 2, n // 2])["output"]
     reference_stats = height_statistics(exemplar)
     for name, params in (("quilt", {"block": max(8, n // 8), "wrap": True}), ("kcoherence", {"wrap": True}),
                          ("jumpmap", {})):
-        seconds, field = _median_seconds(lambda: stage("materialize")(
+        seconds, field = _median_seconds(lambda: stage("synth.materialize")(
             coords=stage(name)(exemplar=exemplar, size=[n, n], seed=1, **params)["coords"], source=exemplar)["output"], 1)
         s = height_statistics(field)
         ratios = ", ".join(f"{k} x{s[k] / max(reference_stats[k], 1e-12):.2f}" for k in s)

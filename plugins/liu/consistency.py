@@ -51,8 +51,8 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
     dirs = np.array([direction(t, a) for t in tilts for a in REFERENCE_AZIMUTHS], np.float32)
     refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
     exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
-    coords = stage("quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
-    field = stage("materialize")(coords=coords, source=exemplar)["output"]
+    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
+    field = stage("synth.materialize")(coords=coords, source=exemplar)["output"]
     grid = {"view_tilts": [0], "view_azimuths": [0], "light_tilts": list(tilts),
             "light_azimuths": list(TARGET_AZIMUTHS)}
     out = stage("liu.synthesize")(height=field, references=refs, grid=grid, nearest=1)
@@ -65,7 +65,7 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
         if baseline:
             nearest = int(np.argmax(refs.lights @ stack.lights[l]))
             one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
-            c2 = stage("quilt")(exemplar=one, size=[size, size], block=24, seed=l)["coords"]
-            flat = stage("materialize")(coords=c2, source=one)["output"]
+            c2 = stage("synth.quilt")(exemplar=one, size=[size, size], block=24, seed=l)["coords"]
+            flat = stage("synth.materialize")(coords=c2, source=one)["output"]
             independent.append(iou(dark_mask(flat.samples[0, 0]), shadow))
     return Consistency(stack.lights, np.array(ours), np.array(independent), np.array(fraction))

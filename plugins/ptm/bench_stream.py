@@ -10,7 +10,7 @@ from pathlib import Path
 
 # .ptm files hold display values, so both fit them (auto might choose linear radiance)
 GRAPHS = {
-    "read then fit": "nodes:\n  read: {{stage: stack.read, params: {{path: {lp}}}}}\n"
+    "read then fit": "nodes:\n  read: {{stage: stackio.read, params: {{path: {lp}}}}}\n"
                      "  fit: {{stage: ptm.fit, params: {{variant: {variant}, space: srgb}}, inputs: {{stack: read.stack}}}}\n"
                      "  save: {{stage: ptm.write, params: {{path: out.ptm}}, inputs: {{model: fit.model}}}}\n",
     "fit while reading": "nodes:\n  fit: {{stage: ptm.fit_capture, params: {{path: {lp}, variant: {variant}, space: srgb}}}}\n"

@@ -23,7 +23,7 @@ def resolve_lights(value, paths, param: str = "lights", role: str = "light") -> 
 
 
 @declare_stage(
-    "relight",
+    "relight.images", deprecated_names=("relight",),
     inputs={"model": "ReflectanceModel", "at": "SampleStack"},
     optional_inputs=("at",),
     outputs={"stack": "SampleStack"},
@@ -97,7 +97,7 @@ def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0
     return scores
 
 
-@declare_stage("stack.compare", inputs={"stack": "SampleStack", "reference": "SampleStack"},
+@declare_stage("relight.compare", deprecated_names=("stack.compare",), inputs={"stack": "SampleStack", "reference": "SampleStack"},
                outputs={"scores": "Scores"},
                params=[Param("peak", "float", 1.0, "the signal peak for PSNR (1.0 for images in [0, 1])", low=1e-9)])
 def stack_compare(ctx, stack, reference, *, peak):
@@ -108,10 +108,10 @@ def stack_compare(ctx, stack, reference, *, peak):
     capture, so the figures match what RTI tools report; on linear values otherwise.
     """
     if stack.samples.shape[:2] != reference.samples.shape[:2] or stack.samples.shape[2:] != reference.samples.shape[2:]:
-        raise BtforgeInputError("stack.compare", f"expected stacks of equal shape, found {stack.samples.shape} and "
+        raise BtforgeInputError("relight.compare", f"expected stacks of equal shape, found {stack.samples.shape} and "
                                 f"{reference.samples.shape}", "relight at the reference's lights (wire it to relight's 'at')")
     if not np.allclose(stack.lights, reference.lights, atol=1e-4):
-        raise BtforgeInputError("stack.compare", "expected the same light directions in both stacks",
+        raise BtforgeInputError("relight.compare", "expected the same light directions in both stacks",
                                 "relight at the reference's lights (wire it to relight's 'at')")
     scores = compare_stacks(stack, reference, peak)
     for key, value in scores.items():

@@ -81,7 +81,7 @@ def format_of(path: str, fmt: str) -> str:
         return fmt
     ext = Path(path).suffix.lower().lstrip(".")
     if ext not in FORMATS:
-        raise BtforgeInputError(f"image.write 'path' {path}", f"cannot tell the format from the extension '.{ext}'",
+        raise BtforgeInputError(f"render.write_image 'path' {path}", f"cannot tell the format from the extension '.{ext}'",
                                 f"name the file .exr, .png, .gif or .mp4, or set format: one of {', '.join(FORMATS)}")
     return ext
 
@@ -106,10 +106,10 @@ def check_writable(fmt: str) -> None:
         try:
             import imageio  # noqa: F401
         except ImportError:
-            raise BtforgeInputError("image.write", f"writing {fmt.upper()} needs imageio, which is not installed",
+            raise BtforgeInputError("render.write_image", f"writing {fmt.upper()} needs imageio, which is not installed",
                                     "pip install imageio (or btforge[render])") from None
     if fmt == "mp4" and mp4_backend() is None:
-        raise BtforgeInputError("image.write", "writing MP4 needs an imageio video plugin, found neither PyAV nor "
+        raise BtforgeInputError("render.write_image", "writing MP4 needs an imageio video plugin, found neither PyAV nor "
                                 "imageio-ffmpeg", "pip install imageio-ffmpeg (or av), or write format: gif")
 
 

@@ -12,10 +12,10 @@ import numpy as np
 MAKE = "nodes:\n  btf: {{stage: demo.btf, params: {{size: [{size}, {size}], lights: {lights}, views: {views}, " \
        "store: {store}, block: [8, 8]}}}}\n"
 # An explicit space: `auto` judges it on a sample of all texels, which no single dask task sees.
-FIT = "nodes:\n  read: {{stage: stack.read, params: {{path: {store}}}}}\n" \
+FIT = "nodes:\n  read: {{stage: stackio.read, params: {{path: {store}}}}}\n" \
       "  fit: {{stage: sh.fit, params: {{light_order: {order}, view_order: {order}, space: srgb}}, " \
       "inputs: {{stack: read.stack}}}}\n" \
-      "  save: {{stage: model.write, params: {{path: sh.btfm}}, inputs: {{model: fit.model}}}}\n"
+      "  save: {{stage: models.write, params: {{path: sh.btfm}}, inputs: {{model: fit.model}}}}\n"
 
 
 def _node_seconds(report: Path, node: str) -> float:

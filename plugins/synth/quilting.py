@@ -233,7 +233,7 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
 
 
 @declare_synthesizer(
-    "quilt",
+    "synth.quilt", deprecated_names=("quilt",),
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "

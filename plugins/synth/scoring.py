@@ -560,7 +560,7 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
 
 
 @declare_stage(
-    "score",
+    "synth.score", deprecated_names=("score",),
     inputs={"output": "PerTexel", "exemplar": "PerTexel", "coords": "CoordMap", "tiles": "Buffer"},
     optional_inputs=("output", "coords", "tiles"),
     outputs={"scores": "Scores"},

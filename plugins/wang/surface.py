@@ -56,7 +56,7 @@ def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, 
 def check_tiles(name: str, model, tiles) -> None:
     if not isinstance(tiles, TileSet):
         raise BtforgeInputError(f"render, material '{name}'", f"a mesh sets tiles: true but no TileSet is wired to "
-                                f"'{name}_tiles'", f"wire a tile set (wang.tiles or tiles.read) to '{name}_tiles'")
+                                f"'{name}_tiles'", f"wire a tile set (wang.tiles or wang.read_tiles) to '{name}_tiles'")
     if (model.height, model.width) != tiles.source_size:
         raise BtforgeInputError(f"render, material '{name}'", f"the tile set indexes a {tiles.source_size[0]} x "
                                 f"{tiles.source_size[1]} exemplar, but the model is {model.height} x {model.width}",
