@@ -91,6 +91,28 @@ def frozen(array: np.ndarray) -> np.ndarray:
     return out
 
 
+def settled(value: Any) -> Any:
+    """A field value as a buffer keeps it: arrays read-only (:func:`frozen`), lists and tuples as tuples, mappings
+    with their values settled, anything else as given."""
+    if isinstance(value, np.ndarray):
+        return frozen(value)
+    if isinstance(value, (list, tuple)):
+        return tuple(value)
+    if isinstance(value, Mapping):
+        return {key: settled(item) for key, item in value.items()}
+    return value
+
+
+def freeze_fields(buffer: "Buffer", *names: str, **values: Any) -> None:
+    """Store a frozen buffer's fields in their kept form (see :func:`settled`), from ``__post_init__``: the fields
+    ``names`` as they are, and ``values`` (checked or converted copies) in place of theirs.  Dataclasses frozen
+    with ``frozen=True`` refuse plain assignment, so this is the one place that sets fields after validation."""
+    for name in names:
+        object.__setattr__(buffer, name, settled(getattr(buffer, name)))
+    for name, value in values.items():
+        object.__setattr__(buffer, name, settled(value))
+
+
 def _view_chain(array: np.ndarray) -> list[np.ndarray]:
     """The arrays ``array`` looks into, nearest first (empty for an array that owns its memory)."""
     chain, base = [], array.base
@@ -392,11 +414,7 @@ class SampleStack(PerTexel):
             raise BtforgeInputError("SampleStack 'channels'", f"must name {samples.shape[4]} channels, got {self.channels!r}")
         if self.names and len(self.names) != lights.shape[0]:
             raise BtforgeInputError("SampleStack 'names'", f"must have one name per light ({lights.shape[0]}), got {len(self.names)}")
-        object.__setattr__(self, "samples", frozen(samples))
-        object.__setattr__(self, "lights", frozen(lights))
-        object.__setattr__(self, "views", frozen(views))
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "names", tuple(self.names))
+        freeze_fields(self, "channels", "names", samples=samples, lights=lights, views=views)
 
     @property
     def n_view(self) -> int:
@@ -567,9 +585,7 @@ class CoordMap(Buffer):
                 raise BtforgeInputError("CoordMap", f"'blend_weight' must lie in [0, 1], found "
                                         f"{self.blend_weight.min():g}..{self.blend_weight.max():g}",
                                         "give the blend partner's share of each texel, clipped to [0, 1]")
-        object.__setattr__(self, "source_size", (src_h, src_w))
-        for name in ("coords", "blend_coords", "blend_weight"):
-            object.__setattr__(self, name, frozen(getattr(self, name)))
+        freeze_fields(self, "coords", "blend_coords", "blend_weight", source_size=(src_h, src_w))
 
     @property
     def height(self) -> int:

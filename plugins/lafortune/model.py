@@ -98,7 +98,8 @@ import numpy as np
 
 from btforge.backend import get_backend
 from btforge.numerics import texel_chunks
-from btforge.buffers import ReflectanceModel, SampleStack, check_array, frozen, scattered_lookup, unit_directions
+from btforge.buffers import (ReflectanceModel, SampleStack, check_array, freeze_fields, scattered_lookup,
+                             unit_directions)
 from btforge.errors import BtforgeInputError
 
 KERNELS = Path(__file__).with_name("lafortune.cl")
@@ -251,9 +252,7 @@ class LafortuneModel(ReflectanceModel):
             raise BtforgeInputError(f"{owner} 'exponents'", f"must lie in [{EXPONENT_MIN:g}, {EXPONENT_MAX:g}], "
                                     f"found [{exponents.min():g}, {exponents.max():g}]")
         check_array("colour", self.colour, (h, w, n_channel if lum else 0), np.float32, finite=True, owner=owner)
-        for name in self.texel_fields:
-            object.__setattr__(self, name, frozen(getattr(self, name)))
-        object.__setattr__(self, "channel_names", tuple(self.channel_names))
+        freeze_fields(self, *self.texel_fields, "channel_names")
 
     @property
     def channels(self) -> tuple[str, ...]:

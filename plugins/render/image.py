@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.atomic import atomic_output_path, atomic_write
-from btforge.buffers import Buffer, check_array, frozen, linear_to_srgb
+from btforge.buffers import Buffer, check_array, freeze_fields, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
 FORMATS = ("exr", "png", "gif", "mp4")
@@ -43,10 +43,8 @@ class Image(Buffer):
             raise BtforgeInputError("Image 'exposure'", f"must be finite, got {self.exposure}")
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise BtforgeInputError("Image 'fps'", f"must be a positive number, got {self.fps}")
-        object.__setattr__(self, "pixels", frozen(pixels))
-        object.__setattr__(self, "exposure", float(self.exposure))
-        object.__setattr__(self, "tonemap", bool(self.tonemap))
-        object.__setattr__(self, "fps", float(self.fps))
+        freeze_fields(self, pixels=pixels, exposure=float(self.exposure), tonemap=bool(self.tonemap),
+                      fps=float(self.fps))
 
     @property
     def frames(self) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 import yaml
 
-from btforge.buffers import Buffer, frozen
+from btforge.buffers import Buffer, freeze_fields
 from btforge.errors import BtforgeInputError
 from btforge.registry import did_you_mean
 
@@ -563,7 +563,7 @@ class Scene(Buffer):
     arrays: dict
 
     def __post_init__(self):
-        object.__setattr__(self, "arrays", {k: frozen(np.asarray(v)) for k, v in self.arrays.items()})
+        freeze_fields(self, arrays={k: np.asarray(v) for k, v in self.arrays.items()})
 
     def payload(self):
         names = sorted(self.arrays)
