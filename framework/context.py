@@ -2,13 +2,29 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
 from .errors import BtforgeWarning
-from .stages import RunPaths
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPaths:
+    """Where relative paths resolve: inputs against the graph's folder, outputs against the run's output folder."""
+
+    graph_dir: Path
+    out_dir: Path
+
+    def input(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        return p if p.is_absolute() else self.graph_dir / p
+
+    def output(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        return p if p.is_absolute() else self.out_dir / p
 
 
 @dataclasses.dataclass

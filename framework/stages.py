@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
+from .context import RunPaths, StageContext
 from .errors import BtforgeInputError
 
 # Parameter kinds and what they accept.  'path' is an existing input file (checked before a run, resolved
@@ -211,7 +212,6 @@ class Stage:
         Missing parameters take their defaults and a default :class:`~btforge.context.StageContext` is made when
         ``ctx`` is not given.  Inputs must be buffers of the declared types.
         """
-        from .context import StageContext
         ctx = kwargs.pop("ctx", None) or (args[0] if args else None) or StageContext(node=self.name)
         values = {}
         for p in self.params:
@@ -222,22 +222,6 @@ class Stage:
             else:
                 values[p.name] = p.default
         return self.fn(ctx, **kwargs, **values)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunPaths:
-    """Where relative paths resolve: inputs against the graph's folder, outputs against the run's output folder."""
-
-    graph_dir: Path
-    out_dir: Path
-
-    def input(self, value: str) -> Path:
-        p = Path(os.path.expanduser(value))
-        return p if p.is_absolute() else self.graph_dir / p
-
-    def output(self, value: str) -> Path:
-        p = Path(os.path.expanduser(value))
-        return p if p.is_absolute() else self.out_dir / p
 
 
 def declare_stage(

@@ -8,7 +8,7 @@ import pytest
 
 from btforge.errors import BtforgeInputError
 from btforge.plugins.render.geometry import build_mesh
-from btforge.plugins.render.scene import load_scene
+from btforge.plugins.render.loader import load_scene
 from btforge.stages import RunPaths
 
 # a 2-unit cube, 8 positions, every face carrying the whole texture (4 texture coordinates), outward winding

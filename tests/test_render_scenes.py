@@ -100,7 +100,7 @@ def test_bad_scene_is_refused_at_validation(tmp_path, case):
 
 def test_missing_file_hint_says_what_relative_paths_resolve_against(tmp_path):
     """A scene file's paths resolve against its own folder; an inline scene's against the graph's."""
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.stages import RunPaths
     (tmp_path / "scenes").mkdir()
     scene = with_changes(meshes={"ground": {"file": "quad.obj", "material": "stone"}})
@@ -204,7 +204,7 @@ def test_mp4_needs_a_video_plugin_known_at_validation(tmp_path):
 
 def test_light_sweep_traces_once_and_turntable_traces_every_frame():
     from btforge.plugins.render.renderer import Counters, render
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.stages import RunPaths
     from test_render import constant_ptm, random_ptm
     scene = with_changes(animation={"type": "light_sweep", "frames": 4, "light": 0, "axis": [0, 0, 1]})

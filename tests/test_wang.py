@@ -245,9 +245,9 @@ def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural):
     from btforge.plugins.ptm.model import fit_ptm
     from btforge.plugins.render.geometry import build_mesh
     from btforge.plugins.render.renderer import Counters, render
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.plugins.synth import materialize
-    from btforge.plugins.wang.surface import TILING_SEED
+    from btforge.plugins.render.tiles import TILING_SEED
     from btforge.plugins.wang.tiling import tiling_coords
     from btforge.stages import RunPaths
     stack, tiles, _, _ = procedural

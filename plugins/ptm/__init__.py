@@ -1,6 +1,7 @@
 """Polynomial texture maps: fit on OpenCL, read and write HP ``.ptm`` files."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from btforge import REQUIRED, Expect, Fact, Param, declare_stage, hookimpl
@@ -130,15 +131,20 @@ def _ptm_file_precheck(params, paths):
     from .ptmfile import describe_ptm
     path = paths.input(params["path"])
     if _is_web_layout(path):
-        from btforge.plugins.web.layout import read_info
-        info = read_info(path)
-        if info["type"] != "ptm":
-            raise BtforgeInputError(str(path), f"holds a {info['type']} model, not a PTM",
-                                    "read it with stage web.read")
-        folder = Path(info["_folder"])
-        return [folder / "info.json"] + sorted(folder.glob(f"plane_*.{info.get('format', 'jpg')}"))
+        files = _web_reader().precheck(params, paths)  # checks the layout; its info.json comes first
+        kind = json.loads(Path(files[0]).read_text(encoding="utf-8"))["type"]
+        if kind != "ptm":
+            raise BtforgeInputError(str(path), f"holds a {kind} model, not a PTM", "read it with stage web.read")
+        return files
     describe_ptm(path)
     return [path]
+
+
+def _web_reader():
+    """The installed ``web.read`` stage, which reads relight's web layout; found through the registry, as the web
+    family builds on this one (it exports and views PTMs)."""
+    from btforge.registry import default_registry
+    return default_registry().stage("web.read")
 
 
 def _is_web_layout(path) -> bool:
@@ -158,9 +164,8 @@ def ptm_read(ctx, *, path):
     """
     from .ptmfile import read_ptm
     if _is_web_layout(ctx.paths.input(path)):
-        from btforge.plugins.web.layout import read_web
         ctx.note("file_format", "relight web layout")
-        return {"model": read_web(ctx.paths.input(path))}
+        return {"model": _web_reader()(ctx=ctx, path=path)["model"]}
     content = read_ptm(ctx.paths.input(path))
     ctx.note("file_format", content.file_format)
     albedo = content.albedo if content.albedo is not None else content.coeffs[..., :0, 0]

@@ -35,7 +35,7 @@ def _render_ports(params, paths) -> dict[str, str]:
 
 
 def _render_precheck(params, paths):
-    from .scene import load_scene
+    from .loader import load_scene
     value = params.get("scene")
     if value is None:
         return []
@@ -82,7 +82,7 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
         Linear RGB ``[H, W, 3]`` float32, or ``[F, H, W, 3]`` for a light sweep or turntable.
     """
     from .renderer import Counters, render as render_scene
-    from .scene import load_scene
+    from .loader import load_scene
     if (scene is None) == (scene_data is None):
         raise BtforgeInputError("render", "expected exactly one scene: the 'scene' param or a Scene wired to "
                                 "'scene_data'", "add `params: {scene: scenes/NAME.yaml}`")
@@ -104,7 +104,7 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
 
 
 def _scene_read_precheck(params, paths):
-    from .scene import load_scene
+    from .loader import load_scene
     scene = load_scene(params["path"], paths)
     return [paths.input(params["path"])] + scene.spec.files()
 
@@ -118,7 +118,7 @@ def scene_read(ctx, *, path):
     Wire it to ``render``'s ``scene_data`` port (and list the material names in that node's ``materials``) to
     share one scene between several renders.
     """
-    from .scene import load_scene
+    from .loader import load_scene
     scene = load_scene(path, ctx.paths)
     ctx.note("meshes", len(scene.spec.meshes))
     ctx.note("materials", scene.spec.materials)

@@ -38,9 +38,9 @@ from .envmap import (DirectionalSet, SHRotator, environment_pixels, hemisphere_q
                      lookup, project_sh, real_sh)
 from .geometry import BuiltMesh, build_mesh, complete_frame
 from .o3d import open3d
+from .lookup import texel_corners
 from .scene import LightSpec, Scene, SceneSpec
 
-SNAP = 1e-3            # texel-coordinate fractions this close to a texel centre are snapped onto it
 BATCH_ITEMS = 1 << 21  # (sample, light) pairs shaded per batch
 BAND_SAMPLES = 1 << 19  # camera samples traced and shaded at once (a band of image rows)
 SH_QUADRATURE = 256    # hemisphere directions used to project a model onto SH
@@ -163,41 +163,6 @@ def make_plan(spec: SceneSpec, meshes: list[BuiltMesh], materials: Mapping[str, 
         background = env[0]
     spp = spec.camera.samples if "antialias" in eff else 1
     return Plan(spp=spp, direct=direct, shadows=shadows, environment=environment, view=view, background=background)
-
-
-# ----------------------------------------------------------------------------------------------- texel lookups
-
-
-def _wrap(i: np.ndarray, n: int, mode: str) -> np.ndarray:
-    if mode == "repeat":
-        return np.mod(i, n)
-    if mode == "clamp":
-        return np.clip(i, 0, n - 1)
-    m = np.mod(i, 2 * n)
-    return np.where(m < n, m, 2 * n - 1 - m)
-
-
-def texel_corners(uv: np.ndarray, height: int, width: int, wrap: str):
-    """Bilinear lookup on an ``height x width`` texel grid: ``rows, cols [4, N]`` int64 and ``weights [4, N]``.
-
-    Texel ``(r, c)`` has its centre at ``u = (c + 0.5) / width``, ``v = 1 - (r + 0.5) / height`` (row 0 at the top).
-    Fractions within :data:`SNAP` of a texel centre are snapped onto it, so a texel centre reads that texel alone.
-    """
-    x = uv[:, 0] * width - 0.5
-    y = (1.0 - uv[:, 1]) * height - 0.5
-    corners = []
-    for t in (x, y):
-        t0 = np.floor(t)
-        f = t - t0
-        up = f > 1 - SNAP
-        t0 = np.where(up, t0 + 1, t0)
-        f = np.where(up | (f < SNAP), 0.0, f)
-        corners.append((t0.astype(np.int64), f))
-    (x0, fx), (y0, fy) = corners
-    cols = np.stack([x0, x0 + 1, x0, x0 + 1])
-    rows = np.stack([y0, y0, y0 + 1, y0 + 1])
-    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
-    return _wrap(rows, height, wrap), _wrap(cols, width, wrap), weights
 
 
 class ColourShader:
@@ -472,7 +437,7 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
             continue
         model = materials[spec.material]
         if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
-            from btforge.plugins.wang.surface import tiled_texels
+            from .tiles import tiled_texels
             texels = tiled_texels(built, mi, materials[f"{spec.material}_tiles"], prim[sel], uv[sel])
             shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
             continue
@@ -664,7 +629,7 @@ def check_materials(spec: SceneSpec, materials: Mapping[str, Any], plan: Plan) -
                                     "light the scene only with an environment light of method 'sh' (which needs "
                                     "just evaluate), or add evaluate_texels to the model class")
     if spec.tiled:
-        from btforge.plugins.wang.surface import check_tiles
+        from .tiles import check_tiles
         for name in spec.tiled:
             check_tiles(name, materials[name], materials.get(f"{name}_tiles"))
     for name in spec.coord_mapped:

@@ -109,7 +109,7 @@ def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure, sides):
     (display values for 8-bit captures, as ``relight.compare`` measures).
     """
     from btforge.plot import labelled_grid, light_label
-    from btforge.plugins.relight import compare_stacks
+    from .compare import compare_stacks
     if beside is not None and beside.samples.shape[:4] != stack.samples.shape[:4]:
         raise BtforgeInputError("stackio.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
                                 f"found {beside.samples.shape[:4]}")
