@@ -313,7 +313,10 @@ def test_highlight_search_on_hard_images(kind, radius, seed):
     circle = Circle(w / 2, h / 2, float(radius))
     yy, xx = np.mgrid[0:h, 0:w]
     image = np.zeros((h, w), np.float32)
-    spot = lambda x, y: np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0).astype(np.float32)
+
+    def spot(x, y):
+        return np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0).astype(np.float32)
+
     if kind == "saturated":
         image[:] = 1.0
     elif kind == "noise":

@@ -1,5 +1,4 @@
 """Plugins: a third-party family installed by entry point, API versions, misspelt hooks, bench commands."""
-import os
 import subprocess
 import sys
 import types

@@ -1,7 +1,5 @@
 """Mesh files are read split at UV seams (open3d splits vertices by position and UV); the renderer must still see
 one closed, smooth surface: welded for closedness, inside tests and normals, per split vertex for UVs."""
-import math
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -236,14 +236,14 @@ def test_example_graphs_and_scenes_validate():
 
 def test_meshes_are_built_once_per_run_without_point_lights(tmp_path, monkeypatch):
     """The graph check and the scene check leave the meshes to the renderer, unless a point light needs them."""
-    from btforge.plugins.render import geometry, renderer
+    from btforge.plugins.render import geometry, loader, renderer
     built = []
     original = geometry.build_mesh
 
     def counted(spec, scene=None):
         built.append(spec.name)
         return original(spec, scene)
-    for module in (geometry, renderer):  # the renderer holds its own name for it
+    for module in (geometry, loader, renderer):  # each holds its own name for it
         monkeypatch.setattr(module, "build_mesh", counted)
     btforge.run(graph_with(tmp_path, GOOD), cache_dir=None, out_dir=tmp_path)
     assert built == ["ground"]

@@ -11,7 +11,6 @@ The exemplar is a 32 x 32 procedural material under 8 lights.  Against it we sco
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

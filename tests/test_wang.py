@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from btforge.buffers import CoordMap, SampleStack
+from btforge.buffers import CoordMap
 from btforge.context import StageContext
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth.scoring import score

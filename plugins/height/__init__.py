@@ -11,10 +11,10 @@ import numpy as np
 from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
-BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
-
-from .field import HeightField
 from . import io as height_io
+from .field import HeightField
+
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 @declare_stage(

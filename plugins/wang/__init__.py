@@ -122,7 +122,7 @@ def tiles_write(ctx, tiles, *, path):
     """Write a tile set losslessly: a ZIP of manifest.json and .npy arrays (format in README, Wang tiles)."""
     if not str(path).endswith(".wang"):
         raise BtforgeInputError("wang.write_tiles 'path'", f"expected a .wang file, found {path!r}", "name it NAME.wang")
-    wang.write_tiles(ctx.paths.output(path))
+    tiles.write(ctx.paths.output(path))
     return {}
 
 
