@@ -251,13 +251,14 @@ class Buffer:
                                 "per-texel buffer", "synthesize from a per-texel buffer (a stack or a fitted model), "
                                 "or define appearance_features on the class")
 
-    def seam_scores(self, exemplar: "PerTexel", coords: "CoordMap | None" = None) -> dict:
-        """Named figures of how visible this buffer's own seams are when laid out over ``exemplar`` (and, with
-        ``coords``, of that layout): what ``score`` reports for a buffer wired to its ``tiles`` port.  Buffers
-        that assemble textures from pieces (tile sets) have them."""
-        raise BtforgeInputError(f"buffer type '{self.type_name}'", "has no seam scores: it is not a set of pieces "
-                                "that textures are laid out from", "wire a tile set to 'tiles', or define "
-                                "seam_scores on the class")
+
+def capability(buffer: Buffer, name: str, what: str, hint: str):
+    """The bound method ``name`` of an optional capability that only some plugins' buffer types define (a tile
+    set's ``seam_scores(exemplar, coords) -> dict``): stages call it through here without importing the plugin
+    that defines the type, and a buffer without it is a clear error naming its type."""
+    if not callable(getattr(type(buffer), name, None)):
+        raise BtforgeInputError(f"buffer type '{buffer.type_name}'", f"has no {what} (no method {name})", hint)
+    return getattr(buffer, name)
 
 
 # ----------------------------------------------------------------------------------------------- samples
