@@ -366,6 +366,17 @@ class PerTexel(Buffer):
         return (np.rint(mixed) if dtype.kind in "iu" else mixed).astype(dtype)
 
 
+
+def central_crop(buffer: PerTexel, size: int) -> PerTexel:
+    """The central ``size`` x ``size`` texels of any per-texel buffer, of the same type (all of a side shorter
+    than ``size``; ``size`` 0: the whole buffer)."""
+    if not size or (buffer.height <= size and buffer.width <= size):
+        return buffer
+    h, w = min(size, buffer.height), min(size, buffer.width)
+    r0, c0 = (buffer.height - h) // 2, (buffer.width - w) // 2
+    rows, cols = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
+    return buffer.remap(rows, cols)
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class SampleStack(PerTexel):
     """Measured radiance of a surface under many lights (and views).

@@ -13,7 +13,7 @@ from PIL import Image
 from btforge.cli import main
 from btforge.plugins.calibrate.bench import implied_sphere
 from btforge.plugins.calibrate.lights import calibrate, image_list
-from btforge.plugins.calibrate.synthetic import fibonacci_lights, render_capture
+from btforge.plugins.calibrate.testing import fibonacci_lights, render_capture
 from btforge.plugins.calibrate.sphere import Circle
 from btforge.plugins.stackio.lightfile import read_light_file
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from .lights import calibrate, image_list, load_luminance, parse_focal, parse_principal
 from .sphere import Circle, _axis_toward, measure_stretch, outline_stretch, reflect
-from .synthetic import fibonacci_lights, render_capture
+from .testing import fibonacci_lights, render_capture
 
 
 def _angles(a, b):

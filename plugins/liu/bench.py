@@ -51,7 +51,7 @@ def _row(table, step, size, seconds, extra=""):
 def bench_liu(args: list[str]) -> int:
     """Time each step of Liu et al.'s BTF synthesis: height from shading and synthesis, templates, images, IoU, grid."""
     from btforge import SampleStack
-    from btforge.plugins.height.synthetic import known_capture
+    from btforge.plugins.height.testing import known_capture
     from btforge.plugins.liu import settings
 
     parser = argparse.ArgumentParser(prog="btforge bench liu", description=bench_liu.__doc__)
@@ -90,7 +90,7 @@ def _steps(table, opts, capture, refs):
     from btforge import SampleStack, stage
     from btforge.plugins.height.field import HeightField
     from btforge.plugins.height.sfs import photometric_stereo_ls
-    from btforge.plugins.height.synthetic import angular_error_degrees
+    from btforge.plugins.height.testing import angular_error_degrees
     from btforge.plugins.liu import consistency, settings, synthesis, template
     n = opts.size
     stack = SampleStack(capture.images[None], capture.lights, [[0.0, 0.0, 1.0]])

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.bench import counted_warnings, positive_count
+from btforge.buffers import central_crop
 from btforge.errors import BtforgeInputError
 
 DEFAULT_CROP = 128  # central texels: every fit of a full 1024^2 capture would take tens of minutes
@@ -24,15 +25,6 @@ DEFAULT_CROP = 128  # central texels: every fit of a full 1024^2 capture would t
 
 def _label(family: str, params: dict) -> str:
     return family + " " + " ".join(f"{k}={v}" for k, v in params.items())
-
-
-def central_crop(stack, size: int):
-    from btforge.buffers import SampleStack
-    if not size or (stack.height <= size and stack.width <= size):
-        return stack
-    r0, c0 = max(0, (stack.height - size) // 2), max(0, (stack.width - size) // 2)
-    part = stack.samples[:, :, r0:r0 + size, c0:c0 + size]
-    return SampleStack(part, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
 
 def _configurations(registry, only, overrides: dict):

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from btforge.buffers import central_crop
+
 SIZES = (64, 128, 192, 256)
 SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio")
 BASELINE_BLOCK = 16
@@ -40,13 +42,6 @@ def exemplar_model(path: str, crop: int):
     from btforge.plugins.stackio.images import load_stack
     patch = central_crop(load_stack(Path(path)), crop)
     return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
-
-
-def central_crop(buffer, crop: int):
-    """The central ``crop`` x ``crop`` texels of any per-texel buffer (all of it where it is smaller)."""
-    from btforge import stage
-    h, w = min(crop, buffer.height), min(crop, buffer.width)
-    return stage("synth.crop")(input=buffer, origin=[(buffer.height - h) // 2, (buffer.width - w) // 2], size=[h, w])["output"]
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
