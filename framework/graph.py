@@ -91,18 +91,7 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
         data, source, graph_dir = graph, "<graph>", Path.cwd()
     else:
         path = Path(graph)
-        if not path.is_file():
-            raise BtforgeInputError(str(path), "graph file not found", "check the path")
-        try:
-            data = yaml.load(path.read_text(encoding="utf-8"), Loader=_LineLoader)
-        except UnicodeDecodeError as exc:
-            raise BtforgeInputError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.reason})",
-                                    "save the graph file as UTF-8") from None
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f"{path}, line {mark.line + 1}" if mark else str(path)
-            raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
-        source, graph_dir = str(path), path.resolve().parent
+        data, source, graph_dir = _read_yaml(path), str(path), path.resolve().parent
 
     if not isinstance(data, Mapping) or not isinstance(data.get("nodes"), Mapping) or not data["nodes"]:
         raise BtforgeInputError(source, "expected a mapping with a non-empty 'nodes:' mapping at the top",
@@ -110,41 +99,60 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
     unknown_top = [k for k in data if k not in ("nodes", "description")]
     if unknown_top:
         raise BtforgeInputError(source, f"unknown top-level key '{unknown_top[0]}'", "only 'nodes' and 'description' are allowed")
-
-    nodes: dict[str, NodeSpec] = {}
     node_lines = getattr(data["nodes"], "lines", {})
-    for name, body in data["nodes"].items():
-        line = node_lines.get(name)
-        where = f"{source}{f', line {line}' if line else ''}, node '{name}'"
-        if not isinstance(name, str) or not name or "." in name:
-            raise BtforgeInputError(where, "node names must be non-empty strings without dots",
-                                    "rename the node (dots separate node and port in wiring)")
-        if not isinstance(body, Mapping):
-            raise BtforgeInputError(where, f"expected a mapping with 'stage', 'params', 'inputs', found {type(body).__name__}")
-        extra = [k for k in body if k not in NODE_KEYS]
-        if extra:
-            raise BtforgeInputError(where, f"unknown key '{extra[0]}'", did_you_mean(str(extra[0]), NODE_KEYS))
-        if not isinstance(body.get("stage"), str):
-            raise BtforgeInputError(where, "expected 'stage: NAME'", "add the stage this node runs, see `btforge stages`")
-        params = body.get("params") or {}
-        inputs = body.get("inputs") or {}
-        for key, value in (("params", params), ("inputs", inputs)):
-            if not isinstance(value, Mapping):
-                raise BtforgeInputError(where, f"expected '{key}' to be a mapping, found {type(value).__name__}")
-        wired: dict[str, tuple[str, str]] = {}
-        for port, ref in inputs.items():
-            if not isinstance(ref, str) or ref.count(".") != 1 or not all(ref.split(".")):
-                iline = getattr(inputs, "lines", {}).get(port)
-                raise BtforgeInputError(f"{source}{f', line {iline}' if iline else ''}, node '{name}', input '{port}'",
-                                        f"expected 'node.port', found {ref!r}", "wire inputs as e.g. 'fit.model'")
-            src, src_port = ref.split(".")
-            wired[port] = (src, src_port)
-        nodes[name] = NodeSpec(
-            name=name, stage=body["stage"], params=dict(params), inputs=wired, line=line,
-            param_lines=dict(getattr(params, "lines", {})), input_lines=dict(getattr(inputs, "lines", {})),
-        )
+    nodes = {name: _parse_node(name, body, source, node_lines.get(name)) for name, body in data["nodes"].items()}
+    _apply_overrides(nodes, overrides or {})
+    return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
 
-    for key, value in (overrides or {}).items():
+
+def _read_yaml(path: Path) -> Any:
+    """The YAML of a graph file, its mappings remembering their keys' lines."""
+    if not path.is_file():
+        raise BtforgeInputError(str(path), "graph file not found", "check the path")
+    try:
+        return yaml.load(path.read_text(encoding="utf-8"), Loader=_LineLoader)
+    except UnicodeDecodeError as exc:
+        raise BtforgeInputError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.reason})",
+                                "save the graph file as UTF-8") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}, line {mark.line + 1}" if mark else str(path)
+        raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
+
+
+def _parse_node(name: Any, body: Any, source: str, line: int | None) -> NodeSpec:
+    """One node's stage, params and wired inputs, with the lines they were given on."""
+    where = f"{source}{f', line {line}' if line else ''}, node '{name}'"
+    if not isinstance(name, str) or not name or "." in name:
+        raise BtforgeInputError(where, "node names must be non-empty strings without dots",
+                                "rename the node (dots separate node and port in wiring)")
+    if not isinstance(body, Mapping):
+        raise BtforgeInputError(where, f"expected a mapping with 'stage', 'params', 'inputs', found {type(body).__name__}")
+    extra = [k for k in body if k not in NODE_KEYS]
+    if extra:
+        raise BtforgeInputError(where, f"unknown key '{extra[0]}'", did_you_mean(str(extra[0]), NODE_KEYS))
+    if not isinstance(body.get("stage"), str):
+        raise BtforgeInputError(where, "expected 'stage: NAME'", "add the stage this node runs, see `btforge stages`")
+    params = body.get("params") or {}
+    inputs = body.get("inputs") or {}
+    for key, value in (("params", params), ("inputs", inputs)):
+        if not isinstance(value, Mapping):
+            raise BtforgeInputError(where, f"expected '{key}' to be a mapping, found {type(value).__name__}")
+    wired: dict[str, tuple[str, str]] = {}
+    for port, ref in inputs.items():
+        if not isinstance(ref, str) or ref.count(".") != 1 or not all(ref.split(".")):
+            iline = getattr(inputs, "lines", {}).get(port)
+            raise BtforgeInputError(f"{source}{f', line {iline}' if iline else ''}, node '{name}', input '{port}'",
+                                    f"expected 'node.port', found {ref!r}", "wire inputs as e.g. 'fit.model'")
+        src, src_port = ref.split(".")
+        wired[port] = (src, src_port)
+    return NodeSpec(name=name, stage=body["stage"], params=dict(params), inputs=wired, line=line,
+                    param_lines=dict(getattr(params, "lines", {})), input_lines=dict(getattr(inputs, "lines", {})))
+
+
+def _apply_overrides(nodes: dict[str, NodeSpec], overrides: Mapping[str, Any]) -> None:
+    """``--set NODE.PARAM=VALUE``: the value replaces the file's, and messages name the ``--set``."""
+    for key, value in overrides.items():
         node, _, param = key.partition(".")
         if node not in nodes or not param:
             raise BtforgeInputError(f"--set {key}", f"expected NODE.PARAM with a node of the graph, found '{key}'",
@@ -152,7 +160,6 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
         spec = nodes[node]
         nodes[node] = dataclasses.replace(spec, params={**spec.params, param: value},
                                           overridden=spec.overridden | {param})
-    return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -641,7 +641,7 @@ def _bench_texels(texels: str, size: int) -> PerTexel:
         return benchmark_exemplar(size)
     if texels == "ptm":
         return stage("ptm.fit")(stack=benchmark_exemplar(size), variant="lrgb", basis="orthonormal")["model"]
-    from .bench import central_crop
+    from btforge.buffers import central_crop
     return central_crop(stage("ptm.read")(path=texels)["model"], size)
 
 
