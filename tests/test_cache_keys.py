@@ -172,7 +172,7 @@ def test_editing_a_plugin_another_imports_changes_the_importers_digest(tmp_path,
 
 
 def test_relight_nodes_follow_the_stackio_reader_they_import():
-    files, own = Registry().code_files("relight")
+    files, own = Registry().code_files("relight.images")
     lightfile = REPO / "plugins" / "stackio" / "lightfile.py"
     assert lightfile.resolve() in files and lightfile.resolve() not in own
     assert (REPO / "plugins" / "ptm" / "ptm.cl").resolve() not in files
