@@ -505,56 +505,77 @@ def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndar
         batches.append(("directional", directional[start:start + per_batch]))
     batches += [("point", [light]) for light in points]
     for kind, batch in batches:
-        n_rays = 0
         if kind == "directional":
-            dirs = np.array([d for d, _ in batch])                              # [L, 3]
-            intensity = np.array([i for _, i in batch], np.float64)            # [L, 3]
-            d32 = dirs.astype(np.float32)
-            local_all = (frames32[:, :, 0:1] * d32[:, 0] + frames32[:, :, 1:2] * d32[:, 1]
-                         + frames32[:, :, 2:3] * d32[:, 2])                     # [n, 3, L]: (l.T, l.B, l.N)
-            visible = local_all[:, 2, :] > 0                                     # [n, L] above the horizon
-            l_idx, s_idx = np.nonzero(visible.T)       # light-major: coherent shadow rays
-            local = local_all[s_idx, :, l_idx]
-            scale = intensity.astype(np.float32)[l_idx]
-            if shadows and len(s_idx):
-                rays = np.empty((len(s_idx), 6), np.float32)
-                rays[:, :3] = origins[s_idx]
-                bounds = np.searchsorted(l_idx, np.arange(len(dirs) + 1))   # light-major: one block per light
-                for l in range(len(dirs)):
-                    rays[bounds[l]:bounds[l + 1], 3:] = d32[l]
-                keep = ~built.occluded_rays(rays, np.inf)
-                s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+            s_idx, local, scale, n_rays = _lit_by_directional(batch, frames32, origins, built, shadows)
         else:
-            intensity, position = batch[0]
-            vec = position - surface.P
-            d2 = _dot(vec, vec)
-            omega = vec / np.sqrt(d2)[:, None]
-            local = np.einsum("nij,nj->ni", frames, omega)
-            s_idx = np.nonzero(local[:, 2] > 0)[0]
-            local = local[s_idx].astype(np.float32)
-            scale = (intensity[None, :] / np.maximum(d2[s_idx], 1e-30)[:, None]).astype(np.float32)
-            if shadows and len(s_idx):  # to the light, not beyond: direction scaled to the distance, t in [0, 1)
-                rays = np.concatenate([origins[s_idx], vec[s_idx].astype(np.float32)], 1)
-                keep = ~built.occluded_rays(rays, 1.0 - 1e-4)
-                s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+            s_idx, local, scale, n_rays = _lit_by_point(batch[0], surface, frames, origins, built, shadows)
         if n_rays:
             if report == "direct":
                 counters.add("shadows", "rays", n_rays)
             else:
                 counters.add(report, "shadow_rays", n_rays)
-        groups = group_of[s_idx]
-        for gi, (sel, shader) in enumerate(surface.groups):
-            mine = np.nonzero(groups == gi)[0]
-            if not len(mine):
-                continue
-            items = position_in_group[s_idx[mine]]
-            view = views[gi]
-            values = shader.evaluate(items, local[mine], None if view is None else view[items])
-            counters.add(report, "evaluations", len(items))
-            contrib = values.astype(np.float32, copy=False) * scale[mine]
-            targets = s_idx[mine]
-            for c in range(3):
-                radiance[:, c] += np.bincount(targets, weights=contrib[:, c], minlength=n)
+        _accumulate(surface, views, counters, report, group_of[s_idx], position_in_group, s_idx, local, scale,
+                    radiance)
+
+
+def _lit_by_directional(batch, frames32, origins, built: BuiltScene, shadows: bool):
+    """The (sample, light) pairs a batch of directional lights reaches: sample indices, light directions in the
+    sample frames, the light's intensity, and the shadow rays cast (light-major, so the rays are coherent)."""
+    dirs = np.array([d for d, _ in batch])                              # [L, 3]
+    intensity = np.array([i for _, i in batch], np.float64)            # [L, 3]
+    d32 = dirs.astype(np.float32)
+    local_all = (frames32[:, :, 0:1] * d32[:, 0] + frames32[:, :, 1:2] * d32[:, 1]
+                 + frames32[:, :, 2:3] * d32[:, 2])                     # [n, 3, L]: (l.T, l.B, l.N)
+    visible = local_all[:, 2, :] > 0                                     # [n, L] above the horizon
+    l_idx, s_idx = np.nonzero(visible.T)       # light-major: coherent shadow rays
+    local = local_all[s_idx, :, l_idx]
+    scale = intensity.astype(np.float32)[l_idx]
+    n_rays = 0
+    if shadows and len(s_idx):
+        rays = np.empty((len(s_idx), 6), np.float32)
+        rays[:, :3] = origins[s_idx]
+        bounds = np.searchsorted(l_idx, np.arange(len(dirs) + 1))   # light-major: one block per light
+        for l in range(len(dirs)):
+            rays[bounds[l]:bounds[l + 1], 3:] = d32[l]
+        keep = ~built.occluded_rays(rays, np.inf)
+        s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+    return s_idx, local, scale, n_rays
+
+
+def _lit_by_point(light, surface: Surface, frames, origins, built: BuiltScene, shadows: bool):
+    """The samples a point light reaches, with its direction in their frames and its inverse-square intensity."""
+    intensity, position = light
+    vec = position - surface.P
+    d2 = _dot(vec, vec)
+    omega = vec / np.sqrt(d2)[:, None]
+    local = np.einsum("nij,nj->ni", frames, omega)
+    s_idx = np.nonzero(local[:, 2] > 0)[0]
+    local = local[s_idx].astype(np.float32)
+    scale = (intensity[None, :] / np.maximum(d2[s_idx], 1e-30)[:, None]).astype(np.float32)
+    n_rays = 0
+    if shadows and len(s_idx):  # to the light, not beyond: direction scaled to the distance, t in [0, 1)
+        rays = np.concatenate([origins[s_idx], vec[s_idx].astype(np.float32)], 1)
+        keep = ~built.occluded_rays(rays, 1.0 - 1e-4)
+        s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+    return s_idx, local, scale, n_rays
+
+
+def _accumulate(surface: Surface, views: dict, counters: Counters, report, groups, position_in_group, s_idx, local,
+                scale, radiance: np.ndarray) -> None:
+    """Evaluate each shader group once at its lit samples and add the light's share to ``radiance``."""
+    n = len(surface.P)
+    for gi, (sel, shader) in enumerate(surface.groups):
+        mine = np.nonzero(groups == gi)[0]
+        if not len(mine):
+            continue
+        items = position_in_group[s_idx[mine]]
+        view = views[gi]
+        values = shader.evaluate(items, local[mine], None if view is None else view[items])
+        counters.add(report, "evaluations", len(items))
+        contrib = values.astype(np.float32, copy=False) * scale[mine]
+        targets = s_idx[mine]
+        for c in range(3):
+            radiance[:, c] += np.bincount(targets, weights=contrib[:, c], minlength=n)
 
 
 def shade_environment_sh(surface: Surface, built: BuiltScene, light: LightSpec, counters: Counters,

@@ -372,6 +372,16 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     else:
         file = w.file(m["file"], f"{key}.file", base_dir, check_files, MESH_EXTENSIONS, "a .ply or .obj mesh",
                       "mesh file")
+    size, radius, major, minor, segments = _parse_shape(w, key, m, primitive)
+    position, rotate, scale = _parse_transform(w, key, m)
+    material, uv_scale, uv_offset, wrap, coord_map, color = _parse_binding(w, key, m)
+    tiles = _parse_tiles(w, key, m, uv_scale, coord_map)
+    return MeshSpec(name, primitive, file, size, radius, major, minor, segments, position, rotate, scale, material,
+                    uv_scale, uv_offset, wrap, coord_map, color, tiles)
+
+
+def _parse_shape(w: _Where, key: str, m: Mapping[str, Any], primitive: str | None):
+    """A primitive's size, radii and tessellation (a mesh file takes none of them)."""
     if primitive is None:
         for k in ("size", "radius", "major_radius", "minor_radius", "segments"):
             if k in m:
@@ -385,20 +395,29 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if primitive == "torus" and minor >= major:
         raise w.error(f"{key}.minor_radius", f"expected less than major_radius ({major:g}), found {minor:g}",
                       "a self-intersecting torus has no consistent inside")
-    segments = None
-    if "segments" in m:
-        if primitive == "cube":
-            raise w.error(f"{key}.segments", "does not apply to a cube",
-                          "a cube is six flat faces of one quad each; remove 'segments'")
-        seg = m["segments"]
-        seg = [seg, seg] if isinstance(seg, int) and not isinstance(seg, bool) else seg
-        if not (isinstance(seg, list) and len(seg) == 2):
-            raise w.error(f"{key}.segments", f"expected [n_u, n_v], found {m['segments']!r}")
-        segments = (w.integer(seg[0], f"{key}.segments", high=4096), w.integer(seg[1], f"{key}.segments", high=4096))
-        least = MIN_SEGMENTS[primitive]
-        if segments[0] < least[0] or segments[1] < least[1]:
-            raise w.error(f"{key}.segments", f"expected at least {list(least)} for a {primitive}, found "
-                          f"{list(segments)}", f"fewer segments cannot make a closed {primitive}")
+    return size, radius, major, minor, _parse_segments(w, key, m, primitive)
+
+
+def _parse_segments(w: _Where, key: str, m: Mapping[str, Any], primitive: str | None):
+    if "segments" not in m:
+        return None
+    if primitive == "cube":
+        raise w.error(f"{key}.segments", "does not apply to a cube",
+                      "a cube is six flat faces of one quad each; remove 'segments'")
+    seg = m["segments"]
+    seg = [seg, seg] if isinstance(seg, int) and not isinstance(seg, bool) else seg
+    if not (isinstance(seg, list) and len(seg) == 2):
+        raise w.error(f"{key}.segments", f"expected [n_u, n_v], found {m['segments']!r}")
+    segments = (w.integer(seg[0], f"{key}.segments", high=4096), w.integer(seg[1], f"{key}.segments", high=4096))
+    least = MIN_SEGMENTS[primitive]
+    if segments[0] < least[0] or segments[1] < least[1]:
+        raise w.error(f"{key}.segments", f"expected at least {list(least)} for a {primitive}, found "
+                      f"{list(segments)}", f"fewer segments cannot make a closed {primitive}")
+    return segments
+
+
+def _parse_transform(w: _Where, key: str, m: Mapping[str, Any]):
+    """Position, rotation (degrees) and non-zero scale factors."""
     position = w.vector(m.get("position", [0, 0, 0]), f"{key}.position")
     rotate = w.vector(m.get("rotate", [0, 0, 0]), f"{key}.rotate")
     scale_raw = m.get("scale", 1.0)
@@ -406,6 +425,11 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
         scale_raw, bool) else w.vector(scale_raw, f"{key}.scale")
     if min(abs(s) for s in scale) < 1e-12:
         raise w.error(f"{key}.scale", f"expected non-zero scale factors, found {scale_raw!r}")
+    return position, rotate, scale
+
+
+def _parse_binding(w: _Where, key: str, m: Mapping[str, Any]):
+    """The material the mesh binds (a port name) with its texture coordinates, or the plain colour of none."""
     material = m.get("material")
     if material is not None:
         if not isinstance(material, str) or not PORT_NAME.match(material):
@@ -428,9 +452,7 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if "color" in m and material is not None:
         raise w.error(f"{key}.color", "a mesh has either a material or a plain colour, not both")
     color = w.colour(m.get("color", [0.6, 0.6, 0.6]), f"{key}.color")
-    tiles = _parse_tiles(w, key, m, uv_scale, coord_map)
-    return MeshSpec(name, primitive, file, size, radius, major, minor, segments, position, rotate, scale, material,
-                    uv_scale, uv_offset, wrap, coord_map, color, tiles)
+    return material, uv_scale, uv_offset, wrap, coord_map, color
 
 
 def _parse_tiles(w: _Where, key: str, m: Mapping[str, Any], uv_scale: tuple[float, float], coord_map: bool) -> bool:
