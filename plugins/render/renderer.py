@@ -428,6 +428,14 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
     N = _unit(N)
     T, B = complete_frame(N, T, B)   # interpolated frames drift from orthonormal between corners
 
+    shader_groups = _shader_groups(built, materials, groups, prim, uv, T, B)
+    return Surface(len(dirs), hit, dirs[~hit], P, Ng, N, T, B, -d, shader_groups)
+
+
+def _shader_groups(built: BuiltScene, materials: Mapping[str, Any], groups, prim, uv, T, B) -> list:
+    """(samples, shader) per mesh hit: its plain colour, or its model looked up at its texture coordinates (through
+    a coordinate map or a Wang tile set where the mesh says so).  Flips ``T`` / ``B`` in place where the texture
+    is mirrored (negative UV scale, ``wrap: mirror``), so the frame follows the texture."""
     shader_groups = []
     for mi, sel in groups:
         mesh = built.meshes[mi]
@@ -453,7 +461,7 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
         T[sel[flip_t]] *= -1
         B[sel[flip_b]] *= -1
         shader_groups.append((sel, ModelShader(spec.material, model, coord_map, tex_uv, spec.wrap)))
-    return Surface(len(dirs), hit, dirs[~hit], P, Ng, N, T, B, -d, shader_groups)
+    return shader_groups
 
 
 # ----------------------------------------------------------------------------------------------- shading
