@@ -20,8 +20,12 @@ import os
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # pyopencl is imported on first use; its names only annotate here
+    import pyopencl as cl
 
 from . import profile
 from .atomic import atomic_write_bytes

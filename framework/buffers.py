@@ -91,6 +91,28 @@ def frozen(array: np.ndarray) -> np.ndarray:
     return out
 
 
+def settled(value: Any) -> Any:
+    """A field value as a buffer keeps it: arrays read-only (:func:`frozen`), lists and tuples as tuples, mappings
+    with their values settled, anything else as given."""
+    if isinstance(value, np.ndarray):
+        return frozen(value)
+    if isinstance(value, (list, tuple)):
+        return tuple(value)
+    if isinstance(value, Mapping):
+        return {key: settled(item) for key, item in value.items()}
+    return value
+
+
+def freeze_fields(buffer: "Buffer", *names: str, **values: Any) -> None:
+    """Store a frozen buffer's fields in their kept form (see :func:`settled`), from ``__post_init__``: the fields
+    ``names`` as they are, and ``values`` (checked or converted copies) in place of theirs.  Dataclasses frozen
+    with ``frozen=True`` refuse plain assignment, so this is the one place that sets fields after validation."""
+    for name in names:
+        object.__setattr__(buffer, name, settled(getattr(buffer, name)))
+    for name, value in values.items():
+        object.__setattr__(buffer, name, settled(value))
+
+
 def _view_chain(array: np.ndarray) -> list[np.ndarray]:
     """The arrays ``array`` looks into, nearest first (empty for an array that owns its memory)."""
     chain, base = [], array.base
@@ -229,13 +251,14 @@ class Buffer:
                                 "per-texel buffer", "synthesize from a per-texel buffer (a stack or a fitted model), "
                                 "or define appearance_features on the class")
 
-    def seam_scores(self, exemplar: "PerTexel", coords: "CoordMap | None" = None) -> dict:
-        """Named figures of how visible this buffer's own seams are when laid out over ``exemplar`` (and, with
-        ``coords``, of that layout): what ``score`` reports for a buffer wired to its ``tiles`` port.  Buffers
-        that assemble textures from pieces (tile sets) have them."""
-        raise BtforgeInputError(f"buffer type '{self.type_name}'", "has no seam scores: it is not a set of pieces "
-                                "that textures are laid out from", "wire a tile set to 'tiles', or define "
-                                "seam_scores on the class")
+
+def capability(buffer: Buffer, name: str, what: str, hint: str):
+    """The bound method ``name`` of an optional capability that only some plugins' buffer types define (a tile
+    set's ``seam_scores(exemplar, coords) -> dict``): stages call it through here without importing the plugin
+    that defines the type, and a buffer without it is a clear error naming its type."""
+    if not callable(getattr(type(buffer), name, None)):
+        raise BtforgeInputError(f"buffer type '{buffer.type_name}'", f"has no {what} (no method {name})", hint)
+    return getattr(buffer, name)
 
 
 # ----------------------------------------------------------------------------------------------- samples
@@ -343,6 +366,17 @@ class PerTexel(Buffer):
         return (np.rint(mixed) if dtype.kind in "iu" else mixed).astype(dtype)
 
 
+
+def central_crop(buffer: PerTexel, size: int) -> PerTexel:
+    """The central ``size`` x ``size`` texels of any per-texel buffer, of the same type (all of a side shorter
+    than ``size``; ``size`` 0: the whole buffer)."""
+    if not size or (buffer.height <= size and buffer.width <= size):
+        return buffer
+    h, w = min(size, buffer.height), min(size, buffer.width)
+    r0, c0 = (buffer.height - h) // 2, (buffer.width - w) // 2
+    rows, cols = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
+    return buffer.remap(rows, cols)
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class SampleStack(PerTexel):
     """Measured radiance of a surface under many lights (and views).
@@ -392,11 +426,7 @@ class SampleStack(PerTexel):
             raise BtforgeInputError("SampleStack 'channels'", f"must name {samples.shape[4]} channels, got {self.channels!r}")
         if self.names and len(self.names) != lights.shape[0]:
             raise BtforgeInputError("SampleStack 'names'", f"must have one name per light ({lights.shape[0]}), got {len(self.names)}")
-        object.__setattr__(self, "samples", frozen(samples))
-        object.__setattr__(self, "lights", frozen(lights))
-        object.__setattr__(self, "views", frozen(views))
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "names", tuple(self.names))
+        freeze_fields(self, "channels", "names", samples=samples, lights=lights, views=views)
 
     @property
     def n_view(self) -> int:
@@ -579,9 +609,7 @@ class CoordMap(Buffer):
                 raise BtforgeInputError("CoordMap", f"'blend_weight' must lie in [0, 1], found "
                                         f"{self.blend_weight.min():g}..{self.blend_weight.max():g}",
                                         "give the blend partner's share of each texel, clipped to [0, 1]")
-        object.__setattr__(self, "source_size", (src_h, src_w))
-        for name in ("coords", "blend_coords", "blend_weight"):
-            object.__setattr__(self, name, frozen(getattr(self, name)))
+        freeze_fields(self, "coords", "blend_coords", "blend_weight", source_size=(src_h, src_w))
 
     @property
     def height(self) -> int:

@@ -1,16 +1,10 @@
 """Content-addressed cache of node outputs on disk.
 
-A node's key is a BLAKE2 hash of its stage name and version, the digest of the code that computes it (the
-source and ``.cl`` files of the stage's plugin, see :func:`code_digest`), its parameters, the contents of the
-files it reads and the content keys of its inputs - so a changed parameter, input, file or plugin invalidates
-exactly the nodes downstream of it.  An entry is a folder ``<root>/<key[:2]>/<key>/`` holding one ``.npz`` per
+A node's key (made in :mod:`btforge.cachekey`) is a BLAKE2 hash of its stage name and version, the digest of
+the code that computes it, its parameters, the contents of the files it reads and the content keys of its
+inputs - so a changed parameter, input, file or plugin invalidates exactly the nodes downstream of it.  An entry is a folder ``<root>/<key[:2]>/<key>/`` holding one ``.npz`` per
 output port and a ``manifest.json`` written last, which records each output's size and BLAKE2 checksum: an
 entry without its manifest (a crash mid-write) is simply a miss, and so is one whose outputs do not match it.
-
-Hashing a large capture on every run would cost as much as reading it, so a file's digest is remembered under
-``<root>/files/`` keyed by its path, size, inode and both its modification and status-change times: restoring
-an old modification time (``cp -p``, ``rsync -t``) still changes the status-change time, which no user command
-can set, so an edited file is always hashed again.
 """
 from __future__ import annotations
 
@@ -18,24 +12,19 @@ import hashlib
 import io
 import json
 import os
-import re
 from pathlib import Path
-from types import ModuleType
 from typing import Any, Iterable, Mapping
 
 from .atomic import atomic_write, atomic_write_text
 from .buffers import Buffer
+from .cachekey import (  # noqa: F401  (the key's parts, importable from here as before)
+    code_digest, code_files, file_digest, imported_modules, node_key, node_key_of_output, remember_digest)
 
 
-HASH_BLOCK = 1 << 20
 
 
 class DamagedEntry(Exception):
     """A cache entry whose manifest is intact but whose output files do not match it."""
-
-
-def _hash(text: str) -> str:
-    return hashlib.blake2b(text.encode(), digest_size=20).hexdigest()
 
 
 class _HashingWriter(io.RawIOBase):
@@ -52,114 +41,6 @@ class _HashingWriter(io.RawIOBase):
         self.size += len(data)
         self.handle.write(data)
         return len(data)
-
-
-def _memo_file(path: Path, st: os.stat_result, memo: Path) -> Path:
-    return memo / _hash(json.dumps([str(path), st.st_size, st.st_ino, st.st_mtime_ns, st.st_ctime_ns]))
-
-
-def remember_digest(path: Path, digest: str, memo: Path) -> None:
-    """Remember the digest of a file just written, so the next look at it need not read it."""
-    atomic_write_text(_memo_file(path, path.stat(), memo), digest)
-
-
-def file_digest(path: Path, memo: Path | None = None) -> str | None:
-    """BLAKE2 digest of a file's contents (of a zarr store folder: of every file in it; of another folder: its
-    sorted entry names), None if it does not exist.
-
-    With ``memo`` (a folder), digests are remembered per (path, size, inode, mtime, ctime) and reused.
-    """
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    if path.is_dir():
-        if (path / "zarr.json").is_file():  # a chunked store: keyed by its contents, chunk by chunk
-            files = sorted(p for p in path.rglob("*") if p.is_file())
-            return _hash("\n".join(f"{p.relative_to(path)} {file_digest(p, memo)}" for p in files))
-        return _hash("\n".join(sorted(os.listdir(path))))
-    memo_file = None
-    if memo is not None:
-        memo_file = _memo_file(path, st, memo)
-        try:
-            return memo_file.read_text()
-        except FileNotFoundError:
-            pass
-    digest = hashlib.blake2b(digest_size=20)
-    with open(path, "rb") as handle:
-        while block := handle.read(HASH_BLOCK):
-            digest.update(block)
-    value = digest.hexdigest()
-    if memo_file is not None:
-        atomic_write_text(memo_file, value)
-    return value
-
-
-CODE_SUFFIXES = (".py", ".cl")
-
-
-def code_files(module: ModuleType) -> list[Path]:
-    """The files whose contents decide what ``module``'s stages compute: every ``.py`` and ``.cl`` file of its
-    package (recursively), or of a plain module its file and the ``.cl`` files beside it."""
-    origin = getattr(module, "__file__", None)
-    if not origin:
-        return []
-    origin = Path(origin).resolve()
-    if hasattr(module, "__path__"):  # a package: all of it
-        found = [p for folder in module.__path__ for p in Path(folder).rglob("*")
-                 if p.suffix in CODE_SUFFIXES and "__pycache__" not in p.parts]
-    else:
-        found = [origin] + sorted(origin.parent.glob("*.cl"))
-    return sorted({p.resolve() for p in found if p.is_file()})
-
-
-_IMPORT = re.compile(r"^[ \t]*(?:import[ \t]+([\w., \t]+)"
-                     r"|from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*))", re.MULTILINE)
-
-
-def imported_modules(path: Path, package: str) -> set[str]:
-    """The modules the Python file ``path`` (of package ``package``) imports anywhere, also inside functions, with
-    relative imports resolved.  Read by pattern, not parsed (a parse of every plugin file would cost a fresh
-    process a tenth of a second): an import statement quoted in a docstring counts too, which only errs towards
-    re-running."""
-    found = set()
-    for plain, dots, module, names in _IMPORT.findall(path.read_text(encoding="utf-8", errors="replace")):
-        if plain:
-            found.update(part.split()[0] for part in plain.split(",") if part.strip())
-            continue
-        if dots:
-            parts = package.split(".")
-            module = ".".join(parts[:len(parts) - len(dots) + 1] + ([module] if module else []))
-        found.add(module)
-        # `from pkg import submodule` imports the submodule too
-        found.update(f"{module}.{name.split()[0]}" for name in names.strip("()").replace("\n", " ").split(",")
-                     if name.strip() and name.split()[0].isidentifier())
-    return found
-
-
-def code_digest(files: Iterable[Path], memo: Path | None = None) -> str:
-    """One digest over the contents (and names) of ``files``: changes when any of them is edited."""
-    paths = sorted({Path(p).resolve() for p in files})
-    return _hash(json.dumps([[p.name, file_digest(p, memo)] for p in paths]))
-
-
-def node_key(stage: str, version: str, params: Mapping[str, Any], input_keys: Mapping[str, str],
-             files: Iterable[Path], memo: Path | None = None, code: str = "") -> str:
-    """The cache key of one node evaluation (``memo``: where file digests are remembered; ``code``: the
-    :func:`code_digest` of the stage's plugin)."""
-    paths = sorted({Path(p).resolve() for p in files})
-    blob = json.dumps(
-        {"stage": stage, "version": version, "code": code, "params": params,
-         "inputs": dict(sorted(input_keys.items())),
-         "files": [[str(p), file_digest(p, memo)] for p in paths]},
-        sort_keys=True, default=str,
-    )
-    return _hash(blob)
-
-
-def node_key_of_output(key: str, port: str) -> str:
-    """The key standing for an output that is not stored, from its node's key."""
-    return _hash(f"output {port} of {key}")
 
 
 def plain_notes(notes: Mapping[str, Any]) -> dict[str, Any]:

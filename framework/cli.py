@@ -122,7 +122,7 @@ def cmd_validate(args) -> int:
 def stage_record(st) -> dict:
     return {
         "name": st.name, "plugin": st.plugin, "version": st.version, "role": st.role, "summary": st.summary,
-        "doc": st.doc,
+        "doc": st.doc, "deprecated_names": list(st.deprecated_names),
         "inputs": {p: {"type": t, "optional": p in st.optional_inputs} for p, t in st.inputs.items()},
         "outputs": dict(st.outputs),
         "params": [{"name": p.name, "type": p.type_text(), "default": None if p.required else _jsonable(p.default),
@@ -137,9 +137,9 @@ def _jsonable(value):
 def cmd_stages(args) -> int:
     from .registry import default_registry
     reg = default_registry()
-    for name in args.name or ():
-        reg.stage(name)  # an unknown name is an error with a did-you-mean, not an empty listing
-    records = [stage_record(reg.stages[n]) for n in sorted(reg.stages) if not args.name or n in args.name]
+    # an unknown name is an error with a did-you-mean, not an empty listing; an old name shows the renamed stage
+    wanted = {reg.stage(name).name for name in args.name or ()}
+    records = [stage_record(reg.stages[n]) for n in sorted(reg.stages) if not wanted or n in wanted]
     if args.json:
         print(json.dumps(records, indent=2, default=str))
         return 0
@@ -149,6 +149,8 @@ def cmd_stages(args) -> int:
     for rec in records:
         role = f", role {rec['role']}" if rec["role"] else ""
         print(f"{rec['name']}  ({rec['plugin']}, v{rec['version']}{role})")
+        if rec["deprecated_names"]:
+            print(f"    deprecated name: {', '.join(rec['deprecated_names'])}")
         for line in rec["doc"].splitlines():
             print(f"    {line}")
         for port, info in rec["inputs"].items():
@@ -175,10 +177,13 @@ def _numpydoc_to_markdown(doc: str) -> str:
 
 
 def stages_markdown(records: list[dict]) -> str:
-    """The stage reference as Markdown (README's "Stages" section is this output)."""
+    """The stage reference as Markdown (docs/stages.md is this output)."""
     out = []
     for rec in records:
         out.append(f"#### `{rec['name']}`\n")
+        if rec.get("deprecated_names"):
+            old = ", ".join(f"`{n}`" for n in rec["deprecated_names"])
+            out.append(f"*Deprecated name: {old} (still accepted, with a warning).*\n")
         out.append(_numpydoc_to_markdown(rec["doc"]) + "\n")
         ports = [f"input `{p}`: {i['type']}{' (optional)' if i['optional'] else ''}" for p, i in rec["inputs"].items()]
         ports += [f"output `{p}`: {t}" for p, t in rec["outputs"].items()]
@@ -266,7 +271,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p = sub.add_parser("stages", help="list the installed stages with their ports, params and docs")
     p.add_argument("name", nargs="*", help="only these stages")
     p.add_argument("--json", action="store_true")
-    p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in README)")
+    p.add_argument("--markdown", action="store_true", help="the reference as Markdown (as in docs/stages.md)")
     p.set_defaults(func=cmd_stages)
 
     p = sub.add_parser("info", help="describe a file (plugins provide the readers, by extension)")

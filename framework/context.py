@@ -2,13 +2,33 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
 from .errors import BtforgeWarning
-from .stages import RunPaths
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPaths:
+    """Where relative paths resolve: inputs against the graph's folder, outputs against the run's output folder."""
+
+    graph_dir: Path
+    out_dir: Path
+    # every output path a stage asked for, in order (the CLI lists those written during the run)
+    requested: list[Path] = dataclasses.field(default_factory=list, compare=False, repr=False)
+
+    def input(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        return p if p.is_absolute() else self.graph_dir / p
+
+    def output(self, value: str) -> Path:
+        p = Path(os.path.expanduser(value))
+        p = p if p.is_absolute() else self.out_dir / p
+        self.requested.append(p)
+        return p
 
 
 @dataclasses.dataclass

@@ -61,6 +61,10 @@ class BtforgeWarning(UserWarning):
     """A result was produced but the user should know something about it (clamped light, ill-conditioned fit)."""
 
 
+class DeprecatedNameWarning(BtforgeWarning):
+    """A graph or a call used an old name of a stage; it still works, under the new name."""
+
+
 @contextlib.contextmanager
 def collect_warnings() -> Iterator[list[str]]:
     """Collect the text of every :class:`BtforgeWarning` raised in the block (for the run report), and pass

@@ -92,18 +92,7 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
         data, source, graph_dir = graph, "<graph>", Path.cwd()
     else:
         path = Path(graph)
-        if not path.is_file():
-            raise BtforgeInputError(str(path), "graph file not found", "check the path")
-        try:
-            data = yaml.load(path.read_text(encoding="utf-8"), Loader=_LineLoader)
-        except UnicodeDecodeError as exc:
-            raise BtforgeInputError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.reason})",
-                                    "save the graph file as UTF-8") from None
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            where = f"{path}, line {mark.line + 1}" if mark else str(path)
-            raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
-        source, graph_dir = str(path), path.resolve().parent
+        data, source, graph_dir = _read_yaml(path), str(path), path.resolve().parent
 
     if not isinstance(data, Mapping) or not isinstance(data.get("nodes"), Mapping) or not data["nodes"]:
         raise BtforgeInputError(source, "expected a mapping with a non-empty 'nodes:' mapping at the top",
@@ -111,41 +100,60 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
     unknown_top = [k for k in data if k not in ("nodes", "description")]
     if unknown_top:
         raise BtforgeInputError(source, f"unknown top-level key '{unknown_top[0]}'", "only 'nodes' and 'description' are allowed")
-
-    nodes: dict[str, NodeSpec] = {}
     node_lines = getattr(data["nodes"], "lines", {})
-    for name, body in data["nodes"].items():
-        line = node_lines.get(name)
-        where = f"{source}{f', line {line}' if line else ''}, node '{name}'"
-        if not isinstance(name, str) or not name or "." in name:
-            raise BtforgeInputError(where, "node names must be non-empty strings without dots",
-                                    "rename the node (dots separate node and port in wiring)")
-        if not isinstance(body, Mapping):
-            raise BtforgeInputError(where, f"expected a mapping with 'stage', 'params', 'inputs', found {type(body).__name__}")
-        extra = [k for k in body if k not in NODE_KEYS]
-        if extra:
-            raise BtforgeInputError(where, f"unknown key '{extra[0]}'", did_you_mean(str(extra[0]), NODE_KEYS))
-        if not isinstance(body.get("stage"), str):
-            raise BtforgeInputError(where, "expected 'stage: NAME'", "add the stage this node runs, see `btforge stages`")
-        params = body.get("params") or {}
-        inputs = body.get("inputs") or {}
-        for key, value in (("params", params), ("inputs", inputs)):
-            if not isinstance(value, Mapping):
-                raise BtforgeInputError(where, f"expected '{key}' to be a mapping, found {type(value).__name__}")
-        wired: dict[str, tuple[str, str]] = {}
-        for port, ref in inputs.items():
-            if not isinstance(ref, str) or ref.count(".") != 1 or not all(ref.split(".")):
-                iline = getattr(inputs, "lines", {}).get(port)
-                raise BtforgeInputError(f"{source}{f', line {iline}' if iline else ''}, node '{name}', input '{port}'",
-                                        f"expected 'node.port', found {ref!r}", "wire inputs as e.g. 'fit.model'")
-            src, src_port = ref.split(".")
-            wired[port] = (src, src_port)
-        nodes[name] = NodeSpec(
-            name=name, stage=body["stage"], params=dict(params), inputs=wired, line=line,
-            param_lines=dict(getattr(params, "lines", {})), input_lines=dict(getattr(inputs, "lines", {})),
-        )
+    nodes = {name: _parse_node(name, body, source, node_lines.get(name)) for name, body in data["nodes"].items()}
+    _apply_overrides(nodes, overrides or {})
+    return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
 
-    for key, value in (overrides or {}).items():
+
+def _read_yaml(path: Path) -> Any:
+    """The YAML of a graph file, its mappings remembering their keys' lines."""
+    if not path.is_file():
+        raise BtforgeInputError(str(path), "graph file not found", "check the path")
+    try:
+        return yaml.load(path.read_text(encoding="utf-8"), Loader=_LineLoader)
+    except UnicodeDecodeError as exc:
+        raise BtforgeInputError(str(path), f"is not UTF-8 text (byte {exc.start}: {exc.reason})",
+                                "save the graph file as UTF-8") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}, line {mark.line + 1}" if mark else str(path)
+        raise BtforgeInputError(where, f"is not valid YAML: {getattr(exc, 'problem', exc)}") from None
+
+
+def _parse_node(name: Any, body: Any, source: str, line: int | None) -> NodeSpec:
+    """One node's stage, params and wired inputs, with the lines they were given on."""
+    where = f"{source}{f', line {line}' if line else ''}, node '{name}'"
+    if not isinstance(name, str) or not name or "." in name:
+        raise BtforgeInputError(where, "node names must be non-empty strings without dots",
+                                "rename the node (dots separate node and port in wiring)")
+    if not isinstance(body, Mapping):
+        raise BtforgeInputError(where, f"expected a mapping with 'stage', 'params', 'inputs', found {type(body).__name__}")
+    extra = [k for k in body if k not in NODE_KEYS]
+    if extra:
+        raise BtforgeInputError(where, f"unknown key '{extra[0]}'", did_you_mean(str(extra[0]), NODE_KEYS))
+    if not isinstance(body.get("stage"), str):
+        raise BtforgeInputError(where, "expected 'stage: NAME'", "add the stage this node runs, see `btforge stages`")
+    params = body.get("params") or {}
+    inputs = body.get("inputs") or {}
+    for key, value in (("params", params), ("inputs", inputs)):
+        if not isinstance(value, Mapping):
+            raise BtforgeInputError(where, f"expected '{key}' to be a mapping, found {type(value).__name__}")
+    wired: dict[str, tuple[str, str]] = {}
+    for port, ref in inputs.items():
+        if not isinstance(ref, str) or ref.count(".") != 1 or not all(ref.split(".")):
+            iline = getattr(inputs, "lines", {}).get(port)
+            raise BtforgeInputError(f"{source}{f', line {iline}' if iline else ''}, node '{name}', input '{port}'",
+                                    f"expected 'node.port', found {ref!r}", "wire inputs as e.g. 'fit.model'")
+        src, src_port = ref.split(".")
+        wired[port] = (src, src_port)
+    return NodeSpec(name=name, stage=body["stage"], params=dict(params), inputs=wired, line=line,
+                    param_lines=dict(getattr(params, "lines", {})), input_lines=dict(getattr(inputs, "lines", {})))
+
+
+def _apply_overrides(nodes: dict[str, NodeSpec], overrides: Mapping[str, Any]) -> None:
+    """``--set NODE.PARAM=VALUE``: the value replaces the file's, and messages name the ``--set``."""
+    for key, value in overrides.items():
         node, _, param = key.partition(".")
         if node not in nodes or not param:
             raise BtforgeInputError(f"--set {key}", f"expected NODE.PARAM with a node of the graph, found '{key}'",
@@ -153,7 +161,6 @@ def load_graph(graph: str | os.PathLike | Mapping[str, Any], overrides: Mapping[
         spec = nodes[node]
         nodes[node] = dataclasses.replace(spec, params={**spec.params, param: value},
                                           overridden=spec.overridden | {param})
-    return GraphSpec(nodes=nodes, source=source, graph_dir=graph_dir)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,140 +206,187 @@ def _resolve_output_types(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.
 
 
 def check_graph(spec: GraphSpec, registry: Registry, out_dir: Path | None = None) -> CheckedGraph:
-    """Validate everything that can be validated without running a stage; raise one error listing all problems."""
-    problems: list[str] = []
-    hints: list[str] = []
-    paths = RunPaths(spec.graph_dir, out_dir or Path.cwd())
+    """Validate everything that can be validated without running a stage; raise one error listing all problems.
 
-    def problem(where: str, text: str, hint: str | None = None) -> None:
-        problems.append(f"{where}: {text}" + (f" ({hint})" if hint else ""))
+    The checks run as passes over the whole graph, each collecting its problems and carrying on: stage names,
+    parameters and input files, the wiring of ports, cycles and port types, the stages' prechecks (run for every
+    node whose own params are sound, whatever else failed), and the facts prechecks learnt about the buffers
+    that flow along the edges.
+    """
+    check = _GraphCheck(spec, registry, RunPaths(spec.graph_dir, out_dir or Path.cwd()))
+    check.resolve_stages()
+    check.coerce_params()
+    check.wire_ports()
+    check.check_types()
+    check.run_prechecks()
+    check.compare_facts()
+    return check.result()
 
-    stages: dict[str, Stage] = {}
-    for name, node in spec.nodes.items():
-        if node.stage in registry.stages:
-            stages[name] = registry.stages[node.stage]
-        else:
-            problem(spec.where(name, node.line), f"unknown stage '{node.stage}'", did_you_mean(node.stage, registry.stages))
 
-    params: dict[str, dict[str, Any]] = {}
-    params_ok: set[str] = set()  # nodes whose own params and files passed: their prechecks can run
-    for name, st in stages.items():
-        node = spec.nodes[name]
-        before = len(problems)
-        values: dict[str, Any] = {}
-        for key, raw in node.params.items():
-            param = st.param(key)
-            where = node.param_where(spec, key)
-            if param is None:
-                problem(where, f"stage '{st.name}' has no such parameter",
-                        did_you_mean(key, [p.name for p in st.params]))
-                continue
-            try:
-                values[key] = param.coerce(raw, where)
-            except BtforgeInputError as exc:
-                problems.append(exc.one_line())
-        for p in st.params:
-            if p.name not in values and p.name not in node.params:
-                if p.required:
-                    problem(spec.where(name, node.line), f"missing required param '{p.name}' ({p.type_text()}: {p.doc})")
-                else:
-                    values[p.name] = p.default
-        for p, value in _file_params(st, values):
-            if not paths.input(value).exists():
-                what = "light file" if p.kind == "lights" else "input file"
-                problem(node.param_where(spec, p.name), f"{what} not found: {paths.input(value)}",
-                        "paths are relative to the graph file's folder")
-        params[name] = values
-        if len(problems) == before:
-            params_ok.add(name)
+class _GraphCheck:
+    """The state the passes of :func:`check_graph` share: what each pass found, and the problems so far."""
 
-    dag = nx.DiGraph()
-    dag.add_nodes_from(spec.nodes)
-    node_ports: dict[str, dict[str, str]] = {}
-    typed_edges: list[tuple[str, str, str, str, str]] = []  # (where, src, src_port, node, port) to type-check
-    for name, st in stages.items():
-        node = spec.nodes[name]
-        try:
-            ports = st.input_ports(params[name], paths)
-        except BtforgeInputError as exc:
-            problems.append(exc.located(spec.where(name, node.line)).one_line())
-            continue
-        for port, type_name in ports.items():
-            if port not in st.inputs and type_name not in registry.types:
-                problem(spec.where(name, node.line), f"stage '{st.name}' asks for input port '{port}' of unknown "
-                        f"buffer type '{type_name}'", "a bug in the plugin: its dynamic_inputs must name known types")
-        for port, (src, src_port) in node.inputs.items():
-            where = spec.where(name, node.input_lines.get(port, node.line)) + f", input '{port}'"
-            if port not in ports:
-                problem(where, f"stage '{st.name}' has no input port '{port}'", did_you_mean(port, ports))
-                continue
-            if src not in spec.nodes:
-                problem(where, f"wired to unknown node '{src}'", did_you_mean(src, spec.nodes))
-                continue
-            dag.add_edge(src, name, ports=(src_port, port))
-            src_stage = stages.get(src)
-            if src_stage is None:
-                continue
-            if src_port not in src_stage.outputs:
-                problem(where, f"node '{src}' ({src_stage.name}) has no output port '{src_port}'",
-                        did_you_mean(src_port, src_stage.outputs))
-                continue
-            typed_edges.append((where, src, src_port, name, port))
-        node_ports[name] = ports
-        for port in ports:
-            if port not in node.inputs and port not in st.optional_inputs:
-                problem(spec.where(name, node.line), f"input port '{port}' ({ports[port]}) is not wired",
-                        f"add 'inputs: {{{port}: NODE.PORT}}'")
+    def __init__(self, spec: GraphSpec, registry: Registry, paths: RunPaths):
+        self.spec, self.registry, self.paths = spec, registry, paths
+        self.problems: list[str] = []
+        self.stages: dict[str, Stage] = {}
+        self.params: dict[str, dict[str, Any]] = {}
+        self.params_ok: set[str] = set()  # nodes whose own params and files passed: their prechecks can run
+        self.dag = nx.DiGraph()
+        self.dag.add_nodes_from(spec.nodes)
+        self.node_ports: dict[str, dict[str, str]] = {}
+        self.typed_edges: list[tuple[str, str, str, str, str]] = []  # (where, src, src_port, node, port)
+        self.files: dict[str, tuple[Path, ...]] = {}
+        self.warnings: dict[str, list[str]] = {}
+        self.facts: dict[tuple[str, str], dict[str, Fact]] = {}  # (node, output port) -> what its precheck learnt
 
-    try:
-        cycle = nx.find_cycle(dag)
-    except nx.NetworkXNoCycle:
-        cycle = None
-    if cycle:
-        loop = " -> ".join([e[0] for e in cycle] + [cycle[0][0]])
-        problem(spec.source, f"the graph has a cycle: {loop}", "a node cannot depend on its own output")
-    else:
-        output_types = _resolve_output_types(spec, stages, dag)
-        for where, src, src_port, name, port in typed_edges:
-            have, want = output_types[src][src_port], node_ports[name][port]
-            if not registry.accepts(want, have):
-                problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
-                        "wire an output of the expected type")
+    def problem(self, where: str, text: str, hint: str | None = None) -> None:
+        self.problems.append(f"{where}: {text}" + (f" ({hint})" if hint else ""))
 
-    # Every node whose own params are sound is prechecked, whatever else failed: all problems in one message.
-    files: dict[str, tuple[Path, ...]] = {}
-    read_warnings: dict[str, list[str]] = {}
-    facts: dict[tuple[str, str], dict[str, Fact]] = {}  # (node, output port) -> what its precheck learnt
-    for name in (n for n in stages if n in params_ok):
-        st = stages[name]
-        read = [paths.input(value) for p, value in _file_params(st, params[name])]
-        if st.precheck is not None:
+    def resolve_stages(self) -> None:
+        """Each node's stage, by its name or by a deprecated name (which warns, naming the new one)."""
+        for name, node in self.spec.nodes.items():
             with collect_warnings() as caught:
-                try:
-                    for item in st.precheck(params[name], paths) or ():
-                        if isinstance(item, Fact):
-                            facts.setdefault((name, item.port), {})[item.name] = item
-                        else:
-                            read.append(item)
-                except BtforgeInputError as exc:
-                    problems.append(exc.located(spec.where(name, spec.nodes[name].line)).one_line())
+                stage = self.registry.find_stage(node.stage, where=self.spec.where(name, node.line))
             if caught:
-                read_warnings[name] = caught
-        files[name] = tuple(read)
-    _pass_facts_on(spec, stages, dag, facts)
-    for where, src, src_port, name, port in typed_edges:
-        expect = stages[name].expects.get(port)
-        fact = facts.get((src, src_port), {}).get(expect.name) if expect else None
-        if fact is not None and fact.value != expect.value:
-            source = f" (from {fact.source})" if fact.source else ""
-            problem(where, f"{stages[name].name} expects {expect.name}: {expect.value}, found {fact.value} in "
-                    f"'{src}.{src_port}'{source}", expect.hint.replace("NODE.PORT", f"{src}.{src_port}") or None)
+                self.warnings.setdefault(name, []).extend(caught)
+            if stage is not None:
+                self.stages[name] = stage
+            else:
+                self.problem(self.spec.where(name, node.line), f"unknown stage '{node.stage}'",
+                             did_you_mean(node.stage, self.registry.stages))
 
-    if problems:
-        if len(problems) == 1:
-            raise BtforgeInputError("", problems[0])
-        raise BtforgeInputError(spec.source, f"{len(problems)} problems:\n  - " + "\n  - ".join(problems))
-    return CheckedGraph(spec=spec, stages=stages, params=params, dag=dag, files=files, warnings=read_warnings)
+    def coerce_params(self) -> None:
+        """Every param known, of its kind and in range; required ones given; input files present."""
+        for name, st in self.stages.items():
+            node = self.spec.nodes[name]
+            before = len(self.problems)
+            values: dict[str, Any] = {}
+            for key, raw in node.params.items():
+                param = st.param(key)
+                where = node.param_where(self.spec, key)
+                if param is None:
+                    self.problem(where, f"stage '{st.name}' has no such parameter",
+                                 did_you_mean(key, [p.name for p in st.params]))
+                    continue
+                try:
+                    values[key] = param.coerce(raw, where)
+                except BtforgeInputError as exc:
+                    self.problems.append(exc.one_line())
+            for p in st.params:
+                if p.name not in values and p.name not in node.params:
+                    if p.required:
+                        self.problem(self.spec.where(name, node.line),
+                                     f"missing required param '{p.name}' ({p.type_text()}: {p.doc})")
+                    else:
+                        values[p.name] = p.default
+            for p, value in _file_params(st, values):
+                if not self.paths.input(value).exists():
+                    what = "light file" if p.kind == "lights" else "input file"
+                    self.problem(node.param_where(self.spec, p.name), f"{what} not found: {self.paths.input(value)}",
+                                 "paths are relative to the graph file's folder")
+            self.params[name] = values
+            if len(self.problems) == before:
+                self.params_ok.add(name)
+
+    def wire_ports(self) -> None:
+        """Every wired input names a port of the stage and an output of an existing node; every port is wired."""
+        for name, st in self.stages.items():
+            node = self.spec.nodes[name]
+            try:
+                ports = st.input_ports(self.params[name], self.paths)
+            except BtforgeInputError as exc:
+                self.problems.append(exc.located(self.spec.where(name, node.line)).one_line())
+                continue
+            for port, type_name in ports.items():
+                if port not in st.inputs and type_name not in self.registry.types:
+                    self.problem(self.spec.where(name, node.line), f"stage '{st.name}' asks for input port '{port}' "
+                                 f"of unknown buffer type '{type_name}'",
+                                 "a bug in the plugin: its dynamic_inputs must name known types")
+            for port, (src, src_port) in node.inputs.items():
+                self._wire(name, st, ports, port, src, src_port)
+            self.node_ports[name] = ports
+            for port in ports:
+                if port not in node.inputs and port not in st.optional_inputs:
+                    self.problem(self.spec.where(name, node.line), f"input port '{port}' ({ports[port]}) is not wired",
+                                 f"add 'inputs: {{{port}: NODE.PORT}}'")
+
+    def _wire(self, name: str, st: Stage, ports: Mapping[str, str], port: str, src: str, src_port: str) -> None:
+        node = self.spec.nodes[name]
+        where = self.spec.where(name, node.input_lines.get(port, node.line)) + f", input '{port}'"
+        if port not in ports:
+            self.problem(where, f"stage '{st.name}' has no input port '{port}'", did_you_mean(port, ports))
+            return
+        if src not in self.spec.nodes:
+            self.problem(where, f"wired to unknown node '{src}'", did_you_mean(src, self.spec.nodes))
+            return
+        self.dag.add_edge(src, name, ports=(src_port, port))
+        src_stage = self.stages.get(src)
+        if src_stage is None:
+            return
+        if src_port not in src_stage.outputs:
+            self.problem(where, f"node '{src}' ({src_stage.name}) has no output port '{src_port}'",
+                         did_you_mean(src_port, src_stage.outputs))
+            return
+        self.typed_edges.append((where, src, src_port, name, port))
+
+    def check_types(self) -> None:
+        """No cycles (printed as ``a -> b -> a``); each wired output of a type the input port accepts."""
+        try:
+            cycle = nx.find_cycle(self.dag)
+        except nx.NetworkXNoCycle:
+            cycle = None
+        if cycle:
+            loop = " -> ".join([e[0] for e in cycle] + [cycle[0][0]])
+            self.problem(self.spec.source, f"the graph has a cycle: {loop}", "a node cannot depend on its own output")
+            return
+        output_types = _resolve_output_types(self.spec, self.stages, self.dag)
+        for where, src, src_port, name, port in self.typed_edges:
+            have, want = output_types[src][src_port], self.node_ports[name][port]
+            if not self.registry.accepts(want, have):
+                self.problem(where, f"expects {want}, but '{src}.{src_port}' gives {have}",
+                             "wire an output of the expected type")
+
+    def run_prechecks(self) -> None:
+        """What each stage can check in its inputs without running; the files it will read and the facts it
+        learnt about its outputs (warnings raised meanwhile are kept for the report)."""
+        for name in (n for n in self.stages if n in self.params_ok):
+            st = self.stages[name]
+            read = [self.paths.input(value) for p, value in _file_params(st, self.params[name])]
+            if st.precheck is not None:
+                with collect_warnings() as caught:
+                    try:
+                        for item in st.precheck(self.params[name], self.paths) or ():
+                            if isinstance(item, Fact):
+                                self.facts.setdefault((name, item.port), {})[item.name] = item
+                            else:
+                                read.append(item)
+                    except BtforgeInputError as exc:
+                        self.problems.append(exc.located(self.spec.where(name, self.spec.nodes[name].line)).one_line())
+                if caught:
+                    self.warnings.setdefault(name, []).extend(caught)
+            self.files[name] = tuple(read)
+
+    def compare_facts(self) -> None:
+        """Facts flow along the edges (``keeps_facts``, ``"=port"`` outputs); a stage's ``expects`` is compared
+        with the fact of what is wired into the port, where one is known."""
+        _pass_facts_on(self.spec, self.stages, self.dag, self.facts)
+        for where, src, src_port, name, port in self.typed_edges:
+            expect = self.stages[name].expects.get(port)
+            fact = self.facts.get((src, src_port), {}).get(expect.name) if expect else None
+            if fact is not None and fact.value != expect.value:
+                source = f" (from {fact.source})" if fact.source else ""
+                self.problem(where, f"{self.stages[name].name} expects {expect.name}: {expect.value}, found "
+                             f"{fact.value} in '{src}.{src_port}'{source}",
+                             expect.hint.replace("NODE.PORT", f"{src}.{src_port}") or None)
+
+    def result(self) -> CheckedGraph:
+        if self.problems:
+            if len(self.problems) == 1:
+                raise BtforgeInputError("", self.problems[0])
+            raise BtforgeInputError(self.spec.source, f"{len(self.problems)} problems:\n  - " + "\n  - ".join(self.problems))
+        return CheckedGraph(spec=self.spec, stages=self.stages, params=self.params, dag=self.dag, files=self.files,
+                            warnings=self.warnings)
 
 
 def _pass_facts_on(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.DiGraph,

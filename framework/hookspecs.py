@@ -42,8 +42,9 @@ def btforge_stages():
     Returns
     -------
     list of btforge.stages.Stage
-        Stages made with the :func:`btforge.declare_stage` decorator.  Names are dotted (``family.verb``) and must be
-        unique across all installed plugins; a clash is reported naming both plugins.
+        Stages made with the :func:`btforge.declare_stage` decorator.  Names are dotted (``family.verb``, the
+        family being the plugin's package name) and must be unique across all installed plugins, old names of
+        renamed stages (``deprecated_names``) included; a clash is reported naming both plugins.
     """
 
 
@@ -67,7 +68,8 @@ def btforge_info_readers():
     -------
     dict of str to callable
         Maps a lower-case file extension (``".exr"``) to a function ``path -> dict`` that reads only what it
-        needs to describe the file (header, counts, sizes) and raises ``BtforgeInputError`` on bad files.
+        needs to describe the file (header, counts, sizes) and raises ``BtforgeInputError`` on bad files.  An
+        extension two plugins read is refused, naming both.
     """
 
 

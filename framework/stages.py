@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
+from .context import RunPaths, StageContext
 from .errors import BtforgeInputError
 
 # Parameter kinds and what they accept.  'path' is an existing input file (checked before a run, resolved
@@ -183,6 +184,7 @@ class Stage:
     settle: Callable[[Mapping[str, Any], Mapping[str, Any]], Mapping[str, Any]] | None = None
     streams: frozenset[str] = frozenset()
     device: bool = False
+    deprecated_names: tuple[str, ...] = ()
 
     def is_per_texel(self, params: Mapping[str, Any]) -> bool:
         """Whether, with these params (once :attr:`settle` has decided what depends on the whole input), each
@@ -218,7 +220,6 @@ class Stage:
         Missing parameters take their defaults and a default :class:`~btforge.context.StageContext` is made when
         ``ctx`` is not given.  Inputs must be buffers of the declared types.
         """
-        from .context import StageContext
         ctx = kwargs.pop("ctx", None) or (args[0] if args else None) or StageContext(node=self.name)
         values = {}
         for p in self.params:
@@ -229,26 +230,6 @@ class Stage:
             else:
                 values[p.name] = p.default
         return self.fn(ctx, **kwargs, **values)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunPaths:
-    """Where relative paths resolve: inputs against the graph's folder, outputs against the run's output folder."""
-
-    graph_dir: Path
-    out_dir: Path
-    # every output path a stage asked for, in order (the CLI lists those written during the run)
-    requested: list[Path] = dataclasses.field(default_factory=list, compare=False, repr=False)
-
-    def input(self, value: str) -> Path:
-        p = Path(os.path.expanduser(value))
-        return p if p.is_absolute() else self.graph_dir / p
-
-    def output(self, value: str) -> Path:
-        p = Path(os.path.expanduser(value))
-        p = p if p.is_absolute() else self.out_dir / p
-        self.requested.append(p)
-        return p
 
 
 def declare_stage(
@@ -271,6 +252,7 @@ def declare_stage(
     settle: Callable | None = None,
     streams: Sequence[str] = (),
     device: bool = False,
+    deprecated_names: Sequence[str] = (),
 ) -> Callable[[Callable], Stage]:
     """Decorator that turns ``fn(ctx, **inputs, **params)`` into a :class:`Stage`.
 
@@ -308,6 +290,8 @@ def declare_stage(
     port runs per texel, so no node ever needs it whole.
     ``device=True`` says the stage runs OpenCL kernels: the runner starts the device in the background as soon as
     it knows such a node will run, so the device's start overlaps the nodes before it (reading a capture).
+    ``deprecated_names`` are old names of a renamed stage: graphs and ``btforge.stage()`` calls using one still
+    get this stage, with a warning naming the new name; ``btforge stages`` lists the new name only.
     """
 
     def wrap(fn: Callable) -> Stage:
@@ -325,7 +309,7 @@ def declare_stage(
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
             expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}), settle=settle,
-            streams=frozenset(streams), device=device,
+            streams=frozenset(streams), device=device, deprecated_names=tuple(deprecated_names),
         )
 
     return wrap

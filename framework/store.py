@@ -72,20 +72,20 @@ def open_store(path: str | os.PathLike):
 
     path = Path(path)
     if not is_store(path):
-        raise BtforgeInputError(str(path), "is not a zarr store (no zarr.json)", "make one with stack.import")
+        raise BtforgeInputError(str(path), "is not a zarr store (no zarr.json)", "make one with stackio.import")
     try:
         array = zarr.open_group(str(path), mode="r", zarr_format=3)[ARRAY]
     except (KeyError, ValueError, TypeError, OSError, json.JSONDecodeError) as exc:  # zarr: TypeError for bad metadata
         raise BtforgeInputError(str(path), f"has no readable '{ARRAY}' array ({exc})",
-                                "make the store with stack.import") from None
+                                "make the store with stackio.import") from None
     meta = dict(array.attrs.get("btforge") or {})
     if meta.get("format") != FORMAT:
         raise BtforgeInputError(str(path), f"expected a store of format '{FORMAT}', found {meta.get('format')!r}",
-                                "make the store with stack.import")
+                                "make the store with stackio.import")
     if meta.get("format_version") != FORMAT_VERSION:
         raise BtforgeInputError(str(path), f"is a sample store of format version {meta.get('format_version')!r}; "
                                 f"this btforge reads version {FORMAT_VERSION}", "import the capture again with "
-                                "this btforge's stack.import, or upgrade btforge")
+                                "this btforge's stackio.import, or upgrade btforge")
     if array.ndim != 5 or len(meta.get("lights", ())) != array.shape[1] or len(meta.get("views", ())) != array.shape[0]:
         raise BtforgeInputError(str(path), f"its samples {array.shape} do not match its {len(meta.get('lights', ()))} "
                                 f"lights and {len(meta.get('views', ()))} views", "the store is damaged; import it again")

@@ -114,7 +114,7 @@ def test_a_plugin_without_readable_source_is_keyed_by_its_distribution(monkeypat
     import importlib.metadata
     import types
 
-    import btforge.registry as registry_module
+    import btforge.cachekey as cachekey
 
     plugin = types.ModuleType("zipped_plugin")  # what a zipped install looks like: no files to hash
     plugin.BTFORGE_PLUGIN_API = 1
@@ -132,7 +132,7 @@ def test_a_plugin_without_readable_source_is_keyed_by_its_distribution(monkeypat
         monkeypatch.setattr(importlib.metadata, "distribution", lambda name: dist)
         return Registry(load_entry_points=False, extra_plugins=[toy_plugin, plugin]).code_digest("zipped.make")
     assert digest("1.0") != digest("1.1")
-    assert registry_module._distribution_fingerprint(types.ModuleType("nothing_installed")) == ""
+    assert cachekey._distribution_fingerprint(types.ModuleType("nothing_installed")) == ""
 
 
 def _package(root, name, files):
@@ -172,7 +172,7 @@ def test_editing_a_plugin_another_imports_changes_the_importers_digest(tmp_path,
 
 
 def test_relight_nodes_follow_the_stackio_reader_they_import():
-    files, own = Registry().code_files("relight")
+    files, own = Registry().code_files("relight.images")
     lightfile = REPO / "plugins" / "stackio" / "lightfile.py"
     assert lightfile.resolve() in files and lightfile.resolve() not in own
     assert (REPO / "plugins" / "ptm" / "ptm.cl").resolve() not in files

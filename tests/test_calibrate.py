@@ -13,7 +13,7 @@ from PIL import Image
 from btforge.cli import main
 from btforge.plugins.calibrate.bench import implied_sphere
 from btforge.plugins.calibrate.lights import calibrate, image_list
-from btforge.plugins.calibrate.synthetic import fibonacci_lights, render_capture
+from btforge.plugins.calibrate.testing import fibonacci_lights, render_capture
 from btforge.plugins.calibrate.sphere import Circle
 from btforge.plugins.stackio.lightfile import read_light_file
 
@@ -313,7 +313,10 @@ def test_highlight_search_on_hard_images(kind, radius, seed):
     circle = Circle(w / 2, h / 2, float(radius))
     yy, xx = np.mgrid[0:h, 0:w]
     image = np.zeros((h, w), np.float32)
-    spot = lambda x, y: np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0).astype(np.float32)
+
+    def spot(x, y):
+        return np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0).astype(np.float32)
+
     if kind == "saturated":
         image[:] = 1.0
     elif kind == "noise":

@@ -1,7 +1,5 @@
 """Bad files reach the user as one clear message and exit code 2, never a traceback."""
 import numpy as np
-import pytest
-from PIL import Image
 
 from btforge.cli import main
 from btforge.plugins.stackio.images import write_exr

@@ -34,7 +34,7 @@ GRAPH = {
 
 def test_builtin_families_come_from_entry_points():
     reg = Registry()
-    assert {"stack.read", "stack.write", "ptm.fit", "ptm.read", "ptm.write", "relight"} <= set(reg.stages)
+    assert {"stackio.read", "stackio.write", "ptm.fit", "ptm.read", "ptm.write", "relight.images"} <= set(reg.stages)
     assert {"SampleStack", "PTMModel", "ReflectanceModel"} <= set(reg.types)
 
 
@@ -202,7 +202,7 @@ def test_cli_stages_refuses_an_unknown_name():
     import subprocess
     import sys
     proc = subprocess.run([sys.executable, "-m", "btforge.cli", "stages", "relite"], capture_output=True, text=True)
-    assert proc.returncode == 2 and "did you mean 'relight'" in proc.stderr
+    assert proc.returncode == 2 and "did you mean 'relight.images'" in proc.stderr
 
 
 def test_buffers_are_immutable_and_validated():

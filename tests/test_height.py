@@ -9,7 +9,7 @@ from btforge import SampleStack, stage
 from btforge.errors import BtforgeInputError
 from btforge.plugins.height import sfs
 from btforge.plugins.height.field import HeightField, normals_of
-from btforge.plugins.height.synthetic import angular_error_degrees, known_capture
+from btforge.plugins.height.testing import angular_error_degrees, known_capture
 
 
 def _random_problem(rng, h, w, k, *, steep=1.0, grazing=False, black=False, zero_weights=False):

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 import btforge
 from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack
-from btforge.plugins.lafortune.model import (EXPONENT_MAX, EXPONENT_MIN, LafortuneModel, estimate_normals,
+from btforge.plugins.lafortune.normals import estimate_normals
+from btforge.plugins.lafortune.model import (EXPONENT_MAX, EXPONENT_MIN, LafortuneModel,
                                              evaluate_lafortune_numpy, evaluate_lafortune_opencl,
                                              evaluate_lafortune_scattered_numpy, evaluate_lafortune_scattered_opencl,
                                              fit_lafortune, texel_frames)
@@ -248,7 +249,7 @@ def test_lambertian_normals_are_estimated():
 
 def test_photometric_stereo_on_threads_equals_one_pass(monkeypatch):
     """Photometric stereo splits a band's texels over threads (one per core): each texel's normal is its own."""
-    from btforge.plugins.lafortune import model
+    from btforge.plugins.lafortune import normals as model
     monkeypatch.setattr(model, "PS_THREAD_TEXELS", 40)
     monkeypatch.setattr(model.os, "cpu_count", lambda: 3)
     rng = np.random.default_rng(2)

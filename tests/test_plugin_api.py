@@ -1,5 +1,4 @@
 """Plugins: a third-party family installed by entry point, API versions, misspelt hooks, bench commands."""
-import os
 import subprocess
 import sys
 import types
@@ -49,7 +48,7 @@ def test_a_third_party_plugin_adds_a_representation_and_a_synthesizer(tmp_path, 
     assert float(rows[1]["texture_statistics"]) >= 0 and float(rows[1]["swd"]) >= 0
     assert float(next(csv.DictReader((tmp_path / "synth" / "search.csv").open()))["recall"]) >= 0.9
     found = [st.name for st in btforge.registry.default_registry().stages_with_role("synthesizer")]
-    assert {"quilt", "kcoherence", "jumpmap", "thirdparty.offsets"} <= set(found)
+    assert {"synth.quilt", "synth.kcoherence", "synth.jumpmap", "thirdparty.offsets"} <= set(found)
 
 
 def _plugin(**attributes):

@@ -131,7 +131,7 @@ def test_fit_capture_stage_in_a_graph_and_refusals(tmp_path):
     btf = btforge.stage("demo.btf")(size=[4, 4], lights=6, views=2)["stack"]
     from btforge.plugins.stackio.images import write_stack
     write_stack(btf, tmp_path / "btf", fmt="png")
-    with pytest.raises(BtforgeInputError, match="stack.select"):
+    with pytest.raises(BtforgeInputError, match="stackio.select"):
         fit_ptm_capture(tmp_path / "btf" / "lights.lvp")
     (tmp_path / "l3.jpg").write_bytes(b"broken")
     with pytest.raises(BtforgeInputError, match="line 5"):

@@ -13,7 +13,7 @@ from btforge.context import StageContext
 from btforge.errors import BtforgeInputError
 from btforge.plugins.ptm.model import PTMModel, fit_ptm
 from btforge.plugins.render.renderer import Counters, render
-from btforge.plugins.render.scene import load_scene
+from btforge.plugins.render.loader import load_scene
 from btforge.stages import RunPaths
 
 PLANE_SCENE = """\

@@ -1,14 +1,12 @@
 """Mesh files are read split at UV seams (open3d splits vertices by position and UV); the renderer must still see
 one closed, smooth surface: welded for closedness, inside tests and normals, per split vertex for UVs."""
-import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from btforge.errors import BtforgeInputError
 from btforge.plugins.render.geometry import build_mesh
-from btforge.plugins.render.scene import load_scene
+from btforge.plugins.render.loader import load_scene
 from btforge.stages import RunPaths
 
 # a 2-unit cube, 8 positions, every face carrying the whole texture (4 texture coordinates), outward winding

@@ -100,7 +100,7 @@ def test_bad_scene_is_refused_at_validation(tmp_path, case):
 
 def test_missing_file_hint_says_what_relative_paths_resolve_against(tmp_path):
     """A scene file's paths resolve against its own folder; an inline scene's against the graph's."""
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.stages import RunPaths
     (tmp_path / "scenes").mkdir()
     scene = with_changes(meshes={"ground": {"file": "quad.obj", "material": "stone"}})
@@ -204,7 +204,7 @@ def test_mp4_needs_a_video_plugin_known_at_validation(tmp_path):
 
 def test_light_sweep_traces_once_and_turntable_traces_every_frame():
     from btforge.plugins.render.renderer import Counters, render
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.stages import RunPaths
     from test_render import constant_ptm, random_ptm
     scene = with_changes(animation={"type": "light_sweep", "frames": 4, "light": 0, "axis": [0, 0, 1]})
@@ -236,14 +236,14 @@ def test_example_graphs_and_scenes_validate():
 
 def test_meshes_are_built_once_per_run_without_point_lights(tmp_path, monkeypatch):
     """The graph check and the scene check leave the meshes to the renderer, unless a point light needs them."""
-    from btforge.plugins.render import geometry, renderer
+    from btforge.plugins.render import geometry, loader, renderer
     built = []
     original = geometry.build_mesh
 
     def counted(spec, scene=None):
         built.append(spec.name)
         return original(spec, scene)
-    for module in (geometry, renderer):  # the renderer holds its own name for it
+    for module in (geometry, loader, renderer):  # each holds its own name for it
         monkeypatch.setattr(module, "build_mesh", counted)
     btforge.run(graph_with(tmp_path, GOOD), cache_dir=None, out_dir=tmp_path)
     assert built == ["ground"]

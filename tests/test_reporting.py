@@ -33,7 +33,7 @@ def test_the_graph_check_prechecks_every_node_even_when_another_failed(tmp_path)
 def test_warnings_raised_while_a_file_is_read_are_in_the_report(tmp_path):
     _capture(tmp_path, [("a.png", (0, 0, 1)), ("b.png", (0.5, 0, -0.005)), ("c.png", (0, 0.6, 0.8)),
                         ("d.png", (-0.6, 0, 0.8)), ("e.png", (0, -0.6, 0.8)), ("f.png", (0.4, 0.4, 0.82))])
-    graph = {"nodes": {"read": {"stage": "stack.read", "params": {"path": str(tmp_path / "dirs.lp")}},
+    graph = {"nodes": {"read": {"stage": "stackio.read", "params": {"path": str(tmp_path / "dirs.lp")}},
                        "fit": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}}
     # The second time the fit comes from the cache and the capture is not read again (stack.read does not
     # store its outputs), but the warning of the graph check's reading is still reported.

@@ -11,7 +11,6 @@ The exemplar is a 32 x 32 procedural material under 8 lights.  Against it we sco
 """
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -86,7 +85,7 @@ def scored(case):
 
 def test_stage_is_exposed():
     assert STAGES == [score]
-    assert score.name == "score" and set(score.inputs) == {"output", "exemplar", "coords", "tiles"}
+    assert score.name == "synth.score" and set(score.inputs) == {"output", "exemplar", "coords", "tiles"}
     assert score.optional_inputs == {"output", "coords", "tiles"} and score.outputs == {"scores": "Scores"}
     assert {"lights", "patch", "scales", "seed", "block", "wrap"} <= {p.name for p in score.params}
 

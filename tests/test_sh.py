@@ -12,7 +12,7 @@ from btforge import BtforgeInputError, BtforgeWarning
 from btforge.buffers import SampleStack, linear_to_srgb8
 from btforge.context import StageContext
 from btforge.plugins.sh.model import (ENERGY_SLACK, RCOND, SHModel, cls_coeffs_numpy, cls_coeffs_opencl, compression_rate,
-                                      energy_root, evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
+                                      evaluate_sh_numpy, evaluate_sh_opencl, evaluate_sh_scattered_numpy,
                                       evaluate_sh_scattered_opencl, fit_sh, quantize_coeffs, real_sh, sh_solver)
 from tolerances import summation_order_tolerance
 

@@ -62,7 +62,7 @@ def test_bad_selection_is_refused_before_a_run(tmp_path):
 def test_ptm_on_a_btf_points_to_stack_select_and_works_after_it(tmp_path):
     nodes = {"btf": {"stage": "demo.btf", "params": {"size": [4, 4], "lights": 8, "views": 2}},
              "fit": {"stage": "ptm.fit", "inputs": {"stack": "btf.stack"}}}
-    with pytest.raises(BtforgeInputError, match="stack.select"):
+    with pytest.raises(BtforgeInputError, match="stackio.select"):
         run({"nodes": nodes}, out_dir=tmp_path)
     nodes["pick"] = {"stage": "stack.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}}
     nodes["fit"]["inputs"] = {"stack": "pick.stack"}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from btforge.buffers import CoordMap, SampleStack
+from btforge.buffers import CoordMap
 from btforge.context import StageContext
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth.scoring import score
@@ -245,9 +245,9 @@ def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural):
     from btforge.plugins.ptm.model import fit_ptm
     from btforge.plugins.render.geometry import build_mesh
     from btforge.plugins.render.renderer import Counters, render
-    from btforge.plugins.render.scene import load_scene
+    from btforge.plugins.render.loader import load_scene
     from btforge.plugins.synth import materialize
-    from btforge.plugins.wang.surface import TILING_SEED
+    from btforge.plugins.render.tiles import TILING_SEED
     from btforge.plugins.wang.tiling import tiling_coords
     from btforge.stages import RunPaths
     stack, tiles, _, _ = procedural

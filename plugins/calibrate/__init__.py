@@ -1,4 +1,4 @@
-"""Light calibration from mirror spheres: ``btforge calibrate`` and stage ``lights.calibrate``."""
+"""Light calibration from mirror spheres: ``btforge calibrate`` and stage ``calibrate.lights``."""
 from __future__ import annotations
 
 import argparse
@@ -26,7 +26,7 @@ def _stack_of(images, lights, names) -> SampleStack:
     channels = ("R", "G", "B") if frames[0].shape[2] == 3 else ("Y",)
     if frames[0].dtype == np.uint8:
         return SampleStack(np.stack(frames)[None], lights, [[0.0, 0.0, 1.0]], channels, "srgb8", names)
-    # 16-bit and float images are linear radiance, as stack.read takes them
+    # 16-bit and float images are linear radiance, as stackio.read takes them
     scale = np.float32(65535.0 if frames[0].dtype == np.uint16 else 1.0)
     data = np.stack([f.astype(np.float32) / scale for f in frames])[None]
     return SampleStack(data, lights, [[0.0, 0.0, 1.0]], channels, "linear", names)
@@ -49,7 +49,7 @@ def _calibrate_precheck(params, paths):
         except BtforgeInputError as exc:
             problems.append(exc.one_line())
     if problems:
-        raise BtforgeInputError("lights.calibrate", "; ".join(problems))
+        raise BtforgeInputError("calibrate.lights", "; ".join(problems))
     return files
 
 
@@ -64,7 +64,7 @@ def _principal_of(text, focal, where):
 
 
 @declare_stage(
-    "lights.calibrate",
+    "calibrate.lights", deprecated_names=("lights.calibrate",),
     outputs={"stack": "SampleStack"},
     params=[
         Param("images", "str", REQUIRED, "the photographs with the mirror sphere(s): a folder or a glob such as "

@@ -10,7 +10,7 @@ import numpy as np
 
 from .lights import calibrate, image_list, load_luminance, parse_focal, parse_principal
 from .sphere import Circle, _axis_toward, measure_stretch, outline_stretch, reflect
-from .synthetic import fibonacci_lights, render_capture
+from .testing import fibonacci_lights, render_capture
 
 
 def _angles(a, b):
@@ -78,7 +78,7 @@ def bench_calibrate(args: list[str]) -> int:
         result = calibrate(files, focal=opts.focal, principal=principal)
         seconds = time.perf_counter() - start
     size = f"{len(files)} images of {result.shape[1]} x {result.shape[0]}"
-    print(f"spheres: " + "; ".join(f"({c.x:.1f}, {c.y:.1f}) r {c.r:.1f}" for c in result.spheres))
+    print("spheres: " + "; ".join(f"({c.x:.1f}, {c.y:.1f}) r {c.r:.1f}" for c in result.spheres))
     print(f"{size}: {seconds:.2f} s, {int(result.found.sum())} lights found; camera: "
           + ("orthographic" if result.focal is None else f"pinhole, focal length {result.focal:.1f} px"))
     if truth is not None:

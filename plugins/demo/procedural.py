@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.backend import get_backend
-from btforge.buffers import check_array, frozen, unit_directions
+from btforge.buffers import check_array, freeze_fields, unit_directions
 from btforge.errors import BtforgeInputError
 from btforge.numerics import fibonacci_directions
 
@@ -85,9 +85,7 @@ class ProceduralMaterial:
         if np.abs(norms - 1.0).max() > 1e-4 or normals[..., 2].min() <= 0.0:
             raise BtforgeInputError(f"{owner} 'normals'", "must be unit vectors with z > 0",
                                     "derive them with normals_from_height()")
-        object.__setattr__(self, "height", frozen(height))
-        object.__setattr__(self, "albedo", frozen(albedo))
-        object.__setattr__(self, "normals", frozen(normals))
+        freeze_fields(self, height=height, albedo=albedo, normals=normals)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -1,6 +1,6 @@
 """Height fields: the ``HeightField`` buffer, height from shading (Liu, Yu & Shum 2001) and its files.
 
-Stages: ``height.from_shading`` (a stack -> a HeightField and the robust sample weights), ``normals.write``
+Stages: ``height.from_shading`` (a stack -> a HeightField and the robust sample weights), ``height.write_normals``
 (PNG / EXR normal map) and ``height.write`` (EXR height image, PLY mesh with UVs).  ``btforge info`` describes
 the PLY meshes (the EXR images are described by stackio's reader).
 """
@@ -11,10 +11,10 @@ import numpy as np
 from btforge import REQUIRED, Param, SampleStack, declare_stage, hookimpl
 from btforge.errors import BtforgeInputError
 
-BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
-
-from .field import HeightField
 from . import io as height_io
+from .field import HeightField
+
+BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 @declare_stage(
@@ -77,7 +77,7 @@ def from_shading(ctx, stack, *, iterations, smoothness, albedo_smoothness, robus
     return {"height": field, "weights": weights}
 
 
-@declare_stage("normals.write", inputs={"height": "HeightField"},
+@declare_stage("height.write_normals", deprecated_names=("normals.write",), inputs={"height": "HeightField"},
                params=[Param("path", "outpath", REQUIRED, "the .png (8-bit) or .exr (float) file to write")],
                side_effects=True)
 def normals_write(ctx, height, *, path):
@@ -86,7 +86,7 @@ def normals_write(ctx, height, *, path):
     ``.png``: 8-bit RGB ``(n + 1) / 2``, +y up the image (the OpenGL convention: green = up).  ``.exr``: float32
     channels R, G, B = x, y, z of the unit normal in the texture frame (x along columns, y up, z out).
     """
-    height_io.suffix_of(path, height_io.NORMAL_FORMATS, "normals.write 'path'")
+    height_io.suffix_of(path, height_io.NORMAL_FORMATS, "height.write_normals 'path'")
     height_io.write_normals(height, ctx.paths.output(path))
     return {}
 

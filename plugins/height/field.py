@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from btforge.buffers import PerTexel, check_array, frozen
+from btforge.buffers import PerTexel, check_array, freeze_fields
 from btforge.errors import BtforgeInputError
 
 
@@ -77,9 +77,7 @@ class HeightField(PerTexel):
             problems.append(f"'channels' must name {albedo.shape[2]} channels, got {tuple(self.channels)!r}")
         if problems:
             raise BtforgeInputError(owner, "; ".join(problems), "derive normals with normals_of(height)")
-        for name, value in (("heights", height), ("albedo", albedo), ("normals", normals), ("weights", weights)):
-            object.__setattr__(self, name, frozen(value))
-        object.__setattr__(self, "channels", tuple(self.channels))
+        freeze_fields(self, "channels", heights=height, albedo=albedo, normals=normals, weights=weights)
 
     @classmethod
     def from_height(cls, height: np.ndarray, albedo: np.ndarray | None = None, *, wrap: bool = False,

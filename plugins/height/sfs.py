@@ -51,7 +51,7 @@ def terms_numpy(z, rho, image, eta, lights, mu, alpha, lam, gam):
     q = f(0.5) * (z[:-2, 1:-1] - z[2:, 1:-1])
     inv_s = f(1) / np.sqrt(f(1) + p * p + q * q)
     r = rho[c]
-    e_data = np.zeros_like(p); d_p = np.zeros_like(p); d_q = np.zeros_like(p); d_rho = np.zeros_like(p)
+    e_data, d_p, d_q, d_rho = (np.zeros_like(p) for _ in range(4))
     for k in range(K):
         lx, ly, lz = (f(v) for v in lights[k, :3])
         w = eta[k][c]

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from btforge import Param, declare_stage, hookimpl
 
-from .model import DEFAULT_ITERATIONS, MAX_LOBES, LafortuneModel, estimate_normals, fit_lafortune
+from .model import DEFAULT_ITERATIONS, MAX_LOBES, LafortuneModel, fit_lafortune
+from .normals import estimate_normals
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 

@@ -50,7 +50,7 @@ def bench_lafortune(args: list[str]) -> int:
     from btforge.buffers import SampleStack
     from btforge.plugins.relight import compare_stacks
 
-    from .model import estimate_normals
+    from .normals import estimate_normals
     stack, truth = glossy_bumps(opts.size, opts.lights)
     if opts.save:
         from btforge.plugins.stackio.images import write_stack

@@ -39,7 +39,7 @@ def _block_sizes(block_sizes):
         Param("isotropic", "bool", True, "choose references by eq. 7 (rotations about the normal and the mirror "
               "image allowed) and rotate them to the target; false: eq. 6, no rotation"),
         Param("nearest", "int", 3, "M: the nearest reference images blended per target with eq. 8's weights "
-              "(the issue's 'references' param; renamed because the input port has that name)", low=1, high=64),
+              "(a count, not called 'references' because the input port has that name)", low=1, high=64),
         Param("block_sizes", "ints", (3, 5, 9), "odd block sides tried at each pixel (the best normalised SSD "
               "wins); holes are filled with 3 x 3 blocks"),
         Param("seed", "int", 0, "random seed (tie-breaks of the Harris order)"),

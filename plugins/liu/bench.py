@@ -51,7 +51,7 @@ def _row(table, step, size, seconds, extra=""):
 def bench_liu(args: list[str]) -> int:
     """Time each step of Liu et al.'s BTF synthesis: height from shading and synthesis, templates, images, IoU, grid."""
     from btforge import SampleStack
-    from btforge.plugins.height.synthetic import known_capture
+    from btforge.plugins.height.testing import known_capture
     from btforge.plugins.liu import settings
 
     parser = argparse.ArgumentParser(prog="btforge bench liu", description=bench_liu.__doc__)
@@ -90,7 +90,7 @@ def _steps(table, opts, capture, refs):
     from btforge import SampleStack, stage
     from btforge.plugins.height.field import HeightField
     from btforge.plugins.height.sfs import photometric_stereo_ls
-    from btforge.plugins.height.synthetic import angular_error_degrees
+    from btforge.plugins.height.testing import angular_error_degrees
     from btforge.plugins.liu import settings, synthesis, template
     from btforge.plugins.liu import testing as consistency
     n = opts.size
@@ -103,11 +103,11 @@ def _steps(table, opts, capture, refs):
          f"{ls_error.mean():.2f} / {np.median(ls_error):.2f}")
     recovered = out["height"]
 
-    exemplar = stage("crop")(input=recovered, origin=[0, 0], size=[n // 2, n // 2])["output"]
+    exemplar = stage("synth.crop")(input=recovered, origin=[0, 0], size=[n // 2, n // 2])["output"]
     reference_stats = height_statistics(exemplar)
     for name, params in (("quilt", {"block": max(8, n // 8), "wrap": True}), ("kcoherence", {"wrap": True}),
                          ("jumpmap", {})):
-        seconds, field = _median_seconds(lambda: stage("materialize")(
+        seconds, field = _median_seconds(lambda: stage("synth.materialize")(
             coords=stage(name)(exemplar=exemplar, size=[n, n], seed=1, **params)["coords"], source=exemplar)["output"], 1)
         s = height_statistics(field)
         ratios = ", ".join(f"{k} x{s[k] / max(reference_stats[k], 1e-12):.2f}" for k in s)

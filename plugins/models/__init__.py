@@ -11,7 +11,7 @@ __all__ = ["read_model", "write_model", "describe_model"]
 
 
 @declare_stage(
-    "model.write",
+    "models.write", deprecated_names=("model.write",),
     inputs={"model": "ReflectanceModel"},
     params=[Param("path", "outpath", REQUIRED, f"the model file to write, conventionally {SUFFIX} (relative paths "
                   "land under --out)")],
@@ -39,13 +39,13 @@ def _model_file_precheck(params, paths):
 
 
 @declare_stage(
-    "model.read",
+    "models.read", deprecated_names=("model.read",),
     outputs={"model": "ReflectanceModel"},
-    params=[Param("path", "path", REQUIRED, f"a model file written by model.write ({SUFFIX})")],
+    params=[Param("path", "path", REQUIRED, f"a model file written by models.write ({SUFFIX})")],
     precheck=_model_file_precheck,
 )
 def model_read(ctx, *, path):
-    """Read a model saved by ``model.write``: the same representation, parameters and arrays, exactly.
+    """Read a model saved by ``models.write``: the same representation, parameters and arrays, exactly.
 
     A file of a format version this btforge does not read, of a representation no installed plugin defines, or
     whose arrays fail their checksums is refused with the reason.  The output port is typed

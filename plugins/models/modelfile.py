@@ -55,7 +55,7 @@ def _json_parameters(meta: Mapping[str, Any], representation: str) -> dict[str, 
     try:
         return json.loads(json.dumps(meta, allow_nan=True))
     except TypeError as exc:  # a representation whose payload is not plain JSON: a bug in its plugin
-        raise BtforgeInputError(f"model.write ({representation})", f"its parameters are not plain JSON: {exc}",
+        raise BtforgeInputError(f"models.write ({representation})", f"its parameters are not plain JSON: {exc}",
                                 "the representation's payload() must return JSON-serialisable metadata") from None
 
 
@@ -87,7 +87,7 @@ def _open(path: Path) -> zipfile.ZipFile:
         raise BtforgeInputError(str(path), "model file not found") from None
     except (zipfile.BadZipFile, OSError) as exc:
         raise BtforgeInputError(str(path), f"is not a btforge model file ({exc})",
-                                f"write models with the model.write stage ({SUFFIX} files)") from None
+                                f"write models with the models.write stage ({SUFFIX} files)") from None
 
 
 DAMAGED = "the file is damaged or truncated; write the model again"
@@ -104,7 +104,7 @@ def read_manifest(path: str | os.PathLike, archive: zipfile.ZipFile | None = Non
             manifest = json.loads(archive.read(MANIFEST).decode("utf-8"))
         except KeyError:
             raise BtforgeInputError(str(path), f"has no {MANIFEST}: it is a ZIP file but not a btforge model file",
-                                    "write models with the model.write stage") from None
+                                    "write models with the models.write stage") from None
         except (ValueError, UnicodeDecodeError) as exc:
             raise BtforgeInputError(str(path), f"its {MANIFEST} is not valid JSON ({exc})",
                                     "the file is damaged; write the model again") from None
@@ -114,7 +114,7 @@ def read_manifest(path: str | os.PathLike, archive: zipfile.ZipFile | None = Non
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
         raise BtforgeInputError(str(path), f"expected a manifest of format '{FORMAT}', found {found!r}",
-                                "write models with the model.write stage")
+                                "write models with the models.write stage")
     version = manifest.get("format_version")
     if version not in READERS:
         newer = isinstance(version, int) and version > max(READERS)
@@ -122,7 +122,7 @@ def read_manifest(path: str | os.PathLike, archive: zipfile.ZipFile | None = Non
             str(path), f"is a btforge model file of format version {version!r} (written by "
             f"{manifest.get('written_by', 'an unknown version')}); this btforge reads format versions "
             f"{', '.join(map(str, sorted(READERS)))}",
-            "upgrade btforge to read it" if newer else "the file was not written by btforge's model.write")
+            "upgrade btforge to read it" if newer else "the file was not written by btforge's models.write")
     return READERS[version](manifest, path)
 
 

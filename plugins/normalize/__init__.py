@@ -11,7 +11,7 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 @declare_stage(
-    "stack.normalize",
+    "normalize.stack", deprecated_names=("stack.normalize",),
     inputs={"stack": "SampleStack"},
     outputs={"stack": "SampleStack"},
     keeps_facts={"stack": "stack"},  # gains change the samples, not the views or lights

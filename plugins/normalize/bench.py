@@ -15,7 +15,7 @@ def bench_normalize(args: list[str]) -> int:
     parser.add_argument("captures", nargs="+", metavar="LIGHTS.lp")
     parser.add_argument("--every", type=int, default=5, help="hold out every N-th light")
     opts = parser.parse_args(args)
-    split, fit, relight = btforge.stage("stack.split"), btforge.stage("ptm.fit"), btforge.stage("relight")
+    split, fit, relight = btforge.stage("stackio.split"), btforge.stage("ptm.fit"), btforge.stage("relight.images")
 
     def heldout(stack):
         parts = split(stack=stack, every=opts.every)

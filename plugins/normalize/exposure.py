@@ -69,7 +69,7 @@ def _block_means(stack: SampleStack, region):
     """Luminance ``[L, P]`` of block means of the frame (or of ``region`` = row, col, h, w) and their centres."""
     r0, c0, h, w = region if region else (0, 0, stack.height, stack.width)
     if r0 < 0 or c0 < 0 or h < 1 or w < 1 or r0 + h > stack.height or c0 + w > stack.width:
-        raise BtforgeInputError("stack.normalize 'reference'", f"expected [row, col, height, width] inside the "
+        raise BtforgeInputError("normalize.stack 'reference'", f"expected [row, col, height, width] inside the "
                                 f"{stack.height} x {stack.width} frame, found {list(region)}",
                                 "give the white target's or matte patch's top-left corner and size in pixels")
     factor = max(1, int(math.ceil(max(h, w) / WORK_SIDE)))
@@ -155,7 +155,7 @@ def reference_gains(stack: SampleStack, reference) -> Exposure:
     usable = (lum > DARK) & (lum < CLIPPED)
     if not usable.any(axis=1).all():
         bad = [stack.names[i] if stack.names else f"light {i}" for i in np.flatnonzero(~usable.any(axis=1))]
-        raise BtforgeInputError("stack.normalize 'reference'", f"expected the region to be neither black nor "
+        raise BtforgeInputError("normalize.stack 'reference'", f"expected the region to be neither black nor "
                                 f"clipped, found it so in {', '.join(bad[:5])}", "choose a mid-grey or white patch "
                                 "that no light saturates")
     mean = np.array([row[ok].mean() for row, ok in zip(lum, usable)])
@@ -173,9 +173,9 @@ def estimate_exposure(stack: SampleStack, reference=None, with_falloff: bool = F
     the field is divided by its mean over the region before the region's own scale is applied.
     """
     if stack.n_view != 1:
-        raise BtforgeInputError("stack.normalize 'stack'", f"expected a single-view capture, found {stack.n_view} views")
+        raise BtforgeInputError("normalize.stack 'stack'", f"expected a single-view capture, found {stack.n_view} views")
     if stack.n_light < 8:
-        raise BtforgeInputError("stack.normalize 'stack'", f"expected at least 8 lights to tell intensity from "
+        raise BtforgeInputError("normalize.stack 'stack'", f"expected at least 8 lights to tell intensity from "
                                 f"reflectance, found {stack.n_light}", "normalize the whole capture, before any split")
     lights = stack.lights.astype(np.float64)
     whole = _block_means(stack, None)

@@ -1,6 +1,7 @@
 """Polynomial texture maps: fit on OpenCL, read and write HP ``.ptm`` files."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from btforge import REQUIRED, Expect, Fact, Param, declare_stage, hookimpl
@@ -12,7 +13,7 @@ from .model import DEFAULT_RCOND, PTMModel, fit_ptm
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
-SELECT_ONE_VIEW = ("a PTM depends on the light only: insert `pick: {stage: stack.select, params: {views: [0]}, "
+SELECT_ONE_VIEW = ("a PTM depends on the light only: insert `pick: {stage: stackio.select, params: {views: [0]}, "
                    "inputs: {stack: NODE.PORT}}` and wire this input to pick.stack (or pick a view by its angles, "
                    "views: ['tv0_pv0']), or fit a view-dependent representation such as sh.fit or lafortune.fit")
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
@@ -88,12 +89,12 @@ def _capture_precheck(params, paths):
     from btforge.store import is_store
     if is_store(paths.input(params["path"])):
         raise BtforgeInputError(f"param 'path' ({params['path']})", "is a chunked store, not a light file",
-                                "read a store with stack.read and fit it with ptm.fit")
+                                "read a store with stackio.read and fit it with ptm.fit")
     found = light_file_precheck(params, paths)
     for fact in (f for f in found if isinstance(f, Fact) and f.name == "views" and f.value != 1):
         raise BtforgeInputError(f"param 'path' ({params['path']})", f"expected a single-view capture (a PTM depends "
-                                f"on the light only), found {fact.value} views", "read it with stack.read and pick one "
-                                "view with stack.select before ptm.fit")
+                                f"on the light only), found {fact.value} views", "read it with stackio.read and pick one "
+                                "view with stackio.select before ptm.fit")
     return found
 
 
@@ -101,7 +102,7 @@ def _capture_precheck(params, paths):
     "ptm.fit_capture",
     outputs={"model": "PTMModel"},
     params=[Param("path", "path", REQUIRED, "the capture's .lp light file (a single view)"),
-            Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+            Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stackio.read",
                   choices=("auto", "srgb", "linear")),
             *FIT_PARAMS],
     precheck=_capture_precheck,
@@ -110,13 +111,13 @@ def _capture_precheck(params, paths):
 def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
     """Fit a PTM to a capture while its images decode, never holding the capture or a file of it.
 
-    ``stack.read`` -> ``ptm.fit`` streams too (band by band of a file the images are decoded into), and is what
+    ``stackio.read`` -> ``ptm.fit`` streams too (band by band of a file the images are decoded into), and is what
     to use; this stage skips the file, for captures larger than the disk space a decoded copy needs.
 
     The fit is linear in the samples, so images are decoded into two 8 MB batches in turn: while one decodes,
     the other is projected onto the light set's pseudo-inverse on OpenCL and added onto the sums of the lights
     before it, in light order.  Images decode two at a time (simplejpeg for JPEG where installed, else Pillow).  The
-    model equals ``ptm.fit`` of ``stack.read`` with the same parameters (the same regularised estimator; for
+    model equals ``ptm.fit`` of ``stackio.read`` with the same parameters (the same regularised estimator; for
     rgb the same float operations in the same order).  For a 1024 x 1024, 49-light JPEG capture the whole
     process peaks near the size of the coefficients plus the interpreter (README, Benchmarks).
     """
@@ -144,15 +145,20 @@ def _ptm_file_precheck(params, paths):
     from .ptmfile import describe_ptm
     path = paths.input(params["path"])
     if _is_web_layout(path):
-        from btforge.plugins.web.layout import read_info
-        info = read_info(path)
-        if info["type"] != "ptm":
-            raise BtforgeInputError(str(path), f"holds a {info['type']} model, not a PTM",
-                                    "read it with stage web.read")
-        folder = Path(info["_folder"])
-        return [folder / "info.json"] + sorted(folder.glob(f"plane_*.{info.get('format', 'jpg')}"))
+        files = _web_reader().precheck(params, paths)  # checks the layout; its info.json comes first
+        kind = json.loads(Path(files[0]).read_text(encoding="utf-8"))["type"]
+        if kind != "ptm":
+            raise BtforgeInputError(str(path), f"holds a {kind} model, not a PTM", "read it with stage web.read")
+        return files
     describe_ptm(path)
     return [path]
+
+
+def _web_reader():
+    """The installed ``web.read`` stage, which reads relight's web layout; found through the registry, as the web
+    family builds on this one (it exports and views PTMs)."""
+    from btforge.registry import default_registry
+    return default_registry().stage("web.read")
 
 
 def _is_web_layout(path) -> bool:
@@ -172,9 +178,8 @@ def ptm_read(ctx, *, path):
     """
     from .ptmfile import read_ptm
     if _is_web_layout(ctx.paths.input(path)):
-        from btforge.plugins.web.layout import read_web
         ctx.note("file_format", "relight web layout")
-        return {"model": read_web(ctx.paths.input(path))}
+        return {"model": _web_reader()(ctx=ctx, path=path)["model"]}
     content = read_ptm(ctx.paths.input(path))
     ctx.note("file_format", content.file_format)
     albedo = content.albedo if content.albedo is not None else content.coeffs[..., :0, 0]
@@ -195,7 +200,7 @@ def ptm_write(ctx, model, *, path):
     if model.space != "srgb":
         raise BtforgeInputError("ptm.write 'model'", "expected a PTM of sRGB display values (space: srgb), found a linear one",
                                 "fit with `space: srgb` to write .ptm files (`auto` fits linear radiance where that predicts held-out "
-                                "lights better), or save any model with model.write")
+                                "lights better), or save any model with models.write")
     if len(model.channel_names) != 3:
         raise BtforgeInputError("ptm.write 'model'", f"expected 3 colour channels, found {len(model.channel_names)}")
     target = ctx.paths.output(path)

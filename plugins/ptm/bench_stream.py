@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 
 # .ptm files hold display values, so every graph fits them (auto might choose linear radiance)
-ORDINARY = ("nodes:\n  read: {{stage: stack.read, params: {{path: {lp}}}}}\n"
+ORDINARY = ("nodes:\n  read: {{stage: stackio.read, params: {{path: {lp}}}}}\n"
             "  fit: {{stage: ptm.fit, params: {{variant: {variant}, space: srgb}}, inputs: {{stack: read.stack}}}}\n"
             "  save: {{stage: ptm.write, params: {{path: out.ptm}}, inputs: {{model: fit.model}}}}\n")
 CAPTURE = ("nodes:\n  fit: {{stage: ptm.fit_capture, params: {{path: {lp}, variant: {variant}, space: srgb}}}}\n"

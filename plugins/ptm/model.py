@@ -433,7 +433,7 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     if stack.n_view != 1:
         raise BtforgeInputError(
             "ptm.fit 'stack'", f"expected a single-view stack (a PTM depends on the light only), found {stack.n_view} views",
-            "pick one view with a stack.select node before the fit, e.g. `pick: {stage: stack.select, params: "
+            "pick one view with a stackio.select node before the fit, e.g. `pick: {stage: stackio.select, params: "
             "{views: [0]}, inputs: {stack: NODE.stack}}` (or a view by its angles, views: ['tv0_pv0']), or fit a "
             "view-dependent representation such as sh.fit or lafortune.fit")
     if stack.n_channel > MAX_CHANNELS:
@@ -491,7 +491,7 @@ def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, tr
     if reader.n_view != 1:
         raise BtforgeInputError(
             f"{light_file}", f"expected a single-view capture (a PTM depends on the light only), found {reader.n_view} "
-            "views", "read it with stack.read and pick one view with stack.select before ptm.fit")
+            "views", "read it with stackio.read and pick one view with stackio.select before ptm.fit")
     h, w, c = reader.shape
     if c > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {c}")

@@ -4,8 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from btforge import Param, SampleStack, declare_stage, hookimpl
-from btforge.buffers import Scores, linear_to_srgb
+from btforge.buffers import Scores
 from btforge.errors import BtforgeInputError
+from btforge.plugins.stackio.compare import compare_stacks
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -23,7 +24,7 @@ def resolve_lights(value, paths, param: str = "lights", role: str = "light") -> 
 
 
 @declare_stage(
-    "relight",
+    "relight.images", deprecated_names=("relight",),
     inputs={"model": "ReflectanceModel", "at": "SampleStack"},
     optional_inputs=("at",),
     outputs={"stack": "SampleStack"},
@@ -66,38 +67,7 @@ def relight(ctx, model, at=None, *, lights, views):
     return {"stack": SampleStack(np.ascontiguousarray(values), directions, view_dirs, model.channels, names=names)}
 
 
-def compare_stacks(stack: SampleStack, reference: SampleStack, peak: float = 1.0, per_light: bool = False) -> dict:
-    """PSNR (overall, worst and median light), RMSE and max error of ``stack`` against ``reference``.
-
-    On display values (sRGB-encoded, clipped) when the reference is an 8-bit capture, as RTI tools report it;
-    on linear values otherwise.  Streams over bands of rows.  ``per_light`` adds ``psnr_db_per_light``.
-    """
-    display = reference.encoding == "srgb8"
-    per_light_sq = np.zeros(reference.n_light)
-    worst = 0.0
-    for rows in reference.row_bands():
-        a, b = stack.linear(rows), reference.linear(rows)
-        if display:
-            a, b = linear_to_srgb(a), linear_to_srgb(b)
-        diff = np.abs(a.astype(np.float64) - b)
-        per_light_sq += (diff ** 2).sum(axis=(0, 2, 3, 4))
-        worst = max(worst, float(diff.max()))
-    per_light_mse = per_light_sq / (reference.n_view * reference.height * reference.width * reference.n_channel)
-
-    def psnr(mse):
-        return float("inf") if mse == 0 else float(10 * np.log10(peak ** 2 / mse))
-
-    mse = float(per_light_mse.mean())
-    light_psnrs = [psnr(m) for m in per_light_mse]
-    scores = {"psnr_db": round(psnr(mse), 3), "psnr_db_worst_light": round(min(light_psnrs), 3),
-              "psnr_db_median_light": round(float(np.median(light_psnrs)), 3), "rmse": round(mse ** 0.5, 6),
-              "max_abs_error": round(worst, 6), "domain": "srgb" if display else "linear"}
-    if per_light:
-        scores["psnr_db_per_light"] = light_psnrs
-    return scores
-
-
-@declare_stage("stack.compare", inputs={"stack": "SampleStack", "reference": "SampleStack"},
+@declare_stage("relight.compare", deprecated_names=("stack.compare",), inputs={"stack": "SampleStack", "reference": "SampleStack"},
                outputs={"scores": "Scores"},
                params=[Param("peak", "float", 1.0, "the signal peak for PSNR (1.0 for images in [0, 1])", low=1e-9)])
 def stack_compare(ctx, stack, reference, *, peak):
@@ -108,10 +78,10 @@ def stack_compare(ctx, stack, reference, *, peak):
     capture, so the figures match what RTI tools report; on linear values otherwise.
     """
     if stack.samples.shape[:2] != reference.samples.shape[:2] or stack.samples.shape[2:] != reference.samples.shape[2:]:
-        raise BtforgeInputError("stack.compare", f"expected stacks of equal shape, found {stack.samples.shape} and "
+        raise BtforgeInputError("relight.compare", f"expected stacks of equal shape, found {stack.samples.shape} and "
                                 f"{reference.samples.shape}", "relight at the reference's lights (wire it to relight's 'at')")
     if not np.allclose(stack.lights, reference.lights, atol=1e-4):
-        raise BtforgeInputError("stack.compare", "expected the same light directions in both stacks",
+        raise BtforgeInputError("relight.compare", "expected the same light directions in both stacks",
                                 "relight at the reference's lights (wire it to relight's 'at')")
     scores = compare_stacks(stack, reference, peak)
     for key, value in scores.items():

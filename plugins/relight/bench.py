@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.bench import counted_warnings, positive_count
+from btforge.buffers import central_crop
 from btforge.errors import BtforgeInputError
 
 DEFAULT_CROP = 128  # central texels: every fit of a full 1024^2 capture would take tens of minutes
@@ -32,16 +33,6 @@ def crop_window(height: int, width: int, size: int) -> tuple[int, int, int, int]
         return None
     r0, c0 = max(0, (height - size) // 2), max(0, (width - size) // 2)
     return r0, c0, min(size, height - r0), min(size, width - c0)
-
-
-def central_crop(stack, size: int):
-    from btforge.buffers import SampleStack
-    window = crop_window(stack.height, stack.width, size)
-    if window is None:
-        return stack
-    r0, c0, rows, cols = window
-    part = stack.samples[:, :, r0:r0 + rows, c0:c0 + cols]
-    return SampleStack(part, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
 
 def _configurations(registry, only, overrides: dict, defaults: bool = False):

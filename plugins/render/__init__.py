@@ -1,7 +1,7 @@
 """Rendering reflectance textures on meshes: scenes, ray casting with open3d, models evaluated on OpenCL.
 
-Stages: ``render`` (a scene with one input port per material it names -> a linear RGB ``Image``), ``scene.read``
-(a scene file with the meshes and maps it names -> a ``Scene``), ``image.write`` (EXR, PNG, GIF, MP4).
+Stages: ``render`` (a scene with one input port per material it names -> a linear RGB ``Image``), ``render.read_scene``
+(a scene file with the meshes and maps it names -> a ``Scene``), ``render.write_image`` (EXR, PNG, GIF, MP4).
 The scene format is described in README.md, section "Scene format".
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ def _render_ports(params, paths) -> dict[str, str]:
 
 
 def _render_precheck(params, paths):
-    from .scene import load_scene
+    from .loader import load_scene
     value = params.get("scene")
     if value is None:
         return []
@@ -45,14 +45,14 @@ def _render_precheck(params, paths):
 
 
 @declare_stage(
-    "render",
+    "render.image", deprecated_names=("render",),
     inputs={"scene_data": "Scene"},
     optional_inputs=("scene_data",),
     outputs={"image": "Image"},
     params=[
         Param("scene", "any", None, "the scene: a YAML file path (relative to the graph) or the same as a mapping; "
               "each material it names becomes an input port taking a reflectance model"),
-        Param("materials", "any", None, "only with a scene wired to 'scene_data' (from scene.read): the material "
+        Param("materials", "any", None, "only with a scene wired to 'scene_data' (from render.read_scene): the material "
               "names to take as input ports (NAME_map for coordinate maps)"),
     ],
     precheck=_render_precheck,
@@ -71,7 +71,7 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
     Inputs
     ------
     scene_data : Scene, optional
-        A scene from ``scene.read`` instead of the ``scene`` param (then list the material ports in ``materials``).
+        A scene from ``render.read_scene`` instead of the ``scene`` param (then list the material ports in ``materials``).
     <material> : ReflectanceModel
         One port per material named in the scene; ``<material>_map`` (CoordMap) where a mesh sets ``coord_map``,
         ``<material>_tiles`` (TileSet) where it sets ``tiles``.
@@ -82,7 +82,7 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
         Linear RGB ``[H, W, 3]`` float32, or ``[F, H, W, 3]`` for a light sweep or turntable.
     """
     from .renderer import Counters, render as render_scene
-    from .scene import load_scene
+    from .loader import load_scene
     if (scene is None) == (scene_data is None):
         raise BtforgeInputError("render", "expected exactly one scene: the 'scene' param or a Scene wired to "
                                 "'scene_data'", "add `params: {scene: scenes/NAME.yaml}`")
@@ -104,12 +104,12 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
 
 
 def _scene_read_precheck(params, paths):
-    from .scene import load_scene
+    from .loader import load_scene
     scene = load_scene(params["path"], paths)
     return [paths.input(params["path"])] + scene.spec.files()
 
 
-@declare_stage("scene.read", outputs={"scene": "Scene"},
+@declare_stage("render.read_scene", deprecated_names=("scene.read",), outputs={"scene": "Scene"},
                params=[Param("path", "path", REQUIRED, "the scene YAML file (format: README, Scene format)")],
                precheck=_scene_read_precheck)
 def scene_read(ctx, *, path):
@@ -118,7 +118,7 @@ def scene_read(ctx, *, path):
     Wire it to ``render``'s ``scene_data`` port (and list the material names in that node's ``materials``) to
     share one scene between several renders.
     """
-    from .scene import load_scene
+    from .loader import load_scene
     scene = load_scene(path, ctx.paths)
     ctx.note("meshes", len(scene.spec.meshes))
     ctx.note("materials", scene.spec.materials)
@@ -131,7 +131,7 @@ def _write_precheck(params, paths):
 
 
 @declare_stage(
-    "image.write",
+    "render.write_image", deprecated_names=("image.write",),
     inputs={"image": "Image"},
     params=[
         Param("path", "outpath", REQUIRED, "the file to write (relative paths land under --out); frames of an "

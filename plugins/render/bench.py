@@ -48,7 +48,7 @@ def benchmark_render(repeat: int = 5) -> dict:
     from pathlib import Path
 
     from .renderer import Counters, render
-    from .scene import load_scene
+    from .loader import load_scene
 
     model = bench_material()
     paths = RunPaths(Path.cwd(), Path.cwd())

@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from btforge.atomic import atomic_output_path, atomic_write
-from btforge.buffers import Buffer, check_array, frozen, linear_to_srgb
+from btforge.buffers import Buffer, check_array, freeze_fields, linear_to_srgb
 from btforge.errors import BtforgeInputError
 
 FORMATS = ("exr", "png", "gif", "mp4")
@@ -43,10 +43,8 @@ class Image(Buffer):
             raise BtforgeInputError("Image 'exposure'", f"must be finite, got {self.exposure}")
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise BtforgeInputError("Image 'fps'", f"must be a positive number, got {self.fps}")
-        object.__setattr__(self, "pixels", frozen(pixels))
-        object.__setattr__(self, "exposure", float(self.exposure))
-        object.__setattr__(self, "tonemap", bool(self.tonemap))
-        object.__setattr__(self, "fps", float(self.fps))
+        freeze_fields(self, pixels=pixels, exposure=float(self.exposure), tonemap=bool(self.tonemap),
+                      fps=float(self.fps))
 
     @property
     def frames(self) -> np.ndarray:
@@ -81,7 +79,7 @@ def format_of(path: str, fmt: str) -> str:
         return fmt
     ext = Path(path).suffix.lower().lstrip(".")
     if ext not in FORMATS:
-        raise BtforgeInputError(f"image.write 'path' {path}", f"cannot tell the format from the extension '.{ext}'",
+        raise BtforgeInputError(f"render.write_image 'path' {path}", f"cannot tell the format from the extension '.{ext}'",
                                 f"name the file .exr, .png, .gif or .mp4, or set format: one of {', '.join(FORMATS)}")
     return ext
 
@@ -106,10 +104,10 @@ def check_writable(fmt: str) -> None:
         try:
             import imageio  # noqa: F401
         except ImportError:
-            raise BtforgeInputError("image.write", f"writing {fmt.upper()} needs imageio, which is not installed",
+            raise BtforgeInputError("render.write_image", f"writing {fmt.upper()} needs imageio, which is not installed",
                                     "pip install imageio (or btforge[render])") from None
     if fmt == "mp4" and mp4_backend() is None:
-        raise BtforgeInputError("image.write", "writing MP4 needs an imageio video plugin, found neither PyAV nor "
+        raise BtforgeInputError("render.write_image", "writing MP4 needs an imageio video plugin, found neither PyAV nor "
                                 "imageio-ffmpeg", "pip install imageio-ffmpeg (or av), or write format: gif")
 
 

@@ -38,9 +38,9 @@ from .envmap import (DirectionalSet, SHRotator, environment_pixels, hemisphere_q
                      lookup, project_sh, real_sh)
 from .geometry import BuiltMesh, build_mesh, complete_frame
 from .o3d import open3d
+from .lookup import texel_corners
 from .scene import LightSpec, Scene, SceneSpec
 
-SNAP = 1e-3            # texel-coordinate fractions this close to a texel centre are snapped onto it
 BATCH_ITEMS = 1 << 21  # (sample, light) pairs shaded per batch
 BAND_SAMPLES = 1 << 19  # camera samples traced and shaded at once (a band of image rows)
 SH_QUADRATURE = 256    # hemisphere directions used to project a model onto SH
@@ -163,41 +163,6 @@ def make_plan(spec: SceneSpec, meshes: list[BuiltMesh], materials: Mapping[str, 
         background = env[0]
     spp = spec.camera.samples if "antialias" in eff else 1
     return Plan(spp=spp, direct=direct, shadows=shadows, environment=environment, view=view, background=background)
-
-
-# ----------------------------------------------------------------------------------------------- texel lookups
-
-
-def _wrap(i: np.ndarray, n: int, mode: str) -> np.ndarray:
-    if mode == "repeat":
-        return np.mod(i, n)
-    if mode == "clamp":
-        return np.clip(i, 0, n - 1)
-    m = np.mod(i, 2 * n)
-    return np.where(m < n, m, 2 * n - 1 - m)
-
-
-def texel_corners(uv: np.ndarray, height: int, width: int, wrap: str):
-    """Bilinear lookup on an ``height x width`` texel grid: ``rows, cols [4, N]`` int64 and ``weights [4, N]``.
-
-    Texel ``(r, c)`` has its centre at ``u = (c + 0.5) / width``, ``v = 1 - (r + 0.5) / height`` (row 0 at the top).
-    Fractions within :data:`SNAP` of a texel centre are snapped onto it, so a texel centre reads that texel alone.
-    """
-    x = uv[:, 0] * width - 0.5
-    y = (1.0 - uv[:, 1]) * height - 0.5
-    corners = []
-    for t in (x, y):
-        t0 = np.floor(t)
-        f = t - t0
-        up = f > 1 - SNAP
-        t0 = np.where(up, t0 + 1, t0)
-        f = np.where(up | (f < SNAP), 0.0, f)
-        corners.append((t0.astype(np.int64), f))
-    (x0, fx), (y0, fy) = corners
-    cols = np.stack([x0, x0 + 1, x0, x0 + 1])
-    rows = np.stack([y0, y0, y0 + 1, y0 + 1])
-    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
-    return _wrap(rows, height, wrap), _wrap(cols, width, wrap), weights
 
 
 class ColourShader:
@@ -463,6 +428,14 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
     N = _unit(N)
     T, B = complete_frame(N, T, B)   # interpolated frames drift from orthonormal between corners
 
+    shader_groups = _shader_groups(built, materials, groups, prim, uv, T, B)
+    return Surface(len(dirs), hit, dirs[~hit], P, Ng, N, T, B, -d, shader_groups)
+
+
+def _shader_groups(built: BuiltScene, materials: Mapping[str, Any], groups, prim, uv, T, B) -> list:
+    """(samples, shader) per mesh hit: its plain colour, or its model looked up at its texture coordinates (through
+    a coordinate map or a Wang tile set where the mesh says so).  Flips ``T`` / ``B`` in place where the texture
+    is mirrored (negative UV scale, ``wrap: mirror``), so the frame follows the texture."""
     shader_groups = []
     for mi, sel in groups:
         mesh = built.meshes[mi]
@@ -472,7 +445,7 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
             continue
         model = materials[spec.material]
         if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
-            from btforge.plugins.wang.surface import tiled_texels
+            from .tiles import tiled_texels
             texels = tiled_texels(built, mi, materials[f"{spec.material}_tiles"], prim[sel], uv[sel])
             shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
             continue
@@ -488,7 +461,7 @@ def trace(built: BuiltScene, materials: Mapping[str, Any], plan: Plan, counters:
         T[sel[flip_t]] *= -1
         B[sel[flip_b]] *= -1
         shader_groups.append((sel, ModelShader(spec.material, model, coord_map, tex_uv, spec.wrap)))
-    return Surface(len(dirs), hit, dirs[~hit], P, Ng, N, T, B, -d, shader_groups)
+    return shader_groups
 
 
 # ----------------------------------------------------------------------------------------------- shading
@@ -540,56 +513,77 @@ def shade_lights(surface: Surface, built: BuiltScene, lights: list[tuple[np.ndar
         batches.append(("directional", directional[start:start + per_batch]))
     batches += [("point", [light]) for light in points]
     for kind, batch in batches:
-        n_rays = 0
         if kind == "directional":
-            dirs = np.array([d for d, _ in batch])                              # [L, 3]
-            intensity = np.array([i for _, i in batch], np.float64)            # [L, 3]
-            d32 = dirs.astype(np.float32)
-            local_all = (frames32[:, :, 0:1] * d32[:, 0] + frames32[:, :, 1:2] * d32[:, 1]
-                         + frames32[:, :, 2:3] * d32[:, 2])                     # [n, 3, L]: (l.T, l.B, l.N)
-            visible = local_all[:, 2, :] > 0                                     # [n, L] above the horizon
-            l_idx, s_idx = np.nonzero(visible.T)       # light-major: coherent shadow rays
-            local = local_all[s_idx, :, l_idx]
-            scale = intensity.astype(np.float32)[l_idx]
-            if shadows and len(s_idx):
-                rays = np.empty((len(s_idx), 6), np.float32)
-                rays[:, :3] = origins[s_idx]
-                bounds = np.searchsorted(l_idx, np.arange(len(dirs) + 1))   # light-major: one block per light
-                for l in range(len(dirs)):
-                    rays[bounds[l]:bounds[l + 1], 3:] = d32[l]
-                keep = ~built.occluded_rays(rays, np.inf)
-                s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+            s_idx, local, scale, n_rays = _lit_by_directional(batch, frames32, origins, built, shadows)
         else:
-            intensity, position = batch[0]
-            vec = position - surface.P
-            d2 = _dot(vec, vec)
-            omega = vec / np.sqrt(d2)[:, None]
-            local = np.einsum("nij,nj->ni", frames, omega)
-            s_idx = np.nonzero(local[:, 2] > 0)[0]
-            local = local[s_idx].astype(np.float32)
-            scale = (intensity[None, :] / np.maximum(d2[s_idx], 1e-30)[:, None]).astype(np.float32)
-            if shadows and len(s_idx):  # to the light, not beyond: direction scaled to the distance, t in [0, 1)
-                rays = np.concatenate([origins[s_idx], vec[s_idx].astype(np.float32)], 1)
-                keep = ~built.occluded_rays(rays, 1.0 - 1e-4)
-                s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+            s_idx, local, scale, n_rays = _lit_by_point(batch[0], surface, frames, origins, built, shadows)
         if n_rays:
             if report == "direct":
                 counters.add("shadows", "rays", n_rays)
             else:
                 counters.add(report, "shadow_rays", n_rays)
-        groups = group_of[s_idx]
-        for gi, (sel, shader) in enumerate(surface.groups):
-            mine = np.nonzero(groups == gi)[0]
-            if not len(mine):
-                continue
-            items = position_in_group[s_idx[mine]]
-            view = views[gi]
-            values = shader.evaluate(items, local[mine], None if view is None else view[items])
-            counters.add(report, "evaluations", len(items))
-            contrib = values.astype(np.float32, copy=False) * scale[mine]
-            targets = s_idx[mine]
-            for c in range(3):
-                radiance[:, c] += np.bincount(targets, weights=contrib[:, c], minlength=n)
+        _accumulate(surface, views, counters, report, group_of[s_idx], position_in_group, s_idx, local, scale,
+                    radiance)
+
+
+def _lit_by_directional(batch, frames32, origins, built: BuiltScene, shadows: bool):
+    """The (sample, light) pairs a batch of directional lights reaches: sample indices, light directions in the
+    sample frames, the light's intensity, and the shadow rays cast (light-major, so the rays are coherent)."""
+    dirs = np.array([d for d, _ in batch])                              # [L, 3]
+    intensity = np.array([i for _, i in batch], np.float64)            # [L, 3]
+    d32 = dirs.astype(np.float32)
+    local_all = (frames32[:, :, 0:1] * d32[:, 0] + frames32[:, :, 1:2] * d32[:, 1]
+                 + frames32[:, :, 2:3] * d32[:, 2])                     # [n, 3, L]: (l.T, l.B, l.N)
+    visible = local_all[:, 2, :] > 0                                     # [n, L] above the horizon
+    l_idx, s_idx = np.nonzero(visible.T)       # light-major: coherent shadow rays
+    local = local_all[s_idx, :, l_idx]
+    scale = intensity.astype(np.float32)[l_idx]
+    n_rays = 0
+    if shadows and len(s_idx):
+        rays = np.empty((len(s_idx), 6), np.float32)
+        rays[:, :3] = origins[s_idx]
+        bounds = np.searchsorted(l_idx, np.arange(len(dirs) + 1))   # light-major: one block per light
+        for l in range(len(dirs)):
+            rays[bounds[l]:bounds[l + 1], 3:] = d32[l]
+        keep = ~built.occluded_rays(rays, np.inf)
+        s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+    return s_idx, local, scale, n_rays
+
+
+def _lit_by_point(light, surface: Surface, frames, origins, built: BuiltScene, shadows: bool):
+    """The samples a point light reaches, with its direction in their frames and its inverse-square intensity."""
+    intensity, position = light
+    vec = position - surface.P
+    d2 = _dot(vec, vec)
+    omega = vec / np.sqrt(d2)[:, None]
+    local = np.einsum("nij,nj->ni", frames, omega)
+    s_idx = np.nonzero(local[:, 2] > 0)[0]
+    local = local[s_idx].astype(np.float32)
+    scale = (intensity[None, :] / np.maximum(d2[s_idx], 1e-30)[:, None]).astype(np.float32)
+    n_rays = 0
+    if shadows and len(s_idx):  # to the light, not beyond: direction scaled to the distance, t in [0, 1)
+        rays = np.concatenate([origins[s_idx], vec[s_idx].astype(np.float32)], 1)
+        keep = ~built.occluded_rays(rays, 1.0 - 1e-4)
+        s_idx, local, scale, n_rays = s_idx[keep], local[keep], scale[keep], len(keep)
+    return s_idx, local, scale, n_rays
+
+
+def _accumulate(surface: Surface, views: dict, counters: Counters, report, groups, position_in_group, s_idx, local,
+                scale, radiance: np.ndarray) -> None:
+    """Evaluate each shader group once at its lit samples and add the light's share to ``radiance``."""
+    n = len(surface.P)
+    for gi, (sel, shader) in enumerate(surface.groups):
+        mine = np.nonzero(groups == gi)[0]
+        if not len(mine):
+            continue
+        items = position_in_group[s_idx[mine]]
+        view = views[gi]
+        values = shader.evaluate(items, local[mine], None if view is None else view[items])
+        counters.add(report, "evaluations", len(items))
+        contrib = values.astype(np.float32, copy=False) * scale[mine]
+        targets = s_idx[mine]
+        for c in range(3):
+            radiance[:, c] += np.bincount(targets, weights=contrib[:, c], minlength=n)
 
 
 def shade_environment_sh(surface: Surface, built: BuiltScene, light: LightSpec, counters: Counters,
@@ -664,7 +658,7 @@ def check_materials(spec: SceneSpec, materials: Mapping[str, Any], plan: Plan) -
                                     "light the scene only with an environment light of method 'sh' (which needs "
                                     "just evaluate), or add evaluate_texels to the model class")
     if spec.tiled:
-        from btforge.plugins.wang.surface import check_tiles
+        from .tiles import check_tiles
         for name in spec.tiled:
             check_tiles(name, materials[name], materials.get(f"{name}_tiles"))
     for name in spec.coord_mapped:

@@ -1,8 +1,8 @@
 """Scene files: parsing and validating a scene (YAML or a mapping) into plain specs, and the ``Scene`` buffer.
 
 Everything a user can get wrong in a scene is reported here, with the key path at fault (``meshes.ground.material``),
-before anything renders: :func:`parse_scene` checks the structure and values; :func:`load_scene` also reads the
-files it names (meshes, environment maps).  The format is documented in README.md, section "Scene format".
+before anything renders: :func:`parse_scene` checks the structure and values; :func:`btforge.plugins.render.loader.load_scene`
+also reads the files it names (meshes, environment maps).  The format is documented in docs/guide/rendering.md.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 import yaml
 
-from btforge.buffers import Buffer, frozen
+from btforge.buffers import Buffer, freeze_fields
 from btforge.errors import BtforgeInputError
 from btforge.registry import did_you_mean
 
@@ -375,6 +375,16 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     else:
         file = w.file(m["file"], f"{key}.file", base_dir, check_files, MESH_EXTENSIONS, "a .ply or .obj mesh",
                       "mesh file")
+    size, radius, major, minor, segments = _parse_shape(w, key, m, primitive)
+    position, rotate, scale = _parse_transform(w, key, m)
+    material, uv_scale, uv_offset, wrap, coord_map, color = _parse_binding(w, key, m)
+    tiles = _parse_tiles(w, key, m, uv_scale, coord_map)
+    return MeshSpec(name, primitive, file, size, radius, major, minor, segments, position, rotate, scale, material,
+                    uv_scale, uv_offset, wrap, coord_map, color, tiles)
+
+
+def _parse_shape(w: _Where, key: str, m: Mapping[str, Any], primitive: str | None):
+    """A primitive's size, radii and tessellation (a mesh file takes none of them)."""
     if primitive is None:
         for k in ("size", "radius", "major_radius", "minor_radius", "segments"):
             if k in m:
@@ -388,20 +398,29 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if primitive == "torus" and minor >= major:
         raise w.error(f"{key}.minor_radius", f"expected less than major_radius ({major:g}), found {minor:g}",
                       "a self-intersecting torus has no consistent inside")
-    segments = None
-    if "segments" in m:
-        if primitive == "cube":
-            raise w.error(f"{key}.segments", "does not apply to a cube",
-                          "a cube is six flat faces of one quad each; remove 'segments'")
-        seg = m["segments"]
-        seg = [seg, seg] if isinstance(seg, int) and not isinstance(seg, bool) else seg
-        if not (isinstance(seg, list) and len(seg) == 2):
-            raise w.error(f"{key}.segments", f"expected [n_u, n_v], found {m['segments']!r}")
-        segments = (w.integer(seg[0], f"{key}.segments", high=4096), w.integer(seg[1], f"{key}.segments", high=4096))
-        least = MIN_SEGMENTS[primitive]
-        if segments[0] < least[0] or segments[1] < least[1]:
-            raise w.error(f"{key}.segments", f"expected at least {list(least)} for a {primitive}, found "
-                          f"{list(segments)}", f"fewer segments cannot make a closed {primitive}")
+    return size, radius, major, minor, _parse_segments(w, key, m, primitive)
+
+
+def _parse_segments(w: _Where, key: str, m: Mapping[str, Any], primitive: str | None):
+    if "segments" not in m:
+        return None
+    if primitive == "cube":
+        raise w.error(f"{key}.segments", "does not apply to a cube",
+                      "a cube is six flat faces of one quad each; remove 'segments'")
+    seg = m["segments"]
+    seg = [seg, seg] if isinstance(seg, int) and not isinstance(seg, bool) else seg
+    if not (isinstance(seg, list) and len(seg) == 2):
+        raise w.error(f"{key}.segments", f"expected [n_u, n_v], found {m['segments']!r}")
+    segments = (w.integer(seg[0], f"{key}.segments", high=4096), w.integer(seg[1], f"{key}.segments", high=4096))
+    least = MIN_SEGMENTS[primitive]
+    if segments[0] < least[0] or segments[1] < least[1]:
+        raise w.error(f"{key}.segments", f"expected at least {list(least)} for a {primitive}, found "
+                      f"{list(segments)}", f"fewer segments cannot make a closed {primitive}")
+    return segments
+
+
+def _parse_transform(w: _Where, key: str, m: Mapping[str, Any]):
+    """Position, rotation (degrees) and non-zero scale factors."""
     position = w.vector(m.get("position", [0, 0, 0]), f"{key}.position")
     rotate = w.vector(m.get("rotate", [0, 0, 0]), f"{key}.rotate")
     scale_raw = m.get("scale", 1.0)
@@ -409,6 +428,11 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
         scale_raw, bool) else w.vector(scale_raw, f"{key}.scale")
     if min(abs(s) for s in scale) < 1e-12:
         raise w.error(f"{key}.scale", f"expected non-zero scale factors, found {scale_raw!r}")
+    return position, rotate, scale
+
+
+def _parse_binding(w: _Where, key: str, m: Mapping[str, Any]):
+    """The material the mesh binds (a port name) with its texture coordinates, or the plain colour of none."""
     material = m.get("material")
     if material is not None:
         if not isinstance(material, str) or not PORT_NAME.match(material):
@@ -431,9 +455,7 @@ def _parse_mesh(w: _Where, name: str, raw: Any, base_dir: Path, check_files: boo
     if "color" in m and material is not None:
         raise w.error(f"{key}.color", "a mesh has either a material or a plain colour, not both")
     color = w.colour(m.get("color", [0.6, 0.6, 0.6]), f"{key}.color")
-    tiles = _parse_tiles(w, key, m, uv_scale, coord_map)
-    return MeshSpec(name, primitive, file, size, radius, major, minor, segments, position, rotate, scale, material,
-                    uv_scale, uv_offset, wrap, coord_map, color, tiles)
+    return material, uv_scale, uv_offset, wrap, coord_map, color
 
 
 def _parse_tiles(w: _Where, key: str, m: Mapping[str, Any], uv_scale: tuple[float, float], coord_map: bool) -> bool:
@@ -566,7 +588,7 @@ class Scene(Buffer):
     arrays: dict
 
     def __post_init__(self):
-        object.__setattr__(self, "arrays", {k: frozen(np.asarray(v)) for k, v in self.arrays.items()})
+        freeze_fields(self, arrays={k: np.asarray(v) for k, v in self.arrays.items()})
 
     def payload(self):
         names = sorted(self.arrays)
@@ -584,49 +606,3 @@ class Scene(Buffer):
     def file_arrays(self, path: str) -> dict[str, np.ndarray]:
         prefix = f"{path}|"
         return {k[len(prefix):]: v for k, v in self.arrays.items() if k.startswith(prefix)}
-
-
-def load_scene(value: Any, paths) -> Scene:
-    """Parse and check a scene (file path or mapping) and read every file it names into a :class:`Scene`."""
-    from .envmap import read_environment
-    from .geometry import read_mesh_file
-
-    data, source, base = read_scene_source(value, paths)
-    spec = parse_scene(data, source, base)
-    raw = _absolute(data, spec)
-    arrays: dict[str, np.ndarray] = {}
-    for mesh in spec.meshes:
-        if mesh.file and f"{mesh.file}|positions" not in arrays:
-            content = read_mesh_file(mesh.file, where=f"scene {source}, meshes.{mesh.name}.file")
-            arrays.update({f"{mesh.file}|{k}": v for k, v in content.items()})
-    for light in spec.lights:
-        if light.file:
-            arrays[f"{light.file}|pixels"] = read_environment(light.file, f"scene {source}, lights[{light.index}].file")
-    scene = Scene(raw, source, arrays)
-    check_scene_geometry(scene, spec)
-    return scene
-
-
-def check_scene_geometry(scene: Scene, spec: SceneSpec) -> None:
-    """Checks that need the meshes: UVs where a texture is bound, point lights inside closed meshes.
-
-    Meshes are built (the renderer builds its own) only for a scene with point lights, the one check that needs them.
-    """
-    from .geometry import build_mesh, point_inside
-
-    w = _Where(spec.source)
-    for mesh in spec.meshes:
-        if mesh.file and mesh.material and scene.file_arrays(mesh.file)["corner_uv"].shape[0] == 0:
-            raise w.error(f"meshes.{mesh.name}", f"binds material '{mesh.material}' but its mesh file has no UV "
-                          f"coordinates: {Path(mesh.file).name}",
-                          "export the mesh with texture coordinates (OBJ 'vt', PLY vertex u/v or s/t), or give it "
-                          "a plain 'color' instead of a material")
-    point_lights = [light for light in spec.lights if light.kind == "point"]
-    built = {mesh.name: build_mesh(mesh, scene) for mesh in spec.meshes} if point_lights else {}
-    for light in point_lights:
-        for mesh in spec.meshes:
-            b = built[mesh.name]
-            if b.closed and point_inside(b, np.asarray(light.position)):
-                raise w.error(f"lights[{light.index}].position",
-                              f"point light at {list(light.position)} is inside the closed mesh '{mesh.name}'",
-                              "it would light only the inside; move the light out of the mesh")

@@ -32,12 +32,12 @@ def light_file_precheck(params, paths):
 
 
 @declare_stage(
-    "stack.read",
+    "stackio.read", deprecated_names=("stack.read",),
     outputs={"stack": "SampleStack"},
     params=[
         Param("path", "path", REQUIRED, "the capture: a .lp light file (filename x y z per line after the count), "
               "a .lvp light-and-view file (filename lx ly lz vx vy vz), a UBO-style BTF folder or UBO2003 zip whose "
-              "image names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi}), or a store made by stack.import"),
+              "image names carry the angles (tl{theta}_pl{phi}_tv{theta}_pv{phi}), or a store made by stackio.import"),
         Param("transfer", "choice", "auto", "how pixel values map to radiance: auto (8-bit images are sRGB, "
               "16-bit and float are linear), srgb or linear", choices=("auto", "srgb", "linear")),
     ],
@@ -50,7 +50,7 @@ def stack_read(ctx, *, path, transfer):
 
     Light directions are normalised; one a hair below the horizon (within 1 degree) is clamped with a warning;
     a bad count, a missing image, or images of different sizes are reported by line.  8-bit captures stay
-    8-bit in memory (decoded to linear on use), a quarter of the float size.  A store made by ``stack.import``
+    8-bit in memory (decoded to linear on use), a quarter of the float size.  A store made by ``stackio.import``
     is opened lazily: its samples are read band by band as stages need them.
 
     When every node reading the stack runs per texel (``ptm.fit``, ``sh.fit``, ``lafortune.fit`` ...), the
@@ -81,7 +81,7 @@ def stack_read(ctx, *, path, transfer):
 
 
 @declare_stage(
-    "stack.write",
+    "stackio.write", deprecated_names=("stack.write",),
     inputs={"stack": "SampleStack"},
     params=[
         Param("dir", "outpath", REQUIRED, "folder for the images and their light file (relative to --out)"),
@@ -102,7 +102,7 @@ def stack_write(ctx, stack, *, dir, format, half):
 
 
 @declare_stage(
-    "stack.contact_sheet",
+    "stackio.contact_sheet", deprecated_names=("stack.contact_sheet",),
     inputs={"stack": "SampleStack", "beside": "SampleStack"},
     optional_inputs=("beside",),
     params=[
@@ -119,12 +119,12 @@ def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure, sides):
     Each tile is labelled with its light (elevation and azimuth in degrees).  With a second stack wired to
     ``beside`` (e.g. the measured images at the same lights), each tile shows the two side by side: ``stack``
     left, ``beside`` right, as the header says (``sides`` names them), and each label adds the tile's PSNR
-    (display values for 8-bit captures, as ``stack.compare`` measures).
+    (display values for 8-bit captures, as ``relight.compare`` measures).
     """
     from btforge.plot import labelled_grid, light_label
-    from btforge.plugins.relight import compare_stacks
+    from .compare import compare_stacks
     if beside is not None and beside.samples.shape[:4] != stack.samples.shape[:4]:
-        raise BtforgeInputError("stack.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
+        raise BtforgeInputError("stackio.contact_sheet 'beside'", f"expected the shape of 'stack' {stack.samples.shape[:4]}, "
                                 f"found {beside.samples.shape[:4]}")
     n = stack.n_view * stack.n_light
     tiles, labels = [], []
@@ -148,7 +148,7 @@ def contact_sheet(ctx, stack, beside=None, *, path, columns, exposure, sides):
 
 
 @declare_stage(
-    "stack.split",
+    "stackio.split", deprecated_names=("stack.split",),
     inputs={"stack": "SampleStack"},
     outputs={"fit": "SampleStack", "test": "SampleStack"},
     params=[Param("every", "int", 5, "hold out every N-th light (the 1st, (N+1)-th, ...) as the test set", low=2)],
@@ -158,7 +158,7 @@ def stack_split(ctx, stack, *, every):
     held = np.zeros(stack.n_light, bool)
     held[::every] = True
     if held.sum() == 0 or (~held).sum() == 0:
-        raise BtforgeInputError("stack.split", f"expected lights on both sides of the split, found {stack.n_light} lights",
+        raise BtforgeInputError("stackio.split", f"expected lights on both sides of the split, found {stack.n_light} lights",
                                 "use a smaller 'every'")
 
     def part(mask):
@@ -173,7 +173,7 @@ def stack_split(ctx, stack, *, every):
 
 
 @declare_stage(
-    "stack.import",
+    "stackio.import", deprecated_names=("stack.import",),
     outputs={"stack": "SampleStack"},
     params=[
         Param("path", "path", REQUIRED, "the capture: a .lp/.lvp light file, a Bonn UBO2003 BTF as a zip archive "
@@ -183,21 +183,21 @@ def stack_split(ctx, stack, *, every):
               "land under --out); an existing store there is replaced"),
         Param("block", "ints", (32, 32), "texels per chunk [rows, columns]: each chunk holds all samples of one "
               "block", length=2, low=1, high=4096),
-        Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stack.read",
+        Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stackio.read",
               choices=("auto", "srgb", "linear")),
     ],
     precheck=light_file_precheck,
     side_effects=True,
 )
 def stack_import(ctx, *, path, store, block, transfer):
-    """Convert a capture once into a chunked, compressed store (zarr v3) that stack.read opens later.
+    """Convert a capture once into a chunked, compressed store (zarr v3) that stackio.read opens later.
 
     Every chunk holds all samples (views x lights x channels) of a block of texels, as per-texel fits need
     them, Zstandard-compressed.  Images decode in parallel a batch at a time into a temporary file beside the
     store, which is then rewritten band by band into chunks: memory stays at a batch plus a band.  A UBO2014
     ``.btf`` (DFMF) is decoded chunk by chunk from its memory-mapped factors into linear float32 radiance (a
     chunk is views x lights x block x 3 floats: 151 x 151 directions and [16, 16] texels make 70 MB).  The output
-    is the stack read lazily from the store (as ``stack.read`` of the store gives it).  ``btforge info
+    is the stack read lazily from the store (as ``stackio.read`` of the store gives it).  ``btforge info
     NAME.zarr`` describes a store.
     """
     from btforge.store import open_stored_stack
@@ -219,7 +219,7 @@ def _selection_precheck(params, paths):
 
 
 @declare_stage(
-    "stack.select",
+    "stackio.select", deprecated_names=("stack.select",),
     inputs={"stack": "SampleStack"},
     outputs={"stack": "SampleStack"},
     params=[
@@ -241,7 +241,7 @@ def stack_select(ctx, stack, *, views, lights):
     """
     from .select import check_selection, select
     for name, value in (("views", views), ("lights", lights)):
-        check_selection(value, f"stack.select '{name}'")
+        check_selection(value, f"stackio.select '{name}'")
     picked = select(stack, views, lights)
     ctx.note("views", picked.n_view)
     ctx.note("lights", picked.n_light)

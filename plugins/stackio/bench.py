@@ -12,10 +12,10 @@ import numpy as np
 MAKE = "nodes:\n  btf: {{stage: demo.btf, params: {{size: [{size}, {size}], lights: {lights}, views: {views}, " \
        "store: {store}, block: [8, 8]}}}}\n"
 # An explicit space and smoothness: `auto` judges them on a sample of all texels, which no single dask task sees.
-FIT = "nodes:\n  read: {{stage: stack.read, params: {{path: {store}}}}}\n" \
+FIT = "nodes:\n  read: {{stage: stackio.read, params: {{path: {store}}}}}\n" \
       "  fit: {{stage: sh.fit, params: {{light_order: {order}, view_order: {order}, space: srgb, smoothness: 0}}, " \
       "inputs: {{stack: read.stack}}}}\n" \
-      "  save: {{stage: model.write, params: {{path: sh.btfm}}, inputs: {{model: fit.model}}}}\n"
+      "  save: {{stage: models.write, params: {{path: sh.btfm}}, inputs: {{model: fit.model}}}}\n"
 
 
 def _node_seconds(report: Path, node: str) -> float:
@@ -35,7 +35,7 @@ def bench_btf_store(args: list[str]) -> int:
     """A synthetic BTF into a store (demo.btf), then double SH from it: whole-process time, CPU and peak memory."""
     from btforge.bench import fresh_run, write_json
     parser = argparse.ArgumentParser(prog="btforge bench btf-store")
-    parser.add_argument("--size", type=int, default=256, help="texels per side (default 256; the issue's 128 too)")
+    parser.add_argument("--size", type=int, default=256, help="texels per side (default 256; 128 for a quicker run)")
     parser.add_argument("--lights", type=int, default=81)
     parser.add_argument("--views", type=int, default=81)
     parser.add_argument("--order", type=int, default=5, help="SH order over light and view (5: 25 x 25 coefficients)")

@@ -1,4 +1,4 @@
-"""Converting a capture once into a chunked store (``stack.import``), and reading a store back as a stack.
+"""Converting a capture once into a chunked store (``stackio.import``), and reading a store back as a stack.
 
 Every chunk of a store holds all samples of a block of texels, while a capture arrives one image at a time.
 The import therefore decodes the images (in parallel, a batch at a time) into a temporary raw file beside the
@@ -78,7 +78,7 @@ def import_dfmf(path: str | os.PathLike, store: str | os.PathLike, *, block: tup
 
 
 def load_dfmf_stack(path: str | os.PathLike) -> SampleStack:
-    """A UBO2014 ``.btf`` file (DFMF) decoded whole into memory (``stack.import`` streams it into a store)."""
+    """A UBO2014 ``.btf`` file (DFMF) decoded whole into memory (``stackio.import`` streams it into a store)."""
     from .ubo2014 import read_dfmf
     btf = read_dfmf(path)
     return SampleStack(btf.decode(), btf.lights, btf.views, btf.channels, "linear")

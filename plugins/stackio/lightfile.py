@@ -284,67 +284,80 @@ def read_light_file(path: str | os.PathLike, *, require_images: bool = True) -> 
     """
     path_text = str(path)
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise BtforgeInputError(path_text, "light file not found", "check the path (it is relative to the "
-                                "current directory unless absolute)") from None
-    except OSError as exc:
-        raise BtforgeInputError(path_text, f"cannot read the light file: {exc.strerror or exc}") from None
-
-    is_lvp = path.suffix.lower() == ".lvp"
-    n_numbers = 6 if is_lvp else 3
-    kind = ".lvp" if is_lvp else ".lp"
-
-    count: int | None = None
-    count_line = 0
-    entries: list[LightFileEntry] = []
-    problems: list[BtforgeInputError] = []  # every bad row, the count and missing images: reported together
-    for number, text in enumerate(_decode(raw).splitlines(), start=1):
-        text = text.strip()
-        if not text or text.startswith("#"):
-            continue
-        what = f"{path_text}, line {number}"
-        if count is None:
-            if not re.fullmatch(r"\d+", text):
-                raise BtforgeInputError(what, f"expected the number of images, found {text[:60]!r}",
-                                        f"the first line of a {kind} file is the image count, e.g. '72'")
-            count, count_line = int(text), number
-            continue
-        try:
-            name, numbers = _parse_row(text, n_numbers, what, kind)
-            light = _checked_direction(numbers[:3], what, "light")
-            view = _checked_direction(numbers[3:], what, "view") if is_lvp else None
-        except BtforgeInputError as exc:
-            problems.append(exc)
-            entries.append(LightFileEntry(number, "", (0.0, 0.0, 1.0), None))  # a row all the same, for the count
-            continue
-        entries.append(LightFileEntry(number, name, light, view))
-
-    if count is None:
-        raise BtforgeInputError(path_text, "expected the number of images on the first line, found an empty file",
-                                f"a {kind} file is a count, then one row per image")
-    count_what = f"{path_text}, line {count_line}"
-    if count == 0:
-        problems.insert(0, BtforgeInputError(count_what, "expected at least one image, found a count of 0"))
-    elif count != len(entries):
-        if count > len(entries):
-            problem = f"the count says {count} images, but {len(entries)} rows follow"
-        else:
-            problem = (f"the count says {count} images, but {len(entries)} rows follow "
-                       f"(the first extra row is line {entries[count].line})")
-        problems.insert(0, BtforgeInputError(count_what, problem, "fix the count or the rows; btforge never "
-                                             "guesses which light belongs to which image"))
+    kind = ".lvp" if path.suffix.lower() == ".lvp" else ".lp"
+    count, count_line, entries, problems = _read_rows(path_text, _decode(_read_bytes(path, path_text)), kind)
+    count_problem = _count_problem(path_text, count, count_line, entries)
+    if count_problem is not None:
+        problems.insert(0, count_problem)
     bad_rows = {p.what for p in problems}
     entries = [e for e in entries if f"{path_text}, line {e.line}" not in bad_rows]
     if require_images:
         problems += _missing_images(path, path_text, entries)
     if len(problems) == 1:
         raise problems[0]
-    if problems:
+    if problems:  # every bad row, the count and missing images: reported together
         raise BtforgeInputError(path_text, f"{len(problems)} problems:\n  - " + "\n  - ".join(
             p.one_line() for p in problems))
     return entries
+
+
+def _read_bytes(path: Path, path_text: str) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise BtforgeInputError(path_text, "light file not found", "check the path (it is relative to the "
+                                "current directory unless absolute)") from None
+    except OSError as exc:
+        raise BtforgeInputError(path_text, f"cannot read the light file: {exc.strerror or exc}") from None
+
+
+def _read_rows(path_text: str, text: str, kind: str) -> tuple[int, int, list[LightFileEntry], list[BtforgeInputError]]:
+    """The count (and its line), one entry per row (a placeholder for a bad row, so the count still compares)
+    and the problems of the bad rows.  Blank and ``#`` lines are skipped; a ``.lvp`` row adds a view direction."""
+    is_lvp = kind == ".lvp"
+    count: int | None = None
+    count_line = 0
+    entries: list[LightFileEntry] = []
+    problems: list[BtforgeInputError] = []
+    for number, row in enumerate(text.splitlines(), start=1):
+        row = row.strip()
+        if not row or row.startswith("#"):
+            continue
+        what = f"{path_text}, line {number}"
+        if count is None:
+            if not re.fullmatch(r"\d+", row):
+                raise BtforgeInputError(what, f"expected the number of images, found {row[:60]!r}",
+                                        f"the first line of a {kind} file is the image count, e.g. '72'")
+            count, count_line = int(row), number
+            continue
+        try:
+            name, numbers = _parse_row(row, 6 if is_lvp else 3, what, kind)
+            light = _checked_direction(numbers[:3], what, "light")
+            view = _checked_direction(numbers[3:], what, "view") if is_lvp else None
+        except BtforgeInputError as exc:
+            problems.append(exc)
+            entries.append(LightFileEntry(number, "", (0.0, 0.0, 1.0), None))
+            continue
+        entries.append(LightFileEntry(number, name, light, view))
+    if count is None:
+        raise BtforgeInputError(path_text, "expected the number of images on the first line, found an empty file",
+                                f"a {kind} file is a count, then one row per image")
+    return count, count_line, entries, problems
+
+
+def _count_problem(path_text: str, count: int, count_line: int,
+                   entries: list[LightFileEntry]) -> BtforgeInputError | None:
+    """What is wrong with the count on the first line, given the rows that follow (None: nothing)."""
+    count_what = f"{path_text}, line {count_line}"
+    if count == 0:
+        return BtforgeInputError(count_what, "expected at least one image, found a count of 0")
+    if count == len(entries):
+        return None
+    problem = f"the count says {count} images, but {len(entries)} rows follow"
+    if count < len(entries):
+        problem += f" (the first extra row is line {entries[count].line})"
+    return BtforgeInputError(count_what, problem, "fix the count or the rows; btforge never guesses which light "
+                             "belongs to which image")
 
 
 def _missing_images(path: Path, path_text: str, entries: Iterable[LightFileEntry]) -> list[BtforgeInputError]:

@@ -78,11 +78,11 @@ def resolve(items: Sequence[int | str], directions: np.ndarray, names: Sequence[
             problems.append(f"no {role} is named {item!r} (names look like {', '.join(map(repr, known))}"
                             f"{', ...' if count > 3 else ''})")
     if problems:
-        raise BtforgeInputError(f"stack.select '{role}s'", "; ".join(problems),
+        raise BtforgeInputError(f"stackio.select '{role}s'", "; ".join(problems),
                                 f"indices are 0-based; names are image names or angles like "
                                 f"{'tl45_pl120' if role == 'light' else 'tv30_pv90'} (degrees)")
     if len(set(indices)) != len(indices):
-        raise BtforgeInputError(f"stack.select '{role}s'", f"selects the same {role} twice: {indices}",
+        raise BtforgeInputError(f"stackio.select '{role}s'", f"selects the same {role} twice: {indices}",
                                 f"list every {role} once")
     return indices
 

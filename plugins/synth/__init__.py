@@ -1,7 +1,7 @@
 """Texture synthesis of reflectance functions: every synthesizer outputs a coordinate map into the exemplar.
 
 ``materialize`` replays a map on any per-texel buffer (a stack, a PTM, Lafortune or SH model), so one synthesis
-serves every representation, and ``coords.write`` saves a map (blends included) as an EXR image.
+serves every representation, and ``synth.write_coords`` saves a map (blends included) as an EXR image.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from . import jumpmap, kcoherence, quilting, scoring
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
-@declare_stage("materialize", inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "=source"})
+@declare_stage("synth.materialize", deprecated_names=("materialize",), inputs={"coords": "CoordMap", "source": "PerTexel"}, outputs={"output": "=source"})
 def materialize(ctx, coords, source):
     """Apply a coordinate map to any per-texel buffer; the output has the type of ``source``.
 
@@ -28,7 +28,7 @@ def materialize(ctx, coords, source):
     return {"output": out}
 
 
-@declare_stage("crop", inputs={"input": "PerTexel"}, outputs={"output": "=input"},
+@declare_stage("synth.crop", deprecated_names=("crop",), inputs={"input": "PerTexel"}, outputs={"output": "=input"},
                params=[Param("origin", "ints", (0, 0), "top-left texel [row, column]", length=2, low=0),
                        Param("size", "ints", REQUIRED, "size [H, W] of the crop", length=2, low=1)])
 def crop(ctx, input, *, origin, size):
@@ -42,7 +42,7 @@ def crop(ctx, input, *, origin, size):
     return {"output": input.remap(rows, cols)}
 
 
-@declare_stage("coords.write", inputs={"coords": "CoordMap"},
+@declare_stage("synth.write_coords", deprecated_names=("coords.write",), inputs={"coords": "CoordMap"},
                params=[Param("path", "outpath", REQUIRED, "the .exr file to write (relative to --out)")],
                side_effects=True)
 def coords_write(ctx, coords, *, path):

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from btforge.backend import get_backend
-from btforge.buffers import PerTexel
+from btforge.buffers import PerTexel, central_crop
 
 from . import visibility
 from .features import texel_features
@@ -62,13 +62,6 @@ def exemplar_model(path: str, crop: int):
     return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
 
 
-def central_crop(buffer, crop: int):
-    """The central ``crop`` x ``crop`` texels of any per-texel buffer (all of it where it is smaller)."""
-    from btforge import stage
-    h, w = min(crop, buffer.height), min(crop, buffer.width)
-    return stage("crop")(input=buffer, origin=[(buffer.height - h) // 2, (buffer.width - w) // 2], size=[h, w])["output"]
-
-
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int | None = None,
                     seed: int = 0):
     """The shuffled-block baseline of ``score`` (:func:`.visibility.shuffled_blocks`), by default with its
@@ -85,8 +78,8 @@ def synthesizers() -> dict:
 
 def score_map(model, coords, lights) -> dict:
     from btforge import stage
-    output = stage("materialize")(coords=coords, source=model)["output"]
-    values = stage("score")(output=output, exemplar=model, coords=coords, lights=lights)["scores"].values
+    output = stage("synth.materialize")(coords=coords, source=model)["output"]
+    values = stage("synth.score")(output=output, exemplar=model, coords=coords, lights=lights)["scores"].values
     return {k: values.get(k) for k in SCORE_KEYS}
 
 
@@ -171,7 +164,9 @@ def bench_synthesis(args: list[str]) -> int:
     from .features import probe_lights
     opts = _parser().parse_args(args)
     lights = [list(map(float, light)) for light in probe_lights(opts.lights)]
-    chosen = {n: st for n, st in synthesizers().items() if not opts.only or n in opts.only}
+    from btforge.registry import default_registry
+    only = {default_registry().aliases.get(n, n) for n in opts.only or ()}  # old stage names still select
+    chosen = {n: st for n, st in synthesizers().items() if not only or n in only}
     target = Path(opts.out)
     rows, search_rows = [], []
     for crop in opts.sizes:

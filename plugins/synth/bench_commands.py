@@ -40,8 +40,8 @@ def bench_kcoherence(argv: list[str]) -> int:
     p.add_argument("--recall", type=int, default=0, metavar="N",
                    help="also measure the finest coherence sets against the exact search at N texels")
     p.add_argument("--blocks", type=int, default=0, metavar="N",
-                   help="the stage's 'blocks': 0 (default) times the hierarchical synthesis over 3 levels, the "
-                        "issue's configuration; -1 (the stage's default) starts from stratified blocks")
+                   help="the stage's 'blocks': 0 (default) times the hierarchical synthesis over 3 levels, as "
+                        "in Tong et al.; -1 (the stage's default) starts from stratified blocks")
     p.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     args = p.parse_args(argv)
     print_figures(benchmark_kcoherence(args.exemplar_size, repeat=args.repeat, search=args.search,

@@ -300,7 +300,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 
 @declare_synthesizer(
-    "jumpmap",
+    "synth.jumpmap", deprecated_names=("jumpmap",),
     version="7",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[

@@ -457,7 +457,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
 
 
 @declare_synthesizer(
-    "kcoherence",
+    "synth.kcoherence", deprecated_names=("kcoherence",),
     version="7",  # 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[

@@ -258,7 +258,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 
 @declare_synthesizer(
-    "quilt",
+    "synth.quilt", deprecated_names=("quilt",),
     version="2",  # 2: the shared refinement
     params=[
         Param("block", "int", 32, "block side in texels", low=3),

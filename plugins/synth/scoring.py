@@ -17,7 +17,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from btforge import Param, declare_stage
-from btforge.buffers import (SRGB8_TO_LINEAR, CoordMap, PerTexel, ReflectanceModel, SampleStack, Scores,
+from btforge.buffers import (SRGB8_TO_LINEAR, CoordMap, PerTexel, ReflectanceModel, SampleStack, Scores, capability,
                              unit_directions)
 from btforge.errors import BtforgeInputError
 
@@ -555,7 +555,7 @@ def _seam_masks(h: int, w: int, block: int, coords: CoordMap | None) -> tuple[np
 
 
 @declare_stage(
-    "score",
+    "synth.score", deprecated_names=("score",),
     inputs={"output": "PerTexel", "exemplar": "PerTexel", "coords": "CoordMap", "tiles": "Buffer"},
     optional_inputs=("output", "coords", "tiles"),
     outputs={"scores": "Scores"},
@@ -692,7 +692,8 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
 
     Everything is also noted in the run report, with the lights, the domain and how each figure was found.
     """
-    layout = tiles.seam_scores(exemplar, coords) if tiles is not None else {}
+    layout = capability(tiles, "seam_scores", "seam scores: it is not a set of pieces that textures are laid out "
+                        "from", "wire a tile set to 'tiles'")(exemplar, coords) if tiles is not None else {}
     if output is None:
         if tiles is None:
             raise BtforgeInputError("score", "expected 'output' (a synthesized texture) or 'tiles' (a tile set) "

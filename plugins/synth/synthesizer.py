@@ -68,12 +68,13 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, seed: int)
 
 
 def declare_synthesizer(name: str, *, params: Sequence[Param] = (), version: str = "1",
-                        seed_doc: str | None = None) -> Callable:
+                        seed_doc: str | None = None, deprecated_names: Sequence[str] = ()) -> Callable:
     """:func:`~btforge.declare_stage` for a synthesizer: ``exemplar`` (PerTexel) in, ``coords`` (CoordMap) out,
     the :func:`shared_params` first, then ``params``, and ``role="synthesizer"``."""
     shared = shared_params(**({"seed_doc": seed_doc} if seed_doc else {}))
     return declare_stage(name, inputs={"exemplar": "PerTexel"}, outputs={"coords": "CoordMap"},
-                         params=[*shared, *params], version=version, role="synthesizer")
+                         params=[*shared, *params], version=version, role="synthesizer",
+                         deprecated_names=deprecated_names)
 
 
 def check_params(stage: str, exemplar_size: tuple[int, int], *, size, neighborhood: int, k: int | None = None,

@@ -2,7 +2,7 @@
 stochastic tilings of planes and of meshes' UV grids.
 
 Stages: ``wang.tiles`` (exemplar -> ``TileSet``), ``wang.tiling`` (``TileSet`` -> ``CoordMap`` of a plane tiling,
-replayed by ``materialize`` and ``render``'s ``coord_map``), ``tiles.write`` / ``tiles.read`` (the ``.wang``
+replayed by ``materialize`` and ``render``'s ``coord_map``), ``wang.write_tiles`` / ``wang.read_tiles`` (the ``.wang``
 archive, see :mod:`.tileset`).  ``score`` measures a ``TileSet`` wired to its ``tiles`` port through
 :meth:`TileSet.seam_scores` (seam ratios over every valid adjacency and 2 x 2 configuration, colour mismatches
 and tile use of a tiling).  The renderer dresses meshes with a ``TileSet`` directly (scene key
@@ -122,13 +122,13 @@ def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
     return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic, tile=tiles.tile)}
 
 
-@declare_stage("tiles.write", inputs={"tiles": "TileSet"},
+@declare_stage("wang.write_tiles", deprecated_names=("tiles.write",), inputs={"tiles": "TileSet"},
                params=[Param("path", "outpath", REQUIRED, "the .wang archive to write (relative to --out)")],
                side_effects=True)
 def tiles_write(ctx, tiles, *, path):
     """Write a tile set losslessly: a ZIP of manifest.json and .npy arrays (format in README, Wang tiles)."""
     if not str(path).endswith(".wang"):
-        raise BtforgeInputError("tiles.write 'path'", f"expected a .wang file, found {path!r}", "name it NAME.wang")
+        raise BtforgeInputError("wang.write_tiles 'path'", f"expected a .wang file, found {path!r}", "name it NAME.wang")
     tiles.write(ctx.paths.output(path))
     return {}
 
@@ -140,18 +140,18 @@ def _read_precheck(params, paths):
     return []
 
 
-@declare_stage("tiles.read", outputs={"tiles": "TileSet"},
-               params=[Param("path", "path", REQUIRED, "a .wang archive written by tiles.write")],
+@declare_stage("wang.read_tiles", deprecated_names=("tiles.read",), outputs={"tiles": "TileSet"},
+               params=[Param("path", "path", REQUIRED, "a .wang archive written by wang.write_tiles")],
                precheck=_read_precheck)
 def tiles_read(ctx, *, path):
-    """Read a tile set written by ``tiles.write``."""
+    """Read a tile set written by ``wang.write_tiles``."""
     from .tileset import read_tile_set
     tiles = read_tile_set(ctx.paths.input(path))
     ctx.note("btfels", tiles.statistics())
     return {"tiles": tiles}
 
 
-@declare_stage("tiles.sheet", inputs={"tiles": "TileSet", "exemplar": "PerTexel"},
+@declare_stage("wang.sheet", deprecated_names=("tiles.sheet",), inputs={"tiles": "TileSet", "exemplar": "PerTexel"},
                params=[Param("path", "outpath", REQUIRED, "the .png file to write (relative to --out)"),
                        Param("light", "lights", ((0.0, 0.0, 1.0),), "the one light [[x, y, z]] the tiles are shown at"),
                        Param("columns", "int", 0, "tiles per row (0: a square layout)", low=0, high=4096)],
@@ -169,9 +169,9 @@ def tiles_sheet(ctx, tiles, exemplar, *, path, light, columns):
 
     from .sheet import tile_sheet
     if isinstance(light, str) or len(light) != 1:
-        raise BtforgeInputError("tiles.sheet 'light'", f"expected one light [[x, y, z]], found {light!r}")
+        raise BtforgeInputError("wang.sheet 'light'", f"expected one light [[x, y, z]], found {light!r}")
     if (exemplar.height, exemplar.width) != tiles.source_size:
-        raise BtforgeInputError("tiles.sheet 'exemplar'", f"expected the {tiles.source_size[0]} x "
+        raise BtforgeInputError("wang.sheet 'exemplar'", f"expected the {tiles.source_size[0]} x "
                                 f"{tiles.source_size[1]} exemplar of the tile set, found {exemplar.height} x "
                                 f"{exemplar.width}", "wire the buffer the tile set was synthesized from")
     pixels = tile_sheet(tiles, exemplar, np.asarray(light[0], np.float64), columns)

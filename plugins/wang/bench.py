@@ -22,7 +22,7 @@ def capture_exemplar(path: str, size: int, origin=(150, 100)):
     from btforge.context import StageContext
     from btforge.registry import default_registry
     registry = default_registry()
-    stack = registry.stage("stack.read")(ctx=StageContext(node="read"), path=path)["stack"]
+    stack = registry.stage("stackio.read")(ctx=StageContext(node="read"), path=path)["stack"]
     rows, cols = np.meshgrid(np.arange(origin[0], origin[0] + size), np.arange(origin[1], origin[1] + size),
                              indexing="ij")
     crop = stack.remap(rows, cols)

@@ -89,7 +89,8 @@ def tile_set_seams(tile_coords: np.ndarray, colors: np.ndarray, feats: np.ndarra
                 ("corner_v", corner_v, (1, 0), tile_coords[tr, -1, :q], tile_coords[br, 0, :q])):
             out.append(_distances(feats, x, y))
             local[name].append(_local_reference(feats, x, y, step))
-    flat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)
+    def flat(parts):
+        return np.concatenate(parts) if parts else np.zeros(0)
     return {"h": d_h.ravel(), "v": d_v.ravel(), "corner_h": flat(corner_h), "corner_v": flat(corner_v),
             "local": {k: flat(v) for k, v in local.items()}, "edges": edges,
             "configurations": len(quads), "adjacencies": len(horizontal) + len(vertical)}

@@ -39,11 +39,16 @@ def tile_sheet(tiles, exemplar, light, columns: int = 0, gap: int = 0) -> np.nda
     cell = w + 2 * bar + gap
     out = np.full((rows * cell + gap, columns * cell + gap, 3), 255, np.uint8)
     coords = tiles.tile_coords
+
+    def h_colour(c):
+        return PALETTE[c % len(PALETTE)]
+
+    def v_colour(c):
+        return PALETTE[(tiles.colors_h + c) % len(PALETTE)]
+
     for t in range(n):
         y0, x0 = gap + (t // columns) * cell, gap + (t % columns) * cell
         north, east, south, west = tiles.tile_colors[t]
-        h_colour = lambda c: PALETTE[c % len(PALETTE)]
-        v_colour = lambda c: PALETTE[(tiles.colors_h + c) % len(PALETTE)]
         out[y0:y0 + bar, x0 + bar:x0 + bar + w] = h_colour(north)
         out[y0 + bar + w:y0 + 2 * bar + w, x0 + bar:x0 + bar + w] = h_colour(south)
         out[y0 + bar:y0 + bar + w, x0:x0 + bar] = v_colour(west)

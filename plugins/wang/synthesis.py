@@ -344,7 +344,6 @@ def quadrant_ties(q: int, vertex: tuple[int, int]) -> tuple[np.ndarray, np.ndarr
     horizontal[:, q - 1 - vc] = True
     vertical[:, vc] = True
     vertical[q - 1 - vr, :] = True
-    both = horizontal & vertical
     # The vertex texel goes to the vertical strip in all four quadrants, so along the vertical border it continues
     # one strip; the inner corner is left to the cut.
     horizontal[vr, vc] = False
@@ -442,7 +441,7 @@ class Corners:
         """The slot's differences with every sample it meets in a quadrant, plus, across the centre line it
         shares with the samples of the same orientation (``L``/``R``, ``T``/``B``), with those: at the vertex
         itself some pieces of different strips must touch."""
-        kind, colour = slot[0], int(slot[1:])
+        kind = slot[0]
         partner = {"L": "R", "R": "L", "T": "B", "B": "T"}[kind]
         y, x = positions[slot]
         c = self.q - CENTRE // 2

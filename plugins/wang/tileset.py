@@ -13,7 +13,7 @@ variants + k)`` is variant ``k`` of its combination.  ``edge_seams [T, 4]`` reco
 the mean seam distance across it to every tile that may sit there, over the exemplar's mean neighbouring-texel
 distance in that direction (1 = as smooth as the exemplar).
 
-**File format** (``tiles.write``, ``.wang``): a ZIP archive holding ``manifest.json`` and one ``.npy`` file per
+**File format** (``wang.write_tiles``, ``.wang``): a ZIP archive holding ``manifest.json`` and one ``.npy`` file per
 array (``table.npy`` int32 [B, 2], ``indices.npy`` int32 [T, w, w], ``tile_colors.npy`` int32 [T, 4],
 ``edge_seams.npy`` float32 [T, 4]).  The manifest: ``{"format": "btforge-wang-tiles", "version": 1,
 "colors_h", "colors_v", "variants", "tile", "edge", "source_size": [H, W], "texel_bytes", "tiles",
@@ -182,7 +182,7 @@ def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
         manifest = json.loads(archive.read("manifest.json").decode("utf-8"))
     except (zipfile.BadZipFile, KeyError, UnicodeDecodeError, json.JSONDecodeError, OSError) as exc:
         raise BtforgeInputError(str(path), f"is not a tile-set archive ({exc})",
-                                "write tile sets with tiles.write (a ZIP with manifest.json and .npy arrays)")
+                                "write tile sets with wang.write_tiles (a ZIP with manifest.json and .npy arrays)")
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         archive.close()
         raise BtforgeInputError(str(path), f"expected manifest format '{FORMAT}', found "
@@ -190,7 +190,7 @@ def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
     if manifest.get("version") != VERSION:
         archive.close()
         raise BtforgeInputError(str(path), f"expected format version {VERSION}, found {manifest.get('version')!r}",
-                                "rewrite it with this btforge's tiles.write")
+                                "rewrite it with this btforge's wang.write_tiles")
     return manifest, archive
 
 

@@ -14,7 +14,7 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 
 @declare_stage(
-    "model.export_web",
+    "web.export", deprecated_names=("model.export_web",),
     inputs={"model": "ReflectanceModel"},
     params=[
         Param("dir", "outpath", REQUIRED, "folder for info.json and the plane images (relative to --out)"),

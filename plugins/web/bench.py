@@ -30,7 +30,7 @@ def bench_web(args: list[str]) -> int:
     z = rng.uniform(0.2, 1.0, 16)
     phi = rng.uniform(0, 2 * np.pi, 16)
     lights = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
-    relight = btforge.stage("relight")
+    relight = btforge.stage("relight.images")
     a = linear_to_srgb(relight(model=model, lights=lights.tolist())["stack"].samples)
     b = linear_to_srgb(relight(model=again, lights=lights.tolist())["stack"].samples)
     psnr = 10 * np.log10(1.0 / max(float(np.mean((a - b) ** 2)), 1e-20))

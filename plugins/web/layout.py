@@ -74,7 +74,7 @@ def _model_planes(model) -> tuple[dict, np.ndarray]:
         linear = model.space == "linear"
     elif kind == "SHModel":
         if model.k_v != 1 or model.light_order > 3:
-            raise BtforgeInputError("model.export_web 'model'", f"expected SH of light order <= 3 and view order 1 "
+            raise BtforgeInputError("web.export 'model'", f"expected SH of light order <= 3 and view order 1 "
                                     f"(9 coefficients, as OpenLIME's sh basis), found light order "
                                     f"{model.light_order}, view order {model.view_order}",
                                     "fit with `light_order: 3` (and view_order 1) for the web")
@@ -90,10 +90,10 @@ def _model_planes(model) -> tuple[dict, np.ndarray]:
         info, planes = model.web_layout()
         linear = False
     else:
-        raise BtforgeInputError("model.export_web 'model'", f"expected a PTM, SH, HSH or light-table model, found "
+        raise BtforgeInputError("web.export 'model'", f"expected a PTM, SH, HSH or light-table model, found "
                                 f"{kind}", "fit ptm.fit, sh.fit (light_order 3), hsh.fit, rbf.fit or bilinear.fit")
     if len(model.channel_names) != 3:
-        raise BtforgeInputError("model.export_web 'model'", f"expected 3 colour channels, found "
+        raise BtforgeInputError("web.export 'model'", f"expected 3 colour channels, found "
                                 f"{len(model.channel_names)}")
     if linear:
         info["btforge"] = {"transfer": "linear"}
@@ -115,7 +115,7 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
     """Write ``info.json`` and ``plane_0 .. plane_{n-1}`` images; returns the files written."""
     from PIL import Image
     if image_format not in FORMATS:
-        raise BtforgeInputError("model.export_web 'format'", f"expected png or jpg, found {image_format!r}")
+        raise BtforgeInputError("web.export 'format'", f"expected png or jpg, found {image_format!r}")
     info, planes = _model_planes(model)
     material = info.pop("material", {})
     levels, scale, bias = quantize_planes(planes)
@@ -188,7 +188,7 @@ def read_info(path) -> dict:
         if info.get("format", "jpg") not in FORMATS:
             problems.append(f"'format' {info.get('format')!r} is not jpg or png")
     if problems:
-        raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or model.export_web)")
+        raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or web.export)")
     info["_folder"] = str(path.parent)
     return info
 

@@ -1,10 +1,11 @@
-"""Dressing meshes with a tile set: the renderer's lookup from a surface point to an exemplar texel.
+"""Dressing meshes with a Wang tile set (``tiles: true``): the renderer's lookup from a surface point to an
+exemplar texel.
 
 Each chart of a mesh's UV layout (the whole UV square of a plane, torus or sphere; each face of the cube) is
 divided into ``uv_scale`` cells per unit of UV, tiled once per render by :func:`tiling.mesh_tiling` (seed
 ``TILING_SEED``) so that colours match across every shared edge, cube faces and wraps included.  A sample at
 UV ``(u, v)`` in chart ``k`` reads the texel grid of ``nv * w`` rows and ``nu * w`` columns spanning the chart
-(texel centres as :func:`renderer.texel_corners` places them), and each texel goes tile index -> BTFel index ->
+(texel centres as :func:`lookup.texel_corners` places them), and each texel goes tile index -> BTFel index ->
 exemplar texel: the model is evaluated at the table's texels, so a surface costs the tile set, not a texture.
 Bilinear lookups that cross a cell border read the neighbouring cell's tile; on a chart's border they clamp
 (multi-chart meshes) or follow the mesh's ``wrap`` (one chart).
@@ -15,8 +16,10 @@ import numpy as np
 
 from btforge.errors import BtforgeInputError
 
-from .tileset import TileSet
-from .tiling import MeshTiling, mesh_tiling
+from btforge.plugins.wang.tileset import TileSet
+from btforge.plugins.wang.tiling import MeshTiling, mesh_tiling
+
+from .lookup import texel_corners
 
 TILING_SEED = 0
 
@@ -38,7 +41,6 @@ def tiling_of(built, mesh_index: int, tiles: TileSet) -> MeshTiling:
 def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, uv: np.ndarray):
     """``(rows, cols, weights)`` ``[4, N]`` of the exemplar texels around each sample (the renderer's bilinear
     corners), read through the mesh's tiling."""
-    from btforge.plugins.render.renderer import texel_corners
     mesh = built.meshes[mesh_index]
     tiling = tiling_of(built, mesh_index, tiles)
     nu, nv = cells_of(mesh.spec)
@@ -56,7 +58,7 @@ def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, 
 def check_tiles(name: str, model, tiles) -> None:
     if not isinstance(tiles, TileSet):
         raise BtforgeInputError(f"render, material '{name}'", f"a mesh sets tiles: true but no TileSet is wired to "
-                                f"'{name}_tiles'", f"wire a tile set (wang.tiles or tiles.read) to '{name}_tiles'")
+                                f"'{name}_tiles'", f"wire a tile set (wang.tiles or wang.read_tiles) to '{name}_tiles'")
     if (model.height, model.width) != tiles.source_size:
         raise BtforgeInputError(f"render, material '{name}'", f"the tile set indexes a {tiles.source_size[0]} x "
                                 f"{tiles.source_size[1]} exemplar, but the model is {model.height} x {model.width}",
