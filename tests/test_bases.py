@@ -193,8 +193,8 @@ def test_hard_light_sets_and_texels_give_finite_bounded_correct_models(stage, pa
 @pytest.mark.parametrize("stage,params", FITS)
 def test_model_files_round_trip_exactly(tmp_path, stage, params):
     model = fitted(stage, params)
-    btforge.stage("model.write")(model=model, path=str(tmp_path / "m.btfm"))
-    back = btforge.stage("model.read")(path=str(tmp_path / "m.btfm"))["model"]
+    btforge.stage("models.write")(model=model, path=str(tmp_path / "m.btfm"))
+    back = btforge.stage("models.read")(path=str(tmp_path / "m.btfm"))["model"]
     assert isinstance(back, LightTableModel) and back.content_key == model.content_key
     for name in ("coeffs", "table", "table_lights"):
         assert np.array_equal(getattr(back, name), getattr(model, name))
@@ -206,7 +206,7 @@ def test_model_files_round_trip_exactly(tmp_path, stage, params):
 def test_web_layout_round_trips_to_8_bits(tmp_path, stage, params):
     import json
     model = fitted(stage, params)
-    btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "web"))
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "web"))
     info = json.loads((tmp_path / "web" / "info.json").read_text())
     assert info["type"] == {"hsh.fit": "hsh", "rbf.fit": "rbf", "bilinear.fit": "bilinear"}[stage]
     back = btforge.stage("web.read")(path=str(tmp_path / "web"))["model"]
@@ -219,7 +219,7 @@ def test_web_layout_round_trips_to_8_bits(tmp_path, stage, params):
 def test_web_read_refuses_a_damaged_basis(tmp_path):
     import json
     model = fitted("rbf.fit", {})
-    btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "web"))
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "web"))
     info = json.loads((tmp_path / "web" / "info.json").read_text())
     info["basis"] = info["basis"][:-3]
     (tmp_path / "web" / "info.json").write_text(json.dumps(info))
@@ -268,7 +268,7 @@ def test_a_graph_with_bad_parameters_names_every_problem_before_running(tmp_path
     lights = Path(__file__).resolve().parents[1] / "graphs" / "data" / "icon_san_michele" / "dirs.lp"
     graph = tmp_path / "bad.yaml"
     graph.write_text(f"""nodes:
-  read: {{stage: stack.read, params: {{path: {lights}}}}}
+  read: {{stage: stackio.read, params: {{path: {lights}}}}}
   hsh:  {{stage: hsh.fit, params: {{planes: 15}}, inputs: {{stack: read.stack}}}}
   rbf:  {{stage: rbf.fit, params: {{colorspace: ycc, planes: 9, yplanes: 4}}, inputs: {{stack: read.stack}}}}
   grid: {{stage: bilinear.fit, params: {{resolution: 1}}, inputs: {{stack: read.stack}}}}

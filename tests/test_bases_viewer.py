@@ -28,7 +28,7 @@ def served(tmp_path_factory):
     models = {}
     for name, (stage, params) in FITS.items():
         models[name] = btforge.stage(stage)(stack=stack, **params)["model"]
-        btforge.stage("model.export_web")(model=models[name], dir=str(root / name))
+        btforge.stage("web.export")(model=models[name], dir=str(root / name))
     server, thread, scratch = start([root / name for name in FITS], 0)
     yield server, models
     server.shutdown()

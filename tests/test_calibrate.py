@@ -253,7 +253,7 @@ def test_stage_in_a_graph_writes_the_light_file_and_report(tmp_path):
     (tmp_path / "shots").mkdir()
     render_capture(tmp_path / "shots", lights, [(120, 100, 45)], dark=(2,))
     graph = tmp_path / "g.yaml"
-    graph.write_text("nodes:\n  lights: {stage: lights.calibrate,\n"
+    graph.write_text("nodes:\n  lights: {stage: calibrate.lights,\n"
                      "           params: {images: 'shots/*.jpg', estimate_focal: true}}\n"
                      "  fit: {stage: ptm.fit, inputs: {stack: lights.stack}}\n")
     with pytest.warns(Warning, match="shot_02.jpg"):

@@ -23,7 +23,7 @@ def capture(folder, sizes, nan_at=None):
 
 def run_graph(tmp_path, lp):
     graph = tmp_path / "g.yaml"
-    graph.write_text(f"nodes:\n  read: {{stage: stack.read, params: {{path: {lp}}}}}\n"
+    graph.write_text(f"nodes:\n  read: {{stage: stackio.read, params: {{path: {lp}}}}}\n"
                      "  fit: {stage: ptm.fit, inputs: {stack: read.stack}}\n")
     return main(["run", str(graph), "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
 
@@ -37,7 +37,7 @@ def test_truncated_ptm(tmp_path, capsys):
     assert main(["info", str(bad)]) == 2
     graph = tmp_path / "g.yaml"
     graph.write_text(f"nodes:\n  m: {{stage: ptm.read, params: {{path: {bad}}}}}\n"
-                     "  r: {stage: relight, params: {lights: [[0, 0, 1]]}, inputs: {model: m.model}}\n")
+                     "  r: {stage: relight.images, params: {lights: [[0, 0, 1]]}, inputs: {model: m.model}}\n")
     assert main(["run", str(graph), "--cache", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
     assert "bad.ptm" in err and "Traceback" not in err

@@ -20,7 +20,7 @@ def test_sheet_labels_tiles_and_sides(tmp_path):
     lights = [[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8]]
     truth = SampleStack(rng.uniform(0.2, 0.8, (1, 3, 40, 60, 3)).astype(np.float32), lights, [[0, 0, 1]])
     fit = SampleStack((truth.samples * 0.9).astype(np.float32), lights, [[0, 0, 1]])
-    sheet = btforge.stage("stack.contact_sheet")
+    sheet = btforge.stage("stackio.contact_sheet")
     sheet(stack=fit, path=str(tmp_path / "plain.png"), columns=3)
     sheet(stack=fit, beside=truth, path=str(tmp_path / "pair.png"), columns=3, sides="fit,measured")
     plain = np.asarray(Image.open(tmp_path / "plain.png"))

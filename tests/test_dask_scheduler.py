@@ -24,7 +24,7 @@ def test_dask_run_equals_the_single_process_run(tmp_path, cluster_run, monkeypat
                                                 "store": str(tmp_path / "b.zarr")}},
         "sh": {"stage": "sh.fit", "params": {"light_order": 3, "view_order": 2, "space": "srgb", "smoothness": 0},
                "inputs": {"stack": "btf.stack"}},  # auto would judge its settings on all texels: not per band
-        "top": {"stage": "stack.select", "params": {"views": [0]}, "inputs": {"stack": "btf.stack"}},
+        "top": {"stage": "stackio.select", "params": {"views": [0]}, "inputs": {"stack": "btf.stack"}},
         "ptm": {"stage": "ptm.fit", "inputs": {"stack": "top.stack"}},
         "lafortune": {"stage": "lafortune.fit", "params": {"lobes": 1}, "inputs": {"stack": "btf.stack"}}}}
     local = cluster_run(graph, out_dir=tmp_path, use_cache=False)
@@ -117,11 +117,11 @@ def test_a_streamed_capture_is_fitted_on_the_cluster(tmp_path, loopback_schedule
     monkeypatch.setattr(btforge.plugins.stackio.images, "STREAM_MIN_BYTES", 0)  # stream even this tiny capture
     btforge.run({"nodes": {
         "m": {"stage": "demo.material", "params": {"size": [18, 12], "lights": 16, "bumps": 4}},
-        "w": {"stage": "stack.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
+        "w": {"stage": "stackio.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
         out_dir=tmp_path, use_cache=False)
     monkeypatch.setattr(btforge.scheduler, "BAND_BYTES", 8 * 16 * 12 * 3 * 4)  # 8 rows a band: 3 tasks
     graph = {"nodes": {
-        "read": {"stage": "stack.read", "params": {"path": str(next((tmp_path / "cap").glob("*.lp")))}},
+        "read": {"stage": "stackio.read", "params": {"path": str(next((tmp_path / "cap").glob("*.lp")))}},
         "ptm": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}}
     local = btforge.run(graph, out_dir=tmp_path, use_cache=False)
     remote = btforge.run(graph, out_dir=tmp_path, use_cache=False, scheduler=loopback_scheduler)

@@ -189,7 +189,7 @@ def tiny_capture_graph(tmp_path):
         rows.append(f"l{i}.png {0.3 * np.cos(i):.3f} {0.3 * np.sin(i):.3f} 0.9")
     (tmp_path / "cap" / "dirs.lp").write_text("6\n" + "\n".join(rows) + "\n")
     graph = tmp_path / "g.yaml"
-    graph.write_text(f"nodes:\n  read: {{stage: stack.read, params: {{path: {tmp_path / 'cap' / 'dirs.lp'}}}}}\n"
+    graph.write_text(f"nodes:\n  read: {{stage: stackio.read, params: {{path: {tmp_path / 'cap' / 'dirs.lp'}}}}}\n"
                      "  fit: {stage: ptm.fit, inputs: {stack: read.stack}}\n")
     return ["run", str(graph), "--out", str(tmp_path / "out"), "--no-cache", "--report", str(tmp_path / "r.json")]
 

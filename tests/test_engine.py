@@ -271,8 +271,8 @@ def test_outputs_typed_like_an_input_keep_the_wired_type(tmp_path):
     graph = {"nodes": {
         "material": {"stage": "demo.material", "params": {"size": [12, 12], "lights": 8}},
         "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
-        "patch": {"stage": "crop", "params": {"origin": [2, 3], "size": [5, 6]}, "inputs": {"input": "fit.model"}},
-        "relit": {"stage": "relight", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "patch.output"}},
+        "patch": {"stage": "synth.crop", "params": {"origin": [2, 3], "size": [5, 6]}, "inputs": {"input": "fit.model"}},
+        "relit": {"stage": "relight.images", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "patch.output"}},
     }}
     result = btforge.run(graph, cache_dir=tmp_path)
     assert result["relit"]["stack"].samples.shape == (1, 1, 5, 6, 3)

@@ -34,19 +34,19 @@ ONLY = os.environ.get("BTFORGE_FUZZ_READERS", "")  # fuzz only readers whose nam
 SEED_GRAPH = """
 nodes:
   material: {stage: demo.material, params: {size: [24, 24], lights: 10, bumps: 6, seed: 3}}
-  capture:  {stage: stack.write, params: {dir: capture, format: exr}, inputs: {stack: material.stack}}
-  png:      {stage: stack.write, params: {dir: capture_png, format: png}, inputs: {stack: material.stack}}
+  capture:  {stage: stackio.write, params: {dir: capture, format: exr}, inputs: {stack: material.stack}}
+  png:      {stage: stackio.write, params: {dir: capture_png, format: png}, inputs: {stack: material.stack}}
   fit:      {stage: ptm.fit, params: {variant: rgb, space: srgb}, inputs: {stack: material.stack}}
   ptm:      {stage: ptm.write, params: {path: model.ptm}, inputs: {model: fit.model}}
-  saved:    {stage: model.write, params: {path: model.btfm}, inputs: {model: fit.model}}
-  web:      {stage: model.export_web, params: {dir: web}, inputs: {model: fit.model}}
-  web_jpg:  {stage: model.export_web, params: {dir: web_jpg, format: jpg}, inputs: {model: fit.model}}
+  saved:    {stage: models.write, params: {path: model.btfm}, inputs: {model: fit.model}}
+  web:      {stage: web.export, params: {dir: web}, inputs: {model: fit.model}}
+  web_jpg:  {stage: web.export, params: {dir: web_jpg, format: jpg}, inputs: {model: fit.model}}
   height:   {stage: height.from_shading, params: {iterations: 3, rounds: 1}, inputs: {stack: material.stack}}
   ply:      {stage: height.write, params: {path: height.ply}, inputs: {height: height.height}}
   tiles:    {stage: wang.tiles, params: {tile: 8, edge: 2, seed: 1}, inputs: {exemplar: material.stack}}
-  wang:     {stage: tiles.write, params: {path: set.wang}, inputs: {tiles: tiles.tiles}}
+  wang:     {stage: wang.write_tiles, params: {path: set.wang}, inputs: {tiles: tiles.tiles}}
   tiling:   {stage: wang.tiling, params: {rows: 2, cols: 2}, inputs: {tiles: tiles.tiles}}
-  coords:   {stage: coords.write, params: {path: coords.exr}, inputs: {coords: tiling.coords}}
+  coords:   {stage: synth.write_coords, params: {path: coords.exr}, inputs: {coords: tiling.coords}}
   btf:      {stage: demo.btf, params: {size: [8, 8], lights: 4, views: 2, store: store.zarr, block: [4, 4]}}
 """
 
@@ -89,15 +89,15 @@ def _write_extra_files(folder: Path) -> None:
     _jpeg_capture(folder / "capture_png", folder / "capture_jpg")
     (folder / "quad.obj").write_text(OBJ)
     (folder / "scene.yaml").write_text(SCENE)
-    graphs = {"read_stack.yaml": _one_node("stack.read", "capture/lights.lp"),
+    graphs = {"read_stack.yaml": _one_node("stackio.read", "capture/lights.lp"),
               "read_ptm.yaml": _one_node("ptm.read", "model.ptm"),
-              "read_model.yaml": _one_node("model.read", "model.btfm"),
-              "read_tiles.yaml": _one_node("tiles.read", "set.wang"),
+              "read_model.yaml": _one_node("models.read", "model.btfm"),
+              "read_tiles.yaml": _one_node("wang.read_tiles", "set.wang"),
               "read_web.yaml": _one_node("web.read", "web/info.json"),
-              "read_scene.yaml": _one_node("scene.read", "scene.yaml"),
-              "read_btf.yaml": _one_node("stack.read", "capture.btf"),
-              "read_png.yaml": _one_node("stack.read", "capture_png/lights.lp"),
-              "read_jpg.yaml": _one_node("stack.read", "capture_jpg/lights.lp"),
+              "read_scene.yaml": _one_node("render.read_scene", "scene.yaml"),
+              "read_btf.yaml": _one_node("stackio.read", "capture.btf"),
+              "read_png.yaml": _one_node("stackio.read", "capture_png/lights.lp"),
+              "read_jpg.yaml": _one_node("stackio.read", "capture_jpg/lights.lp"),
               "fit_jpg.yaml": _one_node("ptm.fit_capture", "capture_jpg/lights.lp"),
               "read_web_jpg.yaml": _one_node("web.read", "web_jpg/info.json")}
     for name, text in graphs.items():
@@ -151,11 +151,11 @@ def readers(seed: Path) -> list[Reader]:
         Reader("info .ptm", ("model.ptm",), _info("model.ptm")),
         Reader("ptm.read", ("model.ptm",), _run("read_ptm.yaml")),
         Reader("info .btfm", ("model.btfm",), _info("model.btfm")),
-        Reader("model.read", ("model.btfm",), _run("read_model.yaml")),
+        Reader("models.read", ("model.btfm",), _run("read_model.yaml")),
         Reader("info .ply (height mesh)", ("height.ply",), _info("height.ply")),
         Reader("scene.read (YAML + OBJ + PLY)", ("scene.yaml", "quad.obj", "height.ply"), _run("read_scene.yaml")),
         Reader("info .wang", ("set.wang",), _info("set.wang")),
-        Reader("tiles.read", ("set.wang",), _run("read_tiles.yaml")),
+        Reader("wang.read_tiles", ("set.wang",), _run("read_tiles.yaml")),
         Reader("info web layout", web, _info("web/info.json")),
         Reader("web.read", web, _run("read_web.yaml")),
         Reader("web.read (JPEG planes)", ("web_jpg/plane_1.jpg", "web_jpg/info.json"), _run("read_web_jpg.yaml")),

@@ -134,14 +134,14 @@ def test_buffer_validation_names_every_problem():
 
 def test_crop_materialize_and_synthesis_accept_a_height_field():
     field = _field(24, 24, k=4)
-    cropped = stage("crop")(input=field, origin=[2, 3], size=[10, 12])["output"]
+    cropped = stage("synth.crop")(input=field, origin=[2, 3], size=[10, 12])["output"]
     assert isinstance(cropped, HeightField) and cropped.heights.shape == (10, 12)
     np.testing.assert_array_equal(cropped.heights, field.heights[2:12, 3:15])
     assert cropped.weights.shape == (10, 12, 4)
     features = field.appearance_features()
     assert features.shape == (24, 24, 3) and features.dtype == np.float32
-    coords = stage("quilt")(exemplar=field, size=[32, 32], block=8, seam="blend")["coords"]
-    grown = stage("materialize")(coords=coords, source=field)["output"]
+    coords = stage("synth.quilt")(exemplar=field, size=[32, 32], block=8, seam="blend")["coords"]
+    grown = stage("synth.materialize")(coords=coords, source=field)["output"]
     assert isinstance(grown, HeightField) and grown.heights.shape == (32, 32)
     np.testing.assert_allclose(np.linalg.norm(grown.normals, axis=-1), 1, atol=1e-5)
 
@@ -157,7 +157,7 @@ def test_writers_round_trip(tmp_path):
     field = _field()
     ctx = StageContext(node="t", paths=RunPaths(tmp_path, tmp_path))
     for name in ("n.png", "n.exr"):
-        stage("normals.write")(ctx=ctx, height=field, path=name)
+        stage("height.write_normals")(ctx=ctx, height=field, path=name)
     for name in ("h.exr", "h.ply"):
         stage("height.write")(ctx=ctx, height=field, path=name)
     png = np.asarray(Image.open(tmp_path / "n.png"), np.float64) / 255 * 2 - 1
@@ -173,13 +173,13 @@ def test_writers_round_trip(tmp_path):
     info = describe_ply(tmp_path / "h.ply")
     assert info["uv"] and info["vertices"] == 120
     with pytest.raises(BtforgeInputError, match="ending in .png or .exr"):
-        stage("normals.write")(ctx=ctx, height=field, path="n.jpg")
+        stage("height.write_normals")(ctx=ctx, height=field, path="n.jpg")
 
 
 def test_kcoherence_grows_a_height_field():
     field = _field(24, 24)
-    coords = stage("kcoherence")(exemplar=field, size=[32, 32], levels=1, neighborhood=3, k=2, textons=16)["coords"]
-    grown = stage("materialize")(coords=coords, source=field)["output"]
+    coords = stage("synth.kcoherence")(exemplar=field, size=[32, 32], levels=1, neighborhood=3, k=2, textons=16)["coords"]
+    grown = stage("synth.materialize")(coords=coords, source=field)["output"]
     assert isinstance(grown, HeightField) and grown.heights.shape == (32, 32)
 
 

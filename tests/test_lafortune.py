@@ -474,7 +474,7 @@ def test_stage_notes_and_relight():
                                                lobes=2)["model"]
     assert isinstance(model, LafortuneModel) and model.lobes.shape == (4, 5, 2, 3)
     assert {"not_converged", "rms"} <= set(ctx.notes)
-    out = btforge.stage("relight")(model=model, lights=[[0, 0, 1], [0.6, 0, 0.8]])["stack"]
+    out = btforge.stage("relight.images")(model=model, lights=[[0, 0, 1], [0.6, 0, 0.8]])["stack"]
     assert out.samples.shape == (1, 2, 4, 5, 3)
     again = LafortuneModel.from_payload(*model.payload())
     assert again.content_key == model.content_key
@@ -501,7 +501,7 @@ def test_a_stored_stack_gives_the_same_model_as_the_in_memory_one(tmp_path):
     lights = spiral(16)
     write_stack(stack_of(truth.evaluate(lights, engine="numpy"), lights), tmp_path / "cap", fmt="exr")
     import_capture(tmp_path / "cap" / "lights.lp", tmp_path / "s.zarr", block=(3, 4))
-    stored = btforge.stage("stack.read")(path=str(tmp_path / "s.zarr"))["stack"]
+    stored = btforge.stage("stackio.read")(path=str(tmp_path / "s.zarr"))["stack"]
     assert stored.chunked
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", BtforgeWarning)

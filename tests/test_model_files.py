@@ -18,7 +18,7 @@ def btf():
 
 
 def _models(btf):
-    top = btforge.stage("stack.select")(stack=btf, views=[0])["stack"]
+    top = btforge.stage("stackio.select")(stack=btf, views=[0])["stack"]
     yield "ptm rgb", btforge.stage("ptm.fit")(stack=top)["model"]
     yield "ptm lrgb orthonormal", btforge.stage("ptm.fit")(stack=top, variant="lrgb", basis="orthonormal")["model"]
     yield "sh", btforge.stage("sh.fit")(stack=btf, light_order=3, view_order=2)["model"]
@@ -30,7 +30,7 @@ def test_every_representation_round_trips_exactly(btf, tmp_path):
     types = default_registry().types
     for label, model in _models(btf):
         path = tmp_path / f"{label.replace(' ', '_')}.btfm"
-        btforge.stage("model.write")(model=model, path=str(path))
+        btforge.stage("models.write")(model=model, path=str(path))
         back = read_model(path, types)
         assert type(back) is type(model), label
         assert back.content_key == model.content_key, label  # same type, parameters and array bytes
@@ -47,10 +47,10 @@ def test_graph_writes_then_reads_and_relights(btf, tmp_path):
     graph = {"nodes": {
         "btf": {"stage": "demo.btf", "params": {"size": [4, 4], "lights": 9, "views": 2}},
         "fit": {"stage": "sh.fit", "params": {"light_order": 2, "view_order": 2}, "inputs": {"stack": "btf.stack"}},
-        "save": {"stage": "model.write", "params": {"path": "m.btfm"}, "inputs": {"model": "fit.model"}}}}
+        "save": {"stage": "models.write", "params": {"path": "m.btfm"}, "inputs": {"model": "fit.model"}}}}
     result = btforge.run(graph, out_dir=tmp_path, only=["fit", "save"])
-    read = {"nodes": {"load": {"stage": "model.read", "params": {"path": str(tmp_path / "m.btfm")}},
-                      "lit": {"stage": "relight", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "load.model"}}}}
+    read = {"nodes": {"load": {"stage": "models.read", "params": {"path": str(tmp_path / "m.btfm")}},
+                      "lit": {"stage": "relight.images", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "load.model"}}}}
     lit = btforge.run(read, out_dir=tmp_path)["lit"]["stack"]
     np.testing.assert_array_equal(lit.samples[0], result["fit"]["model"].evaluate([[0, 0, 1]])[0])
 
@@ -104,7 +104,7 @@ def test_other_format_versions_and_damage_are_refused_with_the_reason(btf, tmp_p
 def test_bad_model_file_is_refused_before_a_run(tmp_path, capsys):
     (tmp_path / "junk.btfm").write_bytes(b"PK\x03\x04 truncated")
     graph = tmp_path / "g.yaml"
-    graph.write_text(f"nodes:\n  load: {{stage: model.read, params: {{path: {tmp_path / 'junk.btfm'}}}}}\n")
+    graph.write_text(f"nodes:\n  load: {{stage: models.read, params: {{path: {tmp_path / 'junk.btfm'}}}}}\n")
     assert main(["validate", str(graph)]) == 2
     assert "not a btforge model file" in capsys.readouterr().err
 

@@ -19,7 +19,7 @@ def test_btf_folder_names_carry_the_angles(tmp_path):
             pixels = rng.integers(0, 256, (4, 5, 3), dtype=np.uint8)
             Image.fromarray(pixels).save(tmp_path / f"sample_tl{tl}_pl{pl}_tv{tv}_pv{pv}.png")
     (tmp_path / "notes.txt").write_text("ignored")
-    stack = btforge.stage("stack.read")(path=str(tmp_path))["stack"]
+    stack = btforge.stage("stackio.read")(path=str(tmp_path))["stack"]
     assert stack.samples.shape == (2, 3, 4, 5, 3)
     theta, phi = math.radians(45), math.radians(120)
     np.testing.assert_allclose(stack.lights[1], [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi),
@@ -54,10 +54,10 @@ def test_relight_at_views_of_a_view_dependent_model():
     stack = btforge.stage("demo.btf")(size=[8, 8], lights=16, views=4)["stack"]
     model = btforge.stage("sh.fit")(stack=stack, light_order=3, view_order=2)["model"]
     views = [[0, 0, 1], [0.5, 0, 0.866]]
-    out = btforge.stage("relight")(model=model, lights=[[0.3, 0.2, 0.93]], views=views)["stack"]
+    out = btforge.stage("relight.images")(model=model, lights=[[0.3, 0.2, 0.93]], views=views)["stack"]
     assert out.samples.shape == (2, 1, 8, 8, 3)
     ptm = btforge.stage("ptm.fit")(stack=btforge.stage("demo.material")(size=[8, 8], lights=12)["stack"])["model"]
-    flat = btforge.stage("relight")(model=ptm, lights=[[0.3, 0.2, 0.93]], views=views)["stack"]
+    flat = btforge.stage("relight.images")(model=ptm, lights=[[0.3, 0.2, 0.93]], views=views)["stack"]
     np.testing.assert_array_equal(flat.samples[0], flat.samples[1])  # a PTM looks the same from every view
 
 

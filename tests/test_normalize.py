@@ -56,7 +56,7 @@ def test_scales_are_recovered_and_the_capture_fits_again():
     scales = np.exp(rng.normal(0, 0.25, 30))
     clean = ptm_capture(lights)
     stack = jittered(clean, lights, scales)
-    out = btforge.stage("stack.normalize")(stack=stack)["stack"]
+    out = btforge.stage("normalize.stack")(stack=stack)["stack"]
     assert residual_db(out) > residual_db(stack) + 20
     found = estimate_exposure(stack).scales
     # found and true scales may differ by what a PTM of the light explains (that part is left in the images)
@@ -79,7 +79,7 @@ def test_falloff_field_is_corrected():
     field = rng.normal(0, 0.4, (36, 2))
     stack = jittered(ptm_capture(lights, seed=6), lights, np.exp(rng.normal(0, 0.2, 36)), field)
     plain = corrected(stack, estimate_exposure(stack))
-    with_falloff = btforge.stage("stack.normalize")(stack=stack, falloff=True)["stack"]
+    with_falloff = btforge.stage("normalize.stack")(stack=stack, falloff=True)["stack"]
     assert residual_db(with_falloff) > residual_db(plain) + 6
 
 
@@ -98,12 +98,12 @@ def test_srgb8_stays_8bit_and_bad_region_is_named():
     clean = np.clip(ptm_capture(lights, size=(16, 16)), 0, 1)
     from btforge.buffers import linear_to_srgb8
     stack = SampleStack(linear_to_srgb8(clean)[None], lights, [[0, 0, 1]], encoding="srgb8")
-    out = btforge.stage("stack.normalize")(stack=stack)["stack"]
+    out = btforge.stage("normalize.stack")(stack=stack)["stack"]
     assert out.encoding == "srgb8" and out.samples.shape == stack.samples.shape
     with pytest.raises(BtforgeInputError, match="reference"):
-        btforge.stage("stack.normalize")(stack=stack, reference=[10, 10, 20, 20])
+        btforge.stage("normalize.stack")(stack=stack, reference=[10, 10, 20, 20])
     with pytest.raises(BtforgeInputError, match="at least 8 lights"):
-        btforge.stage("stack.normalize")(stack=SampleStack(stack.samples[:, :5], lights[:5], [[0, 0, 1]],
+        btforge.stage("normalize.stack")(stack=SampleStack(stack.samples[:, :5], lights[:5], [[0, 0, 1]],
                                                           encoding="srgb8"))
 
 
@@ -143,10 +143,10 @@ def test_handheld_icon_gains_six_db():
     stack = load_stack(path)
 
     def heldout(s):
-        parts = btforge.stage("stack.split")(stack=s, every=5)
+        parts = btforge.stage("stackio.split")(stack=s, every=5)
         model = btforge.stage("ptm.fit")(stack=parts["fit"], variant="rgb")["model"]
-        return compare_stacks(btforge.stage("relight")(model=model, at=parts["test"])["stack"], parts["test"])["psnr_db"]
+        return compare_stacks(btforge.stage("relight.images")(model=model, at=parts["test"])["stack"], parts["test"])["psnr_db"]
 
     before = heldout(stack)
-    after = heldout(btforge.stage("stack.normalize")(stack=stack, falloff=True)["stack"])
+    after = heldout(btforge.stage("normalize.stack")(stack=stack, falloff=True)["stack"])
     assert after >= before + 6.0, (before, after)

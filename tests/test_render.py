@@ -78,8 +78,8 @@ def test_plane_scene_equals_relight_texel_for_texel_through_the_engine(tmp_path)
     graph = {"nodes": {
         "material": {"stage": "demo.material", "params": {"size": [128, 128], "lights": 36, "seed": 3}},
         "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
-        "relit": {"stage": "relight", "params": {"lights": [[0.3, 0.2, 0.93]]}, "inputs": {"model": "fit.model"}},
-        "img": {"stage": "render", "params": {"scene": "plane.yaml"}, "inputs": {"stone": "fit.model"}},
+        "relit": {"stage": "relight.images", "params": {"lights": [[0.3, 0.2, 0.93]]}, "inputs": {"model": "fit.model"}},
+        "img": {"stage": "render.image", "params": {"scene": "plane.yaml"}, "inputs": {"stone": "fit.model"}},
     }}
     (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
     result = btforge.run(tmp_path / "g.yaml", only=["relit", "img"], cache_dir=tmp_path / "cache")
@@ -356,8 +356,8 @@ def test_antialias_off_casts_one_ray_per_pixel_and_changes_mostly_the_silhouette
 
 def test_tonemap_changes_only_the_display_encoding(tmp_path):
     model = constant_ptm(0.2)
-    stage = btforge.stage("render")
-    write = btforge.stage("image.write")
+    stage = btforge.stage("render.image")
+    write = btforge.stage("render.write_image")
     images, notes = {}, {}
     for flag, effects in (("on", ["tonemap"]), ("off", [])):
         scene = plane_scene(8, 8, effects=effects, exposure=1.0)

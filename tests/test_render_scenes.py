@@ -24,7 +24,7 @@ def graph_with(tmp_path: Path, scene: dict, wire: bool = True) -> Path:
     nodes = {
         "material": {"stage": "demo.material", "params": {"size": [16, 16], "lights": 8}},
         "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
-        "img": {"stage": "render", "params": {"scene": "scene.yaml"}},
+        "img": {"stage": "render.image", "params": {"scene": "scene.yaml"}},
     }
     if wire:
         nodes["img"]["inputs"] = {"stone": "fit.model"}
@@ -143,10 +143,10 @@ def test_scene_read_feeds_render_through_scene_data(tmp_path):
     graph = {"nodes": {
         "material": {"stage": "demo.material", "params": {"size": [16, 16], "lights": 8}},
         "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
-        "scene": {"stage": "scene.read", "params": {"path": "scene.yaml"}},
-        "a": {"stage": "render", "params": {"materials": ["stone"]},
+        "scene": {"stage": "render.read_scene", "params": {"path": "scene.yaml"}},
+        "a": {"stage": "render.image", "params": {"materials": ["stone"]},
               "inputs": {"scene_data": "scene.scene", "stone": "fit.model"}},
-        "b": {"stage": "render", "params": {"scene": "scene.yaml"}, "inputs": {"stone": "fit.model"}},
+        "b": {"stage": "render.image", "params": {"scene": "scene.yaml"}, "inputs": {"stone": "fit.model"}},
     }}
     (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
     result = btforge.run(tmp_path / "g.yaml", only=["a", "b"], cache_dir=tmp_path / "cache")
@@ -172,7 +172,7 @@ def test_image_write_formats(tmp_path):
     from btforge.plugins.render.image import Image
     from btforge.plugins.stackio.images import read_exr
     from btforge.stages import RunPaths
-    write = btforge.stage("image.write")
+    write = btforge.stage("render.write_image")
     ctx = StageContext("w", paths=RunPaths(tmp_path, tmp_path))
     single = Image(np.linspace(0, 2, 5 * 7 * 3, dtype=np.float32).reshape(5, 7, 3))
     write(ctx=ctx, image=single, path="one.exr")
@@ -190,8 +190,8 @@ def test_mp4_needs_a_video_plugin_known_at_validation(tmp_path):
     graph = {"nodes": {
         "material": {"stage": "demo.material", "params": {"size": [16, 16], "lights": 8}},
         "fit": {"stage": "ptm.fit", "inputs": {"stack": "material.stack"}},
-        "img": {"stage": "render", "params": {"scene": "scene.yaml"}, "inputs": {"stone": "fit.model"}},
-        "mp4": {"stage": "image.write", "params": {"path": "out.mp4"}, "inputs": {"image": "img.image"}},
+        "img": {"stage": "render.image", "params": {"scene": "scene.yaml"}, "inputs": {"stone": "fit.model"}},
+        "mp4": {"stage": "render.write_image", "params": {"path": "out.mp4"}, "inputs": {"image": "img.image"}},
     }}
     (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
     if mp4_backend() is None:

@@ -21,7 +21,7 @@ def test_the_graph_check_prechecks_every_node_even_when_another_failed(tmp_path)
     lp = _capture(tmp_path, [("a.png", (0, 0, 1)), ("b.png", (0.5, 0, 0.866))])
     (tmp_path / "b.png").unlink()
     graph = tmp_path / "g.yaml"
-    graph.write_text("nodes:\n  read: {stage: stack.read, params: {path: dirs.lp}}\n"
+    graph.write_text("nodes:\n  read: {stage: stackio.read, params: {path: dirs.lp}}\n"
                      "  fit: {stage: ptm.fitt, inputs: {stack: read.stack}}\n")
     with pytest.raises(BtforgeInputError) as info:
         btforge.run(graph, cache_dir=tmp_path / "cache")
@@ -53,13 +53,13 @@ def test_cached_nodes_report_the_notes_they_ran_with(tmp_path, capsys):
     graph = tmp_path / "g.yaml"
     graph.write_text("""nodes:
   material: {stage: demo.material, params: {size: [24, 24], lights: 12, bumps: 4}}
-  split:    {stage: stack.split, params: {every: 3}, inputs: {stack: material.stack}}
+  split:    {stage: stackio.split, params: {every: 3}, inputs: {stack: material.stack}}
   fit:      {stage: ptm.fit, inputs: {stack: split.fit}}
-  test:     {stage: relight, inputs: {model: fit.model, at: split.test}}
-  compare:  {stage: stack.compare, inputs: {stack: test.stack, reference: split.test}}
-  quilt:    {stage: quilt, params: {size: [24, 24], block: 8, overlap: 2}, inputs: {exemplar: fit.model}}
-  texture:  {stage: materialize, inputs: {coords: quilt.coords, source: fit.model}}
-  score:    {stage: score, params: {samples: 64, projections: 8},
+  test:     {stage: relight.images, inputs: {model: fit.model, at: split.test}}
+  compare:  {stage: relight.compare, inputs: {stack: test.stack, reference: split.test}}
+  quilt:    {stage: synth.quilt, params: {size: [24, 24], block: 8, overlap: 2}, inputs: {exemplar: fit.model}}
+  texture:  {stage: synth.materialize, inputs: {coords: quilt.coords, source: fit.model}}
+  score:    {stage: synth.score, params: {samples: 64, projections: 8},
              inputs: {output: texture.output, coords: quilt.coords, exemplar: fit.model}}
 """)
     reports, tables = [], []
@@ -86,8 +86,8 @@ def test_run_ends_with_the_files_it_wrote(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "g.yaml").write_text("""nodes:
   material: {stage: demo.material, params: {size: [8, 8], lights: 6, bumps: 2}}
-  images:   {stage: stack.write, params: {dir: relit, format: exr}, inputs: {stack: material.stack}}
-  sheet:    {stage: stack.contact_sheet, params: {path: sheet.png}, inputs: {stack: material.stack}}
+  images:   {stage: stackio.write, params: {dir: relit, format: exr}, inputs: {stack: material.stack}}
+  sheet:    {stage: stackio.contact_sheet, params: {path: sheet.png}, inputs: {stack: material.stack}}
 """)
     assert main(["run", "g.yaml", "--out", "results", "--cache", str(tmp_path / "cache")]) == 0
     tail = capsys.readouterr().err.splitlines()

@@ -433,7 +433,7 @@ def test_stage_notes_and_relight(tmp_path):
     assert ctx.notes["compression_rate_percent"] == 45.0
     for key in ("lambda_median", "lambda_max", "clamped", "clamped_fraction", "rank"):
         assert key in ctx.notes
-    relit = btforge.stage("relight")(model=model, lights=[[0, 0, 1], [0.6, 0, 0.8]])["stack"]
+    relit = btforge.stage("relight.images")(model=model, lights=[[0, 0, 1], [0.6, 0, 0.8]])["stack"]
     assert relit.samples.shape == (1, 2, 5, 6, 3) and np.isfinite(relit.samples).all()
     assert relit.samples.min() >= 0
 
@@ -442,7 +442,7 @@ def test_graph_run_caches_and_reloads_the_model(tmp_path):
     graph = {"nodes": {
         "material": {"stage": "demo.material", "params": {"size": [16, 16], "lights": 24, "seed": 3}},
         "fit": {"stage": "sh.fit", "params": {"light_order": 3, "quantize": True}, "inputs": {"stack": "material.stack"}},
-        "relit": {"stage": "relight", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "fit.model"}},
+        "relit": {"stage": "relight.images", "params": {"lights": [[0, 0, 1]]}, "inputs": {"model": "fit.model"}},
     }}
     first = btforge.run(graph, only=["fit", "relit"], cache_dir=tmp_path)
     second = btforge.run(graph, only=["fit", "relit"], cache_dir=tmp_path)

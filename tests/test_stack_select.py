@@ -13,7 +13,7 @@ def _btf():
 
 def test_select_by_index_keeps_order_and_samples():
     stack = _btf()
-    out = btforge.stage("stack.select")(stack=stack, views=[2, 0], lights=[6, 1, 3])["stack"]
+    out = btforge.stage("stackio.select")(stack=stack, views=[2, 0], lights=[6, 1, 3])["stack"]
     assert out.samples.shape == (2, 3, 6, 5, 3)
     np.testing.assert_array_equal(out.samples[0, 1], stack.samples[2, 1])
     np.testing.assert_array_equal(out.samples[1, 0], stack.samples[0, 6])
@@ -26,35 +26,35 @@ def test_select_by_angle_names_and_image_names():
     stack = _btf()
     label_v = angle_label(stack.views[1], "view")
     label_l = angle_label(stack.lights[4], "light")
-    out = btforge.stage("stack.select")(stack=stack, views=[label_v], lights=[label_l])["stack"]
+    out = btforge.stage("stackio.select")(stack=stack, views=[label_v], lights=[label_l])["stack"]
     np.testing.assert_array_equal(out.samples[0, 0], stack.samples[1, 4])
     named = btforge.stage("demo.material")(size=[4, 4], lights=8)["stack"]
-    out = btforge.stage("stack.select")(stack=named, lights=["light_005", 2])["stack"]
+    out = btforge.stage("stackio.select")(stack=named, lights=["light_005", 2])["stack"]
     assert out.names == ("light_005", "light_002")
     np.testing.assert_array_equal(out.samples[0, 0], named.samples[0, 5])
 
 
 def test_empty_lists_keep_everything():
     stack = _btf()
-    out = btforge.stage("stack.select")(stack=stack)["stack"]
+    out = btforge.stage("stackio.select")(stack=stack)["stack"]
     np.testing.assert_array_equal(out.samples, stack.samples)
 
 
 def test_bad_selections_are_reported_together():
     stack = _btf()
     with pytest.raises(BtforgeInputError) as info:
-        btforge.stage("stack.select")(stack=stack, lights=[9, "tl1_pl1", "nope"])
+        btforge.stage("stackio.select")(stack=stack, lights=[9, "tl1_pl1", "nope"])
     text = str(info.value)
     assert "index 9 is out of range" in text and "'tl1_pl1'" in text and "'nope'" in text
     with pytest.raises(BtforgeInputError, match="twice"):
-        btforge.stage("stack.select")(stack=stack, views=[0, 0])
+        btforge.stage("stackio.select")(stack=stack, views=[0, 0])
     with pytest.raises(BtforgeInputError, match="indices >= 0 or names"):
-        btforge.stage("stack.select")(stack=stack, views=[-1])
+        btforge.stage("stackio.select")(stack=stack, views=[-1])
 
 
 def test_bad_selection_is_refused_before_a_run(tmp_path):
     graph = {"nodes": {"btf": {"stage": "demo.btf", "params": {"size": [4, 4], "lights": 6, "views": 2}},
-                       "pick": {"stage": "stack.select", "params": {"views": 0}, "inputs": {"stack": "btf.stack"}}}}
+                       "pick": {"stage": "stackio.select", "params": {"views": 0}, "inputs": {"stack": "btf.stack"}}}}
     with pytest.raises(BtforgeInputError, match="expected a list of indices or names"):
         run(graph, out_dir=tmp_path)
 
@@ -64,7 +64,7 @@ def test_ptm_on_a_btf_points_to_stack_select_and_works_after_it(tmp_path):
              "fit": {"stage": "ptm.fit", "inputs": {"stack": "btf.stack"}}}
     with pytest.raises(BtforgeInputError, match="stackio.select"):
         run({"nodes": nodes}, out_dir=tmp_path)
-    nodes["pick"] = {"stage": "stack.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}}
+    nodes["pick"] = {"stage": "stackio.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}}
     nodes["fit"]["inputs"] = {"stack": "pick.stack"}
     model = run({"nodes": nodes}, out_dir=tmp_path)["fit"]["model"]
     assert model.coeffs.shape == (4, 4, 3, 6)
@@ -100,14 +100,14 @@ def test_a_btf_wired_into_a_single_view_fit_is_caught_at_validation(tmp_path, so
         with pytest.raises(BtforgeInputError, match="expected a single-view capture.*found 3 views"):
             _check(tmp_path, nodes)
         return
-    nodes = {"read": {"stage": "stack.read", "params": {"path": path}},
+    nodes = {"read": {"stage": "stackio.read", "params": {"path": path}},
              "fit": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}
     with pytest.raises(BtforgeInputError) as caught:
         _check(tmp_path, nodes)
     text = caught.value.render()
     assert "node 'fit', input 'stack': ptm.fit expects views: 1, found 3 in 'read.stack'" in text
     assert path in text and "inputs: {stack: read.stack}" in text  # the hint names the port to re-wire
-    nodes["pick"] = {"stage": "stack.select", "params": {"views": [0, 2]}, "inputs": {"stack": "read.stack"}}
+    nodes["pick"] = {"stage": "stackio.select", "params": {"views": [0, 2]}, "inputs": {"stack": "read.stack"}}
     nodes["fit"]["inputs"] = {"stack": "pick.stack"}
     with pytest.raises(BtforgeInputError, match="found 2 in 'pick.stack'"):
         _check(tmp_path, nodes)
@@ -118,9 +118,9 @@ def test_a_btf_wired_into_a_single_view_fit_is_caught_at_validation(tmp_path, so
 def test_view_counts_pass_through_stages_that_keep_them(tmp_path):
     btf = {"stage": "demo.btf", "params": {"size": [6, 5], "lights": 7, "views": 3}}
     fit = {"stage": "ptm.fit", "inputs": {"stack": "last.stack"}}
-    for chain in ([{"stage": "stack.normalize"}], [{"stage": "stack.select", "params": {"lights": [0, 2, 4, 6]}}],
-                  [{"stage": "crop", "params": {"size": [4, 4]}, "port": "input", "out": "output"},
-                   {"stage": "stack.normalize"}]):
+    for chain in ([{"stage": "normalize.stack"}], [{"stage": "stackio.select", "params": {"lights": [0, 2, 4, 6]}}],
+                  [{"stage": "synth.crop", "params": {"size": [4, 4]}, "port": "input", "out": "output"},
+                   {"stage": "normalize.stack"}]):
         nodes, upstream = {"btf": btf}, "btf.stack"
         for i, step in enumerate(chain):
             name = "last" if i == len(chain) - 1 else f"step{i}"
@@ -130,7 +130,7 @@ def test_view_counts_pass_through_stages_that_keep_them(tmp_path):
         nodes["fit"] = {"stage": "ptm.fit", "inputs": {"stack": upstream}}
         with pytest.raises(BtforgeInputError, match=r"ptm.fit expects views: 1, found 3 in '.*' \(from param 'views'\)"):
             _check(tmp_path, nodes)
-    nodes = {"btf": btf, "pick": {"stage": "stack.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}},
-             "last": {"stage": "stack.normalize", "inputs": {"stack": "pick.stack"}}, "fit": fit}
+    nodes = {"btf": btf, "pick": {"stage": "stackio.select", "params": {"views": [1]}, "inputs": {"stack": "btf.stack"}},
+             "last": {"stage": "normalize.stack", "inputs": {"stack": "pick.stack"}}, "fit": fit}
     _check(tmp_path, nodes)  # the selection's own count (1) wins over its input's, and passes on
 

@@ -76,10 +76,10 @@ def test_import_matches_the_capture_it_was_written_from(tmp_path, layout):
 def test_graph_imports_then_reads_the_store_and_the_cache_follows_its_contents(tmp_path, capsys):
     stack = btforge.stage("demo.material")(size=[8, 8], lights=8)["stack"]
     write_stack(stack, tmp_path / "cap", fmt="exr")
-    importing = {"nodes": {"imp": {"stage": "stack.import", "params": {"path": str(tmp_path / "cap" / "lights.lp"),
+    importing = {"nodes": {"imp": {"stage": "stackio.import", "params": {"path": str(tmp_path / "cap" / "lights.lp"),
                                                                       "store": str(tmp_path / "s.zarr"), "block": [4, 4]}}}}
     btforge.run(importing, out_dir=tmp_path)
-    reading = {"nodes": {"read": {"stage": "stack.read", "params": {"path": str(tmp_path / "s.zarr")}},
+    reading = {"nodes": {"read": {"stage": "stackio.read", "params": {"path": str(tmp_path / "s.zarr")}},
                          "fit": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}}}}
     first = btforge.run(reading, out_dir=tmp_path)
     np.testing.assert_array_equal(first["fit"]["model"].coeffs, btforge.stage("ptm.fit")(stack=stack)["model"].coeffs)
@@ -119,7 +119,7 @@ def _stored(tmp_path, stack, block=(5, 4)):
     write_stack(stack, tmp_path / "cap", fmt="exr")
     import_capture(tmp_path / "cap" / ("lights.lvp" if stack.n_view > 1 else "lights.lp"), tmp_path / "s.zarr",
                    block=block)
-    return btforge.stage("stack.read")(path=str(tmp_path / "s.zarr"))["stack"]
+    return btforge.stage("stackio.read")(path=str(tmp_path / "s.zarr"))["stack"]
 
 
 def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
@@ -133,9 +133,9 @@ def test_a_store_is_read_lazily_and_fits_equal_the_in_memory_stack(tmp_path):
     np.testing.assert_allclose(sh_stored.coeffs, sh_memory.coeffs, rtol=1e-5, atol=1e-6)
     from btforge.spill import is_spilled
     assert is_spilled(sh_stored.coeffs) and not is_spilled(sh_memory.coeffs)  # a store's fit stays out of memory
-    picked = btforge.stage("stack.select")(stack=stored, views=[2], lights=[9, 0])["stack"]
+    picked = btforge.stage("stackio.select")(stack=stored, views=[2], lights=[9, 0])["stack"]
     np.testing.assert_array_equal(picked.samples, stack.samples[[2]][:, [9, 0]])
-    top = _stored(tmp_path / "top", btforge.stage("stack.select")(stack=stack, views=[0])["stack"])
+    top = _stored(tmp_path / "top", btforge.stage("stackio.select")(stack=stack, views=[0])["stack"])
     for variant in ("rgb", "lrgb"):
         memory = btforge.stage("ptm.fit")(stack=top.in_memory(), variant=variant)["model"]
         streamed = btforge.stage("ptm.fit")(stack=top, variant=variant)["model"]

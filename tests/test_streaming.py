@@ -19,19 +19,19 @@ def capture(tmp_path_factory):
     folder = tmp_path_factory.mktemp("capture")
     btforge.run({"nodes": {
         "m": {"stage": "demo.material", "params": {"size": [24, 20], "lights": 14, "bumps": 6, "seed": 3}},
-        "w": {"stage": "stack.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
+        "w": {"stage": "stackio.write", "params": {"dir": "cap", "format": "png"}, "inputs": {"stack": "m.stack"}}}},
         out_dir=folder, use_cache=False)
     return next((folder / "cap").glob("*.lp"))
 
 
 def _graph(capture, *, whole_reader=False, sh_params=None):
     nodes = {
-        "read": {"stage": "stack.read", "params": {"path": str(capture)}},
+        "read": {"stage": "stackio.read", "params": {"path": str(capture)}},
         "ptm": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}},
         "sh": {"stage": "sh.fit", "params": dict(sh_params or {"light_order": 3}), "inputs": {"stack": "read.stack"}},
     }
     if whole_reader:  # a node that needs every light of every texel at once
-        nodes["split"] = {"stage": "stack.split", "inputs": {"stack": "read.stack"}}
+        nodes["split"] = {"stage": "stackio.split", "inputs": {"stack": "read.stack"}}
     return {"nodes": nodes}
 
 
@@ -145,7 +145,7 @@ def test_a_run_imports_no_subcommand_bench_or_networkx(capture, tmp_path):
     import subprocess
     import sys
     graph = tmp_path / "g.yaml"
-    graph.write_text(f"nodes:\n  read: {{stage: stack.read, params: {{path: '{capture}'}}}}\n"
+    graph.write_text(f"nodes:\n  read: {{stage: stackio.read, params: {{path: '{capture}'}}}}\n"
                      "  fit: {stage: ptm.fit, params: {space: srgb}, inputs: {stack: read.stack}}\n"
                      "  save: {stage: ptm.write, params: {path: out.ptm}, inputs: {model: fit.model}}\n")
     code = ("import sys; from btforge.cli import main\n"

@@ -46,7 +46,7 @@ def test_synthesizers_reach_the_texture_statistics_targets(held_out):
 def test_quilting_beats_shuffled_blocks_on_sliced_wasserstein(held_out):
     m = held_out
     baseline = bench.score_map(m, bench.shuffled_blocks((64, 64), (96, 96), block=16, seed=1), LIGHTS)
-    quilted = bench.score_map(m, stage("quilt")(exemplar=m, size=[96, 96], seed=1, block=16)["coords"], LIGHTS)
+    quilted = bench.score_map(m, stage("synth.quilt")(exemplar=m, size=[96, 96], seed=1, block=16)["coords"], LIGHTS)
     assert quilted["swd"] < baseline["swd"], (quilted, baseline)
 
 

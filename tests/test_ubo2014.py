@@ -111,8 +111,8 @@ def test_import_read_and_info_of_a_btf_file(tmp_path, capsys):
     np.testing.assert_allclose(stored.samples, decoded, rtol=1e-6)
     assert stored.encoding == "linear"
     np.testing.assert_allclose(stored.lights, _unit(LIGHTS), atol=1e-7)
-    graph = {"nodes": {"imp": {"stage": "stack.import", "params": {"path": str(path), "store": "g.zarr"}},
-                       "read": {"stage": "stack.read", "params": {"path": str(path)}}}}
+    graph = {"nodes": {"imp": {"stage": "stackio.import", "params": {"path": str(path), "store": "g.zarr"}},
+                       "read": {"stage": "stackio.read", "params": {"path": str(path)}}}}
     result = btforge.run(graph, out_dir=tmp_path)
     np.testing.assert_allclose(result["imp"]["stack"].in_memory().samples, decoded, rtol=1e-6)
     np.testing.assert_array_equal(result["read"]["stack"].samples, decoded)
@@ -158,7 +158,7 @@ def test_other_formats_and_damaged_files_are_refused_at_validation(tmp_path, cas
     for word in words:
         assert word in str(caught.value)
     graph = tmp_path / "g.yaml"
-    graph.write_text(f"nodes:\n  imp: {{stage: stack.import, params: {{path: {path}, store: s.zarr}}}}\n")
+    graph.write_text(f"nodes:\n  imp: {{stage: stackio.import, params: {{path: {path}, store: s.zarr}}}}\n")
     with pytest.raises(BtforgeInputError, match=words[0]):
         check_graph(load_graph(graph), default_registry(), tmp_path)
     assert not (tmp_path / "s.zarr").exists()

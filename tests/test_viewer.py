@@ -41,7 +41,7 @@ def served(tmp_path_factory):
     hsh = HSHModel((rng.normal(0, 0.1, SIZE + (3, 9)) + np.array([0.9] + [0.0] * 8)).astype(np.float32))
     models = {"ptm": ptm, "sh": sh, "lrgb": lrgb, "hsh": hsh}
     for name, model in models.items():
-        btforge.stage("model.export_web")(model=model, dir=str(root / name))
+        btforge.stage("web.export")(model=model, dir=str(root / name))
     shutil.copytree(root / "ptm", root / "broken")
     (root / "broken" / "plane_3.png").unlink()
     server, thread, scratch = start([root / "ptm", root / "sh", root / "broken", root / "lrgb", root / "hsh"], 0)
@@ -64,7 +64,7 @@ def test_server_lists_models_and_serves_only_their_files(served):
 
 def test_cli_prints_its_address(tmp_path):
     model = btforge.stage("ptm.fit")(stack=capture(size=(8, 8)))["model"]
-    btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "m"))
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "m"))
     scratch_root = tmp_path / "tmp"
     scratch_root.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "btforge.cli", "view", str(tmp_path / "m"), "--port", "0"],
@@ -103,7 +103,7 @@ def screenshot(page) -> np.ndarray:
 
 
 def relit_display(model, light) -> np.ndarray:
-    return linear_to_srgb(btforge.stage("relight")(model=model, lights=[light])["stack"].samples[0, 0])
+    return linear_to_srgb(btforge.stage("relight.images")(model=model, lights=[light])["stack"].samples[0, 0])
 
 
 def psnr(a, b) -> float:

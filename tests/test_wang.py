@@ -301,11 +301,11 @@ def test_graph_runs_write_read_sheet_and_info(tmp_path):
         "material": {"stage": "demo.material", "params": {"size": [40, 40], "lights": 8, "seed": 2}},
         "tiles": {"stage": "wang.tiles", "params": {"tile": 16, "edge": 4, "seed": 1},
                   "inputs": {"exemplar": "material.stack"}},
-        "save": {"stage": "tiles.write", "params": {"path": "set.wang"}, "inputs": {"tiles": "tiles.tiles"}},
-        "picture": {"stage": "tiles.sheet", "params": {"path": "set.png", "light": [[0.2, 0.1, 0.97]]},
+        "save": {"stage": "wang.write_tiles", "params": {"path": "set.wang"}, "inputs": {"tiles": "tiles.tiles"}},
+        "picture": {"stage": "wang.sheet", "params": {"path": "set.png", "light": [[0.2, 0.1, 0.97]]},
                     "inputs": {"tiles": "tiles.tiles", "exemplar": "material.stack"}},
         "tiling": {"stage": "wang.tiling", "params": {"rows": 3, "cols": 5}, "inputs": {"tiles": "tiles.tiles"}},
-        "texture": {"stage": "materialize", "inputs": {"coords": "tiling.coords", "source": "material.stack"}},
+        "texture": {"stage": "synth.materialize", "inputs": {"coords": "tiling.coords", "source": "material.stack"}},
     }}
     (tmp_path / "g.yaml").write_text(yaml.safe_dump(graph))
     result = btforge.run(tmp_path / "g.yaml", out_dir=tmp_path, cache_dir=tmp_path / "cache")

@@ -41,9 +41,9 @@ def display_psnr(a: SampleStack, b: SampleStack) -> float:
 
 
 def round_trip(model, tmp_path, reader="web.read"):
-    btforge.stage("model.export_web")(model=model, dir=str(tmp_path / "web"))
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "web"))
     again = btforge.stage(reader)(path=str(tmp_path / "web" / "info.json"))["model"]
-    relight = btforge.stage("relight")
+    relight = btforge.stage("relight.images")
     return relight(model=model, lights=PROBE.tolist())["stack"], relight(model=again, lights=PROBE.tolist())["stack"], again
 
 
@@ -78,7 +78,7 @@ def test_sh_basis_matches_openlime_and_high_orders_are_refused(tmp_path):
     assert np.allclose(np.sort(corr.max(axis=0)), 1.0, atol=1e-9)
     sh = btforge.stage("sh.fit")(stack=capture(encoding="linear"), light_order=4)["model"]
     with pytest.raises(BtforgeInputError, match="light_order: 3"):
-        btforge.stage("model.export_web")(model=sh, dir=str(tmp_path / "x"))
+        btforge.stage("web.export")(model=sh, dir=str(tmp_path / "x"))
 
 
 def test_quantization_keeps_the_whole_range():

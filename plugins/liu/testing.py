@@ -52,8 +52,8 @@ def shadow_fixture(size: int = 112, tilts=LOW_TILTS, seed: int = 1):
     dirs = np.array([direction(t, a) for t in tilts for a in REFERENCE_AZIMUTHS], np.float32)
     refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
     exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
-    coords = stage("quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
-    return refs, stage("materialize")(coords=coords, source=exemplar)["output"]
+    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
+    return refs, stage("synth.materialize")(coords=coords, source=exemplar)["output"]
 
 
 def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: int) -> float:
@@ -61,8 +61,8 @@ def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: 
     from btforge import SampleStack, stage
     nearest = int(np.argmax(refs.lights @ light))
     one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
-    coords = stage("quilt")(exemplar=one, size=[size, size], block=24, seed=seed)["coords"]
-    flat = stage("materialize")(coords=coords, source=one)["output"]
+    coords = stage("synth.quilt")(exemplar=one, size=[size, size], block=24, seed=seed)["coords"]
+    flat = stage("synth.materialize")(coords=coords, source=one)["output"]
     return iou(dark_mask(flat.samples[0, 0]), shadow)
 
 
