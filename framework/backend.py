@@ -30,18 +30,12 @@ if TYPE_CHECKING:  # pyopencl is imported on first use; its names only annotate 
 from . import profile
 from .atomic import atomic_write_bytes
 from .devices import choose_device, hint_and_source, list_devices, matching_devices
+from .locations import default_cache_root
 from .numerics import texel_chunks  # noqa: F401  (its former home; plugins import it from btforge.numerics)
 
 _lock = threading.RLock()
 _backend: "Backend | None" = None
 _device_hint: str | None = None  # the CLI's --device; None: BTFORGE_DEVICE or btforge's order decides
-
-
-def default_cache_root() -> Path:
-    root = os.environ.get("BTFORGE_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "btforge"
-    )
-    return Path(root)
 
 
 def single_threaded_blas():

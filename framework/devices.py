@@ -131,7 +131,7 @@ class BuildProbe:
               "{ size_t i = get_global_id(0); x[i] = fma(x[i], 2.0f, 1.0f); }\n")
 
     def __init__(self, cl, cache_dir: str | os.PathLike | None = None, recheck: bool = False):
-        from .backend import default_cache_root
+        from .locations import default_cache_root
         self.cl = cl
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_root() / "devices"
         self.recheck = recheck  # ignore verdicts on disk (they are replaced)

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 from . import profile
 from .atomic import atomic_write_text
-from .backend import default_cache_root
+from .locations import default_cache_root
 from .buffers import Buffer
 from .cache import DamagedEntry, NodeCache, node_key_of_output, plain_notes
 from .context import StageContext
@@ -164,11 +164,11 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
             if consumers[src] == 0 and src not in targets:
                 values.pop(src, None)
 
-    return _result(graph, order, targets, values, reports)
+    return _result(graph, order, targets, values, reports, paths)
 
 
 def _result(graph: CheckedGraph, order: list[str], targets: set[str], values: Mapping[str, Mapping[str, Any]],
-            reports: Mapping[str, NodeReport]) -> RunResult:
+            reports: Mapping[str, NodeReport], paths: RunPaths) -> RunResult:
     """The requested nodes' outputs, loaded, with the report of every node."""
     result = RunResult()
     for name in order:

@@ -25,7 +25,7 @@ READ_BYTES = 4 << 20  # parts read from a spill file: small, since each is a cop
 
 def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
     """An uninitialised array of ``shape`` backed by an unlinked file under the cache root (see the module docs)."""
-    from .backend import default_cache_root
+    from .locations import default_cache_root
     shape, dtype = tuple(int(s) for s in shape), np.dtype(dtype)
     nbytes = int(np.prod(shape)) * dtype.itemsize
     if nbytes == 0:

@@ -237,7 +237,7 @@ class SpilledSampleStack(SampleStack):
 
 def open_stored_stack(path: str | os.PathLike) -> StoredSampleStack:
     """The stack of a store, read lazily (its content digest computed once, remembered by the node cache)."""
-    from .backend import default_cache_root
+    from .locations import default_cache_root
     from .cache import file_digest
     array, meta = open_store(path)
     digest = file_digest(Path(path).resolve(), default_cache_root() / "nodes" / "files")

@@ -1,4 +1,5 @@
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -29,3 +30,20 @@ def _isolated_node_cache(tmp_path_factory, monkeypatch):
     # Node outputs are cached per test so runs never see each other's entries; PoCL's kernel cache stays shared.
     monkeypatch.setenv("BTFORGE_CACHE_DIR", str(tmp_path_factory.mktemp("btforge-cache")))
     monkeypatch.setenv("POCL_CACHE_DIR", os.environ.get("POCL_CACHE_DIR", str(Path.home() / ".cache/btforge/pocl")))
+
+
+# Debian's chromium, driven by Playwright for the viewer tests (Playwright's own browsers are never fetched)
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if CHROMIUM is None:
+        pytest.skip("no Chromium on PATH (.ci/setup installs Debian's chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed (pip install playwright)")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        yield b
+        b.close()

@@ -13,7 +13,7 @@ import btforge
 from btforge.plugins.web.server import start
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_viewer import SIZE, browser, open_page, psnr, relit_display, screenshot  # noqa: E402,F401
+from test_viewer import SIZE, open_page, psnr, relit_display, screenshot  # noqa: E402,F401
 from test_web_export import capture  # noqa: E402
 
 FITS = {"hsh": ("hsh.fit", {}), "hsh_ycc": ("hsh.fit", {"colorspace": "ycc"}), "rbf": ("rbf.fit", {}),

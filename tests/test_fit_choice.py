@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from btforge.buffers import SampleStack, linear_to_srgb8
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import AUTO_HOLD_EVERY, best_held_out, held_out_grid
+from btforge.fitspace import AUTO_HOLD_EVERY, best_held_out
 from btforge.numerics import real_sh
 from btforge.plugins.sh.model import AUTO_ORDERS, AUTO_SMOOTHNESS, auto_orders, few_lights_order, fit_sh, highest_near_best
 

@@ -8,7 +8,6 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
 from btforge.plugins.ptm.model import PTMModel
 from btforge.plugins.synth import jumpmap as jm_module
-from btforge.plugins.synth import kcoherence as kc
 from btforge.plugins.synth import search, textons
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features

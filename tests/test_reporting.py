@@ -68,13 +68,13 @@ def test_cached_nodes_report_the_notes_they_ran_with(tmp_path, capsys):
         assert main(["run", str(graph), "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache"),
                      "--report", str(report)]) == 0
         reports.append({n["node"]: n for n in json.loads(report.read_text())["nodes"]})
-        tables.append([line.split(None, 5) for line in capsys.readouterr().err.splitlines()
+        tables.append([line.split(None, 6) for line in capsys.readouterr().err.splitlines()
                        if line.split()[:1] in (["compare"], ["score"])])
     assert {n["status"] for n in reports[1].values()} == {"cached"}
     for node in ("compare", "score"):
         assert reports[0][node]["notes"] == reports[1][node]["notes"], node
     assert "psnr_db" in reports[1]["compare"]["notes"] and "swd" in reports[1]["score"]["notes"]
-    assert [row[5] for row in tables[0]] == [row[5] for row in tables[1]]   # the table's notes column too
+    assert [row[6] for row in tables[0]] == [row[6] for row in tables[1]]   # the notes column (after "where")
     again = btforge.run(graph, out_dir=tmp_path / "out", cache_dir=tmp_path / "cache")
     assert {r.node: r.notes for r in again.report} == {name: n["notes"] for name, n in reports[0].items()}
 

@@ -7,7 +7,6 @@ from hypothesis import strategies as st
 
 from btforge.plugins.synth import bench as synth_bench
 from btforge import BtforgeInputError
-from btforge.plugins.synth import kcoherence as kc
 from btforge.plugins.synth import search
 from btforge.plugins.synth.features import texel_features
 from btforge.plugins.synth.quilt_search import shape_texels

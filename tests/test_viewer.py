@@ -24,9 +24,6 @@ from btforge.plugins.web.server import start
 sys.path.insert(0, str(Path(__file__).parent))
 from test_web_export import capture  # noqa: E402
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync"]
 SIZE = (60, 80)  # model rows, columns: the page shows it at 1:1 with ?zoom=1&bar=0
 
 
@@ -78,17 +75,6 @@ def test_cli_prints_its_address(tmp_path):
         proc.terminate()
         proc.wait(timeout=10)
     assert list(scratch_root.iterdir()) == []  # terminated, it still removed its scratch folder
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if CHROMIUM is None:
-        pytest.skip("no Chromium on PATH (.ci/setup installs Debian's chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed (pip install playwright)")
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
-        yield b
-        b.close()
 
 
 def open_page(browser, url):
