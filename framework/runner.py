@@ -280,7 +280,7 @@ def _execute(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[s
     if scheduler != "local":
         reason = not_split_reason(st, params, inputs) if port is None else (
             "its stack is held whole in this process (another node reads it whole, or it is not a capture "
-            "stack.read streams); read a store made by stack.import to fit it on the cluster")
+            "stackio.read streams); read a store made by stackio.import to fit it on the cluster")
         if reason:
             ctx.warn(f"runs in this process, not on {scheduler}: {reason}")
     if banded:

@@ -2,7 +2,7 @@
 
 A node whose stage is per texel with its params (``per_texel``, once ``settle`` has decided ``space: auto`` on
 a sample of the whole input) and whose one input is a stack read band by band (``stack.chunked``: a chunked
-store, or a capture ``stack.read`` streams because only per-texel nodes read it) runs as one task per band of
+store, or a capture ``stackio.read`` streams because only per-texel nodes read it) runs as one task per band of
 rows of texels.  A worker reads its band of a store itself (the store must be on a filesystem every worker
 sees); the bands of a streamed capture are sent from this process, two per worker at a time.  Each worker opens
 its own OpenCL context in its own process (contexts cannot be pickled) and runs one kernel at a time (a lock

@@ -212,7 +212,7 @@ class SpilledSampleStack(SampleStack):
     (``framework/spill.py``): they live in the operating system's file cache, not in this process, and a stage
     reading a band of rows pages in only that band (the runner hands the band's pages back afterwards).
 
-    What ``stack.read`` gives when every node reading the stack runs per texel: the capture is decoded once,
+    What ``stackio.read`` gives when every node reading the stack runs per texel: the capture is decoded once,
     in parallel, and fitted band by band, so the process never holds it whole.  It is an ordinary stack
     otherwise (its ``samples`` is a memory map of the whole capture), with the type name ``SampleStack``.
     """

@@ -2,7 +2,7 @@
 
 A capture read whole costs the process its full size (a 1024 x 1024, 49-light RGB capture is 154 MB of bytes)
 although a per-texel fit only ever needs the samples of a band of texels at a time.  So, before a run, the
-runner looks at who reads each output a stage can stream (declared ``streams``, as ``stack.read`` does): when
+runner looks at who reads each output a stage can stream (declared ``streams``, as ``stackio.read`` does): when
 every node reading it in this run is per texel (declared ``per_texel`` for its params) and reads nothing else,
 the reader is asked for a stack read band by band (``ctx.streamed``; ``stack.chunked`` is then true), and each
 of those nodes runs band by band (:func:`run_banded`): a band of rows of every image is paged in, the stage runs

@@ -201,7 +201,7 @@ def project_stack(stack: SampleStack, proj: np.ndarray, offset: np.ndarray, engi
 def _check_stack(stack: SampleStack, stage: str) -> None:
     if stack.n_view != 1 or stack.n_channel != 3:
         raise BtforgeInputError(f"{stage} 'stack'", f"expected a single-view RGB stack, found {stack.n_view} view(s) "
-                                f"and {stack.n_channel} channel(s)", "select one view with stack.select")
+                                f"and {stack.n_channel} channel(s)", "select one view with stackio.select")
 
 
 def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",

@@ -6,7 +6,7 @@ A texel's display value (sRGB, in [0, 1]) under a light ``l`` is
 
 with ``T [P + 1, D, 3]`` the light table (row 0 the mean response, row ``p + 1`` plane ``p``), ``w(l) [D]`` the
 basis's weights over the table (:mod:`.lightfuncs`) and ``M`` the colour matrix (identity, or YCoCg -> RGB).
-``relight`` clips ``v`` to [0, 1] and decodes it to linear radiance.  The per-texel sum runs on OpenCL
+``relight.images`` clips ``v`` to [0, 1] and decodes it to linear radiance.  The per-texel sum runs on OpenCL
 (kernel ``basis_eval`` in ``bases.cl``; NumPy twin :func:`evaluate_numpy`).
 """
 from __future__ import annotations

@@ -252,7 +252,7 @@ def _check_render_inputs(material, lights, ambient) -> tuple[ProceduralMaterial,
     if not isinstance(material, ProceduralMaterial):
         raise BtforgeInputError("render 'material'", f"expected a ProceduralMaterial, got {type(material).__name__}",
                                 "build one with make_material()")
-    lights = unit_directions("lights", lights, owner="render")
+    lights = unit_directions("lights", lights, owner="render.image")
     if not math.isfinite(ambient) or ambient < 0:
         raise BtforgeInputError("render 'ambient'", f"expected a finite number >= 0, got {ambient}")
     return material, lights, np.float32(ambient)

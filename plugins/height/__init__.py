@@ -98,7 +98,7 @@ def height_write(ctx, height, *, path):
     """Write a height field: ``.exr`` = channel Y, the height in texel widths; ``.ply`` = a triangle mesh.
 
     The mesh has one vertex per texel centre at ``(col - (W-1)/2, (H-1)/2 - row, height)`` (texel widths) with
-    UVs ``u`` along the columns and ``v`` up the rows, so ``render`` can load it (scale it in the scene).
+    UVs ``u`` along the columns and ``v`` up the rows, so ``render.image`` can load it (scale it in the scene).
     """
     height_io.suffix_of(path, height_io.HEIGHT_FORMATS, "height.write 'path'")
     height_io.write_height(height, ctx.paths.output(path))

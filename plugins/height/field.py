@@ -41,7 +41,7 @@ class HeightField(PerTexel):
     per-texel buffer); ``albedo [H, W, C]`` float32 linear, >= 0; ``normals [H, W, 3]``
     float32 unit with z > 0 (frame in the module docstring); ``weights [H, W, K]`` float32 in [0, 1], one per
     input sample (``K = views x lights`` of the stack it came from, 0 for a field that was not measured).
-    Crop, ``materialize`` and every synthesizer work on it as on any per-texel buffer; blending two texels
+    Crop, ``synth.materialize`` and every synthesizer work on it as on any per-texel buffer; blending two texels
     averages heights and albedo and re-normalises the mean normal.
     """
 

@@ -68,7 +68,7 @@ def lafortune_fit(ctx, stack, *, lobes, variant, iterations):
     model : LafortuneModel
         ``normals [H, W, 3]``, ``diffuse [H, W, 1 or C]``, ``lobes [H, W, K, 3]`` (Cx, Cy, Cz; for rgb ``K = 2C``,
         channel-major, the second of each channel switched off, ``C = 0``, for ``lobes`` 1), ``exponents [H, W, K]``,
-        ``colour [H, W, C]`` (lum).  Relight it with ``relight``.
+        ``colour [H, W, C]`` (lum).  Relight it with ``relight.images``.
 
     Notes
     -----

@@ -105,8 +105,8 @@ def _steps(table, opts, capture, refs):
 
     exemplar = stage("synth.crop")(input=recovered, origin=[0, 0], size=[n // 2, n // 2])["output"]
     reference_stats = height_statistics(exemplar)
-    for name, params in (("quilt", {"block": max(8, n // 8), "wrap": True}), ("kcoherence", {"wrap": True}),
-                         ("jumpmap", {})):
+    for name, params in (("synth.quilt", {"block": max(8, n // 8), "wrap": True}),
+                         ("synth.kcoherence", {"wrap": True}), ("synth.jumpmap", {})):
         seconds, field = _median_seconds(lambda: stage("synth.materialize")(
             coords=stage(name)(exemplar=exemplar, size=[n, n], seed=1, **params)["coords"], source=exemplar)["output"], 1)
         s = height_statistics(field)

@@ -48,7 +48,7 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
     matrix.  The kernel reads an 8-bit capture in place (bytes as numbers for display values, through a table
-    for linear radiance) and writes straight into the result.  Fed by ``stack.read`` with no other node reading
+    for linear radiance) and writes straight into the result.  Fed by ``stackio.read`` with no other node reading
     the stack, the fit runs band by band of rows and the capture is never held whole (``space: auto`` is decided
     first, on a grid of texels of the whole capture).  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small

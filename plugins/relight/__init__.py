@@ -49,7 +49,7 @@ def relight(ctx, model, at=None, *, lights, views):
         Linear radiance ``[views, lights, H, W, C]``, named after the light file's entries when there is one.
     """
     if lights is None and at is None:
-        raise BtforgeInputError("relight", "expected the 'lights' param or a stack wired to input 'at', found neither",
+        raise BtforgeInputError("relight.images", "expected the 'lights' param or a stack wired to input 'at', found neither",
                                 "add `params: {lights: [[0, 0, 1]]}` or `inputs: {at: NODE.stack}`")
     if lights is not None:
         directions, names = resolve_lights(lights, ctx.paths)

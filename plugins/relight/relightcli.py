@@ -104,7 +104,7 @@ def plane_bytes(rti: Path) -> int:
 
 def measure_relight(exe: Path, fit_entries, test, crop, full_shape: tuple[int, int]) -> list[dict]:
     """One row per :data:`RELIGHT_BASES` entry, in the bench's columns: relight-cli fitted on ``fit_entries``
-    (``(path, light)`` rows) and scored on the held-out stack ``test`` (already cropped like ``crop``)."""
+    (``(path, light)`` rows) and scored on the held-out stack ``test`` (already cropped like ``synth.crop``)."""
     from btforge.buffers import SampleStack
 
     from . import compare_stacks

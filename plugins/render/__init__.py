@@ -1,6 +1,6 @@
 """Rendering reflectance textures on meshes: scenes, ray casting with open3d, models evaluated on OpenCL.
 
-Stages: ``render`` (a scene with one input port per material it names -> a linear RGB ``Image``), ``render.read_scene``
+Stages: ``render.image`` (a scene with one input port per material it names -> a linear RGB ``Image``), ``render.read_scene``
 (a scene file with the meshes and maps it names -> a ``Scene``), ``render.write_image`` (EXR, PNG, GIF, MP4).
 The scene format is described in README.md, section "Scene format".
 """
@@ -84,7 +84,7 @@ def render(ctx, scene_data=None, *, scene, materials, **models):
     from .renderer import Counters, render as render_scene
     from .loader import load_scene
     if (scene is None) == (scene_data is None):
-        raise BtforgeInputError("render", "expected exactly one scene: the 'scene' param or a Scene wired to "
+        raise BtforgeInputError("render.image", "expected exactly one scene: the 'scene' param or a Scene wired to "
                                 "'scene_data'", "add `params: {scene: scenes/NAME.yaml}`")
     if scene_data is None:
         scene_data = load_scene(scene, ctx.paths)
@@ -115,7 +115,7 @@ def _scene_read_precheck(params, paths):
 def scene_read(ctx, *, path):
     """Read and check a scene file with the meshes and environment maps it names, into one self-contained Scene.
 
-    Wire it to ``render``'s ``scene_data`` port (and list the material names in that node's ``materials``) to
+    Wire it to ``render.image``'s ``scene_data`` port (and list the material names in that node's ``materials``) to
     share one scene between several renders.
     """
     from .loader import load_scene

@@ -148,7 +148,7 @@ class SceneSpec:
         return [name for name in self.materials if any(m.material == name and m.tiles for m in self.meshes)]
 
     def ports(self) -> dict[str, str]:
-        """Input ports of a ``render`` node for this scene: one per material, plus ``NAME_map`` for coordinate maps
+        """Input ports of a ``render.image`` node for this scene: one per material, plus ``NAME_map`` for coordinate maps
         and ``NAME_tiles`` for Wang tile sets."""
         ports = {name: "ReflectanceModel" for name in self.materials}
         ports.update({f"{name}_map": "CoordMap" for name in self.coord_mapped})
@@ -549,7 +549,7 @@ def _parse_animation(w: _Where, raw: Any, lights: tuple[LightSpec, ...]) -> Anim
 
 
 def scene_ports(value: Any, paths) -> dict[str, str]:
-    """Input ports a ``render`` node gets from its ``scene`` param (used by the engine at validation)."""
+    """Input ports a ``render.image`` node gets from its ``scene`` param (used by the engine at validation)."""
     data, source, base = read_scene_source(value, paths)
     return parse_scene(data, source, base).ports()
 

@@ -97,7 +97,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     Outputs
     -------
     model : SHModel
-        ``coeffs [H, W, C, k_v, k_l]`` (float32, or uint8 with ``scale``/``bias``), evaluated by ``relight``.
+        ``coeffs [H, W, C, k_v, k_l]`` (float32, or uint8 with ``scale``/``bias``), evaluated by ``relight.images``.
 
     Notes
     -----

@@ -56,7 +56,7 @@ def stack_read(ctx, *, path, transfer):
     When every node reading the stack runs per texel (``ptm.fit``, ``sh.fit``, ``lafortune.fit`` ...), the
     images are decoded into a spilled file instead of memory and those nodes fit it band by band of rows, so
     the process never holds the capture (the run report notes ``streamed``; a capture under 64 MB is held all
-    the same, which costs less); a node that needs the stack whole (``stack.split``, ``stack.compare``, a
+    the same, which costs less); a node that needs the stack whole (``stackio.split``, ``relight.compare``, a
     relight) gets it in memory.
     """
     from btforge.store import is_store, open_stored_stack

@@ -1,6 +1,6 @@
 """Texture synthesis of reflectance functions: every synthesizer outputs a coordinate map into the exemplar.
 
-``materialize`` replays a map on any per-texel buffer (a stack, a PTM, Lafortune or SH model), so one synthesis
+``synth.materialize`` replays a map on any per-texel buffer (a stack, a PTM, Lafortune or SH model), so one synthesis
 serves every representation, and ``synth.write_coords`` saves a map (blends included) as an EXR image.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ def crop(ctx, input, *, origin, size):
     from btforge.errors import BtforgeInputError
     (r0, c0), (h, w) = origin, size
     if r0 + h > input.height or c0 + w > input.width:
-        raise BtforgeInputError("crop", f"expected the crop to fit in the {input.height} x {input.width} input, found "
+        raise BtforgeInputError("synth.crop", f"expected the crop to fit in the {input.height} x {input.width} input, found "
                                 f"rows {r0}..{r0 + h - 1}, columns {c0}..{c0 + w - 1}", "move 'origin' or shrink 'size'")
     rows, cols = np.meshgrid(np.arange(r0, r0 + h), np.arange(c0, c0 + w), indexing="ij")
     return {"output": input.remap(rows, cols)}

@@ -3,7 +3,7 @@
 Every stage declared with ``role="synthesizer"`` (a third-party one too) runs with its defaults on central crops
 of a real capture, fitted as orthonormal LRGB PTMs (9-D texels).  For each it reports the analysis seconds (its
 first run on an exemplar) and the synthesis seconds (a second run with another seed, which reuses a cached
-analysis), and the ``score`` metrics of the result; a shuffled-block baseline is scored beside them.  The shared
+analysis), and the ``synth.score`` metrics of the result; a shuffled-block baseline is scored beside them.  The shared
 neighbourhood search is measured on the same exemplars: the fast engine's build and query time, the exact
 engine's query time, and the fast engine's recall and distance ratio at k = 6.
 """
@@ -43,7 +43,7 @@ SHEET_LIGHTS = ((-0.5, 0.5, 0.707), (0.8, -0.1, 0.59))
 
 
 def exemplar_model(path: str, crop: int):
-    """The exemplar as an orthonormal LRGB PTM of the central ``crop`` x ``crop`` texels of a capture
+    """The exemplar as an orthonormal LRGB PTM of the central ``synth.crop`` x ``synth.crop`` texels of a capture
     (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar;
     ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file: that model,
     cropped)."""
@@ -64,7 +64,7 @@ def exemplar_model(path: str, crop: int):
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int | None = None,
                     seed: int = 0):
-    """The shuffled-block baseline of ``score`` (:func:`.visibility.shuffled_blocks`), by default with its
+    """The shuffled-block baseline of ``synth.score`` (:func:`.visibility.shuffled_blocks`), by default with its
     block side for this exemplar."""
     return visibility.shuffled_blocks(exemplar_size, size, block or visibility.baseline_block(exemplar_size), seed)
 
@@ -412,13 +412,13 @@ def benchmark_kcoherence(exemplar_size: int = 64, size: int = 256, *, k: int = 6
                          levels: int = 3, wrap: bool = False, repeat: int = 3, seed: int = 0,
                          search: str = "fast", cold: bool = True, texels: str = "stack",
                          recall_samples: int = 0, blocks: int = 0) -> dict:
-    """Median wall time of the ``kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
+    """Median wall time of the ``synth.kcoherence`` stage (kernels compiled beforehand; with ``cold`` every repeat
     analyses the exemplar again, else the cached analysis is reused).  ``blocks`` is the stage's param: 0 (the
-    default here) times the hierarchical synthesis over ``levels`` levels, the configuration the issue names;
+    default here) times the hierarchical synthesis over ``levels`` levels, as in Tong et al. 2002;
     the stage's own default (-1) starts from stratified blocks and analyses the finest level only.
 
     ``texels``: ``stack`` (the demo material under 16 lights: 48 values a texel, 32-D appearance vectors),
-    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the issue's configuration) or the path of a
+    ``ptm`` (the same fitted as an orthonormal LRGB PTM: 9-D, the headline benchmark's texels) or the path of a
     ``.ptm`` file (its central ``exemplar_size`` square).  ``recall_samples`` > 0 also measures the finest
     level's coherence sets against the exact search at that many texels.
 

@@ -349,7 +349,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     With ``wrap`` the output's last column and row continue into its first ones, so the result tiles.  There is
     no correction pass: the closing row and column must agree with both sides, so the seam has fewer exact
     coherent copies than the interior (the closing row more visibly than the closing column); use
-    ``kcoherence`` when seams matter most.
+    ``synth.kcoherence`` when seams matter most.
 
     **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
     texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
@@ -357,7 +357,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     Outputs
     -------
     coords : CoordMap
-        ``[H, W, 2]`` (row, column) into the exemplar; replay it on any per-texel buffer with ``materialize``.
+        ``[H, W, 2]`` (row, column) into the exemplar; replay it on any per-texel buffer with ``synth.materialize``.
 
     Notes
     -----
@@ -365,7 +365,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     seconds_analysis, seconds_synthesis.
     """
     size = tuple(int(v) for v in size)
-    check_params("jumpmap", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood)
+    check_params("synth.jumpmap", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood)
     if min(exemplar.height, exemplar.width) < neighborhood:
         raise BtforgeInputError("jumpmap 'exemplar'", f"expected at least {neighborhood} x {neighborhood} texels "
                                 f"(the neighbourhood), found {exemplar.height} x {exemplar.width}",

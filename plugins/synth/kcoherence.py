@@ -379,7 +379,7 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
         raise BtforgeInputError("kcoherence 'engine'", f"expected one of {ENGINES}, found {engine!r}",
                                 "use 'opencl', or 'numpy' for the reference twins")
     # The stage checked its params before any work; direct callers reach the bounds its Params enforce only here.
-    check_params("kcoherence", features.shape[:2], size=size, neighborhood=neighborhood, k=k, levels=levels)
+    check_params("synth.kcoherence", features.shape[:2], size=size, neighborhood=neighborhood, k=k, levels=levels)
     if not 0 <= corrections <= MAX_CORRECTIONS:
         raise BtforgeInputError("kcoherence param 'corrections'",
                                 f"expected an int in [0, {MAX_CORRECTIONS}], found {corrections}",
@@ -541,7 +541,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     Outputs
     -------
     coords : CoordMap
-        ``[H, W, 2]`` (row, column) into the exemplar; replay it on any per-texel buffer with ``materialize``.
+        ``[H, W, 2]`` (row, column) into the exemplar; replay it on any per-texel buffer with ``synth.materialize``.
 
     Notes
     -----
@@ -551,7 +551,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     coherent copies), seconds_analysis, seconds_synthesis.
     """
     size = tuple(int(v) for v in size)
-    check_params("kcoherence", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood, k=k,
+    check_params("synth.kcoherence", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood, k=k,
                  levels=levels)
     features = texel_features(exemplar)
     result = synthesize(features, size, k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,

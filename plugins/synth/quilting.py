@@ -300,7 +300,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     Outputs
     -------
     coords : CoordMap
-        ``[H, W, 2]`` exemplar coordinates (replay on any representation with ``materialize``).
+        ``[H, W, 2]`` exemplar coordinates (replay on any representation with ``synth.materialize``).
 
     Notes
     -----

@@ -1,6 +1,6 @@
 """Measured synthesis quality: compare a synthesized reflectance texture with its exemplar, light by light.
 
-The ``score`` stage relights both textures at a set of lights and measures, in an exposure-normalised
+The ``synth.score`` stage relights both textures at a set of lights and measures, in an exposure-normalised
 perceptual domain, how well the output reproduces the exemplar's local statistics (sliced Wasserstein distance
 of patches, coherence, completeness), how much of it is a verbatim copy, how visible its seams are, and whether
 every output texel comes from one exemplar place under all lights (what distinguishes a synthesis of
@@ -103,7 +103,7 @@ def _score_lights(output, exemplar, lights, paths) -> tuple[np.ndarray, str]:
     if lights is not None:
         from btforge.plugins.relight import resolve_lights
         directions, _ = resolve_lights(lights, paths)
-        return unit_directions("lights", directions, owner="score"), "param"
+        return unit_directions("lights", directions, owner="synth.score"), "param"
     if isinstance(exemplar, SampleStack):
         return exemplar.lights, "exemplar"
     if isinstance(output, SampleStack):
@@ -644,7 +644,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         ``seam_ratio``
             Mean gradient magnitude (forward difference, colour norm) across boundaries divided by the mean
             gradient between all other neighbouring texels, both averaged over lights; 1 means invisible
-            seams.  Boundaries are every ``block`` texels (the block step: ``block - overlap`` for ``quilt``),
+            seams.  Boundaries are every ``block`` texels (the block step: ``block - overlap`` for ``synth.quilt``),
             else where ``coords`` is discontinuous (the seams exactly), plus the last-to-first row and column
             when ``wrap`` (by default the map's own); empty (no value) when none of these is known.  It is
             measured against the output's own texture, not the exemplar's, so it is not ``seam_visibility``.
@@ -670,7 +670,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         ``consistency`` and ``consistent``
             Whether each output texel comes from the same exemplar place under every light.  With ``coords``:
             the share of texels equal (within ``tolerance``, under every light) to what the map names, i.e. to
-            the exemplar replayed through the map as ``materialize`` replays it (blends included), then relit.
+            the exemplar replayed through the map as ``synth.materialize`` replays it (blends included), then relit.
             Without: for sampled output texels
             (``samples / 4``), under each light separately, up to 16 of the ``consistency_patch``-sized patches
             covering the texel are matched to their nearest exemplar patch and the best-matching one names the
@@ -696,7 +696,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
                         "from", "wire a tile set to 'tiles'")(exemplar, coords) if tiles is not None else {}
     if output is None:
         if tiles is None:
-            raise BtforgeInputError("score", "expected 'output' (a synthesized texture) or 'tiles' (a tile set) "
+            raise BtforgeInputError("synth.score", "expected 'output' (a synthesized texture) or 'tiles' (a tile set) "
                                     "wired, found neither", "wire the texture to measure to 'output', or a tile "
                                     "set to 'tiles'")
         return _noted(ctx, layout)
@@ -757,7 +757,7 @@ class _Relit:
     out_enc: np.ndarray
 
     def replay(self, coords: CoordMap) -> np.ndarray:
-        """The exemplar replayed through ``coords`` as ``materialize`` replays it (blended records, then
+        """The exemplar replayed through ``coords`` as ``synth.materialize`` replays it (blended records, then
         relit), encoded: blending relit radiance instead differs wherever evaluation is not linear in the
         records (clamps, sRGB codes, sRGB-space PTMs)."""
         replayed = coords.apply(_relit_view(self.exemplar))
@@ -767,7 +767,7 @@ class _Relit:
 def _check_channels(ctx, output: PerTexel, exemplar: PerTexel) -> None:
     n_channel, out_channel = len(_channels(exemplar)), len(_channels(output))
     if out_channel != n_channel:
-        raise BtforgeInputError("score", f"expected output and exemplar with the same channels, found {out_channel} "
+        raise BtforgeInputError("synth.score", f"expected output and exemplar with the same channels, found {out_channel} "
                                 f"({', '.join(_channels(output))}) and {n_channel} ({', '.join(_channels(exemplar))})",
                                 "score textures of the same colour space")
     if _channels(output) != _channels(exemplar):

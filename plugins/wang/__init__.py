@@ -2,8 +2,8 @@
 stochastic tilings of planes and of meshes' UV grids.
 
 Stages: ``wang.tiles`` (exemplar -> ``TileSet``), ``wang.tiling`` (``TileSet`` -> ``CoordMap`` of a plane tiling,
-replayed by ``materialize`` and ``render``'s ``coord_map``), ``wang.write_tiles`` / ``wang.read_tiles`` (the ``.wang``
-archive, see :mod:`.tileset`).  ``score`` measures a ``TileSet`` wired to its ``tiles`` port through
+replayed by ``synth.materialize`` and ``render.image``'s ``coord_map``), ``wang.write_tiles`` / ``wang.read_tiles`` (the ``.wang``
+archive, see :mod:`.tileset`).  ``synth.score`` measures a ``TileSet`` wired to its ``tiles`` port through
 :meth:`TileSet.seam_scores` (seam ratios over every valid adjacency and 2 x 2 configuration, colour mismatches
 and tile use of a tiling).  The renderer dresses meshes with a ``TileSet`` directly (scene key
 ``tiles: true``).
@@ -112,7 +112,7 @@ def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
 
     Tile (i, j) covers rows ``i*w .. (i+1)*w - 1`` and columns ``j*w .. (j+1)*w - 1``.  Edge colours are drawn at
     random, so the tiling is not periodic; among draws, one that uses every tile is kept where there is room.
-    ``materialize`` and ``render``'s ``coord_map`` replay the map on the exemplar (or any buffer of it).  The map
+    ``synth.materialize`` and ``render.image``'s ``coord_map`` replay the map on the exemplar (or any buffer of it).  The map
     carries the tile size (``CoordMap.tile``), so seam measures can leave the tile borders out.
     """
     from .seams import tiling_report

@@ -203,7 +203,7 @@ def tiling_ids(tiles, coords) -> np.ndarray:
 
 
 def tile_set_scores(tiles, exemplar, coords=None) -> dict:
-    """What ``score`` reports for a tile set: ``seam_*`` (:func:`seam_ratios` over every valid adjacency and
+    """What ``synth.score`` reports for a tile set: ``seam_*`` (:func:`seam_ratios` over every valid adjacency and
     2 x 2 configuration, in the exemplar's appearance features), ``btfel_share``, ``btfel_bytes``, ``tiles``, and
     with ``coords`` (a tiling of the set) ``tiling_*`` (:func:`tiling_report`) and ``tiling_periodic``."""
     from btforge.errors import BtforgeInputError

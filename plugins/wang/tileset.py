@@ -126,7 +126,7 @@ class TileSet(Buffer):
         return self.table[self.indices]
 
     def tile_map(self, index: int) -> CoordMap:
-        """One tile as a coordinate map (for ``materialize``)."""
+        """One tile as a coordinate map (for ``synth.materialize``)."""
         return CoordMap(np.ascontiguousarray(self.tile_coords[index]), self.source_size)
 
     def lookup(self, n: int, e: int, s: int, w: int) -> np.ndarray:
@@ -146,7 +146,7 @@ class TileSet(Buffer):
                 "texels_as_copies_bytes": int(self.indices.size * self.texel_bytes)}
 
     def seam_scores(self, exemplar, coords: CoordMap | None = None) -> dict:
-        """The tile-set mode of ``score``: seam ratios over every valid adjacency and 2 x 2 configuration, the
+        """The tile-set mode of ``synth.score``: seam ratios over every valid adjacency and 2 x 2 configuration, the
         BTFel statistics, and with ``coords`` (a ``wang.tiling`` of this set) its colour mismatches, tile use and
         whether its tile IDs repeat periodically (keys in :func:`btforge.plugins.wang.seams.tile_set_scores`)."""
         from .seams import tile_set_scores
@@ -171,7 +171,7 @@ class TileSet(Buffer):
                     archive.writestr(f"{name}.npy", bio.getvalue())
 
 
-DAMAGED = "the archive is damaged or truncated; write it again with tiles.write"
+DAMAGED = "the archive is damaged or truncated; write it again with wang.write_tiles"
 
 
 @file_reader("a tile-set archive", DAMAGED)

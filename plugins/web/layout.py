@@ -229,7 +229,7 @@ def _read_planes(info: dict) -> np.ndarray:
     return planes
 
 
-@file_reader("a web layout", "export the model again (relight or model.export_web)")
+@file_reader("a web layout", "export the model again (relight or web.export)")
 def read_web(path):
     """The model a web layout holds: a PTMModel, SHModel or HSHModel (see the module docs)."""
     from btforge.plugins.ptm.model import PTMModel
