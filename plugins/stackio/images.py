@@ -30,7 +30,7 @@ import numpy as np
 
 from btforge.atomic import atomic_output_path, atomic_write
 from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb8, srgb_to_linear
-from btforge.errors import BtforgeInputError
+from btforge.errors import BtforgeInputError, reading_file
 
 from .lightfile import LightFileEntry, image_path, is_btf_zip, read_capture_index, write_light_file
 
@@ -270,8 +270,14 @@ def read_image(path, name: str | None = None) -> tuple[np.ndarray, str]:
     transfer
         ``'srgb'`` for 8-bit data (camera-encoded), ``'linear'`` for 16-bit and float data.
     """
-    in_memory = hasattr(path, "getvalue")
     path_text = name or str(path)
+    # decoders raise many kinds of errors on damaged data (Pillow: SyntaxError for a broken PNG chunk)
+    with reading_file(path_text, "an image", "the file may be truncated or corrupted; copy it again"):
+        return _read_image(path, path_text)
+
+
+def _read_image(path, path_text: str) -> tuple[np.ndarray, str]:
+    in_memory = hasattr(path, "getvalue")
     suffix = Path(path_text).suffix.lower()
     if suffix == ".exr":
         if in_memory:
