@@ -138,11 +138,11 @@ def readers(seed: Path) -> list[Reader]:
     web = ("web/info.json", "web/plane_0.png", "web/plane_4.png")
     return [
         Reader("info .lp", ("capture/lights.lp",), _info("capture/lights.lp")),
-        Reader("stack.read (.lp + EXR)", ("capture/lights.lp", "capture/light_000.exr", "capture/light_007.exr"),
+        Reader("stackio.read (.lp + EXR)", ("capture/lights.lp", "capture/light_000.exr", "capture/light_007.exr"),
                _run("read_stack.yaml")),
-        Reader("stack.read (.lp + PNG)", ("capture_png/lights.lp", "capture_png/light_002.png"),
+        Reader("stackio.read (.lp + PNG)", ("capture_png/lights.lp", "capture_png/light_002.png"),
                _run("read_png.yaml")),
-        Reader("stack.read (.lp + JPEG)", ("capture_jpg/light_000.jpg", "capture_jpg/light_004.jpg"),
+        Reader("stackio.read (.lp + JPEG)", ("capture_jpg/light_000.jpg", "capture_jpg/light_004.jpg"),
                _run("read_jpg.yaml")),
         Reader("ptm.fit_capture (.lp + JPEG)", ("capture_jpg/light_001.jpg", "capture_jpg/light_006.jpg"),
                _run("fit_jpg.yaml")),
@@ -153,7 +153,7 @@ def readers(seed: Path) -> list[Reader]:
         Reader("info .btfm", ("model.btfm",), _info("model.btfm")),
         Reader("models.read", ("model.btfm",), _run("read_model.yaml")),
         Reader("info .ply (height mesh)", ("height.ply",), _info("height.ply")),
-        Reader("scene.read (YAML + OBJ + PLY)", ("scene.yaml", "quad.obj", "height.ply"), _run("read_scene.yaml")),
+        Reader("render.read_scene (YAML + OBJ + PLY)", ("scene.yaml", "quad.obj", "height.ply"), _run("read_scene.yaml")),
         Reader("info .wang", ("set.wang",), _info("set.wang")),
         Reader("wang.read_tiles", ("set.wang",), _run("read_tiles.yaml")),
         Reader("info web layout", web, _info("web/info.json")),
@@ -162,7 +162,7 @@ def readers(seed: Path) -> list[Reader]:
         Reader("info .rti (HSH)", ("model.rti",), _info("model.rti")),
         Reader("info .zarr store", store, _info("store.zarr")),
         Reader("info .btf (UBO2014)", ("capture.btf",), _info("capture.btf")),
-        Reader("stack.read (.btf)", ("capture.btf",), _run("read_btf.yaml")),
+        Reader("stackio.read (.btf)", ("capture.btf",), _run("read_btf.yaml")),
         Reader("validate graph", ("seed.yaml",), ("validate", "{dir}/seed.yaml")),
     ]
 
