@@ -7,10 +7,14 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 1. *Texture optimisation* (Kwatra et al. 2005) with an *occurrence* term (Kaspar et al. 2015): the output is cut
    into overlapping ``patch x patch`` windows (half a window apart, the grid jittered at each iteration); each
    window is matched to the exemplar window whose appearance is nearest (a k-d tree on PCA-reduced windows; the
-   window it copies now is always a candidate) plus a penalty for exemplar windows already used more than
-   their fair share.  Every output texel then takes, among the sources its covering windows propose, the one whose
-   appearance is nearest the proposals' average (a discrete vote: a map names exemplar texels, so the average
-   itself cannot be stored; the texel nearest to it can, and replays on any representation).
+   window it copies now is always a candidate; candidates ranked by their full distance) plus a penalty for
+   exemplar windows already used more than their fair share.  The vote is a labelling: every output texel takes,
+   among the sources its covering windows propose and its current source, the one that keeps the cost low of the
+   proposing window's match error plus the seam cost against its neighbours (zero where two sources continue
+   each other), by a few sweeps of iterated conditional modes.  Whole well-matched windows win and the cuts
+   between them run where the appearance agrees.  (A per-texel vote, each texel taking the proposal nearest the
+   proposals' average, scatters 4 x 4 fragments of different windows: the texture's structures break up and
+   its patch statistics drift away from the exemplar's.)
 2. *Corrections* (as in Lefebvre & Hoppe 2005): each texel, in a random half of the texels per pass, may take
    the continuation of a 4-neighbour's source (or keep its own), whichever makes its neighbourhood (itself and
    its 4-neighbours) most like the exemplar's around that source.  Seams then follow the content instead of a grid.
@@ -37,6 +41,10 @@ WINDOW_DIMS = 12
 CANDIDATES = 8
 #: Correction passes after each optimisation step.
 CORRECTIONS = 1
+#: Weight of the seam cost against the window match cost in the vote.
+SEAM_WEIGHT = 1.0
+#: Checkerboard sweeps of the vote's labelling.
+SWEEPS = 4
 #: Window positions sampled to fit the window PCA.
 PCA_SAMPLE = 4000
 
@@ -130,7 +138,7 @@ def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool)
 
 def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: float,
                   rng: np.random.Generator) -> np.ndarray:
-    """One texture-optimisation round: every window matched (with the occurrence term), then the vote."""
+    """One texture-optimisation round: every window matched (with the occurrence term), then the coherent vote."""
     p = index.patch
     stride = max(1, p // 2)
     h, w = src.shape
@@ -142,34 +150,39 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
     window_src = src[rows[:, None, :, None], cols[None, :, None, :]]          # [ny, nx, p, p]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(len(ys) * len(xs), -1)
-    query_reduced = (query - index.mean) @ index.basis
-    origin = _best_windows(index, query_reduced, window_src[:, :, 0, 0].ravel(), src, occurrence)
+    origin, distance = _best_windows(index, query, window_src[:, :, 0, 0].ravel(), src, occurrence)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
                  + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(len(ys), len(xs), p, p)
-    return _vote(texels, proposals, rows, cols, (h, w))
+    cost = (distance / (p * p)).reshape(len(ys), len(xs))
+    return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng)
 
 
 def _best_windows(index: WindowIndex, query: np.ndarray, current_origin: np.ndarray, src: np.ndarray,
-                  occurrence: float) -> np.ndarray:
-    """Per query window, the exemplar window origin (flat in the window grid) of least cost: squared reduced
-    distance plus ``occurrence`` x (the mean squared distance of two random windows) x how far its texels are
-    used beyond their fair share.  Candidates: the nearest windows and the window copied now."""
+                  occurrence: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per query window (``[n, p * p * d]``), the exemplar window origin (flat in the window grid) of least cost
+    and its squared distance: the full squared distance plus ``occurrence`` x (the mean squared distance of two
+    random windows) x how far its texels are used beyond their fair share.  Candidates: the nearest windows in
+    the reduced space and the window copied now."""
     eh, ew = index.texels.shape[:2]
     gy, gx = index.grid
+    p = index.patch
     k = min(CANDIDATES, len(index.reduced))
-    _, cand = index.tree.query(query, k=k)
+    _, cand = index.tree.query((query - index.mean) @ index.basis, k=k)
     cand = cand.reshape(len(query), k)
     cy, cx = np.divmod(current_origin, ew)
     inside = (cy < gy) & (cx < gx)
     current = np.where(inside, np.minimum(cy, gy - 1) * gx + np.minimum(cx, gx - 1), cand[:, 0])
     overuse = _overuse(src, index)
     cand = np.concatenate([cand, current[:, None]], axis=1)
-    diff = index.reduced[cand] - query[:, None, :]
+    wy, wx = np.divmod(cand, gx)
+    windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
+    diff = windows.reshape(len(query), cand.shape[1], -1) - query[:, None, :]
     dist = np.einsum("qkd,qkd->qk", diff, diff)
-    cost = dist + occurrence * index.spread * overuse[cand]
-    return cand[np.arange(len(cand)), np.argmin(cost, axis=1)]
+    best = np.argmin(dist + occurrence * index.spread * overuse[cand], axis=1)
+    pick = np.arange(len(cand))
+    return cand[pick, best], dist[pick, best]
 
 
 def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
@@ -184,24 +197,63 @@ def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
     return np.maximum(sums / (p * p * fair) - 1.0, 0.0).ravel()
 
 
-def _vote(texels: np.ndarray, proposals: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-          size: tuple[int, int]) -> np.ndarray:
-    """Each output texel's new source: among the sources its windows propose, the one nearest their mean."""
-    h, w = size
-    target = (rows[:, None, :, None] * w + cols[None, :, None, :]).ravel()          # [ny * nx * p * p]
+def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+          src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:
+    """Each output texel's new source, among the sources its windows propose and its current one: a labelling
+    of least data cost (the proposing window's match error per texel; the current source costs as much as the
+    best proposal) plus :data:`SEAM_WEIGHT` x seam cost (per 4-neighbour, 0 where the two sources continue each
+    other, else the squared appearance difference between the neighbour's texel and the candidate's exemplar
+    neighbour), found by :data:`SWEEPS` checkerboard sweeps of iterated conditional modes from the
+    least-data-cost labels.  Whole windows win where they match best, and cuts between them run where the
+    appearance agrees (a per-texel choice would scatter fragments of windows)."""
+    h, w = src.shape
+    n = h * w
+    target = np.broadcast_to(rows[:, None, :, None] * w + cols[None, :, None, :], proposals.shape).ravel()
+    per_texel = np.broadcast_to(cost[:, :, None, None], proposals.shape).ravel()
     order = np.argsort(target, kind="stable")
-    target, proposed = target[order], proposals.ravel()[order]
-    count = np.bincount(target, minlength=h * w)
+    target = target[order]
+    count = np.bincount(target, minlength=n)
     slot = np.arange(len(target)) - (np.cumsum(count) - count)[target]
-    votes = np.full((h * w, int(count.max())), -1, np.int64)
-    votes[target, slot] = proposed
-    used = votes >= 0
-    vectors = texels[np.maximum(votes, 0)]                                            # [n, slots, d]
-    vectors[~used] = 0.0
-    mean = vectors.sum(axis=1) / np.maximum(count, 1)[:, None].astype(np.float32)
-    error = ((vectors - mean[:, None, :]) ** 2).sum(axis=2)
-    error[~used] = np.inf
-    return votes[np.arange(h * w), np.argmin(error, axis=1)].reshape(h, w)
+    slots = int(count.max()) + 1                                      # the last slot: the current source
+    votes = np.full((n, slots), -1, np.int64)
+    votes[target, slot] = proposals.ravel()[order]
+    data = np.full((n, slots), np.inf, np.float32)
+    data[target, slot] = per_texel[order]
+    votes[:, -1] = src.ravel()
+    data[:, -1] = data[:, :-1].min(axis=1)
+    start = np.argmin(data + np.float32(1e-6) * rng.random(data.shape, np.float32), axis=1)
+    labels = votes[np.arange(n), start].reshape(h, w)
+    return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap)
+
+
+def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, labels: np.ndarray,
+                    wrap: bool) -> np.ndarray:
+    """:data:`SWEEPS` checkerboard sweeps: each texel takes the candidate (``votes [h, w, s]``, -1: none) of
+    least ``data`` + :data:`SEAM_WEIGHT` x seam cost against its 4-neighbours' current sources (without
+    ``wrap``, none across the output's border)."""
+    eh, ew, d = texels.shape
+    h, w, _ = votes.shape
+    flat = texels.reshape(-1, d)
+    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    vr, vc = np.divmod(np.maximum(votes, 0), ew)
+    colour = np.add.outer(np.arange(h), np.arange(w)) % 2
+    ys, xs = np.arange(h)[:, None], np.arange(w)[None, :]
+    for _ in range(SWEEPS):
+        for part in (0, 1):
+            seen = flat[labels]
+            total = data.copy()
+            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                neighbour = np.roll(labels, (-dy, -dx), axis=(0, 1))
+                value = np.roll(seen, (-dy, -dx), axis=(0, 1))
+                continued = pad[(np.clip(vr + dy, -1, eh) + 1) * (ew + 2) + np.clip(vc + dx, -1, ew) + 1]
+                seam = ((continued - value[:, :, None, :]) ** 2).sum(axis=3)
+                seam[votes == (neighbour - dy * ew - dx)[..., None]] = 0.0   # the neighbour continues it
+                if not wrap:
+                    seam[(ys + dy < 0) | (ys + dy >= h) | (xs + dx < 0) | (xs + dx >= w)] = 0.0
+                total += SEAM_WEIGHT * seam
+            best = votes[ys, xs, np.argmin(total, axis=2)]
+            labels = np.where(colour == part, best, labels)
+    return labels
 
 
 def correction_pass(texels: np.ndarray, src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:

@@ -39,7 +39,8 @@ def search_param() -> Param:
                  choices=SEARCHES)
 
 
-#: Default texture-optimisation rounds of the refinement every built-in synthesizer's map goes through.
+#: Default texture-optimisation rounds of the refinement (``synth.quilt`` and ``synth.kcoherence``; the jump map
+#: declares 0).
 REFINE = 2
 #: Default weight of the refinement's occurrence term.
 OCCURRENCE = 0.05
@@ -48,8 +49,9 @@ OCCURRENCE = 0.05
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds and the ``occurrence`` weight."""
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
-                  "overlapping 8 x 8 windows matched to the exemplar (with the occurrence term) and voted on, then "
-                  "corrections; seams follow the content and every exemplar region gets used (0: off)",
+                  "overlapping 8 x 8 windows matched to the exemplar (with the occurrence term), whole windows kept "
+                  "where they match best and cut where the appearance agrees, then corrections; seams follow the "
+                  "content and every exemplar region gets used (0: off)",
                   low=0, high=20),
             Param("occurrence", "float", occurrence, "weight of the refinement's occurrence term: an exemplar window "
                   "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
