@@ -14,12 +14,12 @@ from typing import Any, Mapping
 
 from . import profile
 from .atomic import atomic_write_text
-from .locations import default_cache_root
 from .buffers import Buffer
 from .cache import DamagedEntry, NodeCache, node_key_of_output, plain_notes
 from .context import StageContext
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning, collect_warnings
 from .graph import CheckedGraph, check_graph, load_graph
+from .locations import default_cache_root
 from .registry import Registry, default_registry
 from .stages import RunPaths
 from .streaming import not_split_reason, per_texel_input, run_banded, streamed_outputs

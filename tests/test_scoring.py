@@ -238,9 +238,9 @@ def test_blended_quilt_is_consistent_where_evaluation_is_not_linear(case, kind):
         relit = exemplar.evaluate(ex.lights, engine="numpy")
         if kind == "ptm_linear":
             assert (relit == 0).mean() > 0.05  # the clamp is really exercised
-    coords = quilt(exemplar=exemplar, size=[OUT, OUT], block=12, overlap=3, seam="blend", seed=2)["coords"]
-    # refinement keeps a blend only where the refined source stays, so about a sixth of the texels stay blended
-    assert coords.blend_weight.size and ((coords.blend_weight > 0) & (coords.blend_weight < 1)).mean() > 0.1
+    # the quilter's own blends (refinement keeps a blend only where the refined source stays: fewer blended texels)
+    coords = quilt(exemplar=exemplar, size=[OUT, OUT], block=12, overlap=3, seam="blend", seed=2, refine=0)["coords"]
+    assert coords.blend_weight.size and ((coords.blend_weight > 0) & (coords.blend_weight < 1)).mean() > 0.2
     output = replay(coords, exemplar)
     v = values(output=output, exemplar=exemplar, coords=coords, lights=ex.lights.tolist(), tolerance=0.0)
     assert v["consistency"] == 1 and v["consistent"] is True

@@ -301,7 +301,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="8",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote
+    version="8",  # 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -318,7 +318,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
-        *refine_params(),
+        *refine_params(refine=0),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
@@ -351,11 +351,11 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coherent copies than the interior (the closing row more visibly than the closing column); use
     ``synth.kcoherence`` when seams matter most.
 
-    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the
-    shared texture optimisation with an occurrence term and corrections.  Seams become much less visible (1.4
-    instead of 2.7 on a held-out procedural exemplar, 1.3 instead of 2.6 on the icon crop) at a small cost in patch
-    statistics: the walk's map is made of small pieces, and re-cutting them moves the sliced Wasserstein distance
-    from 1.0 to 1.3 x the shuffled-block baseline's there.  ``refine: 0`` keeps the walk's own map.
+    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): off by default (``refine: 0``).
+    ``refine: 2`` sends the map through the shared texture optimisation with an occurrence term and corrections:
+    seams become less visible (1.4 instead of 2.7 on the held-out procedural exemplar) but the walk's map is made
+    of small pieces, and re-cutting them moves its patch statistics away from the exemplar's (sliced Wasserstein
+    distance above the shuffled-block baseline's).
 
     Outputs
     -------

@@ -39,7 +39,8 @@ def search_param() -> Param:
                  choices=SEARCHES)
 
 
-#: Default texture-optimisation rounds of the refinement every built-in synthesizer's map goes through.
+#: Default texture-optimisation rounds of the refinement (``synth.quilt`` and ``synth.kcoherence``; the jump map
+#: declares 0).
 REFINE = 2
 #: Default weight of the refinement's occurrence term.
 OCCURRENCE = 0.05
