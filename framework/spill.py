@@ -2,11 +2,18 @@
 
 A fit of a store-backed stack writes its result band by band; held in memory, the result alone can pass the
 memory a user has (double SH 25 x 25 of a 256^2 BTF is 491 MB of coefficients).  :func:`spilled_empty` makes the
-result a memory map of an unlinked file under the cache root (removed by the OS when the last reference goes), and
-:func:`release` drops a written or read part from the process's resident memory: the data stays in the file (and
-the OS's page cache), and is read back on the next access.  :func:`pages` walks any array in parts of a few MB and
-releases each part of a spilled array after use, so checking, hashing and writing one never makes it resident.
-For an ordinary array both are plain iteration and no-ops.
+result a memory map of an unlinked file (removed by the OS when the last reference goes), and :func:`release`
+drops a written or read part from the process's resident memory: the data stays in the file, and is read back on
+the next access.  :func:`pages` walks any array in parts of a few MB and releases each part of a spilled array
+after use, so checking, hashing and writing one never makes it resident.  For an ordinary array both are plain
+iteration and no-ops.
+
+The file is a memory file (``memfd``) while this process's spills together stay under a quarter of the memory
+the system (or the process's cgroup) has available, else a file under the cache root.  Either way the data lives
+outside the process (in the OS's shared memory or its file cache); a memory file skips the file system, which
+spends several times the system time on taking in the pages (ext4 on this machine: 0.14-0.43 s of system time
+for a 154 MB capture against 0.06 s), while a large spill goes to the disk file, whose pages the OS can write
+out when memory runs short.
 """
 from __future__ import annotations
 
@@ -23,24 +30,69 @@ PAGE_BYTES = 32 << 20
 READ_BYTES = 4 << 20  # parts read from a spill file: small, since each is a copy
 
 
+MEMORY_FILE_SHARE = 0.25  # spills held in memory files stay under this share of the available memory
+
+
 def spilled_empty(shape: Sequence[int], dtype) -> np.ndarray:
-    """An uninitialised array of ``shape`` backed by an unlinked file under the cache root (see the module docs)."""
-    from .locations import default_cache_root
+    """An uninitialised array of ``shape`` backed by an unlinked file (see the module docs)."""
     shape, dtype = tuple(int(s) for s in shape), np.dtype(dtype)
     nbytes = int(np.prod(shape)) * dtype.itemsize
     if nbytes == 0:
         return np.empty(shape, dtype)
-    root = default_cache_root()
-    root.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.TemporaryFile(prefix="spill-", dir=root)
+    handle, in_memory = _spill_file(nbytes)
     handle.truncate(nbytes)
     array = np.memmap(handle, dtype, "r+", 0, shape)
     key = id(array.base)
     _files[key] = handle  # for plain reads and writes of its parts (_file_part), as long as the array lives
-    weakref.finalize(array, _files.pop, key, None)
+    _memory_file_bytes[0] += nbytes if in_memory else 0
+    weakref.finalize(array, _forget, key, nbytes if in_memory else 0)
     return array
 
 
+def _spill_file(nbytes: int):
+    """``(file, in memory)``: a memory file when this process's memory files stay under their share of the
+    available memory, else an unlinked file under the cache root."""
+    if hasattr(os, "memfd_create") and \
+            _memory_file_bytes[0] + nbytes <= MEMORY_FILE_SHARE * _available_memory_bytes():
+        try:
+            return os.fdopen(os.memfd_create("btforge-spill", os.MFD_CLOEXEC), "w+b"), True
+        except OSError:  # no memory files here (an old kernel, a sandbox): the disk file below
+            pass
+    from .locations import default_cache_root
+    root = default_cache_root()
+    root.mkdir(parents=True, exist_ok=True)
+    return tempfile.TemporaryFile(prefix="spill-", dir=root), False
+
+
+_CGROUP_FILES = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),  # cgroup v2
+                 ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
+
+
+def _available_memory_bytes() -> int:
+    """Memory the system has available (``MemAvailable``), less where the process's cgroup (as a container sees
+    it) allows less; 0 when it cannot be told, which keeps every spill on the disk."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            available = next(int(line.split()[1]) * 1024 for line in meminfo if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration, ValueError, IndexError):
+        return 0
+    for limit_file, usage_file in _CGROUP_FILES:
+        try:
+            with open(limit_file) as limit, open(usage_file) as usage:
+                allowed = limit.read().strip()
+                if allowed != "max":
+                    available = min(available, int(allowed) - int(usage.read()))
+        except (OSError, ValueError):
+            continue  # no such cgroup file: the system's figure holds
+    return max(0, available)
+
+
+def _forget(key: int, memory_bytes: int) -> None:
+    _files.pop(key, None)
+    _memory_file_bytes[0] -= memory_bytes
+
+
+_memory_file_bytes = [0]  # bytes of this process's live spills held in memory files
 _files: dict[int, Any] = {}  # id of a spilled array's mapping -> its file
 
 

@@ -741,13 +741,33 @@ def _range_levels(values: np.ndarray, bias: int, step: float) -> np.ndarray:
     return np.clip(np.rint(values.astype(np.float64) / step + bias), 0, 255).astype(np.uint8)
 
 
+GRID_PROBE = 1024  # values looked at first: any sample of a byte grid is spread at least as widely
+
+
 def _grid_possible(sample: np.ndarray, low: float, high: float) -> bool:
     """Whether values with this sample, minimum and maximum might lie on a byte grid - the first test of
-    :func:`_grid_quantization`, on the sample alone: dense float data answers no at once."""
-    gaps = np.diff(np.sort(sample.astype(np.float64)))  # sorted, not np.unique: that imports numpy.ma (~20 ms)
-    gaps = gaps[gaps > 0]
+    :func:`_grid_quantization`, on the sample alone: dense float data answers no at once.  A part of the sample
+    is tried first: its closest two distinct values are no closer than the whole sample's, so when they are too
+    close for the grid, the sort of the whole sample is skipped."""
     span = max(high, 0.0) - min(low, 0.0)
-    return bool(gaps.size) and span > 0 and int(255 * (1 + 1e-3) * float(gaps.min()) / span) >= 1
+    if not span > 0:
+        return False
+    probe_gap = _smallest_gap(sample[:GRID_PROBE])
+    if probe_gap is not None and not _fits_a_byte_grid(probe_gap, span):
+        return False
+    gap = _smallest_gap(sample)
+    return gap is not None and _fits_a_byte_grid(gap, span)
+
+
+def _smallest_gap(values: np.ndarray) -> float | None:
+    """The smallest distance between two distinct values, or None when all are equal."""
+    gaps = np.diff(np.sort(values.astype(np.float64)))  # sorted, not np.unique: that imports numpy.ma (~20 ms)
+    gaps = gaps[gaps > 0]
+    return float(gaps.min()) if gaps.size else None
+
+
+def _fits_a_byte_grid(gap: float, span: float) -> bool:
+    return int(255 * (1 + 1e-3) * gap / span) >= 1
 
 
 def _column_range(flat: np.ndarray, rows_per_block: int = 512) -> tuple[np.ndarray, np.ndarray]:
