@@ -130,17 +130,29 @@ def _read_into(handle, offset: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
-def read_block(array: np.ndarray, axis: int, part: slice) -> np.ndarray:
-    """``array[..., part, ...]`` (``part`` a step-1 slice along ``axis``) as a new in-memory array; a spilled
-    array's block is read from its file with plain reads, one per contiguous run (see :func:`_file_part`)."""
+def read_block(array: np.ndarray, axis: int, part: slice, out: np.ndarray | None = None) -> np.ndarray:
+    """``array[..., part, ...]`` (``part`` a step-1 slice along ``axis``) as a new in-memory array, or into ``out``
+    (a C-contiguous buffer of at least that many items and the array's dtype, returned reshaped: a buffer used
+    for every block of a walk is faulted into memory once, not once per block); a spilled array's block is read
+    from its file with plain reads, one per contiguous run (see :func:`_file_part`)."""
     start, stop, _ = part.indices(array.shape[axis])
+    shape = array.shape[:axis] + (max(0, stop - start),) + array.shape[axis + 1:]
+    if out is not None:
+        if out.dtype != array.dtype or not out.flags.c_contiguous or out.size < math.prod(shape):
+            raise ValueError(f"read_block: a buffer of {out.size} {out.dtype} cannot take a block {shape} of "
+                             f"{array.dtype}")
+        out = out.reshape(-1)[:math.prod(shape)].reshape(shape)
     found = _file_part(array)
     if found is None:
-        return np.ascontiguousarray(array[(slice(None),) * axis + (slice(start, stop),)])
+        block = array[(slice(None),) * axis + (slice(start, stop),)]
+        if out is None:
+            return np.ascontiguousarray(block)
+        np.copyto(out, block)
+        return out
     handle, offset = found
     outer = int(np.prod(array.shape[:axis]))
     inner = int(np.prod(array.shape[axis + 1:])) * array.itemsize
-    out = np.empty(array.shape[:axis] + (max(0, stop - start),) + array.shape[axis + 1:], array.dtype)
+    out = np.empty(shape, array.dtype) if out is None else out
     runs = out.reshape(outer, -1)
     for index in range(outer):
         _read_into(handle, offset + (index * array.shape[axis] + start) * inner, runs[index])

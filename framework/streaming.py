@@ -77,9 +77,10 @@ def _params_text(params: Mapping[str, Any]) -> str:
     return ", ".join(f"{key}: {value}" for key, value in params.items())
 
 
-def band_stack(stack: SampleStack, rows: slice) -> SampleStack:
-    """An in-memory stack of the samples of a band of rows (decompressed from a store, or paged in)."""
-    samples = read_block(stack.samples, 2, rows) if isinstance(stack.samples, np.ndarray) \
+def band_stack(stack: SampleStack, rows: slice, out: np.ndarray | None = None) -> SampleStack:
+    """An in-memory stack of the samples of a band of rows (decompressed from a store, or paged in: into ``out``
+    when given, a buffer as :func:`~btforge.spill.read_block` takes)."""
+    samples = read_block(stack.samples, 2, rows, out) if isinstance(stack.samples, np.ndarray) \
         else np.asarray(stack.samples[:, :, rows])
     return SampleStack(samples, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
@@ -88,17 +89,23 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
                types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], int]:
     """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled);
     return its outputs joined along the texel grid, and the number of bands.  Each band's pages are handed back
-    after it ran."""
+    after it ran.  Bands paged in from a file are read into one buffer, faulted into memory once: a band's outputs
+    are copied out (:class:`Joiner`) before the next band is read."""
     from .context import StageContext
     bands = list(stack.row_bands(BAND_BYTES))
     joiners: dict[str, Joiner] = {}
     notes = []
+    band_buffer = _band_buffer(stack, bands)
     for index, rows in enumerate(bands):
         band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True)
+        if band_buffer is not None and band_buffer.size != stack.samples[:, :, rows].size:
+            band_buffer = None  # a shorter last band: a view of part of the buffer would be copied when frozen
+        if band_buffer is not None:  # the band stack before froze it in place; that stack is done with (above)
+            band_buffer.flags.writeable = True
         with warnings.catch_warnings():
             if index:  # every band warns alike: the first band's warnings are raised, the others' noted
                 warnings.simplefilter("ignore")
-            outputs = stage.fn(band_ctx, **{port: band_stack(stack, rows)}, **params)
+            outputs = stage.fn(band_ctx, **{port: band_stack(stack, rows, band_buffer)}, **params)
         for name, buffer in outputs.items():
             joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height)).add(
                 index, (type(buffer).type_name, *buffer.payload()))
@@ -108,6 +115,14 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
             release(stack.samples[:, :, rows])
     ctx.notes.update(merge_band_notes(notes))
     return {name: joiner.buffer() for name, joiner in joiners.items()}, len(bands)
+
+
+def _band_buffer(stack: SampleStack, bands: list[slice]) -> np.ndarray | None:
+    """A buffer for the samples of the largest band of an in-process (spilled) stack, or None (a store)."""
+    if not isinstance(stack.samples, np.ndarray) or not bands:
+        return None
+    rows = max(band.stop - band.start for band in bands)
+    return np.empty(stack.samples[:, :, :rows].size, stack.samples.dtype)
 
 
 def merge_band_notes(band_notes: list[dict[str, Any]]) -> dict[str, Any]:
@@ -146,7 +161,9 @@ class Joiner:
         axis = self.cls.texel_axis
         for name, piece in arrays.items():
             if name not in self.cls.texel_fields:
-                known = self.arrays.setdefault(name, piece)
+                if name not in self.arrays:  # a copy: the band's arrays may lie in a buffer the next band reuses
+                    self.arrays[name] = piece.copy() if isinstance(piece, np.ndarray) else piece
+                known = self.arrays[name]
                 if not np.array_equal(known, piece):
                     raise BtforgeInputError(f"{type_name} '{name}'", "differs between bands of texels",
                                             "a bug in the stage's per_texel declaration")

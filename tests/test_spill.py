@@ -67,3 +67,52 @@ def test_a_spilled_buffer_round_trips_and_hashes_like_its_copy():
     samples_bad = np.array(samples)
     samples_bad[1, 2, 3] = np.nan
     assert not finite_range(samples_bad)
+
+
+def _spill_target(array: np.ndarray) -> str:
+    """Where a spilled array's file lives: ``/memfd:...`` for a memory file, else its (deleted) path."""
+    import os
+
+    from btforge import spill
+    return os.readlink(f"/proc/self/fd/{spill._files[id(array.base)].fileno()}")
+
+
+@pytest.mark.parametrize("share", [0.25, 0.0], ids=["memory file", "disk file"])
+def test_spills_stay_in_memory_files_up_to_their_share_then_go_to_the_cache_root(monkeypatch, share):
+    import gc
+    import os
+
+    from btforge import spill
+    from btforge.locations import default_cache_root
+    monkeypatch.setattr(spill, "MEMORY_FILE_SHARE", share)
+    before = spill._memory_file_bytes[0]
+    big = spilled_empty((64, 1 << 14), np.float32)  # 4 MB
+    target = _spill_target(big)
+    if share and hasattr(os, "memfd_create") and spill._available_memory_bytes() > 4 * big.nbytes:
+        assert target.startswith("/memfd:") and spill._memory_file_bytes[0] == before + big.nbytes
+    else:
+        assert target.startswith(str(default_cache_root())) and spill._memory_file_bytes[0] == before
+    for row in range(big.shape[0]):
+        big[row] = row
+        release(big[row])
+    np.testing.assert_array_equal(big[:, 5], np.arange(64, dtype=np.float32))
+    del big
+    gc.collect()
+    assert spill._memory_file_bytes[0] == before  # a freed spill gives its share back
+
+
+def test_blocks_read_into_one_reused_buffer_equal_fresh_blocks():
+    from btforge.spill import read_block, write_items
+    data = np.arange(5 * 9 * 4 * 3, dtype=np.float32).reshape(5, 9, 4, 3)
+    spilled = spilled_empty(data.shape, np.float32)
+    write_items(spilled, 0, data)
+    buffer = np.empty(5 * 4 * 4 * 3, np.float32)
+    for array in (spilled, data, np.asfortranarray(data)):
+        for start in range(0, 9, 4):  # bands of 4, 4 and 1 rows along axis 1
+            block = read_block(array, 1, slice(start, start + 4), buffer)
+            assert np.shares_memory(block, buffer)
+            np.testing.assert_array_equal(block, data[:, start:start + 4])
+    with pytest.raises(ValueError, match="cannot take a block"):
+        read_block(spilled, 1, slice(0, 5), buffer)  # 5 rows do not fit a buffer of 4
+    with pytest.raises(ValueError, match="cannot take a block"):
+        read_block(spilled, 1, slice(0, 2), buffer.astype(np.float64))

@@ -794,9 +794,11 @@ def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
 
 
 def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file,
-    never made resident)."""
-    parts = [_column_range(read_block(flat, 0, slice(start, start + rows))) for start in range(0, flat.shape[0], rows)]
+    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file into
+    one buffer, never made resident)."""
+    buffer = np.empty(min(rows, flat.shape[0]) * flat.shape[1], flat.dtype)
+    parts = [_column_range(read_block(flat, 0, slice(start, start + rows), buffer))
+             for start in range(0, flat.shape[0], rows)]
     return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
 
 
@@ -810,6 +812,7 @@ class _Quantizer:
 
     def __init__(self, coeffs: np.ndarray):
         self.coeffs = coeffs
+        self._buffers: dict[str, np.ndarray] = {}
         flat = coeffs.reshape(-1, N_COEFFS)
         sample = _spread_sample(flat)
         lows, highs = _paged_column_range(flat)
@@ -828,13 +831,23 @@ class _Quantizer:
             self.biases.append(bias)
             self.steps.append(step)
 
+    def _buffer(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        """A flat working array of at least ``shape``'s size, kept for the next band."""
+        size = math.prod(shape)
+        found = self._buffers.get(name)
+        if found is None or found.size < size or found.dtype != dtype:
+            found = self._buffers[name] = np.empty(size, dtype)
+        return found
+
     def levels(self, rows: slice) -> np.ndarray:
         """Bytes ``[rows, W, K, 6]`` of every channel's coefficients of a band of rows."""
         # All coefficients in one pass (the arithmetic of _range_levels, column by column), then the
         # coefficients stored on their own grid, or constant zero, put in place.
         steps = np.array([step or 1.0 for step in self.steps])
-        part = read_block(self.coeffs, 0, rows)  # a spilled model (a streamed fit) is read from its file
-        band = np.empty(part.shape, np.float64)
+        shape = self.coeffs[rows].shape
+        # Both working arrays are reused from band to band, so their pages are faulted in once.
+        part = read_block(self.coeffs, 0, rows, self._buffer("part", shape, self.coeffs.dtype))
+        band = self._buffer("band", shape, np.float64).reshape(-1)[:part.size].reshape(shape)
         np.divide(part, steps, out=band)  # float32 read as float64: the same operations as _range_levels
         np.add(band, np.array(self.biases, np.float64), out=band)
         np.rint(band, out=band)
