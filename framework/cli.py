@@ -312,9 +312,9 @@ def _unmap_large_blocks() -> None:
     system when freed.  glibc otherwise raises that threshold as large blocks are freed and keeps later ones on
     its heap, which fragments: a streamed SH fit of a stored BTF peaked 85 MB higher that way."""
     import ctypes
-    import ctypes.util
     try:
-        ctypes.CDLL(ctypes.util.find_library("c")).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
+        # the symbols this process has loaded (libc among them): ctypes.util.find_library would run ldconfig
+        ctypes.CDLL(None).mallopt(-3, 1 << 20)  # M_MMAP_THRESHOLD
     except (OSError, AttributeError, TypeError):  # not glibc: its allocator decides
         pass
 
