@@ -7,35 +7,124 @@ register a module or object directly with :meth:`Registry.register`.
 from __future__ import annotations
 
 import difflib
+import threading
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from collections.abc import Mapping
+from typing import Any, Callable, Iterable, Iterator
 
 import pluggy
 
-from . import buffers, hookspecs, profile
+from . import buffers, hookspecs, plugin_index, profile
 from .cachekey import StageCode
 from .errors import BtforgeInputError, DeprecatedNameWarning
 from .stages import Stage
 
 ENTRY_POINT_GROUP = "btforge.plugins"
+_loading = threading.RLock()  # a lazy registry loads one plugin at a time
 
 
 class Registry:
-    """Stages and buffer types of every registered plugin, with checks that run at load time."""
+    """Stages and buffer types of every registered plugin, with checks that run at load time.
 
-    def __init__(self, load_entry_points: bool = True, extra_plugins: Iterable[Any] = ()):
+    With ``lazy=True`` (entry points only, as :func:`default_registry` makes it) and the installed plugins as
+    they were when last loaded whole, a plugin is loaded when one of its stages or types is first asked for
+    (:mod:`btforge.plugin_index`); anything that needs every plugin loads them all first.
+    """
+
+    def __init__(self, load_entry_points: bool = True, extra_plugins: Iterable[Any] = (), lazy: bool = False):
+        self._extra = list(extra_plugins)
+        self._lazy: dict[str, dict] | None = None  # while set: the index of what each unloaded plugin provides
+        self.types = _Types(self)
+        described = plugin_index.describe(ENTRY_POINT_GROUP, _api()) \
+            if lazy and load_entry_points and not self._extra else None
+        index = plugin_index.load(described[0]) if described else None
+        if index is not None:
+            self._lazy, self._entry_points = index["plugins"], described[2]
+            self._start(load_entry_points=False)
+            return
+        self._start(load_entry_points)
+        if described:  # loaded whole and checked: remember what each plugin provides
+            plugin_index.save(described[0], self._provided(described[1]))
+
+    def _start(self, load_entry_points: bool) -> None:
         self.pm = pluggy.PluginManager("btforge")
         self.pm.add_hookspecs(hookspecs)
         if load_entry_points:
             self.pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
-        for plugin in extra_plugins:
+        for plugin in self._extra:
             self.pm.register(plugin)
         self._collect()
 
+    def _everything(self) -> None:
+        """Load every plugin now, as a registry that is not lazy does (in the same order)."""
+        with _loading:
+            if self._lazy is not None:
+                self._lazy = None
+                self._start(load_entry_points=True)
+
+    def _provide(self, kind: str, name: str) -> None:
+        """Make sure the plugin providing stage or type ``name`` is loaded (every plugin, if the index knows no
+        plugin providing it: the full load then answers as it always does)."""
+        if self._lazy is None:
+            return
+        with _loading:  # tasks on worker threads may ask at once
+            if self._lazy is None or name in (self._type_dict if kind == "types" else self._stage_names()):
+                return
+            owner = next((plugin for plugin, entry in self._lazy.items() if name in entry[kind]), None)
+            if owner is None or self.pm.get_plugin(owner) is not None:
+                self._everything()
+                return
+            self.pm.register(self._entry_points[owner].load(), name=owner)  # as pluggy loads an entry point
+            self._collect()
+
+    def _stage_names(self):
+        return self._stages.keys() | self._aliases.keys()
+
+    def _provided(self, plugins: dict[str, dict]) -> dict[str, dict]:
+        """``plugins`` (name -> where its module lives) with the stages, old stage names and types each gave."""
+        by_plugin = {name: {**entry, "stages": [], "types": []} for name, entry in plugins.items()}
+        for stage_name, source in self._stage_sources.items():
+            entry = by_plugin.get(self._plugin_name(source))
+            if entry is not None:
+                entry["stages"] += [stage_name, *self._stages[stage_name].deprecated_names]
+        for impl in self.pm.hook.btforge_buffer_types.get_hookimpls():
+            entry = by_plugin.get(self._plugin_name(impl.plugin))
+            if entry is not None:
+                entry["types"] += [t.type_name for t in impl.function() or ()]
+        return by_plugin
+
+    def _plugins_for_code(self) -> list[Any]:
+        """The registered plugins, and stand-ins for those not loaded yet: code digests follow imports into every
+        installed plugin, loaded or not (:mod:`btforge.cachekey`)."""
+        loaded = list(self.pm.get_plugins())
+        pending = [plugin_index.stand_in(entry) for name, entry in (self._lazy or {}).items()
+                   if self.pm.get_plugin(name) is None]
+        return loaded + pending
+
+    @property
+    def stages(self) -> dict[str, Stage]:
+        """``{name: Stage}`` of every plugin (a lazy registry loads them all)."""
+        self._everything()
+        return self._stages
+
+    @property
+    def aliases(self) -> dict[str, str]:
+        """Old names of renamed stages -> their stage's name, of every plugin."""
+        self._everything()
+        return self._aliases
+
+    @property
+    def info_readers(self) -> dict[str, Any]:
+        """``{suffix: describe(path)}`` of every plugin, for ``btforge info``."""
+        self._everything()
+        return self._info_readers
+
     def register(self, plugin: Any, name: str | None = None) -> None:
+        self._everything()
         self.pm.register(plugin, name=name)
+        self._extra.append(plugin)
         self._collect()
         self._collect_commands()  # a plugin registered later is checked whole at once
 
@@ -43,6 +132,7 @@ class Registry:
     def cli_commands(self) -> dict[str, tuple[Any, Any]]:
         """``{name: (add_arguments, run)}`` of the plugins' subcommands, collected when first asked for: the hooks
         import the commands' modules (a web server, benches), which a ``btforge run`` does not need."""
+        self._everything()
         if self._cli_commands is None:
             self._collect_commands()
         return self._cli_commands
@@ -50,6 +140,7 @@ class Registry:
     @property
     def bench_commands(self) -> dict[str, Any]:
         """``{name: bench(args) -> int}`` of the plugins' benches, collected when first asked for."""
+        self._everything()
         if self._bench_commands is None:
             self._collect_commands()
         return self._bench_commands
@@ -90,11 +181,11 @@ class Registry:
         self._collect_types()
         self._collect_stages()
         self._collect_aliases()
-        self.info_readers: dict[str, Any] = self._unique_names(
+        self._info_readers: dict[str, Any] = self._unique_names(
             "btforge_info_readers", "info reader for", "uninstall one of the plugins, or leave the extension to one")
         self._cli_commands = self._bench_commands = None
-        self._code = StageCode(self.pm.get_plugins, self._stage_sources.__getitem__,
-                               lambda name: self.stages[name].fn.__module__)
+        self._code = StageCode(self._plugins_for_code, self._stage_sources.__getitem__,
+                               lambda name: self._stages[name].fn.__module__)
 
     def _collect_commands(self) -> None:
         self._cli_commands = self._unique_names(
@@ -103,22 +194,22 @@ class Registry:
             "btforge_bench_commands", "bench", "rename one of the benches", check=_bench_problem)
 
     def _collect_types(self) -> None:
-        self.types: dict[str, type[buffers.Buffer]] = {t.type_name: t for t in buffers.CORE_TYPES}
+        self._type_dict: dict[str, type[buffers.Buffer]] = {t.type_name: t for t in buffers.CORE_TYPES}
         for impl in self.pm.hook.btforge_buffer_types.get_hookimpls():
             plugin_name = self._plugin_name(impl.plugin)
             for t in impl.function() or ():
                 if not (isinstance(t, type) and issubclass(t, buffers.Buffer)):
                     raise BtforgeInputError(f"plugin '{plugin_name}'", f"btforge_buffer_types must return Buffer "
                                             f"subclasses, found {t!r}", "subclass btforge.buffers.Buffer")
-                known = self.types.get(t.type_name)
+                known = self._type_dict.get(t.type_name)
                 if known is not None and known is not t:  # a silent replacement would retype every graph
                     raise BtforgeInputError(f"buffer type '{t.type_name}'",
                                             f"is defined by both {known.__module__} and {t.__module__}",
                                             "give the plugin's type another type_name")
-                self.types[t.type_name] = t
+                self._type_dict[t.type_name] = t
 
     def _collect_stages(self) -> None:
-        self.stages: dict[str, Stage] = {}
+        self._stages: dict[str, Stage] = {}
         self._stage_sources: dict[str, Any] = {}  # stage name -> the plugin object that provided it
         for impl in self.pm.hook.btforge_stages.get_hookimpls():
             plugin_name = self._plugin_name(impl.plugin)
@@ -126,12 +217,12 @@ class Registry:
                 if not isinstance(st, Stage):
                     raise BtforgeInputError(f"plugin '{plugin_name}'", f"btforge_stages must return Stage objects, "
                                             f"found {st!r}", "decorate the stage function with @btforge.declare_stage(...)")
-                if st.name in self.stages:
-                    other = self.stages[st.name].plugin
+                if st.name in self._stages:
+                    other = self._stages[st.name].plugin
                     raise BtforgeInputError(f"stage '{st.name}'", f"is defined by both {other} and {st.plugin}",
                                             "uninstall one of the plugins or rename the stage")
                 self._check_ports(st)
-                self.stages[st.name] = st
+                self._stages[st.name] = st
                 self._stage_sources[st.name] = impl.plugin
 
     def _check_ports(self, st: Stage) -> None:
@@ -140,21 +231,26 @@ class Registry:
                 raise BtforgeInputError(f"stage '{st.name}', output '{port}'",
                                         f"takes the type of input '{tname[1:]}', which the stage does not have")
         for port, tname in {**st.inputs, **st.outputs}.items():
-            if not tname.startswith("=") and tname not in self.types:
+            if not tname.startswith("=") and not self._type_known(tname):
                 raise BtforgeInputError(f"stage '{st.name}', port '{port}'", f"names unknown buffer type '{tname}'",
                                         f"known types: {', '.join(sorted(self.types))}")
 
+    def _type_known(self, name: str) -> bool:
+        """Whether type ``name`` is registered, or provided by a plugin a lazy registry has not loaded yet (the
+        index was made by a full load that checked every port, so it is not loaded for the check)."""
+        return name in self._type_dict or any(name in entry["types"] for entry in (self._lazy or {}).values())
+
     def _collect_aliases(self) -> None:
         """Old names of renamed stages -> their stage's name; an old name may not be any other stage's name."""
-        self.aliases: dict[str, str] = {}
-        for name, st in sorted(self.stages.items()):
+        self._aliases: dict[str, str] = {}
+        for name, st in sorted(self._stages.items()):
             for old in st.deprecated_names:
-                taken = name if old in self.stages else self.aliases.get(old)
+                taken = name if old in self._stages else self._aliases.get(old)
                 if taken is not None:
                     raise BtforgeInputError(f"stage name '{old}'", f"is both a deprecated name of '{name}' "
                                             f"({st.plugin}) and the name of '{taken}'",
                                             "drop the deprecated name from one of the stages")
-                self.aliases[old] = name
+                self._aliases[old] = name
 
     def _unique_names(self, hook: str, kind: str, hint: str, check: Callable | None = None) -> dict[str, Any]:
         """Join the ``{name: value}`` mappings a hook returns, refusing a name two plugins give (naming both)."""
@@ -175,14 +271,15 @@ class Registry:
     def find_stage(self, name: str, where: str = "") -> Stage | None:
         """The stage called ``name`` (or None); an old name of a renamed stage gives that stage, with a
         :class:`DeprecatedNameWarning` naming the new name (and ``where`` it was used)."""
-        if name in self.stages:
-            return self.stages[name]
-        new = self.aliases.get(name)
+        self._provide("stages", name)
+        if name in self._stages:
+            return self._stages[name]
+        new = self._aliases.get(name)
         if new is None:
             return None
         place = f"{where}: " if where else ""
         warnings.warn(f"{place}stage '{name}' is deprecated, use '{new}'", DeprecatedNameWarning, stacklevel=2)
-        return self.stages[new]
+        return self._stages[new]
 
     def stage(self, name: str) -> Stage:
         """The stage called ``name`` (an old name warns and gives the renamed stage); unknown: an error."""
@@ -194,10 +291,12 @@ class Registry:
 
     def code_digest(self, name: str, memo: Path | None = None) -> str:
         """Digest of the code behind stage ``name``: part of every node's cache key (see :mod:`btforge.cachekey`)."""
+        self._provide("stages", name)
         return self._code.digest(name, memo)
 
     def code_files(self, name: str) -> tuple[set[Path], set[Path]]:
         """The files that decide what stage ``name`` computes, and which of them are its own plugin's."""
+        self._provide("stages", name)
         return self._code.files(name)
 
     def stages_with_role(self, role: str) -> list[Stage]:
@@ -209,6 +308,43 @@ class Registry:
         if port_type not in self.types or value_type not in self.types:
             return False
         return issubclass(self.types[value_type], self.types[port_type])
+
+
+class _Types(Mapping):
+    """``{type name: Buffer subclass}`` of a registry: a lazy registry loads the plugin providing a name when it
+    is first looked up, and every plugin when the types are listed."""
+
+    def __init__(self, registry: Registry):
+        self._registry = registry
+
+    def __getitem__(self, name: str) -> type[buffers.Buffer]:
+        self._registry._provide("types", name)
+        return self._registry._type_dict[name]
+
+    def __contains__(self, name: object) -> bool:
+        if not isinstance(name, str):
+            return False
+        self._registry._provide("types", name)
+        return name in self._registry._type_dict
+
+    def __iter__(self) -> Iterator[str]:
+        self._registry._everything()
+        return iter(self._registry._type_dict)
+
+    def __len__(self) -> int:
+        self._registry._everything()
+        return len(self._registry._type_dict)
+
+    def __repr__(self) -> str:
+        return repr(self._registry._type_dict)
+
+
+def _api() -> tuple:
+    """What decides which names plugins provide besides their own files: btforge's version, its plugin API, its
+    hooks and its own buffer types."""
+    from . import __version__
+    return (__version__, hookspecs.PLUGIN_API_VERSION, sorted(h for h in dir(hookspecs) if h.startswith("btforge_")),
+            sorted(t.type_name for t in buffers.CORE_TYPES))
 
 
 def did_you_mean(name: str, options: Iterable[str]) -> str:
@@ -230,6 +366,6 @@ def default_registry() -> Registry:
     global _default
     if _default is None:
         start = time.perf_counter()
-        _default = Registry()
+        _default = Registry(lazy=True)
         profile.record_phase("plugins_s", time.perf_counter() - start)
     return _default
