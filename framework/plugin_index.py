@@ -27,6 +27,7 @@ from .atomic import atomic_write_text
 from .locations import default_cache_root
 
 FORMAT = 1
+KEEP = 8  # indexes kept: a few installations may share one cache root
 
 
 def entry_points(group: str) -> dict[str, Any]:
@@ -114,6 +115,9 @@ def save(key: str, plugins: dict[str, dict]) -> None:
     root that cannot be written only means the next process loads every plugin again."""
     try:
         atomic_write_text(_index_file(key), json.dumps({"key": key, "plugins": plugins}, sort_keys=True))
+        kept = sorted(_index_file(key).parent.glob("*.json"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for stale in kept[KEEP:]:  # editing a plugin makes a new key each time: keep the newest few
+            stale.unlink(missing_ok=True)
     except OSError:
         pass
 

@@ -93,3 +93,14 @@ def btforge_stages():
     registry = Registry(lazy=True)  # a key not seen before: everything is loaded, and the index rewritten
     assert registry._lazy is None and registry.find_stage("edited.first") is None
     assert _lazy().stage("edited.second").name == "edited.second"
+
+
+def test_only_the_newest_indexes_are_kept(tmp_path, monkeypatch):
+    monkeypatch.setenv("BTFORGE_CACHE_DIR", str(tmp_path))
+    for number in range(plugin_index.KEEP + 3):
+        plugin_index.save(f"key{number}", {"ptm": {"stages": ["ptm.fit"], "types": []}})
+        os.utime(tmp_path / "plugins" / f"key{number}.json", (number, number))
+    kept = sorted(p.stem for p in (tmp_path / "plugins").glob("*.json"))
+    assert len(kept) == plugin_index.KEEP and "key0" not in kept
+    assert plugin_index.load(f"key{plugin_index.KEEP + 2}")["plugins"]["ptm"]["stages"] == ["ptm.fit"]
+    assert plugin_index.load("key0") is None
