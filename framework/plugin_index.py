@@ -1,15 +1,16 @@
 """Which installed plugin provides which stage and buffer type, remembered between processes.
 
 Loading every installed plugin imports every family's modules: most of the btforge code a fresh process reads
-(0.05 s of CPU with their bytecode cached, several times that where Python may not cache it), while a graph of
-three nodes needs two plugins.  So after all plugins have been loaded and checked once, the names each provides
-are kept under the cache root (``plugins/``), keyed by everything that decides them: the entry points of the
-``btforge.plugins`` group with their distributions' versions, every file of each plugin's package (name, size
-and modification time), btforge's version and plugin API, and Python's.  While that key holds, a registry made
-with ``lazy=True`` (:func:`~btforge.registry.default_registry`) loads a plugin when one of its stages or buffer
-types is first asked for; whatever needs every plugin (listing stages, an unknown name and its did-you-mean, a
-plugin's command) loads them all, so answers and errors are the ones a full load gives.  Any change to the
-installed plugins changes the key, and the next registry loads everything again and remembers the new names.
+(0.05 s of CPU with their bytecode cached, about 0.13 s where Python may not cache it), while a graph of three
+nodes needs two plugins.  So after all plugins have been loaded and checked once, the names each provides are
+kept under the cache root (``plugins/``), keyed by everything that decides them: the entry points of the
+``btforge.plugins`` group with their distributions' versions, every file of each plugin's package (name, size,
+modification and status-change times), btforge's version and plugin API, and Python's.  While that key holds, a
+registry made with ``lazy=True`` (:func:`~btforge.registry.default_registry`) loads a plugin when one of its
+stages or buffer types is first asked for; whatever needs every plugin (listing stages, an unknown name and its
+did-you-mean, a plugin's command) loads them all, so answers and errors are the ones a full load gives.  Any
+change to the installed plugins changes the key, and the next registry loads everything again and remembers the
+new names; a name the index places wrongly loads everything too.
 """
 from __future__ import annotations
 
@@ -41,10 +42,11 @@ def entry_points(group: str) -> dict[str, Any]:
 
 
 def _package_files(spec) -> list[list]:
-    """``[relative path, size, mtime_ns]`` of every file of a module's package (of a plain module: its file)."""
+    """``[relative path, size, mtime, ctime]`` of every file of a module's package (of a plain module: its file);
+    the status-change time changes even where a copy restores an old modification time."""
     if spec.submodule_search_locations is None:
         st = os.stat(spec.origin)
-        return [[os.path.basename(spec.origin), st.st_size, st.st_mtime_ns]]
+        return [[os.path.basename(spec.origin), st.st_size, st.st_mtime_ns, st.st_ctime_ns]]
     files = []
     for root in spec.submodule_search_locations:
         folders = [root]
@@ -55,7 +57,7 @@ def _package_files(spec) -> list[list]:
                     folders += [entry.path] if entry.name != "__pycache__" else []
                     continue
                 st = entry.stat()
-                files.append([os.path.relpath(entry.path, root), st.st_size, st.st_mtime_ns])
+                files.append([os.path.relpath(entry.path, root), st.st_size, st.st_mtime_ns, st.st_ctime_ns])
     return files
 
 

@@ -78,6 +78,8 @@ class Registry:
                 return
             self.pm.register(self._entry_points[owner].load(), name=owner)  # as pluggy loads an entry point
             self._collect()
+            if name not in (self._type_dict if kind == "types" else self._stage_names()):
+                self._everything()  # the index was wrong after all: what a full load finds holds
 
     def _stage_names(self):
         return self._stages.keys() | self._aliases.keys()

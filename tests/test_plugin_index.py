@@ -104,3 +104,11 @@ def test_only_the_newest_indexes_are_kept(tmp_path, monkeypatch):
     assert len(kept) == plugin_index.KEEP and "key0" not in kept
     assert plugin_index.load(f"key{plugin_index.KEEP + 2}")["plugins"]["ptm"]["stages"] == ["ptm.fit"]
     assert plugin_index.load("key0") is None
+
+
+def test_a_name_the_index_places_wrongly_is_found_by_loading_everything():
+    registry = _lazy()
+    registry._lazy["stackio"]["stages"].remove("stackio.read")
+    registry._lazy["ptm"]["stages"].append("stackio.read")  # as if the stage had moved without the key changing
+    assert registry.stage("stackio.read").name == "stackio.read"
+    assert registry._lazy is None and "stackio" in _loaded(registry)
