@@ -130,7 +130,7 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
     """The leave-one-out mean squared error of the ridge fit at each weight of ``ridges``, over all columns.
 
     ``design A [L, k]`` is shared by every column of ``samples [L, N]`` (the texels of a capture see the same
-    lights), so the hat matrix ``H = A (A^T A + lambda I)^-1 A^T`` is one ``L x L`` matrix, and the residual of
+    lights), so the hat matrix ``H = A (A^T A + lambda P)^-1 A^T`` (:func:`ridge_solve`) is one ``L x L`` matrix, and the residual of
     sample ``i`` when light ``i`` is left out of the fit is ``r_i / (1 - H_ii)`` for ``r`` the residual of the fit
     to all lights: scoring every weight costs a few matrix products instead of ``L`` fits per texel.  A light the
     fit must pass through (``H_ii`` = 1: fewer lights than coefficients, or an isolated light, without a ridge)
@@ -142,14 +142,14 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
     for index, ridge in enumerate(ridges):
         solve = ridge_solve(a, ridge, rcond, free)
         hat = a @ solve
-        free = 1.0 - np.diag(hat)
+        slack = 1.0 - np.diag(hat)
         if y.shape[1] == 0:
             errors[index] = 0.0
             continue
-        if np.any(free < LEVERAGE_FLOOR):
+        if np.any(slack < LEVERAGE_FLOOR):
             errors[index] = math.inf
             continue
-        residual = (y - hat @ y) / free[:, None]
+        residual = (y - hat @ y) / slack[:, None]
         errors[index] = float(np.mean(residual * residual))
     return errors
 

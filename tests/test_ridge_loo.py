@@ -1,0 +1,130 @@
+"""Ridge least squares with its weight chosen by closed-form leave-one-out (btforge.fitspace), as ptm.fit and
+hsh.fit use it, and ``space: auto`` of the light-table fits (hsh, rbf, bilinear)."""
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import btforge
+from btforge.buffers import SampleStack, linear_to_srgb8
+from btforge.errors import BtforgeInputError, BtforgeWarning
+from btforge.fitspace import RIDGE_WEIGHTS, leave_one_out_errors, ridge_by_leave_one_out, ridge_solve
+from btforge.plugins.ptm.model import CONSTANT_TERM, fit_ptm, ptm_terms
+from btforge.plugins.web.hsh import hsh_basis
+
+sys.path.insert(0, str(Path(__file__).parent))
+from lightsets import dome, lights_at  # noqa: E402
+
+FAST = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def brute_force_loo(design, samples, ridge, rcond=0.0, free=()):
+    """Leave each light out, refit, predict it: the definition the closed form must equal."""
+    errors = []
+    for i in range(len(design)):
+        keep = np.arange(len(design)) != i
+        # the weight is relative to the full design's largest singular value, as in the closed form
+        s_full = np.linalg.svd(design, compute_uv=False)[0]
+        s_part = np.linalg.svd(design[keep], compute_uv=False)[0]
+        solve = ridge_solve(design[keep], ridge * (s_full / s_part) ** 2, rcond, free)
+        errors.append((design[i] @ (solve @ samples[keep]) - samples[i]) ** 2)
+    return float(np.mean(errors))
+
+
+@pytest.mark.parametrize("free", [(), (CONSTANT_TERM,)])
+def test_closed_form_leave_one_out_equals_refitting_without_each_light(free):
+    rng = np.random.default_rng(1)
+    design = ptm_terms(dome(23, seed=2))
+    samples = rng.uniform(0, 1, (23, 40))
+    closed = leave_one_out_errors(design, samples, (0.0, 1e-3, 1e-2), free=free)
+    for ridge, error in zip((0.0, 1e-3, 1e-2), closed):
+        assert error == pytest.approx(brute_force_loo(design, samples, ridge, free=free), rel=1e-9)
+
+
+def test_noise_asks_for_a_ridge_and_a_clean_polynomial_does_not():
+    rng = np.random.default_rng(4)
+    design = ptm_terms(dome(30, seed=4))
+    clean = design @ rng.uniform(-0.3, 0.3, (6, 500)) + 0.5
+    assert ridge_by_leave_one_out(design, clean, free=(CONSTANT_TERM,))[0] == 0.0
+    noisy = rng.uniform(0, 1, (30, 500))   # nothing to predict: the more shrinkage the better
+    assert ridge_by_leave_one_out(design, noisy, free=(CONSTANT_TERM,))[0] == RIDGE_WEIGHTS[-1]
+
+
+def light_set(kind: str, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if kind == "clustered":
+        return lights_at(rng.uniform(60, 62, n), rng.uniform(0, 3, n))
+    if kind == "grazing":
+        return lights_at(rng.uniform(1, 4, n), rng.uniform(0, 360, n))
+    if kind == "one-elevation":
+        return lights_at(np.full(n, 30.0), rng.uniform(0, 360, n))
+    return dome(n, seed)
+
+
+@FAST
+@given(kind=st.sampled_from(["dome", "clustered", "grazing", "one-elevation"]), n=st.integers(6, 30),
+       texel=st.sampled_from(["black", "saturated", "constant", "noise"]), seed=st.integers(0, 2 ** 16),
+       basis=st.sampled_from(["ptm", "hsh"]))
+def test_ridge_choice_is_finite_bounded_and_exact_on_constant_texels(kind, n, texel, seed, basis):
+    rng = np.random.default_rng(seed)
+    lights = light_set(kind, n, seed)
+    design = ptm_terms(lights) if basis == "ptm" else hsh_basis(lights, 9)
+    free = (CONSTANT_TERM,) if basis == "ptm" else (0,)
+    samples = {"black": np.zeros((n, 8)), "saturated": np.ones((n, 8)), "constant": np.full((n, 8), 0.37),
+               "noise": rng.uniform(0, 1, (n, 8))}[texel]
+    errors = leave_one_out_errors(design, samples, RIDGE_WEIGHTS, free=free)
+    assert not np.isnan(errors).any() and (errors >= 0).all()
+    assert np.isfinite(errors[1:]).all()           # a positive weight always leaves every light a test
+    ridge, _ = ridge_by_leave_one_out(design, samples, free=free)
+    assert ridge in RIDGE_WEIGHTS
+    coeffs = ridge_solve(design, ridge, 0.0, free) @ samples
+    assert np.isfinite(coeffs).all()
+    if texel != "noise" and n >= design.shape[1]:  # the free constant term fits a constant texel exactly
+        np.testing.assert_allclose(design @ coeffs, samples, atol=1e-6)
+    # the ridge keeps the fit at the lights near the samples (which lie in [0, 1])
+    assert np.abs(design @ coeffs).max() < 10.0
+
+
+def test_ptm_fit_ridge_param_is_checked_and_used():
+    rng = np.random.default_rng(2)
+    lights = dome(20, seed=3)
+    stack = SampleStack(rng.uniform(0, 1, (1, 20, 5, 6, 3)).astype(np.float32), lights, [[0, 0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BtforgeWarning)
+        _, plain = fit_ptm(stack, "rgb", "linear", ridge=0.0)
+        _, chosen = fit_ptm(stack, "rgb", "linear")
+    assert plain.ridge == 0.0 and chosen.ridge == RIDGE_WEIGHTS[-1]   # uniform noise: the strongest weight
+    for bad in (-1.0, 2.0, "high", True):
+        with pytest.raises(BtforgeInputError, match="ridge"):
+            fit_ptm(stack, "rgb", "linear", ridge=bad)
+
+
+def relief_capture(display_linear: bool, n: int = 40, size=(24, 24), seed=0) -> SampleStack:
+    """An 8-bit capture of a matte relief: radiance linear in n . l (then sRGB-encoded, as a renderer writes it),
+    or display values linear in n . l (as a camera's tone curve makes them)."""
+    rng = np.random.default_rng(seed)
+    lights = dome(n, seed, min_el=20)
+    slope = rng.normal(0, 0.35, size + (2,))
+    normals = np.concatenate([slope, np.ones(size + (1,))], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size + (3,))
+    shading = np.clip(np.einsum("hwk,lk->lhw", normals, lights), 0, None)[..., None] * albedo   # [L, h, w, 3]
+    if display_linear:
+        from btforge.buffers import srgb_to_linear
+        shading = srgb_to_linear(np.clip(shading, 0, 1))
+    return SampleStack(linear_to_srgb8(shading.astype(np.float32))[None], lights, [[0, 0, 1]], encoding="srgb8")
+
+
+@pytest.mark.parametrize("stage,params", [("hsh.fit", {}), ("bilinear.fit", {"resolution": 6}),
+                                          ("rbf.fit", {"sigma": 0.3})])
+def test_space_auto_picks_linear_for_a_rendered_relief_and_display_for_a_tone_mapped_one(stage, params):
+    for display_linear, expected in ((False, "linear"), (True, "srgb")):
+        model = btforge.stage(stage)(stack=relief_capture(display_linear), **params)["model"]
+        assert model.space == expected, (stage, display_linear)
+        assert np.isfinite(model.evaluate(dome(7, seed=9))).all()
