@@ -31,7 +31,8 @@ import numpy as np
 from btforge.backend import get_backend, single_threaded_blas
 from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import RIDGE_WEIGHTS, held_out_space, ridge_by_leave_one_out, ridge_solve
+from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, RIDGE_WEIGHTS, held_out_grid, held_out_space,
+                              ridge_by_leave_one_out, ridge_solve)
 
 from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
                          smooth_resample_matrix, table_weights)
@@ -174,7 +175,6 @@ def table_ridge(stack: SampleStack, lw: np.ndarray, free: tuple[int, ...] = (), 
     """``ridge: auto`` for a light-table fit: the weight whose fits best predict each sample left out, judged in
     closed form (:func:`btforge.fitspace.ridge_by_leave_one_out`) on the values (in ``space``) of a grid of at
     most 4096 texels."""
-    from btforge.fitspace import held_out_grid
     grid = held_out_grid(stack)[0]                                         # [L, h, w, 3]
     like = SampleStack(grid[None], stack.lights, stack.views, stack.channels, stack.encoding)
     y = np.moveaxis(fitted_values(like, space).astype(np.float64), 3, 1)  # [L, 3, h, w]
@@ -323,29 +323,39 @@ def light_spacing(lights: np.ndarray) -> float:
     return float(max(np.median(dist.min(axis=1)), 1e-3))
 
 
-def held_out_choice(stack: SampleStack, candidates, fit):
-    """The candidate whose ``fit(part, candidate)`` model predicts held-out lights best: on a grid of at most
-    4096 texels, every fifth light held out (as ``space: auto`` judges), mean squared error of display values.
-    With fewer than 10 lights there is nothing to hold out: the middle candidate."""
-    from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, auto_grid_step
-    if stack.n_light < AUTO_MIN_LIGHTS:
-        return candidates[len(candidates) // 2]
-    step = auto_grid_step(stack.height, stack.width)
-    grid = np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
+def held_out_choice(stack: SampleStack, spaces, values, fit) -> tuple[str, object]:
+    """The (space, value) pair whose ``fit(part, space, value)`` model predicts held-out lights best: on a grid
+    of at most 4096 texels, every fifth light held out (one of the folds ``space: auto`` judges on), mean squared
+    error of display values.  Space and value are judged together: a grid side or interpolation width that suits
+    display values need not suit linear radiance.  With fewer than 10 lights nothing is held out, and when the
+    fold keeps too few lights for the planes nothing can be judged: the first space and the middle value."""
+    fallback = (spaces[0], values[len(values) // 2])
+    if stack.n_light < AUTO_MIN_LIGHTS or len(spaces) * len(values) == 1:
+        return fallback
+    grid = held_out_grid(stack)
     held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
     part = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels,
                        stack.encoding)
     truth = SampleStack(np.ascontiguousarray(grid[:, held]), stack.lights[held], stack.views, stack.channels,
                         stack.encoding)
     target = display_values(truth)
+    candidates = [(space, value) for space in spaces for value in values]
     errors = []
-    for value in candidates:
+    for candidate in candidates:
         try:
-            predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+            predicted = linear_to_srgb(fit(part, *candidate).evaluate(truth.lights)[0])
         except BtforgeInputError:  # the lights left for fitting cannot hold that many planes: nothing to judge
-            return candidates[len(candidates) // 2]
+            return fallback
         errors.append(float(np.mean((predicted - target) ** 2)))
     return candidates[int(np.argmin(errors))]
+
+
+def candidate_spaces(stack: SampleStack, space: str) -> tuple[str, ...]:
+    """The spaces ``space`` allows a light-table fit of ``stack``: both for ``auto`` on an 8-bit capture, display
+    values for ``auto`` on any other (see :func:`resolve_table_space`)."""
+    if space != "auto":
+        return (space,)
+    return ("srgb", "linear") if stack.encoding == "srgb8" else ("srgb",)
 
 
 def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, damping: float) -> np.ndarray:
@@ -366,16 +376,14 @@ def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, dam
 def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.0,
             coefficients: str = "lsq", table_mode: str = "interpolating", engine: str = "opencl",
             space: str = "auto"):
-    """rbf.fit: PCA table over the lights (``sigma`` 0: chosen on held-out lights, ``space`` auto: by
-    :func:`resolve_table_space`; see the stage's docs)."""
+    """rbf.fit: PCA table over the lights (``sigma`` 0 and ``space`` auto: chosen together on held-out lights,
+    :func:`held_out_choice`; see the stage's docs)."""
     _check_stack(stack, "rbf.fit")
     ycc = _pca_planes(stack, "rbf.fit", planes, colorspace, yplanes, stack.n_light)
-    space = resolve_table_space(stack, space, lambda part, candidate: fit_rbf(
-        part, planes, colorspace, yplanes, sigma, coefficients, table_mode, engine, candidate)[0])
-    if not sigma:
-        candidates = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS]
-        sigma = held_out_choice(stack, candidates, lambda part, value: fit_rbf(
-            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine, space)[0])
+    if space == "auto" or not sigma:
+        sigmas = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS] if not sigma else [sigma]
+        space, sigma = held_out_choice(stack, candidate_spaces(stack, space), sigmas, lambda part, sp, value: fit_rbf(
+            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine, sp)[0])
     table = pca_table(pca_responses(stack, space), planes, colorspace, ycc)
     if table_mode == "interpolating":
         table = interpolating_table(table, stack.lights, sigma, TABLE_DAMPING)
@@ -389,19 +397,17 @@ def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplane
 
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
-                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "auto"):
-    """bilinear.fit: PCA table on the light grid (``resolution`` 0: chosen on held-out lights, ``space`` auto:
-    by :func:`resolve_table_space`)."""
+                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "srgb"):
+    """bilinear.fit: PCA table on the light grid (``resolution`` 0 and ``space`` auto: chosen together on
+    held-out lights, :func:`held_out_choice`)."""
     _check_stack(stack, "bilinear.fit")
-    space = resolve_table_space(stack, space, lambda part, candidate: fit_bilinear(
-        part, planes, resolution, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
-        engine, candidate)[0])
-    if not resolution:
+    if space == "auto" or not resolution:
         need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
-        fits = [r for r in RESOLUTIONS if need <= 3 * r * r]
-        resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
-            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
-            engine, space)[0])
+        sides = [resolution] if resolution else [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
+        space, resolution = held_out_choice(stack, candidate_spaces(stack, space), sides, lambda part, sp, value:
+                                            fit_bilinear(part, planes, value, colorspace, yplanes, sigma,
+                                                         regularization, coefficients, resampling, smoothness,
+                                                         engine, sp)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
     if resampling == "smooth":
         resample = smooth_resample_matrix(stack.lights, resolution, smoothness)

@@ -28,7 +28,9 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
             SIGMA,
             Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
                   "undetermined towards their Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS,
-            SPACE_PARAM],
+            Param("space", "choice", "srgb", SPACE_PARAM.doc.replace("auto: for", "auto (chosen together with "
+                  "resolution 0): for") + "; auto is not the default: held-out folds of a dome's lights leave holes in "
+                  "the grid and misjudge linear fits (see the docs' benchmarks)", choices=SPACE_PARAM.choices)],
     expects={"stack": ONE_VIEW},
     precheck=pca_precheck,
 )
