@@ -121,7 +121,7 @@ def relief_capture(display_linear: bool, n: int = 40, size=(24, 24), seed=0) -> 
     return SampleStack(linear_to_srgb8(shading.astype(np.float32))[None], lights, [[0, 0, 1]], encoding="srgb8")
 
 
-@pytest.mark.parametrize("stage,params", [("hsh.fit", {}), ("bilinear.fit", {"resolution": 6, "space": "auto"}),
+@pytest.mark.parametrize("stage,params", [("hsh.fit", {}), ("bilinear.fit", {"resolution": 4, "space": "auto"}),
                                           ("rbf.fit", {"sigma": 0.3})])
 def test_space_auto_picks_linear_for_a_rendered_relief_and_display_for_a_tone_mapped_one(stage, params):
     for display_linear, expected in ((False, "linear"), (True, "srgb")):
