@@ -128,3 +128,20 @@ def test_space_auto_picks_linear_for_a_rendered_relief_and_display_for_a_tone_ma
         model = btforge.stage(stage)(stack=relief_capture(display_linear), **params)["model"]
         assert model.space == expected, (stage, display_linear)
         assert np.isfinite(model.evaluate(dome(7, seed=9))).all()
+
+
+def test_hsh_leaves_out_lights_below_its_clamp_elevation_while_enough_remain():
+    from btforge.plugins.bases.fit import fitting_light_weights, hsh_args
+    lights = np.vstack([lights_at([3.0, 5.0], [10.0, 200.0]), dome(20, seed=1, min_el=20)])
+    weights = fitting_light_weights(hsh_args(27, "rgb"), lights)
+    assert not weights[:2].any() and np.abs(weights[2:]).sum(axis=(1, 2)).min() > 0
+    few = fitting_light_weights(hsh_args(27, "rgb"), lights[:12])   # 10 above the clamp: fewer than 2 per term
+    assert np.abs(few).sum(axis=(1, 2)).min() > 0
+    # the grazing samples do not move the fit: a texel whose grazing samples are wild fits as one without them
+    rng = np.random.default_rng(0)
+    samples = rng.integers(60, 200, (1, 22, 4, 5, 3)).astype(np.uint8)
+    wild = samples.copy()
+    wild[0, :2] = 255
+    fit = [btforge.stage("hsh.fit")(stack=SampleStack(s, lights, [[0, 0, 1]], encoding="srgb8"), space="srgb",
+                                    ridge=0.001)["model"] for s in (samples, wild)]
+    np.testing.assert_allclose(fit[0].coeffs, fit[1].coeffs, atol=1e-5)

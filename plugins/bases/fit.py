@@ -33,6 +33,7 @@ from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb
 from btforge.errors import BtforgeInputError
 from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, RIDGE_WEIGHTS, held_out_grid, held_out_space,
                               ridge_by_leave_one_out, ridge_solve)
+from btforge.plugins.web.hsh import MIN_ELEVATION as HSH_MIN_ELEVATION
 
 from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
                          smooth_resample_matrix, table_weights)
@@ -253,6 +254,23 @@ def table_light_weights(model_args: dict, lights: np.ndarray) -> np.ndarray:
     return probe.light_weights(lights).astype(np.float64)
 
 
+def fitting_light_weights(model_args: dict, lights: np.ndarray) -> np.ndarray:
+    """:func:`table_light_weights` with zero rows for the lights a least-squares fit leaves out: an hsh basis is
+    evaluated with the light's elevation clamped to at least ``MIN_ELEVATION`` (as RTI viewers evaluate it), so a
+    sample lit from lower down is not what the basis says at its light, and fitting it pulls the whole function
+    towards a grazing response at the clamped direction.  Such lights are left out while at least two lights per
+    term remain."""
+    lw = table_light_weights(model_args, lights)
+    if model_args["kind"] != "hsh":
+        return lw
+    unit = np.asarray(lights, np.float64) / np.linalg.norm(lights, axis=1, keepdims=True)
+    below = np.arcsin(np.clip(unit[:, 2], -1.0, 1.0)) < HSH_MIN_ELEVATION
+    terms = np.asarray(model_args["table"]).shape[1]
+    if np.count_nonzero(~below) >= 2 * terms:
+        lw[below] = 0.0
+    return lw
+
+
 def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
               resample: np.ndarray | None = None, ridge=RIDGE ** 2,
               free: tuple[int, ...] = ()) -> tuple[LightTableModel, dict]:
@@ -261,7 +279,7 @@ def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
     :func:`table_ridge`; planes ``free`` unpenalised), or, given ``resample``, by relight's projection."""
     args = {**model_args, "table": np.asarray(model_args["table"], np.float32)}
     space = args.get("space", "srgb")
-    lw = table_light_weights(args, stack.lights)
+    lw = fitting_light_weights(args, stack.lights)
     if resample is None and ridge == "auto":
         ridge = table_ridge(stack, lw, free, space)
     proj, offset, stats = least_squares(lw, 0.0 if ridge == "auto" else ridge, free)
@@ -289,7 +307,7 @@ def hsh_settings(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", 
     space = resolve_table_space(stack, space, lambda part, candidate: fit_hsh(
         part, planes, colorspace, engine, ridge, candidate)[0])
     if ridge == "auto":
-        lw = table_light_weights(hsh_args(planes, colorspace, space), stack.lights)
+        lw = fitting_light_weights(hsh_args(planes, colorspace, space), stack.lights)
         ridge = table_ridge(stack, lw, HSH_FREE, space)
     return space, ridge
 
