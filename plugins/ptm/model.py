@@ -26,7 +26,6 @@ from .legendre import to_orthonormal, to_raw
 
 KERNELS = Path(__file__).with_name("ptm.cl")
 N_TERMS = 6
-CONSTANT_TERM = 5  # the ridge leaves the constant term free: a constant texel is fitted exactly
 MAX_CHANNELS = 4  # the kernels keep per-channel accumulators in registers
 VARIANTS = ("lrgb", "rgb")
 SPACES = ("linear", "srgb")
@@ -233,9 +232,7 @@ class PTMSolve:
         """``D^T D + lambda I`` (float64): with it, ``a^T G s_c`` of a projection ``s_c = solve y_c`` is the
         correlation ``(D a)^T y_c`` of the polynomial ``a`` with the samples, ridge or not."""
         design = self.design.astype(np.float64)
-        penalty = np.ones(N_TERMS)
-        penalty[CONSTANT_TERM] = 0.0
-        return design.T @ design + self.penalty * np.diag(penalty)
+        return design.T @ design + self.penalty * np.eye(N_TERMS)
 
 
 def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND, ridge: float = 0.0) -> PTMSolve:
@@ -257,7 +254,7 @@ def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND, ridge: float = 
     floor = s[0] * rcond
     condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     clamped = int((s < floor).sum())
-    solve = ridge_solve(design, ridge, rcond, free=(CONSTANT_TERM,))
+    solve = ridge_solve(design, ridge, rcond)
     return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped, float(ridge),
                     float(ridge * s[0] ** 2))
 
@@ -292,7 +289,7 @@ def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve,
     coeffs = solve @ luminance                                        # [6, N]
     poly = solver.design.astype(np.float64) @ coeffs                  # [L, N]
     # the polynomial's energy over the lights plus its ridge penalty: the colour scale is a ridge fit too
-    pp = (poly * poly).sum(axis=0) + solver.penalty * (coeffs[:CONSTANT_TERM] ** 2).sum(axis=0)   # [N]
+    pp = (poly * poly).sum(axis=0) + solver.penalty * (coeffs * coeffs).sum(axis=0)   # [N]
     cross = np.einsum("ln,lnc->nc", poly, values)
     scale = np.where(pp[:, None] > 1e-20, np.maximum(cross / np.where(pp > 1e-20, pp, 1.0)[:, None], 0.0), 1.0)
     norm = np.maximum(scale.max(axis=1), 1.0)
@@ -441,8 +438,9 @@ def ptm_ridge(grid: np.ndarray, like: SampleStack, space: str, rcond: float = DE
     out of the samples ``grid [1, L, h, w, C]`` of a texel grid (``like``'s lights and encoding), in ``space``
     (closed-form leave-one-out, :func:`btforge.fitspace.ridge_by_leave_one_out`)."""
     values = _grid_values(grid, like.encoding, space)
-    return ridge_by_leave_one_out(ptm_terms(like.lights), values.reshape(like.n_light, -1), rcond=rcond,
-                                  free=(CONSTANT_TERM,))[0]
+    # Every term is penalised, the constant too: it is the value at the zenith, not the mean, and shrinking it
+    # with the rest predicted held-out lights of the real captures measured better (docs, Benchmarks).
+    return ridge_by_leave_one_out(ptm_terms(like.lights), values.reshape(like.n_light, -1), rcond=rcond)[0]
 
 
 def _grid_values(grid: np.ndarray, encoding: str, space: str) -> np.ndarray:
