@@ -57,7 +57,10 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond, ridge):
     the stack, the fit runs band by band of rows and the capture is never held whole (``space: auto`` is decided
     first, on a grid of texels of the whole capture).  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
-    singular values (the minimum-norm solution), with a warning naming the condition number.
+    singular values (the minimum-norm solution), with a warning naming the condition number.  ``ridge`` adds a
+    penalty ``lambda |c|^2`` on the coefficients; ``auto`` (the default) weighs it by how well the fits predict each
+    light left out of a grid of texels (closed-form leave-one-out, ``btforge.fitspace``), and is decided with the
+    space, before the bands are fitted.  The notes give ``space`` and ``ridge``.
 
     Outputs
     -------
