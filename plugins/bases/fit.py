@@ -6,21 +6,24 @@ The table (:mod:`.model`) is evaluated at the capture's lights, giving per light
 
     sum_{l, k} (g0[l, k] + sum_p c[p] G[l, p, k] - y[l, k])^2 + lambda |c|^2
 
-over its display samples ``y [L, 3]``, with ``lambda = (RIDGE * s_max)^2`` for ``s_max`` the largest singular
-value of ``G``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
-(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  The solution is one
-matrix ``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them
-(NumPy twin :func:`project_numpy`), reading an 8-bit capture's bytes in place.
+over its samples ``y [L, 3]`` (display values, or for ``space: linear`` the linear radiance of an 8-bit
+capture), with ``lambda = ridge * s_max^2`` for ``s_max`` the largest singular value of ``G`` and ``ridge`` at
+least ``RIDGE^2``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
+(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  hsh.fit chooses
+``ridge`` by closed-form leave-one-out (:func:`table_ridge`), leaves its constant terms unpenalised and leaves
+out lights below the elevation its basis clamps to (:func:`fitting_light_weights`).  The solution is one matrix
+``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them (NumPy twin
+:func:`project_numpy`), reading an 8-bit capture's bytes in place for a display-value fit.
 
-PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values, over
-the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
+PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values or linear
+radiance, over the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
 layout's 8-bit basis holds it, and the leading eigenvectors of their second moments about it become the
 planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coefficients = the resampled
 responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
 it is the default for bilinear, whose resampling already fits the samples.
 
 The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
-``resolution`` can be chosen by held-out lights (:func:`held_out_choice`).
+``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with ``space: auto``.
 """
 from __future__ import annotations
 
