@@ -164,3 +164,15 @@ def test_ptm_ridge_keeps_flat_texels_close_and_the_kernel_equal_to_its_twin(n, k
     # the ridge shrinks the coefficients towards zero: a flat texel stays within a few percent of its level
     # (the constant term carries a flat response, so the samples leave the ridge little to shrink)
     np.testing.assert_allclose(relit, level, atol=0.03 * level + 1e-5)
+
+
+@pytest.mark.parametrize("space", ["srgb", "linear"])
+def test_light_table_evaluation_kernel_matches_its_twin_in_both_spaces(space):
+    from btforge.plugins.bases.model import evaluate_numpy, evaluate_opencl
+    rng = np.random.default_rng(7)
+    coeffs = np.concatenate([rng.normal(0, 1, (50, 9)), np.full((3, 9), 1e3), np.zeros((3, 9))]).astype(np.float32)
+    lw = rng.normal(0, 0.5, (11, 10, 3)).astype(np.float32)
+    want, got = evaluate_numpy(coeffs, lw, space), evaluate_opencl(coeffs, lw, space)
+    assert np.isfinite(got).all() and got.min() >= 0 and got.max() <= 1   # clipped to [0, 1] in both spaces
+    # the kernel interpolates a 4096-step table of the decode; float32 sums of values of order 10
+    np.testing.assert_allclose(got, want, atol=2e-5)
