@@ -17,7 +17,8 @@ from .model import LightTableModel
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
-__all__ = ["LightTableModel", "fit_hsh", "fit_rbf", "fit_bilinear", "pca_precheck", "report_fit"]
+__all__ = ["LightTableModel", "fit_hsh", "fit_rbf", "fit_bilinear", "pca_precheck", "report_fit", "RIDGE_PARAM",
+           "SPACE_PARAM", "check_ridge", "settle_choices"]
 
 ONE_VIEW = Expect("views", 1, "these bases depend on the light only: select one view with stackio.select first")
 COLORSPACE = Param("colorspace", "choice", "rgb", "rgb: planes mix all three channels (relight's mrgb); ycc: "
@@ -34,6 +35,37 @@ COEFFICIENTS = Param("coefficients", "choice", "projection", "projection: each t
                      "on the principal components, as relight does; lsq: least squares against the interpolated "
                      "basis at the capture's lights (closer at those lights, can be worse between them)",
                      choices=("projection", "lsq"))
+
+
+RIDGE_PARAM = Param("ridge", "any", "auto", "weight of the ridge penalty lambda |c|^2 on the coefficients of a "
+                    "least-squares fit, lambda = ridge x the largest squared singular value of the basis at the "
+                    "capture's lights (a number in [0, 1]; at least 1e-6, which only bounds coefficients the lights "
+                    "leave undetermined); auto: the weight (1e-6 to 1e-2) whose fits best predict each sample left "
+                    "out, judged in closed form on a grid of texels")
+
+
+SPACE_PARAM = Param("space", "choice", "auto", "what the coefficients fit: srgb, the display values an 8-bit capture "
+                    "holds (as relight's -I srgb and RTI viewers); linear, the linear radiance they stand for (as "
+                    "relight's default), which evaluation clips to [0, 1] instead of decoding; auto: for an 8-bit "
+                    "capture the one whose fits predict held-out lights of a grid of texels better, display values "
+                    "otherwise", choices=("auto", "srgb", "linear"))
+
+
+def check_ridge(ridge, stage: str) -> None:
+    if ridge == "auto":
+        return
+    if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not 0 <= ridge <= 1:
+        raise BtforgeInputError(f"{stage} 'ridge'", f"expected 'auto' or a number in [0, 1], found {ridge!r}",
+                                "use auto (chosen by leave-one-out on a grid of texels) or e.g. 0.001")
+
+
+def settle_choices(stack, params: dict, choose) -> dict:
+    """``space: auto`` and ``ridge: auto`` judged once on a grid of texels of the whole stack (``choose(stack,
+    params)`` -> (space, ridge)), so every band of a distributed fit uses what the whole-stack fit would choose."""
+    if "auto" not in (params.get("ridge"), params.get("space")) or stack.n_view != 1 or stack.n_channel != 3:
+        return params  # nothing to choose, or a stack the fit refuses
+    space, ridge = choose(stack, params)
+    return {**params, "space": space, "ridge": ridge}
 
 
 def pca_precheck(params, paths=None):

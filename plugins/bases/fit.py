@@ -6,21 +6,24 @@ The table (:mod:`.model`) is evaluated at the capture's lights, giving per light
 
     sum_{l, k} (g0[l, k] + sum_p c[p] G[l, p, k] - y[l, k])^2 + lambda |c|^2
 
-over its display samples ``y [L, 3]``, with ``lambda = (RIDGE * s_max)^2`` for ``s_max`` the largest singular
-value of ``G``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
-(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  The solution is one
-matrix ``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them
-(NumPy twin :func:`project_numpy`), reading an 8-bit capture's bytes in place.
+over its samples ``y [L, 3]`` (display values, or for ``space: linear`` the linear radiance of an 8-bit
+capture), with ``lambda = ridge * s_max^2`` for ``s_max`` the largest singular value of ``G`` and ``ridge`` at
+least ``RIDGE^2``: negligible for a well-spread light set, and a bound on the coefficients (``|c| <= |y - g0| /
+(2 RIDGE s_max)``) when few, clustered or grazing lights leave directions undetermined.  hsh.fit chooses
+``ridge`` by closed-form leave-one-out (:func:`table_ridge`), leaves its constant terms unpenalised and leaves
+out lights below the elevation its basis clamps to (:func:`fitting_light_weights`).  The solution is one matrix
+``proj [P, L, 3]`` and an ``offset [P]`` shared by all texels; kernel ``basis_project`` applies them (NumPy twin
+:func:`project_numpy`), reading an 8-bit capture's bytes in place for a display-value fit.
 
-PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values, over
-the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
+PCA (rbf, bilinear) follows relight: the responses of up to :data:`PCA_SAMPLES` texels (display values or linear
+radiance, over the lights or resampled onto the bilinear grid) are centred on their mean, clipped to [0, 1] so that the web
 layout's 8-bit basis holds it, and the leading eigenvectors of their second moments about it become the
 planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coefficients = the resampled
 responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
 it is the default for bilinear, whose resampling already fits the samples.
 
 The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
-``resolution`` can be chosen by held-out lights (:func:`held_out_choice`).
+``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with ``space: auto``.
 """
 from __future__ import annotations
 
@@ -29,8 +32,11 @@ import math
 import numpy as np
 
 from btforge.backend import get_backend, single_threaded_blas
-from btforge.buffers import SampleStack, linear_to_srgb
+from btforge.buffers import SRGB8_TO_LINEAR, SampleStack, linear_to_srgb
 from btforge.errors import BtforgeInputError
+from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, RIDGE_WEIGHTS, held_out_grid, held_out_space,
+                              ridge_by_leave_one_out, ridge_solve)
+from btforge.plugins.web.hsh import MIN_ELEVATION as HSH_MIN_ELEVATION
 
 from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
                          smooth_resample_matrix, table_weights)
@@ -118,28 +124,67 @@ def display_values(stack: SampleStack, rows=slice(None), cols=slice(None), step:
     return linear_to_srgb(raw).astype(np.float32)
 
 
-def pca_responses(stack: SampleStack) -> np.ndarray:
-    """Display responses ``[N, L, 3]`` float32 of at most :data:`PCA_SAMPLES` texels on a regular grid."""
+def fitted_values(stack: SampleStack, space: str, rows=slice(None), cols=slice(None), step: int = 1) -> np.ndarray:
+    """The values ``[L, h, w, 3]`` float32 a fit in ``space`` fits: display values, or (``linear``, an 8-bit
+    capture) the linear radiance its bytes stand for."""
+    if space == "linear" and stack.encoding == "srgb8":
+        return SRGB8_TO_LINEAR[np.asarray(stack.samples[0, :, rows, cols][:, ::step, ::step])]
+    return display_values(stack, rows, cols, step)
+
+
+def pca_responses(stack: SampleStack, space: str = "srgb") -> np.ndarray:
+    """Responses ``[N, L, 3]`` float32 (in ``space``) of at most :data:`PCA_SAMPLES` texels on a regular grid."""
     step = max(1, math.ceil(math.sqrt(stack.height * stack.width / PCA_SAMPLES)))
-    y = display_values(stack, step=step)
+    y = fitted_values(stack, space, step=step)
     return np.ascontiguousarray(np.moveaxis(y, 0, 2).reshape(-1, stack.n_light, 3), np.float32)
 
 
-# ----------------------------------------------------------------------------------------------- solving
+def resolve_table_space(stack: SampleStack, space: str, fit) -> str:
+    """The space a light-table fit works in: ``space``, or for ``auto`` on an 8-bit capture the one whose fits
+    (``fit(part, candidate)`` -> model) predict held-out lights of a grid of texels better
+    (:func:`btforge.fitspace.held_out_space`); other captures, and those whose held-out folds keep too few
+    lights for the planes, are fitted as display values."""
+    if space != "auto":
+        return space
+    if stack.encoding != "srgb8":
+        return "srgb"
+    try:
+        return held_out_space(stack, lambda part, candidate, lights, views: fit(part, candidate).evaluate(lights))
+    except BtforgeInputError:  # the lights a fold keeps cannot hold that many planes: nothing to judge
+        return "srgb"
 
 
-def least_squares(lw: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
-    """``(proj [P, L, 3], offset [P], stats)`` of the regularised fit to the basis ``lw [L, P + 1, 3]`` (RGB)."""
+def _design(lw: np.ndarray) -> np.ndarray:
+    """The least-squares design ``[L * 3, P]`` of the basis ``lw [L, P + 1, 3]``: row ``(l, k)``, column ``p``."""
     n_light, n_plane = lw.shape[0], lw.shape[1] - 1
-    a = lw[:, 1:, :].transpose(0, 2, 1).reshape(n_light * 3, n_plane)   # row (l, k), column p
-    u, s, vt = np.linalg.svd(a, full_matrices=False)
-    lam = (RIDGE * s[0]) ** 2 if s.size and s[0] > 0 else 0.0
-    gain = np.where(s > 0, s / (s * s + lam), 0.0) if lam > 0 else np.zeros_like(s)
-    inverse = (vt.T * gain) @ u.T                                        # [P, L * 3]
+    return lw[:, 1:, :].transpose(0, 2, 1).reshape(n_light * 3, n_plane)
+
+
+def least_squares(lw: np.ndarray, ridge: float = RIDGE ** 2, free: tuple[int, ...] = ()
+                  ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``(proj [P, L, 3], offset [P], stats)`` of the fit to the basis ``lw [L, P + 1, 3]`` (RGB) with the ridge
+    weight ``ridge`` (at least ``RIDGE^2``) on every plane but ``free`` (:func:`btforge.fitspace.ridge_solve`)."""
+    n_light, n_plane = lw.shape[0], lw.shape[1] - 1
+    a = _design(lw)
+    s = np.linalg.svd(a, compute_uv=False)
+    inverse = ridge_solve(a, max(ridge, RIDGE ** 2), 0.0, free) if s.size and s[0] > 0 else np.zeros(a.shape[::-1])
     offset = inverse @ lw[:, 0, :].reshape(-1)
     stats = {"condition_number": float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf,
-             "rank": int(np.count_nonzero(s > 1e-6 * s[0])) if s.size and s[0] > 0 else 0}
+             "rank": int(np.count_nonzero(s > 1e-6 * s[0])) if s.size and s[0] > 0 else 0,
+             "ridge": float(max(ridge, RIDGE ** 2))}
     return inverse.reshape(n_plane, n_light, 3), offset, stats
+
+
+def table_ridge(stack: SampleStack, lw: np.ndarray, free: tuple[int, ...] = (), space: str = "srgb") -> float:
+    """``ridge: auto`` for a light-table fit: the weight whose fits best predict each sample left out, judged in
+    closed form (:func:`btforge.fitspace.ridge_by_leave_one_out`) on the values (in ``space``) of a grid of at
+    most 4096 texels."""
+    grid = held_out_grid(stack)[0]                                         # [L, h, w, 3]
+    like = SampleStack(grid[None], stack.lights, stack.views, stack.channels, stack.encoding)
+    y = np.moveaxis(fitted_values(like, space).astype(np.float64), 3, 1)  # [L, 3, h, w]
+    y = y.reshape(stack.n_light * 3, -1) - lw[:, 0, :].reshape(-1, 1)
+    ridges = tuple(max(r, RIDGE ** 2) for r in RIDGE_WEIGHTS)
+    return ridge_by_leave_one_out(_design(lw), y, ridges, 0.0, free)[0]
 
 
 def pca_projection(table: np.ndarray, resample: np.ndarray, colorspace: str) -> tuple[np.ndarray, np.ndarray]:
@@ -179,16 +224,17 @@ def project_opencl(samples: np.ndarray, proj: np.ndarray, offset: np.ndarray) ->
 
 
 def project_stack(stack: SampleStack, proj: np.ndarray, offset: np.ndarray, engine: str = "opencl",
-                  budget_bytes: int = 64 << 20) -> np.ndarray:
-    """Coefficients ``[H, W, P]`` of every texel, band by band (bytes read in place for an 8-bit capture)."""
+                  budget_bytes: int = 64 << 20, space: str = "srgb") -> np.ndarray:
+    """Coefficients ``[H, W, P]`` of every texel, band by band (an 8-bit capture's bytes read in place for a
+    display-value fit)."""
     run = project_numpy if engine == "numpy" else project_opencl
     coeffs = np.empty((stack.height, stack.width, proj.shape[0]), np.float32)
     for rows, cols in stack.texel_blocks(budget_bytes):
-        if stack.encoding == "srgb8":
+        if stack.encoding == "srgb8" and space == "srgb":
             block = np.asarray(stack.samples[0, :, rows, cols])
             scaled = proj / 255.0
         else:
-            block, scaled = display_values(stack, rows, cols), proj
+            block, scaled = fitted_values(stack, space, rows, cols), proj
         h, w = block.shape[1:3]
         samples = np.ascontiguousarray(block).reshape(stack.n_light, h * w, 3)
         coeffs[rows, cols] = run(samples, scaled, offset).reshape(h, w, -1)
@@ -204,27 +250,78 @@ def _check_stack(stack: SampleStack, stage: str) -> None:
                                 f"and {stack.n_channel} channel(s)", "select one view with stackio.select")
 
 
-def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
-              resample: np.ndarray | None = None) -> tuple[LightTableModel, dict]:
-    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``: by
-    least squares against the table at the capture's lights, or, given ``resample``, by relight's projection."""
+def table_light_weights(model_args: dict, lights: np.ndarray) -> np.ndarray:
+    """The basis ``lw [L, P + 1, 3]`` (float64, RGB) of the table in ``model_args`` at ``lights``."""
     table = np.asarray(model_args["table"], np.float32)
-    args = {**model_args, "table": table}
-    probe = LightTableModel(coeffs=np.zeros((0, 0, table.shape[0] - 1), np.float32), **args)
-    lw = probe.light_weights(stack.lights).astype(np.float64)
-    proj, offset, stats = least_squares(lw)
+    probe = LightTableModel(coeffs=np.zeros((0, 0, table.shape[0] - 1), np.float32), **{**model_args, "table": table})
+    return probe.light_weights(lights).astype(np.float64)
+
+
+def fitting_light_weights(model_args: dict, lights: np.ndarray) -> np.ndarray:
+    """:func:`table_light_weights` with zero rows for the lights a least-squares fit leaves out: an hsh basis is
+    evaluated with the light's elevation clamped to at least ``MIN_ELEVATION`` (as RTI viewers evaluate it), so a
+    sample lit from lower down is not what the basis says at its light, and fitting it pulls the whole function
+    towards a grazing response at the clamped direction.  Such lights are left out while at least two lights per
+    term remain."""
+    lw = table_light_weights(model_args, lights)
+    if model_args["kind"] != "hsh":
+        return lw
+    unit = np.asarray(lights, np.float64) / np.linalg.norm(lights, axis=1, keepdims=True)
+    below = np.arcsin(np.clip(unit[:, 2], -1.0, 1.0)) < HSH_MIN_ELEVATION
+    terms = np.asarray(model_args["table"]).shape[1]
+    if np.count_nonzero(~below) >= 2 * terms:
+        lw[below] = 0.0
+    return lw
+
+
+def fit_table(stack: SampleStack, model_args: dict, engine: str = "opencl",
+              resample: np.ndarray | None = None, ridge=RIDGE ** 2,
+              free: tuple[int, ...] = ()) -> tuple[LightTableModel, dict]:
+    """Fit coefficients over the table in ``model_args`` (LightTableModel fields but coeffs) to ``stack``: by
+    least squares against the table at the capture's lights (with the ridge weight ``ridge``, or ``auto``:
+    :func:`table_ridge`; planes ``free`` unpenalised), or, given ``resample``, by relight's projection."""
+    args = {**model_args, "table": np.asarray(model_args["table"], np.float32)}
+    space = args.get("space", "srgb")
+    lw = fitting_light_weights(args, stack.lights)
+    if resample is None and ridge == "auto":
+        ridge = table_ridge(stack, lw, free, space)
+    proj, offset, stats = least_squares(lw, 0.0 if ridge == "auto" else ridge, free)
     if resample is not None:
-        proj, offset = pca_projection(table, resample, args.get("colorspace", "rgb"))
+        proj, offset = pca_projection(args["table"], resample, args.get("colorspace", "rgb"))
     with single_threaded_blas():
-        coeffs = project_stack(stack, proj, offset, engine)
-    stats["planes"] = table.shape[0] - 1
+        coeffs = project_stack(stack, proj, offset, engine, space=space)
+    stats["planes"] = args["table"].shape[0] - 1
+    stats["space"] = space
     return LightTableModel(coeffs=coeffs, **args), stats
 
 
-def fit_hsh(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", engine: str = "opencl"):
-    _check_stack(stack, "hsh.fit")
+HSH_FREE = (0, 1, 2)  # the planes of the constant HSH term (one per colour component): not penalised
+
+
+def hsh_args(planes: int, colorspace: str, space: str = "srgb") -> dict:
     table, ycc = hsh_table(planes // 3, colorspace)
-    return fit_table(stack, {"kind": "hsh", "table": table, "colorspace": colorspace, "yccplanes": ycc}, engine)
+    return {"kind": "hsh", "table": table, "colorspace": colorspace, "yccplanes": ycc, "space": space}
+
+
+def hsh_settings(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", ridge="auto", space: str = "auto",
+                 engine: str = "opencl") -> tuple[str, float | str]:
+    """hsh.fit's space and ridge weight on ``stack``: the given ones, or ``auto``'s choices
+    (:func:`resolve_table_space`, then :func:`table_ridge` in that space)."""
+    space = resolve_table_space(stack, space, lambda part, candidate: fit_hsh(
+        part, planes, colorspace, engine, ridge, candidate)[0])
+    if ridge == "auto":
+        lw = fitting_light_weights(hsh_args(planes, colorspace, space), stack.lights)
+        ridge = table_ridge(stack, lw, HSH_FREE, space)
+    return space, ridge
+
+
+def fit_hsh(stack: SampleStack, planes: int = 27, colorspace: str = "rgb", engine: str = "opencl", ridge="auto",
+            space: str = "auto"):
+    """hsh.fit: the HSH terms fitted by ridge least squares in ``space`` (auto: :func:`hsh_settings`); the
+    constant term of each colour component is left unpenalised, so a constant texel is fitted exactly."""
+    _check_stack(stack, "hsh.fit")
+    space, ridge = hsh_settings(stack, planes, colorspace, ridge, space, engine)
+    return fit_table(stack, hsh_args(planes, colorspace, space), engine, ridge=ridge, free=HSH_FREE)
 
 
 def _pca_planes(stack: SampleStack, stage: str, planes: int, colorspace: str, yplanes: int, dims: int):
@@ -247,29 +344,39 @@ def light_spacing(lights: np.ndarray) -> float:
     return float(max(np.median(dist.min(axis=1)), 1e-3))
 
 
-def held_out_choice(stack: SampleStack, candidates, fit):
-    """The candidate whose ``fit(part, candidate)`` model predicts held-out lights best: on a grid of at most
-    4096 texels, every fifth light held out (as ``space: auto`` judges), mean squared error of display values.
-    With fewer than 10 lights there is nothing to hold out: the middle candidate."""
-    from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, auto_grid_step
-    if stack.n_light < AUTO_MIN_LIGHTS:
-        return candidates[len(candidates) // 2]
-    step = auto_grid_step(stack.height, stack.width)
-    grid = np.ascontiguousarray(stack.samples[:, :, ::step, ::step])
+def held_out_choice(stack: SampleStack, spaces, values, fit) -> tuple[str, object]:
+    """The (space, value) pair whose ``fit(part, space, value)`` model predicts held-out lights best: on a grid
+    of at most 4096 texels, every fifth light held out (one of the folds ``space: auto`` judges on), mean squared
+    error of display values.  Space and value are judged together: a grid side or interpolation width that suits
+    display values need not suit linear radiance.  With fewer than 10 lights nothing is held out, and when the
+    fold keeps too few lights for the planes nothing can be judged: the first space and the middle value."""
+    fallback = (spaces[0], values[len(values) // 2])
+    if stack.n_light < AUTO_MIN_LIGHTS or len(spaces) * len(values) == 1:
+        return fallback
+    grid = held_out_grid(stack)
     held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
     part = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels,
                        stack.encoding)
     truth = SampleStack(np.ascontiguousarray(grid[:, held]), stack.lights[held], stack.views, stack.channels,
                         stack.encoding)
     target = display_values(truth)
+    candidates = [(space, value) for space in spaces for value in values]
     errors = []
-    for value in candidates:
+    for candidate in candidates:
         try:
-            predicted = linear_to_srgb(fit(part, value).evaluate(truth.lights)[0])
+            predicted = linear_to_srgb(fit(part, *candidate).evaluate(truth.lights)[0])
         except BtforgeInputError:  # the lights left for fitting cannot hold that many planes: nothing to judge
-            return candidates[len(candidates) // 2]
+            return fallback
         errors.append(float(np.mean((predicted - target) ** 2)))
     return candidates[int(np.argmin(errors))]
+
+
+def candidate_spaces(stack: SampleStack, space: str) -> tuple[str, ...]:
+    """The spaces ``space`` allows a light-table fit of ``stack``: both for ``auto`` on an 8-bit capture, display
+    values for ``auto`` on any other (see :func:`resolve_table_space`)."""
+    if space != "auto":
+        return (space,)
+    return ("srgb", "linear") if stack.encoding == "srgb8" else ("srgb",)
 
 
 def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, damping: float) -> np.ndarray:
@@ -288,48 +395,53 @@ def interpolating_table(table: np.ndarray, lights: np.ndarray, sigma: float, dam
 
 
 def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplanes: int = 0, sigma: float = 0.0,
-            coefficients: str = "lsq", table_mode: str = "interpolating", engine: str = "opencl"):
-    """rbf.fit: PCA table over the lights (``sigma`` 0: chosen on held-out lights; see the stage's docs)."""
+            coefficients: str = "lsq", table_mode: str = "interpolating", engine: str = "opencl",
+            space: str = "auto"):
+    """rbf.fit: PCA table over the lights (``sigma`` 0 and ``space`` auto: chosen together on held-out lights,
+    :func:`held_out_choice`; see the stage's docs)."""
     _check_stack(stack, "rbf.fit")
     ycc = _pca_planes(stack, "rbf.fit", planes, colorspace, yplanes, stack.n_light)
-    if not sigma:
-        candidates = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS]
-        sigma = held_out_choice(stack, candidates, lambda part, value: fit_rbf(
-            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine)[0])
-    table = pca_table(pca_responses(stack), planes, colorspace, ycc)
+    if space == "auto" or not sigma:
+        sigmas = [factor * light_spacing(stack.lights) for factor in SIGMA_FACTORS] if not sigma else [sigma]
+        space, sigma = held_out_choice(stack, candidate_spaces(stack, space), sigmas, lambda part, sp, value: fit_rbf(
+            part, planes, colorspace, yplanes, value, coefficients, table_mode, engine, sp)[0])
+    table = pca_table(pca_responses(stack, space), planes, colorspace, ycc)
     if table_mode == "interpolating":
         table = interpolating_table(table, stack.lights, sigma, TABLE_DAMPING)
     projection = coefficients == "projection" and table_mode == "responses"
     model, stats = fit_table(stack, {"kind": "rbf", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                                     "table_lights": stack.lights.astype(np.float32), "sigma": sigma}, engine,
+                                     "table_lights": stack.lights.astype(np.float32), "sigma": sigma,
+                                     "space": space}, engine,
                              np.eye(stack.n_light) if projection else None)
     return model, {**stats, "sigma": sigma}
 
 
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
-                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl"):
-    """bilinear.fit: PCA table on the light grid (``resolution`` 0: chosen on held-out lights)."""
+                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "srgb"):
+    """bilinear.fit: PCA table on the light grid (``resolution`` 0 and ``space`` auto: chosen together on
+    held-out lights, :func:`held_out_choice`)."""
     _check_stack(stack, "bilinear.fit")
-    if not resolution:
+    if space == "auto" or not resolution:
         need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
-        fits = [r for r in RESOLUTIONS if need <= 3 * r * r]
-        resolution = held_out_choice(stack, fits or [RESOLUTIONS[-1]], lambda part, value: fit_bilinear(
-            part, planes, value, colorspace, yplanes, sigma, regularization, coefficients, resampling, smoothness,
-            engine)[0])
+        sides = [resolution] if resolution else [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
+        space, resolution = held_out_choice(stack, candidate_spaces(stack, space), sides, lambda part, sp, value:
+                                            fit_bilinear(part, planes, value, colorspace, yplanes, sigma,
+                                                         regularization, coefficients, resampling, smoothness,
+                                                         engine, sp)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
     if resampling == "smooth":
         resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
     else:
         resample = resample_matrix(stack.lights, resolution, sigma, regularization)
-    sampled = pca_responses(stack)                                                   # [N, L, 3]
+    sampled = pca_responses(stack, space)                                            # [N, L, 3]
     n = len(sampled)
     # one matrix product (einsum would loop): [D, L] @ [L, N * 3]
     responses = (resample.astype(np.float32) @ sampled.transpose(1, 0, 2).reshape(stack.n_light, -1)).reshape(-1, n, 3)
     responses = responses.transpose(1, 0, 2)
     table = pca_table(responses, planes, colorspace, ycc)
     model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                                     "resolution": resolution}, engine,
+                                     "resolution": resolution, "space": space}, engine,
                              resample if coefficients == "projection" else None)
     return model, {**stats, "resolution": resolution}
 

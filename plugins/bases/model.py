@@ -6,7 +6,8 @@ A texel's display value (sRGB, in [0, 1]) under a light ``l`` is
 
 with ``T [P + 1, D, 3]`` the light table (row 0 the mean response, row ``p + 1`` plane ``p``), ``w(l) [D]`` the
 basis's weights over the table (:mod:`.lightfuncs`) and ``M`` the colour matrix (identity, or YCoCg -> RGB).
-``relight.images`` clips ``v`` to [0, 1] and decodes it to linear radiance.  The per-texel sum runs on OpenCL
+``relight.images`` clips ``v`` to [0, 1] and decodes it to linear radiance (a model of ``space`` linear holds
+linear radiance of an 8-bit capture instead: clipped to [0, 1], not decoded).  The per-texel sum runs on OpenCL
 (kernel ``basis_eval`` in ``bases.cl``; NumPy twin :func:`evaluate_numpy`).
 """
 from __future__ import annotations
@@ -32,6 +33,8 @@ COLORSPACES = ("rgb", "ycc")
 HSH_TERMS = (4, 9)
 SRGB_STEPS = 4096
 SRGB_TABLE = srgb_to_linear(np.linspace(0.0, 1.0, SRGB_STEPS + 1)).astype(np.float32)
+LINEAR_TABLE = np.linspace(0.0, 1.0, SRGB_STEPS + 1).astype(np.float32)  # the kernel's decode for linear fits
+SPACES = ("srgb", "linear")
 EVAL_OPTIONS = (f"-DSRGB_STEPS={SRGB_STEPS}",)
 
 
@@ -39,7 +42,8 @@ EVAL_OPTIONS = (f"-DSRGB_STEPS={SRGB_STEPS}",)
 class LightTableModel(ReflectanceModel):
     """Coefficient planes over a light table: the ``hsh``, ``rbf`` and ``bilinear`` bases (see the module docs).
 
-    ``coeffs [H, W, P]`` float32 (display units); ``table [P + 1, D, 3]`` float32 in ``colorspace`` (rgb or
+    ``coeffs [H, W, P]`` float32 (units of ``space``: display values, or linear radiance of an 8-bit capture,
+    which evaluation clips to [0, 1] instead of decoding); ``table [P + 1, D, 3]`` float32 in ``colorspace`` (rgb or
     ycc, YCoCg); ``table_lights [D, 3]`` the rbf table's light directions (empty otherwise); ``sigma`` the rbf
     interpolation width; ``resolution`` the bilinear grid side; ``yccplanes`` (Y, Co, Cg) plane counts for ycc.
     """
@@ -59,6 +63,7 @@ class LightTableModel(ReflectanceModel):
     resolution: int = 8
     yccplanes: tuple[int, ...] = (0, 0, 0)
     channel_names: tuple[str, ...] = ("R", "G", "B")
+    space: str = "srgb"
 
     def __post_init__(self):
         owner = "LightTableModel"
@@ -66,6 +71,8 @@ class LightTableModel(ReflectanceModel):
             raise BtforgeInputError(f"{owner} 'kind'", f"must be one of {KINDS}, got {self.kind!r}")
         if self.colorspace not in COLORSPACES:
             raise BtforgeInputError(f"{owner} 'colorspace'", f"must be one of {COLORSPACES}, got {self.colorspace!r}")
+        if self.space not in SPACES:
+            raise BtforgeInputError(f"{owner} 'space'", f"must be one of {SPACES}, got {self.space!r}")
         if tuple(self.channel_names) != ("R", "G", "B"):
             raise BtforgeInputError(f"{owner} 'channel_names'", f"must be R, G, B, got {self.channel_names!r}")
         check_array("coeffs", self.coeffs, ("H", "W", "P"), np.float32, finite=True, owner=owner)
@@ -124,7 +131,7 @@ class LightTableModel(ReflectanceModel):
         run = evaluate_numpy if engine == "numpy" else evaluate_opencl
         out = np.empty((len(lights), coeffs.shape[0], 3), np.float32)
         for chunk in texel_chunks(coeffs.shape[0], 4 * (self.n_plane + 3 * max(len(lights), 1))):
-            out[:, chunk] = run(coeffs[chunk], lw)
+            out[:, chunk] = run(coeffs[chunk], lw, self.space)
         return out.reshape(1, len(lights), self.height, self.width, 3)
 
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
@@ -135,18 +142,26 @@ class LightTableModel(ReflectanceModel):
         lw = self.light_weights(lights / np.where(norm > 0, norm, 1.0))
         c = self.coeffs[rows, cols]
         value = lw[:, 0] + np.einsum("np,npk->nk", c, lw[:, 1:])
-        return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
+        return decode(value, self.space)
 
 
-def evaluate_numpy(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
+def decode(value: np.ndarray, space: str) -> np.ndarray:
+    """Evaluated values -> linear radiance float32: clipped to [0, 1], then decoded by the sRGB curve (``srgb``)
+    or kept (``linear``)."""
+    clipped = np.clip(value, 0.0, 1.0)
+    return (srgb_to_linear(clipped) if space == "srgb" else clipped).astype(np.float32)
+
+
+def evaluate_numpy(coeffs: np.ndarray, lw: np.ndarray, space: str = "srgb") -> np.ndarray:
     """Twin of kernel ``basis_eval``: ``coeffs [T, P]``, ``lw [L, P + 1, 3]`` -> linear ``[L, T, 3]`` float32
     (the exact sRGB curve; the kernel interpolates a table of it)."""
     value = lw[:, None, 0, :] + np.einsum("tp,lpk->ltk", coeffs.astype(np.float64), lw[:, 1:].astype(np.float64))
-    return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
+    return decode(value, space)
 
 
-def evaluate_opencl(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
-    """Kernel ``basis_eval`` on ``coeffs [T, P]`` and ``lw [L, P + 1, 3]`` -> linear ``[L, T, 3]`` float32."""
+def evaluate_opencl(coeffs: np.ndarray, lw: np.ndarray, space: str = "srgb") -> np.ndarray:
+    """Kernel ``basis_eval`` on ``coeffs [T, P]`` and ``lw [L, P + 1, 3]`` -> linear ``[L, T, 3]`` float32 (its
+    decode table: the sRGB curve, or for ``space`` linear the identity)."""
     backend = get_backend()
     n_texel, n_plane = coeffs.shape
     n_light = lw.shape[0]
@@ -156,8 +171,8 @@ def evaluate_opencl(coeffs: np.ndarray, lw: np.ndarray) -> np.ndarray:
     kernel = backend.kernel(KERNELS, "basis_eval", EVAL_OPTIONS)
     o_dev = backend.host_output(out)
     backend.run(kernel, (n_texel, n_light), backend.host_input(np.ascontiguousarray(coeffs, np.float32)),
-                backend.to_device(np.ascontiguousarray(lw, np.float32)), backend.to_device(SRGB_TABLE),
+                backend.to_device(np.ascontiguousarray(lw, np.float32)),
+                backend.to_device(SRGB_TABLE if space == "srgb" else LINEAR_TABLE),
                 np.int32(n_plane), np.int32(n_texel), np.int32(n_light), o_dev)
     backend.finish_output(o_dev, out)
     return out
-

@@ -99,4 +99,5 @@ def from_web(cls, info: dict, planes: np.ndarray):
         extra["yccplanes"] = tuple(int(v) for v in info.get("yccplanes", (0, 0, 0)))
     table = dequantize_basis(info.get("basis", []), info["materials"][0].get("range", []), n_plane, n_table, where)
     coeffs = np.ascontiguousarray(planes[:n_plane].transpose(1, 2, 0), np.float32)
-    return cls(kind=kind, coeffs=coeffs, table=table, colorspace=colorspace, **extra)
+    space = "linear" if (info.get("btforge") or {}).get("transfer") == "linear" else "srgb"
+    return cls(kind=kind, coeffs=coeffs, table=table, colorspace=colorspace, space=space, **extra)

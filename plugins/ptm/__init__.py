@@ -28,12 +28,17 @@ FIT_PARAMS = (
           "functions over [-1, 1]^2, where coefficient distance equals function distance", choices=("raw", "orthonormal")),
     Param("rcond", "float", DEFAULT_RCOND, "singular values of the light design matrix below rcond x the largest are "
           "dropped (regularises ill-conditioned light sets)", low=1e-12, high=1.0),
+    Param("ridge", "any", "auto", "weight of a ridge penalty lambda |c|^2 on the coefficients, lambda = ridge x the "
+          "largest squared singular value of the light design matrix (a number in [0, 1]; 0: plain least squares); "
+          "auto: the weight (0 or 1e-4 to 1e-2) whose fits best predict each light left out, judged in closed form "
+          "on a grid of texels"),
 )
 
 
 @declare_stage(
     "ptm.fit",
     role="fit",
+    version="2",
     sweep=[{"variant": v} for v in ("lrgb", "rgb")],
     inputs={"stack": "SampleStack"},
     outputs={"model": "PTMModel"},
@@ -43,7 +48,7 @@ FIT_PARAMS = (
     device=True,
     expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
 )
-def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
+def ptm_fit(ctx, stack, *, variant, space, basis, rcond, ridge):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
 
     Each texel's samples are mapped to coefficients by one shared 6 x L pseudo-inverse of the light design
@@ -52,29 +57,35 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond):
     the stack, the fit runs band by band of rows and the capture is never held whole (``space: auto`` is decided
     first, on a grid of texels of the whole capture).  A light set whose
     design matrix is ill-conditioned (clustered, one elevation, grazing) is regularised by dropping small
-    singular values (the minimum-norm solution), with a warning naming the condition number.
+    singular values (the minimum-norm solution), with a warning naming the condition number.  ``ridge`` adds a
+    penalty ``lambda |c|^2`` on the coefficients; ``auto`` (the default) weighs it by how well the fits predict each
+    light left out of a grid of texels (closed-form leave-one-out, ``btforge.fitspace``), and is decided with the
+    space, before the bands are fitted.  The notes give ``space`` and ``ridge``.
 
     Outputs
     -------
     model : PTMModel
         ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
     """
-    model, solver = fit_ptm(stack, variant, space, rcond=rcond)
+    model, solver = fit_ptm(stack, variant, space, rcond=rcond, ridge=ridge)
     return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
 
 
 def _settle_space(stack, params):
-    """``space: auto`` judged once on a grid of texels of the whole stack, so every band of a streamed or
-    distributed fit fits in the space the whole-stack fit would choose."""
-    from .model import ptm_space
-    if params["space"] != "auto" or stack.n_view != 1:  # a multi-view stack is refused by the fit itself
+    """``space: auto`` and ``ridge: auto`` judged once on a grid of texels of the whole stack, so every band of a
+    streamed or distributed fit fits as the whole-stack fit would."""
+    from .model import check_ridge, ptm_settings
+    if "auto" not in (params["space"], params["ridge"]) or stack.n_view != 1:  # multi-view: refused by the fit
         return params
-    return {**params, "space": ptm_space(stack, params["variant"], "auto", rcond=params["rcond"])}
+    check_ridge(params["ridge"])
+    space, ridge = ptm_settings(stack, params["variant"], params["space"], params["ridge"], rcond=params["rcond"])
+    return {**params, "space": space, "ridge": ridge}
 
 
 def _report_fit(ctx, model, solver, rcond):
     ctx.note("condition_number", round(solver.condition_number, 3))
     ctx.note("space", model.space)
+    ctx.note("ridge", solver.ridge)
     if solver.clamped:
         ctx.warn(f"light directions are ill-conditioned for a PTM (condition number {solver.condition_number:.3g}); "
                  f"{solver.clamped} singular value(s) below {rcond:g} x the largest were clamped to zero weight "
@@ -100,6 +111,7 @@ def _capture_precheck(params, paths):
 
 @declare_stage(
     "ptm.fit_capture",
+    version="2",
     outputs={"model": "PTMModel"},
     params=[Param("path", "path", REQUIRED, "the capture's .lp light file (a single view)"),
             Param("transfer", "choice", "auto", "how pixel values map to radiance, as in stackio.read",
@@ -108,7 +120,7 @@ def _capture_precheck(params, paths):
     precheck=_capture_precheck,
     device=True,
 )
-def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
+def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond, ridge):
     """Fit a PTM to a capture while its images decode, never holding the capture or a file of it.
 
     ``stackio.read`` -> ``ptm.fit`` streams too (band by band of a file the images are decoded into), and is what
@@ -122,7 +134,8 @@ def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond):
     process peaks near the size of the coefficients plus the interpreter (README, Benchmarks).
     """
     from .model import fit_ptm_capture
-    model, solver = fit_ptm_capture(ctx.paths.input(path), variant, space, transfer=transfer, rcond=rcond)
+    model, solver = fit_ptm_capture(ctx.paths.input(path), variant, space, transfer=transfer, rcond=rcond,
+                                    ridge=ridge)
     ctx.note("lights", int(solver.solve.shape[1]))
     return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
 

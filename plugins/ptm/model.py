@@ -18,8 +18,8 @@ from btforge.backend import get_backend
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen,
                              linear_to_srgb, scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import (AUTO_MIN_LIGHTS, auto_grid_step, resolve_space,
-                              space_from_grid)
+from btforge.fitspace import (AUTO_MIN_LIGHTS, auto_grid_step, held_out_grid, resolve_space,
+                              ridge_by_leave_one_out, ridge_solve, space_from_grid)
 from btforge.numerics import texel_chunks
 
 from .legendre import to_orthonormal, to_raw
@@ -225,10 +225,19 @@ class PTMSolve:
     design: np.ndarray  # [L, 6]
     condition_number: float
     clamped: int        # how many singular values fell below the floor (their directions are left out)
+    ridge: float = 0.0  # the ridge weight (times the largest squared singular value)
+    penalty: float = 0.0  # lambda = ridge x the largest squared singular value
+
+    def gram(self) -> np.ndarray:
+        """``D^T D + lambda I`` (float64): with it, ``a^T G s_c`` of a projection ``s_c = solve y_c`` is the
+        correlation ``(D a)^T y_c`` of the polynomial ``a`` with the samples, ridge or not."""
+        design = self.design.astype(np.float64)
+        return design.T @ design + self.penalty * np.eye(N_TERMS)
 
 
-def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND) -> PTMSolve:
-    """Pseudo-inverse of the PTM design matrix, dropping singular values below ``rcond`` x the largest.
+def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND, ridge: float = 0.0) -> PTMSolve:
+    """Pseudo-inverse of the PTM design matrix, dropping singular values below ``rcond`` x the largest, with a
+    ridge ``ridge x s_max^2`` (``btforge.fitspace.ridge_solve``; 0: plain least squares).
 
     Light sets that barely vary in one direction (all at one elevation, clustered, grazing) make the design
     matrix nearly singular.  The samples say almost nothing along such a direction, so its coefficient is left
@@ -241,13 +250,13 @@ def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND) -> PTMSolve:
             "ptm.fit", f"expected at least {N_TERMS} lights for a 6-coefficient PTM, found {len(lights)}",
             "capture more lights, or use a representation with fewer coefficients")
     design = ptm_terms(lights)
-    u, s, vt = np.linalg.svd(design, full_matrices=False)
+    s = np.linalg.svd(design, compute_uv=False)
     floor = s[0] * rcond
     condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     clamped = int((s < floor).sum())
-    inverse = np.where(s >= floor, 1.0 / np.where(s > 0, s, 1.0), 0.0)
-    solve = (vt.T * inverse) @ u.T
-    return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped)
+    solve = ridge_solve(design, ridge, rcond)
+    return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped, float(ridge),
+                    float(ridge * s[0] ** 2))
 
 
 def _kernel_input(stack: SampleStack, space: str):
@@ -279,7 +288,8 @@ def fit_ptm_numpy(samples: np.ndarray, lut: np.ndarray | None, solver: PTMSolve,
     luminance = values.mean(axis=2)                                   # [L, N]
     coeffs = solve @ luminance                                        # [6, N]
     poly = solver.design.astype(np.float64) @ coeffs                  # [L, N]
-    pp = (poly * poly).sum(axis=0)                                    # [N]
+    # the polynomial's energy over the lights plus its ridge penalty: the colour scale is a ridge fit too
+    pp = (poly * poly).sum(axis=0) + solver.penalty * (coeffs * coeffs).sum(axis=0)   # [N]
     cross = np.einsum("ln,lnc->nc", poly, values)
     scale = np.where(pp[:, None] > 1e-20, np.maximum(cross / np.where(pp > 1e-20, pp, 1.0)[:, None], 0.0), 1.0)
     norm = np.maximum(scale.max(axis=1), 1.0)
@@ -300,12 +310,13 @@ def finish_lrgb(sums: np.ndarray, solver: PTMSolve) -> tuple[np.ndarray, np.ndar
     """Twin of kernel ``ptm_finish_lrgb`` (float64): an lrgb PTM from the per-channel projections ``sums [N, C, 6]``: ``(coeffs [N, 1, 6], albedo [N, C])``.
 
     The luminance polynomial ``a`` is the channel mean of the projections (the fit is linear), and with the Gram
-    matrix ``G = D^T D`` of the design ``D`` its energy over the lights is ``a^T G a`` and its correlation with
-    channel ``c`` is ``a^T G s_c`` - the sums the kernel of the whole stack forms over every light, without the
-    samples.  (``a`` lies in the span the regularised solve keeps, so ``G`` loses nothing there.)  The colour is
+    matrix ``G = D^T D + lambda I`` of the design ``D`` (:meth:`PTMSolve.gram`) its energy over the lights plus
+    its ridge penalty is ``a^T G a`` and its correlation with channel ``c`` is ``a^T G s_c`` - the sums the kernel
+    of the whole stack forms over every light, without the samples.  (``a`` lies in the span the regularised
+    solve keeps, so ``G`` loses nothing there.)  The colour is
     then the non-negative least-squares scale per channel, kept in [0, 1] by moving any excess into ``a``.
     """
-    gram = solver.design.astype(np.float64).T @ solver.design.astype(np.float64)
+    gram = solver.gram()
     s64 = sums.astype(np.float64)
     luminance = s64.mean(axis=1)                                          # [N, 6]
     g_lum = luminance @ gram
@@ -376,7 +387,7 @@ class PTMProjection:
                                     f"found {self.lights_added}", "a bug in the caller: add every light once")
         backend = self._backend
         if self.variant == "lrgb":
-            gram = self.solver.design.astype(np.float64).T @ self.solver.design.astype(np.float64)
+            gram = self.solver.gram()
             c_dev, a_dev = backend.host_output(self.coeffs), backend.host_output(self.albedo)
             backend.run(backend.kernel(KERNELS, "ptm_finish_lrgb"), (self.n_texel,), self._sums,
                         backend.to_device(gram.astype(np.float32)), np.int32(self.n_texel), np.int32(self.n_channel),
@@ -422,9 +433,44 @@ def ptm_space(stack: SampleStack, variant: str, space: str, *, engine: str = "op
         fit, variant, sp, engine=engine, rcond=rcond)[0].evaluate(lights))
 
 
+def ptm_ridge(grid: np.ndarray, like: SampleStack, space: str, rcond: float = DEFAULT_RCOND) -> float:
+    """``ridge: auto``: the weight of ``btforge.fitspace.RIDGE_WEIGHTS`` whose fits best predict each light left
+    out of the samples ``grid [1, L, h, w, C]`` of a texel grid (``like``'s lights and encoding), in ``space``
+    (closed-form leave-one-out, :func:`btforge.fitspace.ridge_by_leave_one_out`)."""
+    values = _grid_values(grid, like.encoding, space)
+    # Every term is penalised, the constant too: it is the value at the zenith, not the mean, and shrinking it
+    # with the rest predicted held-out lights of the real captures measured better (docs, Benchmarks).
+    return ridge_by_leave_one_out(ptm_terms(like.lights), values.reshape(like.n_light, -1), rcond=rcond)[0]
+
+
+def _grid_values(grid: np.ndarray, encoding: str, space: str) -> np.ndarray:
+    """Samples ``[V, L, ...]`` of a texel grid in the space fitted (float64)."""
+    raw = np.asarray(grid[0])
+    if encoding == "srgb8":
+        return SRGB8_TO_LINEAR[raw].astype(np.float64) if space == "linear" else raw / 255.0
+    return raw.astype(np.float64) if space == "linear" else linear_to_srgb(raw).astype(np.float64)
+
+
+def ptm_settings(stack: SampleStack, variant: str, space: str, ridge, *, engine: str = "opencl",
+                 rcond: float = DEFAULT_RCOND) -> tuple[str, float]:
+    """The space and ridge weight ``fit_ptm`` uses: the given ones, or ``auto``'s choices on a grid of texels."""
+    space = ptm_space(stack, variant, space, engine=engine, rcond=rcond)
+    if ridge == "auto":
+        ridge = ptm_ridge(held_out_grid(stack), stack, space, rcond)
+    return space, float(ridge)
+
+
+def check_ridge(ridge, owner: str = "ptm.fit") -> None:
+    if ridge == "auto":
+        return
+    if isinstance(ridge, bool) or not isinstance(ridge, (int, float)) or not 0 <= ridge <= 1:
+        raise BtforgeInputError(f"{owner} 'ridge'", f"expected 'auto' or a number in [0, 1], found {ridge!r}",
+                                "use auto (chosen by leave-one-out on a grid of texels) or e.g. 0.001")
+
+
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
-            rcond: float = DEFAULT_RCOND, budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
-    """Least-squares PTM fit of a single-view stack.
+            rcond: float = DEFAULT_RCOND, ridge="auto", budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
+    """Regularised least-squares PTM fit of a single-view stack (``ridge``: a weight, or ``auto``).
 
     The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
     result, so memory stays near the stack plus its coefficients; other paths go band by band, and so does a
@@ -438,8 +484,9 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
             "view-dependent representation such as sh.fit or lafortune.fit")
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
-    space = ptm_space(stack, variant, space, engine=engine, rcond=rcond)
-    solver = ptm_solver(stack.lights, rcond)
+    check_ridge(ridge)
+    space, ridge = ptm_settings(stack, variant, space, ridge, engine=engine, rcond=rcond)
+    solver = ptm_solver(stack.lights, rcond, ridge)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c
     coeffs = np.empty((h * w, k, N_TERMS), np.float32)
@@ -459,12 +506,10 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     return model, solver
 
 
-def _capture_space(reader, probe: SampleStack, variant: str, rcond: float) -> str:
-    """``auto``'s choice for a capture fitted while reading: the texel grid ``fit_ptm`` would judge on, read in a
-    first pass over the images (one image held at a time), so both paths choose the same space.  This pass
-    decodes every image once more; an explicit ``space`` skips it."""
-    if reader.encoding != "srgb8" or reader.n_light < AUTO_MIN_LIGHTS:
-        return resolve_space(probe, "auto")  # linear capture, or too few lights to hold any out
+def _capture_grid(reader) -> np.ndarray:
+    """The texel grid ``[1, L, h, w, C]`` ``fit_ptm``'s ``auto`` choices judge on, read in a first pass over the
+    images (one image held at a time), so both paths choose alike.  This pass decodes every image once more; an
+    explicit ``space`` and ``ridge`` skip it."""
     h, w, c = reader.shape
     step = auto_grid_step(h, w)
     image = np.empty((1, h, w, c), reader.dtype)
@@ -472,12 +517,27 @@ def _capture_space(reader, probe: SampleStack, variant: str, rcond: float) -> st
     for light in range(reader.n_light):
         reader.read_into([(0, light)], image, threads=1)
         grid[0, light] = image[0, ::step, ::step]
-    return space_from_grid(grid, probe, lambda fit, sp, lights, views: fit_ptm(
-        fit, variant, sp, rcond=rcond)[0].evaluate(lights))
+    return grid
+
+
+def _capture_settings(reader, probe: SampleStack, variant: str, space: str, ridge, rcond: float):
+    """``fit_ptm_capture``'s space and ridge: the given ones, or ``auto``'s choices on :func:`_capture_grid`."""
+    if space != "auto" and ridge != "auto":
+        return space, float(ridge)
+    grid = _capture_grid(reader)
+    if space == "auto":
+        if reader.encoding != "srgb8" or reader.n_light < AUTO_MIN_LIGHTS:
+            space = resolve_space(probe, "auto")  # linear capture, or too few lights to hold any out
+        else:
+            space = space_from_grid(grid, probe, lambda fit, sp, lights, views: fit_ptm(
+                fit, variant, sp, rcond=rcond)[0].evaluate(lights))
+    if ridge == "auto":
+        ridge = ptm_ridge(grid, probe, space, rcond)
+    return space, float(ridge)
 
 
 def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, transfer: str = "auto",
-                    rcond: float = DEFAULT_RCOND, batch_bytes: int = 16 << 20,
+                    rcond: float = DEFAULT_RCOND, ridge="auto", batch_bytes: int = 16 << 20,
                     threads: int = 2) -> tuple[PTMModel, PTMSolve]:
     """The PTM fit of a capture's light file, accumulated as its images decode: the capture is never held whole.
 
@@ -497,9 +557,9 @@ def fit_ptm_capture(light_file, variant: str = "rgb", space: str = "auto", *, tr
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {c}")
     probe = SampleStack(np.zeros((1, reader.n_light, 1, 1, c), reader.dtype), reader.lights, reader.views,
                         reader.channels, reader.encoding)
-    if space == "auto":
-        space = _capture_space(reader, probe, variant, rcond)
-    solver = ptm_solver(reader.lights, rcond)
+    check_ridge(ridge)
+    space, ridge = _capture_settings(reader, probe, variant, space, ridge, rcond)
+    solver = ptm_solver(reader.lights, rcond, ridge)
     lut, byte_scale, convert = _kernel_input(probe, space)
     # Two half-size batches: the images of one decode while the kernel sums the other.
     batch_size = max(1, min(reader.n_light, batch_bytes // 2 // max(1, h * w * c * reader.dtype.itemsize)))

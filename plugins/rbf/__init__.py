@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from btforge import Param, declare_stage, hookimpl
 from btforge.backend import single_threaded_blas
-from btforge.plugins.bases import COLORSPACE, ONE_VIEW, PLANES, YPLANES, fit_rbf, pca_precheck, report_fit
+from btforge.plugins.bases import (COLORSPACE, ONE_VIEW, PLANES, SPACE_PARAM, YPLANES, fit_rbf, pca_precheck,
+                                   report_fit)
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -25,19 +26,21 @@ RBF_COEFFICIENTS = Param("coefficients", "choice", "lsq", "projection: each texe
 @declare_stage(
     "rbf.fit",
     role="fit",
+    version="2",
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
-    params=[PLANES, COLORSPACE, YPLANES, RBF_SIGMA, TABLE, RBF_COEFFICIENTS],
+    params=[PLANES, COLORSPACE, YPLANES, RBF_SIGMA, TABLE, RBF_COEFFICIENTS, SPACE_PARAM],
     expects={"stack": ONE_VIEW},
     precheck=pca_precheck,
 )
-def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficients):
+def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficients, space):
     """PCA-compressed light responses with Gaussian (RBF) interpolation over the light set: relight's default
     basis (``-b rbf``; ``colorspace: ycc`` is ``-b yrbf``).
 
-    The leading principal components of the texels' responses over all lights (display values, up to 65536
-    texels sampled) are the planes.  The table of components over the capture's lights is stored in the web
+    The leading principal components of the texels' responses over all lights (display values, or with
+    ``space: linear`` linear radiance; ``auto`` picks by held-out lights; up to 65536 texels sampled) are the
+    planes.  The table of components over the capture's lights is stored in the web
     layout and interpolated at any light with relight's normalised weights ``exp(-|l - l_i|^2 / sigma^2)``.
     By default (``table: interpolating``) the table is solved so that this interpolation passes through the
     components at the lights, and ``sigma`` is chosen among multiples of the lights' spacing by held-out
@@ -52,11 +55,12 @@ def rbf_fit(ctx, stack, *, planes, colorspace, yplanes, sigma, table, coefficien
 
     Notes
     -----
-    ``sigma`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    ``sigma`` and ``space`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
     """
     with single_threaded_blas():  # small dense algebra: threads only contend
-        model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table)
+        model, stats = fit_rbf(stack, planes, colorspace, yplanes, sigma, coefficients, table, space=space)
     ctx.note("sigma", round(stats["sigma"], 4))
+    ctx.note("space", stats["space"])
     return report_fit(ctx, model, stats)
 
 

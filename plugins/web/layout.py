@@ -88,7 +88,7 @@ def _model_planes(model) -> tuple[dict, np.ndarray]:
         info, linear = {"type": "hsh", "colorspace": "rgb"}, model.space == "linear"
     elif hasattr(model, "web_layout"):  # a plugin's model that lays itself out (hsh, rbf, bilinear fits)
         info, planes = model.web_layout()
-        linear = False
+        linear = getattr(model, "space", "srgb") == "linear"
     else:
         raise BtforgeInputError("web.export 'model'", f"expected a PTM, SH, HSH or light-table model, found "
                                 f"{kind}", "fit ptm.fit, sh.fit (light_order 3), hsh.fit, rbf.fit or bilinear.fit")
