@@ -10,6 +10,8 @@ and tile use of a tiling).  The renderer dresses meshes with a ``TileSet`` direc
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
@@ -41,7 +43,9 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     h = tile // 4 if edge == 0 else edge
     synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine, **options)
     from .optimise import optimise_tiles   # texture optimisation of the interiors, borders held
+    start = time.perf_counter()
     synthesis.tile_coords = optimise_tiles(full, synthesis.tile_coords, seed=seed, **(optimise or {}))
+    synthesis.timings["refine"] = time.perf_counter() - start
     measured = seams.tile_set_seams(synthesis.tile_coords, synthesis.tile_colors, full, h)
     reference = seams.exemplar_reference(full)
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
