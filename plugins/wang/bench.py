@@ -45,6 +45,9 @@ def bench_wang(args: list[str]) -> int:
                         "procedural material")
     parser.add_argument("--repeat", type=int, default=1, help="runs (median reported), default 1")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--usage", type=float, default=None, help="the usage term's weight (default: wang.tiles')")
+    parser.add_argument("--refine", type=int, default=None, help="texture-optimisation rounds of the interiors "
+                        "(default: wang.tiles')")
     parser.add_argument("--pattern", default="bumps", choices=("bumps", "stones", "plaster", "fibres"),
                         help="the procedural material (without --capture), default bumps; made with seed 3")
     parser.add_argument("--score", action="store_true", help="also score a 4 x 4 tiling (seed 0) with synth.score: "
@@ -56,11 +59,14 @@ def bench_wang(args: list[str]) -> int:
     exemplar = (capture_exemplar(opts.capture, opts.exemplar) if opts.capture
                 else procedural_exemplar(opts.exemplar, seed=1 if opts.pattern == "bumps" else 3, pattern=opts.pattern))
     prepare = time.perf_counter() - start
+    options = {} if opts.usage is None else {"usage_weight": opts.usage}
+    if opts.refine is not None:
+        options["optimise"] = {"iterations": opts.refine}
     runs = []
     for r in range(opts.repeat):
         begin = time.perf_counter()
         tiles, synthesis, ratios = build_tile_set(exemplar, tile=opts.tile, edge=opts.edge, colors=opts.colors,
-                                                  seed=opts.seed + r)
+                                                  seed=opts.seed + r, **options)
         runs.append((time.perf_counter() - begin, tiles, synthesis, ratios))
     runs.sort(key=lambda run: run[0])
     total, tiles, synthesis, ratios = runs[len(runs) // 2]
