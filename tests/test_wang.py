@@ -311,7 +311,7 @@ def test_graph_runs_write_read_sheet_and_info(tmp_path):
     result = btforge.run(tmp_path / "g.yaml", out_dir=tmp_path, cache_dir=tmp_path / "cache")
     assert result["texture"]["output"].samples.shape[2:4] == (48, 80)
     notes = next(r for r in result.report if r.node == "tiles").notes
-    assert set(notes["seconds"]) == {"corners", "edges", "frames", "interiors"}
+    assert set(notes["seconds"]) == {"corners", "edges", "frames", "interiors", "refine"}
     back = read_tile_set(tmp_path / "set.wang")
     assert back.n_tiles == 16 and back.tile == 16 and notes["btfels"]["btfels"] == len(back.table)
     from PIL import Image

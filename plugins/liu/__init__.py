@@ -45,10 +45,14 @@ def _block_sizes(block_sizes):
         Param("seed", "int", 0, "random seed (tie-breaks of the Harris order)"),
         Param("feather", "int", 2, "texels on each side of a block boundary blended with the neighbouring block's "
               "continuation, where it agrees with the template (0: hard block edges)", low=0, high=8),
+        Param("relax", "int", 4, "sweeps of seam relaxation before feathering: each pixel may take the "
+              "continuation of a neighbouring block where that lowers the colour jump across the block boundary, "
+              "so boundaries move to where the blocks agree in colour (0: off)", low=0, high=64),
     ],
     precheck=_grid_precheck,
+    version="2",
 )
-def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_sizes, seed, feather):
+def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_sizes, seed, feather, relax):
     """Synthesize a BTF of a height field on a grid of views x lights from real reference images.
 
     Liu, Yu & Shum (2001), sec. 6.  For every target setting: a template (grey shading of the height field with
@@ -56,7 +60,8 @@ def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_s
     ``nearest`` reference images by eq. 7 (or eq. 6) are rotated about the normal (and mirrored) to the target's
     light azimuth; each is block-copied under the template (histogram-matched template, Harris order, the best
     of ``block_sizes`` by normalised SSD, non-overlapping blocks, then holes filled with 3 x 3 blocks); block
-    boundaries are blended over ``feather`` texels with the neighbouring block's continuation in the reference,
+    boundaries are first moved texel by texel to where the blocks agree in colour (``relax`` sweeps), then
+    blended over ``feather`` texels with the neighbouring block's continuation in the reference,
     as far as it agrees with the template, so no square block edges show; the copies are blended with eq. 8's
     weights.  References need not be registered to each other or to the height field.
     Images go one at a time into the output, so memory beyond the output stays flat.
@@ -73,7 +78,7 @@ def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_s
     views, lights = parse_grid(grid, ctx.paths)
     block_sizes = _block_sizes(block_sizes)
     stack, templates, stats = synthesize(height, references, views, lights, isotropic=isotropic, count=nearest,
-                                         block_sizes=block_sizes, seed=seed, feather=feather)
+                                         block_sizes=block_sizes, seed=seed, feather=feather, relax=relax)
     ctx.note("settings", int(len(views) * len(lights)))
     ctx.note("seconds", {k: round(v, 3) for k, v in stats["seconds"].items()})
     ctx.note("hole_fraction", round(stats["hole_pixels"] / max(stack.size // stack.shape[-1] * nearest, 1), 4))

@@ -43,6 +43,7 @@ HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
 GUIDE_SPREAD = 0.5     # feathering follows the template within this share of its spread (feather_seams)
 FEATHER = 2            # texels on each side of a block boundary blended with the other block's continuation
+RELAX = 4              # sweeps of seam relaxation over the block copy's source map (relax_block_seams)
 
 
 def warp(image: np.ndarray, rotation: float, mirrored: bool, out_shape: tuple[int, int]):
@@ -319,7 +320,7 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
                hole_size: int = 3, seed: int = 0, engine: str = "fast", threads: int = 1,
-               feather: int = FEATHER) -> BlockCopy:
+               feather: int = FEATHER, relax: int | None = None) -> BlockCopy:
     """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module;
     the greedy pass is :func:`place_blocks`); the block indexes are built on up to ``threads`` threads."""
     rng = np.random.default_rng(seed)
@@ -369,6 +370,10 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         covered[pixels[:, 0], pixels[:, 1]] = True
         queries += len(pixels)
     mean_ssd = float(placed.costs.mean()) if len(placed.costs) else 0.0
+    relax = RELAX if relax is None else relax
+    if relax > 0:
+        source = relax_block_seams(source, reference, valid, relax)
+        out = reference[source[..., 0], source[..., 1]].astype(np.float32)
     if feather > 0:
         out = feather_seams(source, reference, valid, feather, guide)
     return BlockCopy(out, source, len(placed.pixels), hole_pixels, mean_ssd, queries, placed.rounds)
@@ -382,6 +387,19 @@ def _paste(out, source, covered, reference, pixels, centres, size):
     out[rows, cols] = reference[src_rows, src_cols]
     source[rows, cols, 0], source[rows, cols, 1] = src_rows, src_cols
     covered[rows, cols] = True
+
+
+def relax_block_seams(source: np.ndarray, reference: np.ndarray, valid: np.ndarray, sweeps: int) -> np.ndarray:
+    """``source [H, W, 2]`` after ``sweeps`` of the Wang tiles' texel-level seam relaxation
+    (:func:`btforge.plugins.wang.relax.relax_seams`) in the reference's colours: each pixel may keep its reference
+    texel or take the continuation of a neighbouring block, whichever shows the least colour jump against its
+    neighbours, so block boundaries move to where the blocks agree in colour (which the grey template matching
+    cannot see) and one-pixel islands vanish.  Continuations onto invalid reference pixels (outside the warped
+    image) cost so much that they are never taken."""
+    from btforge.plugins.wang.relax import relax_seams
+    colours = reference.astype(np.float32).copy()
+    colours[~valid] = 1e6
+    return relax_seams(source, colours, np.ones(source.shape[:2], bool), sweeps).astype(source.dtype)
 
 
 NEIGHBOUR_STEPS = ((0, 1), (0, -1), (1, 0), (-1, 0))

@@ -106,21 +106,55 @@ def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.n
     return float(seam_jumps.mean() / base) if seam_jumps.size and base > 0 else 0.0
 
 
-def block_copy_seams(feather: int, size: int = 112, seed: int = 1) -> list[float]:
+def block_copy_seams(feather: int, size: int = 112, seed: int = 1, relax: int | None = None) -> list[float]:
     """:func:`block_seam_visibility` of single block copies (one reference each) of the shadow fixture at four
-    target lights between the references' azimuths."""
-    from . import blockcopy, settings, synthesis, template
+    target lights between the references' azimuths (``relax``: the block copy's seam relaxation sweeps, None:
+    its default)."""
     refs, field = shadow_fixture(size, (45, 65), seed)
+    return field_block_seams(refs, field, feather, relax)
+
+
+SEAM_TARGETS = ((65, 30), (45, 100), (70, 200), (30, 300))   # (tilt, azimuth) of the block-seam measurements
+
+
+def field_block_seams(refs, field, feather: int, relax: int | None = None) -> list[float]:
+    """:func:`block_seam_visibility` of single block copies from ``refs`` under ``field``'s templates at the
+    :data:`SEAM_TARGETS` lights, view straight down."""
+    from . import blockcopy, settings, synthesis, template
     views, lights, pairs = synthesis.reference_table(refs)
     view = np.float32([[0, 0, 1]])
     out = []
-    for k, (tilt, azimuth) in enumerate(((65, 30), (45, 100), (70, 200), (30, 300))):
+    for k, (tilt, azimuth) in enumerate(SEAM_TARGETS):
         light = np.float32([settings.direction(tilt, azimuth)])
         images, _ = template.render(field.heights, synthesis.grey_albedo(field), field.normals, view, light)
         choice = synthesis.choose_references(view[0], light[0], views, lights, 1, True)
         v, l = pairs[choice.indices[0]]
         warped, valid = blockcopy.warp(refs.image(v, l), float(choice.rotations[0]), bool(choice.mirrored[0]),
                                        images[0].shape)
-        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather)
+        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather, relax=relax)
         out.append(block_seam_visibility(copy.image, copy.source, warped, valid))
     return out
+
+
+def exemplar_fixture(kind: str, size: int = 128):
+    """``(references, field)`` for the block-seam measurements: a 96 x 96 exemplar (``bumps`` or a kind of
+    :mod:`demo.patterns` rendered at 10 lights, tilts 45 and 65, or a capture's ``.lp`` file, whose 96 x 96 crop at
+    ``origin`` is given as ``"path@row,col"``, with its height from ``height.from_shading``) and its height field
+    quilted to ``size^2``."""
+    from btforge import SampleStack, stage
+    from btforge.plugins.height.field import HeightField
+    from .settings import direction
+    if "@" in kind:
+        path, origin = kind.split("@")
+        stack = stage("stackio.read")(path=path)["stack"]
+        refs = stage("synth.crop")(input=stack, origin=[int(v) for v in origin.split(",")], size=[96, 96])["output"]
+        exemplar = stage("height.from_shading")(stack=refs)["height"]
+    else:
+        from btforge.plugins.demo.patterns import make_pattern
+        from btforge.plugins.demo.procedural import make_material, render_lights
+        m = make_material(96, 96, seed=1) if kind == "bumps" else make_pattern(kind, 96, 96, seed=1)
+        dirs = np.array([direction(t, a) for t in (45, 65) for a in REFERENCE_AZIMUTHS], np.float32)
+        refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
+        exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
+    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
+    return refs, stage("synth.materialize")(coords=coords, source=exemplar)["output"]

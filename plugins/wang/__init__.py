@@ -10,6 +10,8 @@ and tile use of a tiling).  The renderer dresses meshes with a ``TileSet`` direc
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from btforge import REQUIRED, Param, declare_stage, hookimpl
@@ -30,8 +32,9 @@ def texel_bytes(buffer) -> int:
 
 
 def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed=0, cut="graph",
-                   engine="opencl", **options):
-    """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles``."""
+                   engine="opencl", optimise=None, **options):
+    """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles`` (``optimise``: keywords
+    of :func:`.optimise.optimise_tiles`, its defaults when left out; ``{"iterations": 0}`` turns it off)."""
     from . import seams
     from .features import appearance_features, search_features
     from .synthesis import synthesize_tiles
@@ -39,6 +42,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     feats = search_features(full, SEARCH_DIMS, seed)
     h = tile // 4 if edge == 0 else edge
     synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine, **options)
+    from .optimise import optimise_tiles   # texture optimisation of the interiors, borders held
+    start = time.perf_counter()
+    synthesis.tile_coords = optimise_tiles(full, synthesis.tile_coords, seed=seed, **(optimise or {}))
+    synthesis.timings["refine"] = time.perf_counter() - start
     measured = seams.tile_set_seams(synthesis.tile_coords, synthesis.tile_colors, full, h)
     reference = seams.exemplar_reference(full)
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
@@ -59,20 +66,32 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("colors", "ints", (2, 2), "edge colours [horizontal, vertical]", length=2, low=1, high=8),
         Param("variants", "int", 1, "tiles (interiors) per colour combination", low=1, high=16),
         Param("seed", "int", 0, "random seed"),
-        Param("usage", "float", 0.5, "how strongly placements avoid exemplar texels earlier patches used, so the "
+        Param("usage", "float", 4.0, "how strongly placements avoid exemplar texels earlier patches used, so the "
               "tiles spread over the whole exemplar (0: off; per known texel, in squared median neighbour "
               "distances per earlier use)", low=0.0, high=100.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
+        Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
+              "refinement of synth: 8 x 8 windows matched to the exemplar, kept whole where they match best and cut "
+              "where the appearance agrees), their border rings held so the tiles stay valid (0: off)",
+              low=0, high=20),
+        Param("occurrence", "float", 0.1, "weight of that refinement's occurrence term: exemplar windows already "
+              "used beyond their fair share over the whole tile set cost more (0: plain texture optimisation)",
+              low=0.0, high=100.0),
+        Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
+              low=1, high=256),
     ],
+    version="2",
 )
-def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax):
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax, refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
     filled between their corners by graph-cut patch filling with per-pixel error bookkeeping (Kwatra et al.
     2003), frames from the strips' halves, interiors filled with the frame held.  A usage term (``usage``) spreads the
-    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree.  Distances are Euclidean in the
+    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
+    texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``pin``) hides
+    the cuts the filling left.  Distances are Euclidean in the
     exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
@@ -87,7 +106,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, rela
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed, usage_weight=usage, relax=relax)
+                                              seed=seed, usage_weight=usage, relax=relax,
+                                              optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())

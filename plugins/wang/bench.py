@@ -8,11 +8,14 @@ import time
 import numpy as np
 
 
-def procedural_exemplar(size: int, lights: int = 24, seed: int = 1):
-    """The built-in procedural material (``demo.material``) as a stack of ``size x size``."""
+def procedural_exemplar(size: int, lights: int = 24, seed: int = 1, pattern: str = "bumps"):
+    """A built-in procedural material (``demo.material``'s bumps, or a kind of :mod:`demo.patterns`) as a stack
+    of ``size x size``."""
     from btforge.buffers import SampleStack
+    from btforge.plugins.demo.patterns import make_pattern
     from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
-    material = make_material(size, size, seed=seed)
+    material = (make_material(size, size, seed=seed) if pattern == "bumps"
+                else make_pattern(pattern, size, size, seed=seed))
     directions = hemisphere_lights(lights)
     return SampleStack(render_lights(material, directions)[None], directions, np.array([[0.0, 0.0, 1.0]]))
 
@@ -42,18 +45,28 @@ def bench_wang(args: list[str]) -> int:
                         "procedural material")
     parser.add_argument("--repeat", type=int, default=1, help="runs (median reported), default 1")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--usage", type=float, default=None, help="the usage term's weight (default: wang.tiles')")
+    parser.add_argument("--refine", type=int, default=None, help="texture-optimisation rounds of the interiors "
+                        "(default: wang.tiles')")
+    parser.add_argument("--pattern", default="bumps", choices=("bumps", "stones", "plaster", "fibres"),
+                        help="the procedural material (without --capture), default bumps; made with seed 3")
+    parser.add_argument("--score", action="store_true", help="also score a 4 x 4 tiling (seed 0) with synth.score: "
+                        "seam and straight-seam visibility, evenness, SWD over the shuffled-block baseline")
     opts = parser.parse_args(args)
     if opts.repeat < 1:
         parser.error("--repeat must be at least 1")
     start = time.perf_counter()
     exemplar = (capture_exemplar(opts.capture, opts.exemplar) if opts.capture
-                else procedural_exemplar(opts.exemplar))
+                else procedural_exemplar(opts.exemplar, seed=1 if opts.pattern == "bumps" else 3, pattern=opts.pattern))
     prepare = time.perf_counter() - start
+    options = {} if opts.usage is None else {"usage_weight": opts.usage}
+    if opts.refine is not None:
+        options["optimise"] = {"iterations": opts.refine}
     runs = []
     for r in range(opts.repeat):
         begin = time.perf_counter()
         tiles, synthesis, ratios = build_tile_set(exemplar, tile=opts.tile, edge=opts.edge, colors=opts.colors,
-                                                  seed=opts.seed + r)
+                                                  seed=opts.seed + r, **options)
         runs.append((time.perf_counter() - begin, tiles, synthesis, ratios))
     runs.sort(key=lambda run: run[0])
     total, tiles, synthesis, ratios = runs[len(runs) // 2]
@@ -76,8 +89,21 @@ def bench_wang(args: list[str]) -> int:
     print(f"  seams: worst mean ratio {ratios['worst_mean_ratio']:.3f}, worst p99 ratio "
           f"{ratios['worst_p99_ratio']:.3f}; pixels over threshold {synthesis.unresolved}")
     print("  " + interior_report(tiles, exemplar, synthesis))
+    if opts.score:
+        print("  " + tiling_report(tiles, exemplar))
     print(f"  peak resident memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     return 0
+
+
+def tiling_report(tiles, exemplar) -> str:
+    """The measures of what the eye sees of a 4 x 4 tiling (tiling seed 0), scored by ``synth.score``."""
+    from btforge import stage
+    coords = stage("wang.tiling")(tiles=tiles, rows=4, cols=4, seed=0)["coords"]
+    output = stage("synth.materialize")(coords=coords, source=exemplar)["output"]
+    v = stage("synth.score")(exemplar=exemplar, output=output, coords=coords)["scores"].values
+    return (f"4 x 4 tiling: seam visibility {v['seam_visibility']:.3f}, straight-seam visibility "
+            f"{v['straight_seam_visibility']:.3f}, evenness {v['evenness']:.3f}, SWD / shuffled blocks "
+            f"{v['swd_vs_shuffled_blocks']:.3f}")
 
 
 def interior_report(tiles, exemplar, synthesis) -> str:

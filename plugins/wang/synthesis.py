@@ -52,7 +52,7 @@ SEARCH_STRIDE = 2      # placements are searched on every second texel, then ref
 STRIDE_FROM = 96       # ... in exemplars at least this large
 REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it ...
 REFINE_MIN = 2         # ... and at least this many
-USAGE_WEIGHT = 0.5     # per known texel, a placement over texels already used once costs this many squared median
+USAGE_WEIGHT = 4.0     # per known texel, a placement over texels already used once costs this many squared median
 # neighbour distances more: spreads the tiles over the whole exemplar instead of its few best-matching places
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search

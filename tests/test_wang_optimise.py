@@ -1,0 +1,57 @@
+"""Wang tiles: the texture optimisation of the interiors holds the borders and hides the filling's cuts."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from btforge.plugins.wang.optimise import border_ring, mosaic, unmosaic
+
+
+@pytest.mark.parametrize("t, columns", [(16, 4), (5, 3), (1, 1), (7, 7)])
+def test_mosaic_round_trips(t, columns):
+    tiles = np.random.default_rng(t).integers(0, 100, (t, 6, 6, 2))
+    laid = mosaic(tiles, columns)
+    assert laid.shape == (-(-t // columns) * 6, columns * 6, 2)
+    np.testing.assert_array_equal(unmosaic(laid, t, 6), tiles)
+    np.testing.assert_array_equal(laid[:6, :6], tiles[0])
+
+
+def test_border_ring_marks_the_outer_texels_only():
+    ring = border_ring(8, 2)
+    assert ring.sum() == 64 - 16 and not ring[2:6, 2:6].any() and ring[:2].all() and ring[:, -2:].all()
+    assert border_ring(4, 2).all()   # nothing left inside
+
+
+def _feature_seam_ratio(tile_coords, feats):
+    """Mean feature jump across the tiles' seam edges over the exemplar's mean neighbour jump."""
+    jumps, seams = [], 0
+    for tile in tile_coords:
+        for axis, step in ((0, (1, 0)), (1, (0, 1))):
+            a, b = (tile[:-1], tile[1:]) if axis == 0 else (tile[:, :-1], tile[:, 1:])
+            cut = np.any(b != a + np.array(step), axis=-1)
+            jumps.append(np.linalg.norm(feats[a[cut][:, 0], a[cut][:, 1]] - feats[b[cut][:, 0], b[cut][:, 1]], axis=-1))
+            seams += int(cut.sum())
+    reference = np.mean(np.concatenate([np.linalg.norm(np.diff(feats, axis=0), axis=-1).ravel(),
+                                        np.linalg.norm(np.diff(feats, axis=1), axis=-1).ravel()]))
+    return float(np.concatenate(jumps).mean() / reference), seams
+
+
+def test_optimisation_holds_the_borders_and_hides_the_cuts():
+    from btforge.plugins.wang import build_tile_set
+    from btforge.plugins.wang.bench import procedural_exemplar
+    from btforge.plugins.wang.features import appearance_features
+    from btforge.plugins.wang.tiling import plane_tiling
+    stack = procedural_exemplar(64, lights=16)
+    feats = appearance_features(stack)
+    plain, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 0})
+    refined, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 4, "pin": 2})
+    ring = border_ring(32, 2)
+    np.testing.assert_array_equal(refined.tile_coords[:, ring], plain.tile_coords[:, ring])
+    assert (refined.tile_coords[:, ~ring] != plain.tile_coords[:, ~ring]).any()
+    np.testing.assert_array_equal(refined.tile_colors, plain.tile_colors)
+    ids = plane_tiling(refined, 4, 4, False, 0)
+    for (a, b) in ((ids[:, :-1], ids[:, 1:]),):   # colours still match: east of one is west of the next
+        assert (refined.tile_colors[a][..., 1] == refined.tile_colors[b][..., 3]).all()
+    before, _ = _feature_seam_ratio(plain.tile_coords, feats)
+    after, _ = _feature_seam_ratio(refined.tile_coords, feats)
+    assert np.isfinite(after) and after < before
