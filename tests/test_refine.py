@@ -81,3 +81,25 @@ def test_window_starts_cover_every_texel(wrap):
         for s in starts:
             covered[(s + np.arange(8)) % length if wrap else slice(s, s + 8)] = True
         assert covered.all(), (length, offset)
+
+
+def test_pinned_texels_keep_their_sources_and_blends_and_shape_the_rest(stones):
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
+    partner = np.roll(start.coords, 1, axis=1)
+    blended = CoordMap(start.coords, start.source_size, partner, np.full((OUT, OUT), 0.3, np.float32))
+    pinned = np.zeros((OUT, OUT), bool)
+    pinned[:24] = True
+    pinned[50:60, 10:30] = True
+    refined = refine_map(stones, blended, iterations=2, occurrence=0.3, seed=0, pinned=pinned)
+    assert np.array_equal(refined.coords[pinned], blended.coords[pinned])
+    assert np.array_equal(refined.blend_coords[pinned], partner[pinned])
+    assert np.all(refined.blend_weight[pinned] == np.float32(0.3))
+    assert not np.array_equal(refined.coords[~pinned], blended.coords[~pinned])   # the rest is refined
+    assert refine_map(stones, blended, iterations=2, occurrence=0.3, pinned=np.ones((OUT, OUT), bool)) is blended
+
+
+def test_pinned_mask_of_another_shape_is_refused(stones):
+    from btforge.errors import BtforgeInputError
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
+    with pytest.raises(BtforgeInputError, match="pinned"):
+        refine_map(stones, start, iterations=1, occurrence=0.3, pinned=np.zeros((OUT, OUT + 1), bool))

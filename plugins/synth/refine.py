@@ -91,13 +91,18 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
 
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
-               seed: int = 0) -> CoordMap:
+               seed: int = 0, pinned: np.ndarray | None = None) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
-    result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is."""
+    result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is.
+    ``pinned`` (boolean ``[H, W]``, optional) marks output texels that keep their sources (and blends): they
+    still serve as context for their neighbours' windows, seams and corrections."""
+    pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
+    if pinned is not None and pinned.all():
+        return coords
     index = window_index(features, patch)
     eh, ew = coords.source_size
     src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
@@ -105,11 +110,25 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         partner = coords.blend_coords[..., 0].astype(np.int64) * ew + coords.blend_coords[..., 1]
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
+    keep = (lambda new: new) if pinned is None else (lambda new, start=src: np.where(pinned, start, new))
     for _ in range(iterations):
-        src = optimise_step(index, src, coords.wrap, occurrence, rng)
+        src = keep(optimise_step(index, src, coords.wrap, occurrence, rng, keep))
         for _ in range(CORRECTIONS):
-            src = correction_pass(index.texels, src, coords.wrap, rng)
+            src = keep(correction_pass(index.texels, src, coords.wrap, rng))
     return _with_kept_blends(coords, src)
+
+
+def _pinned_mask(pinned, coords: CoordMap) -> np.ndarray | None:
+    """``pinned`` as a boolean ``[H, W]`` array (None: nothing pinned); a clear error for another shape."""
+    if pinned is None:
+        return None
+    mask = np.asarray(pinned)
+    if mask.shape != (coords.height, coords.width) or mask.dtype.kind not in "bui":
+        from btforge.errors import BtforgeInputError
+        raise BtforgeInputError("refine_map argument 'pinned'",
+                                f"expected a boolean mask of the map's shape {(coords.height, coords.width)}, found "
+                                f"{mask.dtype} {mask.shape}", "pass one flag per output texel (True: keep its source)")
+    return mask.astype(bool)
 
 
 def _with_kept_blends(coords: CoordMap, src: np.ndarray) -> CoordMap:
@@ -137,7 +156,7 @@ def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool)
 
 
 def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: float,
-                  rng: np.random.Generator) -> np.ndarray:
+                  rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
     """One texture-optimisation round: every window matched (with the occurrence term), then the coherent vote."""
     p = index.patch
     stride = max(1, p // 2)
@@ -156,7 +175,7 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
                  + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(len(ys), len(xs), p, p)
     cost = (distance / (p * p)).reshape(len(ys), len(xs))
-    return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng)
+    return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng, keep)
 
 
 def _best_windows(index: WindowIndex, query: np.ndarray, current_origin: np.ndarray, src: np.ndarray,
@@ -198,7 +217,7 @@ def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
 
 
 def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-          src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:
+          src: np.ndarray, wrap: bool, rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
     """Each output texel's new source, among the sources its windows propose and its current one: a labelling
     of least data cost (the proposing window's match error per texel; the current source costs as much as the
     best proposal) plus :data:`SEAM_WEIGHT` x seam cost (per 4-neighbour, 0 where the two sources continue each
@@ -222,12 +241,12 @@ def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.
     votes[:, -1] = src.ravel()
     data[:, -1] = data[:, :-1].min(axis=1)
     start = np.argmin(data + np.float32(1e-6) * rng.random(data.shape, np.float32), axis=1)
-    labels = votes[np.arange(n), start].reshape(h, w)
-    return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap)
+    labels = keep(votes[np.arange(n), start].reshape(h, w))
+    return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap, keep)
 
 
 def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, labels: np.ndarray,
-                    wrap: bool) -> np.ndarray:
+                    wrap: bool, keep=lambda labels: labels) -> np.ndarray:
     """:data:`SWEEPS` checkerboard sweeps: each texel takes the candidate (``votes [h, w, s]``, -1: none) of
     least ``data`` + :data:`SEAM_WEIGHT` x seam cost against its 4-neighbours' current sources (without
     ``wrap``, none across the output's border)."""
@@ -252,7 +271,7 @@ def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, lab
                     seam[(ys + dy < 0) | (ys + dy >= h) | (xs + dx < 0) | (xs + dx >= w)] = 0.0
                 total += SEAM_WEIGHT * seam
             best = votes[ys, xs, np.argmin(total, axis=2)]
-            labels = np.where(colour == part, best, labels)
+            labels = keep(np.where(colour == part, best, labels))
     return labels
 
 
