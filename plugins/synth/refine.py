@@ -6,9 +6,10 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 
 1. *Texture optimisation* (Kwatra et al. 2005) with an *occurrence* term (Kaspar et al. 2015): the output is cut
    into overlapping ``patch x patch`` windows (half a window apart, the grid jittered at each iteration); each
-   window is matched to the exemplar window whose appearance is nearest (a k-d tree on PCA-reduced windows; the
-   window it copies now is always a candidate; candidates ranked by their full distance) plus a penalty for
-   exemplar windows already used more than their fair share.  The vote is a labelling: every output texel takes,
+   window is matched to the exemplar window whose appearance is nearest (an approximate k-d tree search on
+   PCA-reduced windows; the window it copies now is always a candidate; candidates ranked by their full distance)
+   plus a penalty for exemplar windows already used more than their fair share.  A window that copies a whole
+   exemplar window used within its share matches exactly and skips the search.  The vote is a labelling: every output texel takes,
    among the sources its covering windows propose and its current source, the one that keeps the cost low of the
    proposing window's match error plus the seam cost against its neighbours (zero where two sources continue
    each other), by a few sweeps of iterated conditional modes.  Whole well-matched windows win and the cuts
