@@ -103,3 +103,11 @@ def test_pinned_mask_of_another_shape_is_refused(stones):
     start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=4)
     with pytest.raises(BtforgeInputError, match="pinned"):
         refine_map(stones, start, iterations=1, occurrence=0.3, pinned=np.zeros((OUT, OUT + 1), bool))
+
+
+def test_a_verbatim_copy_stays_as_it_is(stones):
+    """Every window of a verbatim copy is a whole exemplar window: without the occurrence term nothing beats it."""
+    rows, cols = np.mgrid[0:32, 0:32]
+    verbatim = CoordMap(np.stack([rows + 3, cols + 5], -1).astype(np.int32), (SIZE, SIZE))
+    refined = refine_map(stones, verbatim, iterations=2, occurrence=0.0, seed=0)
+    assert np.array_equal(refined.coords, verbatim.coords)

@@ -6,9 +6,10 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 
 1. *Texture optimisation* (Kwatra et al. 2005) with an *occurrence* term (Kaspar et al. 2015): the output is cut
    into overlapping ``patch x patch`` windows (half a window apart, the grid jittered at each iteration); each
-   window is matched to the exemplar window whose appearance is nearest (a k-d tree on PCA-reduced windows; the
-   window it copies now is always a candidate; candidates ranked by their full distance) plus a penalty for
-   exemplar windows already used more than their fair share.  The vote is a labelling: every output texel takes,
+   window is matched to the exemplar window whose appearance is nearest (an approximate k-d tree search on
+   PCA-reduced windows; the window it copies now is always a candidate; candidates ranked by their full distance)
+   plus a penalty for exemplar windows already used more than their fair share.  A window that copies a whole
+   exemplar window used within its share matches exactly and skips the search.  The vote is a labelling: every output texel takes,
    among the sources its covering windows propose and its current source, the one that keeps the cost low of the
    proposing window's match error plus the seam cost against its neighbours (zero where two sources continue
    each other), by a few sweeps of iterated conditional modes.  Whole well-matched windows win and the cuts
@@ -39,6 +40,9 @@ TEXEL_DIMS = 6
 WINDOW_DIMS = 12
 #: Nearest exemplar windows found per output window before the occurrence term re-ranks them.
 CANDIDATES = 8
+#: Approximation of the k-d tree search: a found window is at most (1 + SEARCH_EPS) x as far as the true k-th
+#: nearest (the candidates are re-ranked by their full distance afterwards).
+SEARCH_EPS = 2.0
 #: Correction passes after each optimisation step.
 CORRECTIONS = 1
 #: Weight of the seam cost against the window match cost in the vote.
@@ -169,7 +173,7 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
     window_src = src[rows[:, None, :, None], cols[None, :, None, :]]          # [ny, nx, p, p]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(len(ys) * len(xs), -1)
-    origin, distance = _best_windows(index, query, window_src[:, :, 0, 0].ravel(), src, occurrence)
+    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
@@ -178,30 +182,40 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
     return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng, keep)
 
 
-def _best_windows(index: WindowIndex, query: np.ndarray, current_origin: np.ndarray, src: np.ndarray,
+def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray, src: np.ndarray,
                   occurrence: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per query window (``[n, p * p * d]``), the exemplar window origin (flat in the window grid) of least cost
-    and its squared distance: the full squared distance plus ``occurrence`` x (the mean squared distance of two
-    random windows) x how far its texels are used beyond their fair share.  Candidates: the nearest windows in
-    the reduced space and the window copied now."""
-    eh, ew = index.texels.shape[:2]
+    """Per query window (``[n, p * p * d]``, copied from ``window_src [n, p, p]``), the exemplar window origin
+    (flat in the window grid) of least cost and its squared distance: the full squared distance plus
+    ``occurrence`` x (the mean squared distance of two random windows) x how far its texels are used beyond
+    their fair share.  Candidates: the window copied now and, unless that is a whole exemplar window used no more
+    than its share (it matches exactly and nothing can cost less), the approximately nearest windows in the
+    reduced space."""
+    ew = index.texels.shape[1]
     gy, gx = index.grid
     p = index.patch
-    k = min(CANDIDATES, len(index.reduced))
-    _, cand = index.tree.query((query - index.mean) @ index.basis, k=k)
-    cand = cand.reshape(len(query), k)
-    cy, cx = np.divmod(current_origin, ew)
-    inside = (cy < gy) & (cx < gx)
-    current = np.where(inside, np.minimum(cy, gy - 1) * gx + np.minimum(cx, gx - 1), cand[:, 0])
+    cy, cx = np.divmod(window_src[:, 0, 0], ew)
+    current = np.minimum(cy, gy - 1) * gx + np.minimum(cx, gx - 1)
+    offsets = np.arange(p)[:, None] * ew + np.arange(p)
+    whole = (cy < gy) & (cx < gx) & (window_src == window_src[:, :1, :1] + offsets).all(axis=(1, 2))
     overuse = _overuse(src, index)
-    cand = np.concatenate([cand, current[:, None]], axis=1)
-    wy, wx = np.divmod(cand, gx)
+    searched = ~whole | (occurrence * overuse[current] > 0)
+    k = min(CANDIDATES, len(index.reduced))
+    cand = np.repeat(current[:, None], k + 1, axis=1)
+    distance = np.zeros(len(query))
+    if not searched.any():
+        return current, distance
+    rows = np.flatnonzero(searched)
+    _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS)
+    cand[rows, :k] = found.reshape(len(rows), k)
+    wy, wx = np.divmod(cand[rows], gx)
     windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
-    diff = windows.reshape(len(query), cand.shape[1], -1) - query[:, None, :]
+    diff = windows.reshape(len(rows), k + 1, -1) - query[rows, None, :]
     dist = np.einsum("qkd,qkd->qk", diff, diff)
-    best = np.argmin(dist + occurrence * index.spread * overuse[cand], axis=1)
-    pick = np.arange(len(cand))
-    return cand[pick, best], dist[pick, best]
+    best = np.argmin(dist + occurrence * index.spread * overuse[cand[rows]], axis=1)
+    pick = np.arange(len(rows))
+    current[rows] = cand[rows][pick, best]
+    distance[rows] = dist[pick, best]
+    return current, distance
 
 
 def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
@@ -250,29 +264,42 @@ def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, lab
     """:data:`SWEEPS` checkerboard sweeps: each texel takes the candidate (``votes [h, w, s]``, -1: none) of
     least ``data`` + :data:`SEAM_WEIGHT` x seam cost against its 4-neighbours' current sources (without
     ``wrap``, none across the output's border)."""
-    eh, ew, d = texels.shape
     h, w, _ = votes.shape
-    flat = texels.reshape(-1, d)
-    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
-    vr, vc = np.divmod(np.maximum(votes, 0), ew)
-    colour = np.add.outer(np.arange(h), np.arange(w)) % 2
-    ys, xs = np.arange(h)[:, None], np.arange(w)[None, :]
+    flat = texels.reshape(-1, texels.shape[2])
+    colour = (np.add.outer(np.arange(h), np.arange(w)) % 2).ravel()
+    halves = [_half_sweep_terms(texels, votes, data, np.flatnonzero(colour == part), wrap) for part in (0, 1)]
+    labels = labels.ravel().copy()
     for _ in range(SWEEPS):
-        for part in (0, 1):
-            seen = flat[labels]
-            total = data.copy()
-            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                neighbour = np.roll(labels, (-dy, -dx), axis=(0, 1))
-                value = np.roll(seen, (-dy, -dx), axis=(0, 1))
-                continued = pad[(np.clip(vr + dy, -1, eh) + 1) * (ew + 2) + np.clip(vc + dx, -1, ew) + 1]
-                seam = ((continued - value[:, :, None, :]) ** 2).sum(axis=3)
-                seam[votes == (neighbour - dy * ew - dx)[..., None]] = 0.0   # the neighbour continues it
-                if not wrap:
-                    seam[(ys + dy < 0) | (ys + dy >= h) | (xs + dx < 0) | (xs + dx >= w)] = 0.0
+        for active, choices, cost, sides in halves:
+            total = cost.copy()
+            for neighbour, continuation, continued, outside in sides:
+                current = labels[neighbour]
+                seam = ((continued - flat[current][:, None, :]) ** 2).sum(axis=2)
+                seam[(continuation == current[:, None]) | outside[:, None]] = 0.0
                 total += SEAM_WEIGHT * seam
-            best = votes[ys, xs, np.argmin(total, axis=2)]
-            labels = keep(np.where(colour == part, best, labels))
-    return labels
+            labels[active] = choices[np.arange(len(active)), np.argmin(total, axis=1)]
+            labels = keep(labels.reshape(h, w)).ravel()
+    return labels.reshape(h, w)
+
+
+def _half_sweep_terms(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, active: np.ndarray, wrap: bool):
+    """What does not change between the sweeps for the ``active`` texels (flat indices): their candidates and
+    data costs, and per 4-neighbour its flat index, the neighbour source that continues each candidate, the
+    exemplar texel that continues each candidate there, and whether the neighbour lies outside the output."""
+    eh, ew, d = texels.shape
+    h, w, slots = votes.shape
+    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    choices = votes.reshape(-1, slots)[active]
+    vr, vc = np.divmod(np.maximum(choices, 0), ew)
+    ay, ax = np.divmod(active, w)
+    sides = []
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ny, nx = ay + dy, ax + dx
+        outside = np.zeros(len(active), bool) if wrap else (ny < 0) | (ny >= h) | (nx < 0) | (nx >= w)
+        neighbour = (ny % h) * w + nx % w
+        continued = pad[(np.clip(vr + dy, -1, eh) + 1) * (ew + 2) + np.clip(vc + dx, -1, ew) + 1]
+        sides.append((neighbour, choices + dy * ew + dx, continued, outside))
+    return active, choices, data.reshape(-1, slots)[active], sides
 
 
 def correction_pass(texels: np.ndarray, src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:
