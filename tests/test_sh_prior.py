@@ -118,14 +118,16 @@ HARD_TEXELS = {
 
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(lights=st.sampled_from(sorted(HARD_LIGHTS)), texels=st.sampled_from(sorted(HARD_TEXELS)),
-       encoding=st.sampled_from(["srgb8", "linear"]), seed=st.integers(0, 2 ** 16))
-def test_a_prior_stays_finite_bounded_and_correct_on_hard_light_sets(lights, texels, encoding, seed):
+       encoding=st.sampled_from(["srgb8", "linear"]), prior=st.sampled_from(["mean", "auto"]),
+       seed=st.integers(0, 2 ** 16))
+def test_a_prior_stays_finite_bounded_and_correct_on_hard_light_sets(lights, texels, encoding, prior, seed):
     rng = np.random.default_rng(seed)
     dirs = HARD_LIGHTS[lights](rng)
     linear = np.ascontiguousarray(HARD_TEXELS[texels](rng, (1, len(dirs), 3, 4, 3)), np.float32)
     samples = linear_to_srgb8(linear) if encoding == "srgb8" else linear
     stack = SampleStack(samples, dirs, TOP, encoding=encoding)
-    model, stats = quiet(fit_sh, stack, "auto", prior="mean")
+    model, stats = quiet(fit_sh, stack, "auto", prior=prior)
+    assert stats["prior"] == "mean" or (prior == "auto" and stats["prior"] == "none")
     allowed = auto_orders(len(dirs)) if len(dirs) >= 10 else (few_lights_order(len(dirs)),)
     assert model.light_order in allowed and stats["prior_weight"] in PRIOR_WEIGHTS
     relit = model.evaluate(np.vstack([dirs, lights_at([30, 60, 89, -40], [0, 90, 180, 270])]))
@@ -139,3 +141,21 @@ def test_a_prior_stays_finite_bounded_and_correct_on_hard_light_sets(lights, tex
         # every texel alike: the mean is each texel's own fit, which passes through its samples up to rounding
         # and the 8-bit step of the decode
         np.testing.assert_allclose(relit[0, :len(dirs)], stack.linear()[0], atol=2e-3 + 1e-3 * peak)
+
+
+def test_auto_takes_the_prior_where_texels_share_a_response_the_lights_sample_noisily():
+    """Every texel the same order-4 function plus heavy noise on 16 lights: the mean is nearly the truth, and the
+    held-out folds must prefer fits pulled towards it."""
+    lights = dome(16, seed=11)
+    truth = sh_capture(4, lights, 0.0, seed=11, size=1)                       # one texel's function
+    noisy = np.broadcast_to(truth, (1, 16, 8, 8, 3)) + np.random.default_rng(11).normal(0, 0.15, (1, 16, 8, 8, 3))
+    stack = SampleStack(noisy.astype(np.float32), lights, TOP)
+    _, stats = quiet(fit_sh, stack, 4, space="linear", smoothness=0.0, prior="auto")
+    assert stats["prior"] == "mean" and stats["prior_weight"] > 0, stats["held_out_errors"]
+
+
+def test_auto_without_a_test_fits_no_prior():
+    lights = dome(8, seed=2)
+    stack = SampleStack(sh_capture(2, lights, 0.05, seed=2, size=3), lights, TOP)
+    _, stats = quiet(fit_sh, stack, "auto", prior="auto")
+    assert stats["prior"] == "none" and stats["held_out_errors"] == {}

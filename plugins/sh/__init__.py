@@ -142,6 +142,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     ctx.note("space", stats["space"])
     ctx.note("light_order", stats["light_order"])
     ctx.note("smoothness", stats["smoothness"])
+    ctx.note("prior", stats["prior"])
     ctx.note("prior_weight", stats["prior_weight"])
     if stats["held_out_errors"]:
         ctx.note("held_out_mse", {key: float(f"{value:.4g}") for key, value in stats["held_out_errors"].items()})
@@ -149,17 +150,22 @@ the bound also caps the relit value in every direction, below the horizon includ
 
 
 def _settle_choices(stack, params):
-    """``auto`` order, space and smoothness (and ``prior: mean``'s mean and weight) judged once on a grid of texels of the whole stack, so every band of
-    a streamed or distributed fit uses the settings the whole-stack fit would choose."""
+    """``auto`` order, space, smoothness and prior (and the prior's mean and weight) judged once on a grid of
+    texels of the whole stack, so every band of a streamed or distributed fit uses the settings the whole-stack
+    fit would choose."""
     from .model import check_prior, resolve_choices, settle_prior
     prior = params["prior"]
     check_prior(prior)
-    if "auto" not in (params["light_order"], params["space"], params["smoothness"]) and prior != "mean":
+    if "auto" not in (params["light_order"], params["space"], params["smoothness"], prior) and prior != "mean":
         return params
     view_order = 1 if stack.n_view == 1 else params["view_order"]
-    order, space, smoothness, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
-                                                  params["smoothness"], "opencl", params["energy_factor"], prior)
-    if prior == "mean" and view_order == 1:   # (a view-dependent fit refuses a prior, with a clear error)
+    if view_order != 1:   # a view-dependent fit takes no prior (auto: none; mean: refused by the fit)
+        prior = "none" if prior == "auto" else prior
+    order, space, smoothness, chosen, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
+                                                          params["smoothness"], "opencl", params["energy_factor"],
+                                                          prior if view_order == 1 else "none")
+    prior = chosen if isinstance(prior, str) and view_order == 1 else prior
+    if prior == "mean" and view_order == 1:
         prior = settle_prior(stack, order, space, smoothness, "opencl", params["energy_factor"])
     return {**params, "light_order": order, "space": space, "smoothness": smoothness, "prior": prior}
 

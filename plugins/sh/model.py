@@ -75,7 +75,7 @@ AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses
 # captures: the accuracy figures in the docs).
 AUTO_ORDER_TIE = 0.05
 AUTO_SMOOTHNESS = (0.003, 0.01, 0.03)  # the smoothness weights ``smoothness="auto"`` tries (0 is tried too)
-PRIORS = ("none", "mean")
+PRIORS = ("none", "mean", "auto")
 # ``prior="mean"`` tries these multiples of the light design's largest squared singular value as the weight of
 # the pull towards the capture's mean coefficients (0: none)
 PRIOR_WEIGHTS = (0.0, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
@@ -519,41 +519,46 @@ def few_lights_order(n_light: int) -> int:
 
 
 def resolve_choices(stack: SampleStack, light_order, view_order: int, space: str, smoothness, engine: str,
-                    energy_factor: float, prior="none") -> tuple[int, str, float, dict]:
-    """The light order, space and smoothness to fit, and the held-out error of each setting ``auto`` compared
-    (keyed ``"order space smoothness"``).
+                    energy_factor: float, prior="none") -> tuple[int, str, float, str, dict]:
+    """The light order, space, smoothness and prior to fit, and the held-out error of each setting ``auto``
+    compared (keyed ``"order space smoothness"``, with `` mean`` for a candidate fitted with the mean prior).
 
     ``light_order="auto"`` fits every order of :func:`auto_orders` (in each space ``space`` allows) to a grid of
     texels with every light held out once (:func:`btforge.fitspace.best_held_out`) and keeps the pair whose fits
     predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`).
     ``smoothness="auto"`` then tries that order and the higher ones, in that space, at each smoothness of
     :data:`AUTO_SMOOTHNESS`, and keeps the best setting, unsmoothed included.  With fewer than
-    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, and the space
-    ``auto`` takes without a test.  With ``prior="mean"`` every candidate is judged with its own prior, settled
-    on each fold's fitting lights (:func:`settle_prior`), so the order is chosen with the prior.
+    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, no prior, and the
+    space ``auto`` takes without a test.  With ``prior="mean"`` every candidate is judged with its own prior,
+    settled on each fold's fitting lights (:func:`settle_prior`), so the order is chosen with the prior;
+    ``prior="auto"`` judges every candidate both without and with it and keeps the better.
     """
     def predict(fit, candidate, lights, views):
-        order, sp, smooth = candidate
+        order, sp, smooth, pr = candidate
         return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor, space=sp,
-                      smoothness=smooth, prior="mean" if prior == "mean" else "none")[0].evaluate(lights, views)
+                      smoothness=smooth, prior=pr)[0].evaluate(lights, views)
 
     orders = auto_orders(stack.n_light) if light_order == "auto" else (light_order,)
     spaces = (space,) if space != "auto" else ("srgb", "linear") if stack.encoding == "srgb8" else ("linear",)
+    priors = ("none", "mean") if prior == "auto" else ("mean",) if prior == "mean" else ("none",)
     smooth = 0.0 if smoothness == "auto" else float(smoothness)
+    fixed_prior = prior if prior in PRIORS else "none"   # a settled prior, or auto without a test
     if stack.n_light < AUTO_MIN_LIGHTS:
         order = few_lights_order(stack.n_light) if light_order == "auto" else light_order
-        return order, resolve_space(stack, space), smooth, {}
-    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto":
-        return orders[0], spaces[0], smooth, {}
+        return order, resolve_space(stack, space), smooth, fixed_prior, {}
+    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto" and prior != "auto":
+        return orders[0], spaces[0], smooth, fixed_prior, {}
     grid = held_out_grid(stack)
-    _, errors = best_held_out(grid, stack, [(o, sp, smooth) for o in orders for sp in spaces], predict)
-    order, sp = highest_near_best({(o, sp): e for (o, sp, _), e in errors.items()})
-    best = (order, sp, smooth)
+    candidates = [(o, sp, smooth, pr) for o in orders for sp in spaces for pr in priors]
+    _, errors = best_held_out(grid, stack, candidates, predict)
+    order, sp = highest_near_best({(o, sp): min(errors[(o, sp, smooth, pr)] for pr in priors)
+                                   for o, sp, _, _ in candidates})
+    best = min([(order, sp, smooth, pr) for pr in priors], key=errors.get)
     if smoothness == "auto":
-        smoothed = [(o, sp, value) for o in orders if o >= order for value in AUTO_SMOOTHNESS]
+        smoothed = [(o, sp, value, pr) for o in orders if o >= order for value in AUTO_SMOOTHNESS for pr in priors]
         errors.update(best_held_out(grid, stack, smoothed, predict)[1])
         best = min([best] + smoothed, key=errors.get)
-    return (*best, {f"{o} {sp} {value:g}": e for (o, sp, value), e in errors.items()})
+    return (*best, {f"{o} {sp} {value:g}" + " mean" * (pr == "mean"): e for (o, sp, value, pr), e in errors.items()})
 
 
 def settle_prior(stack: SampleStack, light_order: int, space: str, smoothness: float, engine: str,
@@ -648,11 +653,14 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
     check_prior(prior)
     if stack.n_view == 1:
         view_order = 1
+    if prior == "auto" and view_order != 1:
+        prior = "none"      # auto: the prior serves a single view's harmonics only
     if prior != "none" and view_order != 1:
         raise BtforgeInputError("sh.fit 'prior'", f"a prior needs view_order 1, found view_order {view_order}",
                                 "use prior: none for a view-dependent fit")
-    light_order, space, smoothness, held_out_errors = resolve_choices(stack, light_order, view_order, space,
-                                                                      smoothness, engine, energy_factor, prior)
+    light_order, space, smoothness, chosen_prior, held_out_errors = resolve_choices(
+        stack, light_order, view_order, space, smoothness, engine, energy_factor, prior)
+    prior = chosen_prior if isinstance(prior, str) else prior
     if prior == "mean":
         prior = settle_prior(stack, light_order, space, smoothness, engine, energy_factor)
     prior_weight, prior_mean = 0.0, None
@@ -708,6 +716,7 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         "space": space,
         "light_order": light_order,
         "smoothness": smoothness,
+        "prior": "none" if prior_mean is None else "mean",
         "prior_weight": prior_weight,
         "held_out_errors": held_out_errors,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
