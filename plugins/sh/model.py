@@ -54,8 +54,8 @@ from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb,
                              scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, best_held_out, held_out_grid, resolve_space,
-                              ridge_by_leave_one_out)
+from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, LEVERAGE_FLOOR, best_held_out, held_out_grid,
+                              resolve_space, ridge_solve)
 from btforge.spill import finite_range, release, spilled_empty
 
 KERNELS = Path(__file__).with_name("sh.cl")
@@ -583,9 +583,44 @@ def settle_prior(stack: SampleStack, light_order: int, space: str, smoothness: f
     fixed = None
     if smoothness > 0:
         fixed = np.diag(smoothness_rows(light_order, stack.n_light, smoothness)) ** 2 * stack.n_view / FOUR_PI
-    weight, _ = ridge_by_leave_one_out(design, deviation.reshape(len(design), -1), PRIOR_WEIGHTS, RCOND,
-                                       fixed=fixed)
+    errors = prior_leave_one_out_errors(design, deviation, y.reshape(len(design), -1, n_channel).mean(axis=1), fixed)
+    finite = np.where(np.isfinite(errors), errors, np.inf)
+    weight = PRIOR_WEIGHTS[int(np.argmin(finite))] if np.isfinite(finite).any() else PRIOR_WEIGHTS[-1]
     return {"weight": weight, "mean": mean.astype(np.float32).tolist()}
+
+
+def prior_leave_one_out_errors(design: np.ndarray, deviation: np.ndarray, mean_samples: np.ndarray,
+                               fixed: np.ndarray | None) -> np.ndarray:
+    """The leave-one-out mean squared error at each of :data:`PRIOR_WEIGHTS` of fits of ``deviation [S, N, C]``
+    (samples minus the prior mean's values) with the design ``[S, k]``, the prior mean re-estimated without the
+    left-out sample.
+
+    The mean comes from the same samples, so a plain leave-one-out (:func:`btforge.fitspace.leave_one_out_errors`)
+    would let the left-out sample speak through the mean and favour pulling hard towards it.  Leaving sample
+    ``i`` out moves the mean by about ``P_-i ybar_-i - P ybar`` (``ybar [S, C]`` the texels' mean samples, ``P``
+    the unweighted least-squares solve): its values ``delta_i`` shift every texel's deviation, and as the fit is
+    linear the left-out residual becomes ``((I - H) (d - delta_i))_i / (1 - H_ii)``: the plain one minus a term
+    shared by all texels.
+    """
+    n_sample = len(design)
+    full = design @ ridge_solve(design, 0.0, RCOND, fixed=fixed) @ mean_samples              # [S, C]
+    shifts = np.empty((n_sample, n_sample, mean_samples.shape[1]))                           # [i, S, C]
+    for left_out in range(n_sample):
+        kept = np.arange(n_sample) != left_out
+        solve = ridge_solve(design[kept], 0.0, RCOND, fixed=fixed)
+        shifts[left_out] = design @ (solve @ mean_samples[kept]) - full
+    errors = np.empty(len(PRIOR_WEIGHTS))
+    for index, weight in enumerate(PRIOR_WEIGHTS):
+        hat = design @ ridge_solve(design, weight, RCOND, fixed=fixed)
+        slack = 1.0 - np.diag(hat)
+        if np.any(slack < LEVERAGE_FLOOR):
+            errors[index] = math.inf
+            continue
+        residual = deviation - np.einsum("st,tnc->snc", hat, deviation)                    # [S, N, C]
+        # ((I - H) delta_i)_i for every left-out i: row i of (I - H) applied to shift i
+        correction = shifts[np.arange(n_sample), np.arange(n_sample)] - np.einsum("it,itc->ic", hat, shifts)
+        errors[index] = float(np.mean(((residual - correction[:, None, :]) / slack[:, None, None]) ** 2))
+    return errors
 
 
 def check_prior(prior, n_channel: int | None = None, light_order: int | None = None) -> None:
