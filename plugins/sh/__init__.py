@@ -30,9 +30,11 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
               "sphere (relative to the fit to the samples): a number >= 0 (0: none), or auto: the weight (0 or "
               "0.003 to 0.03), with the light order, whose fits predict held-out lights of a sample of texels best"),
         Param("prior", "any", "none", "what each texel's coefficients are pulled towards where its lights determine "
-              "them poorly: none (zero, through the energy bound and smoothness), or mean: the capture's mean "
+              "them poorly: none (zero, through the energy bound and smoothness); mean: the capture's mean "
               "coefficients, with a ridge weight (0 or 1e-4 to 3e-2 of the light design's largest squared singular "
-              "value) chosen by leave-one-out on a sample of texels; settled once on the whole stack (view_order 1)"),
+              "value) chosen by leave-one-out on a sample of texels; auto: mean or none, whichever predicts "
+              "held-out lights of a sample of texels better (judged with the order); settled once on the whole "
+              "stack; view_order 1 only"),
         Param("energy_factor", "float", DEFAULT_ENERGY_FACTOR, "scales the energy bound of the constrained fit; 1 "
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
@@ -95,11 +97,13 @@ the bound also caps the relit value in every direction, below the horizon includ
     ``prior: mean`` fits each texel's deviation from the capture's mean coefficients (those of a grid of up to
     4096 texels fitted without a prior) with a ridge ``w s_max^2 |c - m|^2``; ``w`` (0, or 1e-4 to 3e-2) is
     the weight whose fits predict each left-out sample of the grid best, in closed form (one hat matrix serves
-    every texel).  Texels then lean towards the capture's typical response instead of towards zero between
-    and beyond the lights; the energy bound and smoothness apply to the deviation.  With ``light_order`` or
-    ``smoothness`` auto the held-out folds judge every candidate with its own prior, settled on the fold's
-    lights.  The prior's mean and weight are settled on the whole stack before a streamed or distributed fit
-    splits the texels (the note ``settled`` gives them); ``prior_weight`` is noted.
+    every texel, and the mean is re-estimated without the left-out sample, so that sample cannot vouch for
+    the pull towards a mean it helped make).  Texels then lean towards the capture's typical response instead
+    of towards zero between and beyond the lights; the energy bound and smoothness apply to the deviation.
+    With ``light_order`` or ``smoothness`` auto the held-out folds judge every candidate with its own prior,
+    settled on the fold's lights; ``prior: auto`` judges every candidate with and without it and keeps the
+    better.  The prior's mean and weight are settled on the whole stack before a streamed or distributed fit
+    splits the texels (the note ``settled`` gives them); ``prior`` and ``prior_weight`` are noted.
 
     With ``quantize`` each coefficient is stored as ``uint8`` with a scale and bias per coefficient index,
     covering its range over all texels and channels; coefficients are then within half a step of the fit.
