@@ -13,6 +13,7 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
 @declare_stage(
     "sh.fit",
     role="fit",
+    version="2",
     sweep=[{"light_order": "auto"}] + [{"light_order": n, "smoothness": 0} for n in (2, 3, 4, 5, 6)],
     inputs={"stack": "SampleStack"},
     outputs={"model": "SHModel"},
