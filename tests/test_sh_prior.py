@@ -114,12 +114,16 @@ def test_a_bad_prior_is_named(bad):
         fit_sh(stack, 2, prior=bad)
 
 
-def test_a_view_dependent_fit_refuses_a_prior():
+def test_a_multi_view_stack_refuses_a_prior_and_auto_fits_none():
     lights = dome(12)
     views = dome(5, seed=4)
     samples = np.ones((5, 12, 2, 2, 3), np.float32)
-    with pytest.raises(BtforgeInputError, match="view_order 1"):
-        fit_sh(SampleStack(samples, lights, views), 2, view_order=2, prior="mean")
+    stack = SampleStack(samples, lights, views)
+    for view_order in (1, 2):
+        with pytest.raises(BtforgeInputError, match="single-view"):
+            fit_sh(stack, 2, view_order=view_order, prior="mean")
+    _, stats = quiet(fit_sh, stack, 2, view_order=2, prior="auto")
+    assert stats["prior"] == "none"
 
 
 HARD_TEXELS = {

@@ -35,7 +35,7 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
               "coefficients, with a ridge weight (0 or 1e-4 to 3e-2 of the light design's largest squared singular "
               "value) chosen by leave-one-out on a sample of texels; auto: mean or none, whichever predicts "
               "held-out lights of a sample of texels better (judged with the order); settled once on the whole "
-              "stack; view_order 1 only"),
+              "stack; single-view stacks only"),
         Param("energy_factor", "float", DEFAULT_ENERGY_FACTOR, "scales the energy bound of the constrained fit; 1 "
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
@@ -164,13 +164,14 @@ def _settle_choices(stack, params):
     if "auto" not in (params["light_order"], params["space"], params["smoothness"], prior) and prior != "mean":
         return params
     view_order = 1 if stack.n_view == 1 else params["view_order"]
-    if view_order != 1:   # a view-dependent fit takes no prior (auto: none; mean: refused by the fit)
+    single = stack.n_view == 1   # a multi-view stack takes no prior (auto: none; mean: refused by the fit)
+    if not single:
         prior = "none" if prior == "auto" else prior
     order, space, smoothness, chosen, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
                                                           params["smoothness"], "opencl", params["energy_factor"],
-                                                          prior if view_order == 1 else "none")
-    prior = chosen if isinstance(prior, str) and view_order == 1 else prior
-    if prior == "mean" and view_order == 1:
+                                                          prior if single else "none")
+    prior = chosen if isinstance(prior, str) and single else prior
+    if prior == "mean" and single:
         prior = settle_prior(stack, order, space, smoothness, "opencl", params["energy_factor"])
     return {**params, "light_order": order, "space": space, "smoothness": smoothness, "prior": prior}
 

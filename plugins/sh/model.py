@@ -668,7 +668,7 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
     from the capture's mean coefficients ``m`` with a ridge ``weight s_max^2 |c - m|^2``: texels shrink towards
     the capture's typical response instead of towards zero, where their lights determine them poorly.  The
     energy bound and ``smoothness`` then apply to the deviation (the bound measured on the samples' deviation
-    from the mean's values).  It needs ``view_order`` 1.
+    from the mean's values).  It needs a single-view stack.
     """
     for name, value in (("light_order", light_order), ("view_order", view_order)):
         if name == "light_order" and value == "auto":
@@ -688,11 +688,12 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
     check_prior(prior)
     if stack.n_view == 1:
         view_order = 1
-    if prior == "auto" and view_order != 1:
-        prior = "none"      # auto: the prior serves a single view's harmonics only
-    if prior != "none" and view_order != 1:
-        raise BtforgeInputError("sh.fit 'prior'", f"a prior needs view_order 1, found view_order {view_order}",
-                                "use prior: none for a view-dependent fit")
+    if prior == "auto" and stack.n_view != 1:
+        prior = "none"      # auto: the prior serves single-view stacks only
+    if prior != "none" and stack.n_view != 1:
+        # its leave-one-out would refit without each of views x lights samples (6561 for an 81 x 81 BTF)
+        raise BtforgeInputError("sh.fit 'prior'", f"a prior needs a single-view stack, found {stack.n_view} views",
+                                "use prior: none for a multi-view stack")
     light_order, space, smoothness, chosen_prior, held_out_errors = resolve_choices(
         stack, light_order, view_order, space, smoothness, engine, energy_factor, prior)
     prior = chosen_prior if isinstance(prior, str) else prior
