@@ -106,7 +106,8 @@ def test_opencl_and_numpy_fits_with_a_prior_agree():
 
 
 @pytest.mark.parametrize("bad", ["zero", 3, {"weight": -1.0, "mean": [[0.0]]}, {"weight": 0.0},
-                                 {"weight": 0.0, "mean": [[float("nan")] * 4] * 3}, {"weight": 0.0, "mean": [[0.0]]}])
+                                 {"weight": 0.0, "mean": [[float("nan")] * 4] * 3}, {"weight": 0.0, "mean": [[0.0]]},
+                                 {"weight": 0.0, "mean": [[0.0, 1.0], [0.0]]}, {"weight": 0.0, "mean": "x"}])
 def test_a_bad_prior_is_named(bad):
     lights = dome(12)
     stack = SampleStack(sh_capture(2, lights, 0.0, seed=1, size=2), lights, TOP)

@@ -567,8 +567,9 @@ def settle_prior(stack: SampleStack, light_order: int, space: str, smoothness: f
 
     The mean is that of the grid texels' coefficients fitted without a prior (at ``light_order``, in ``space``,
     with ``smoothness``); the weight, of :data:`PRIOR_WEIGHTS`, is the one whose fits of the grid texels'
-    deviations from the mean predict each left-out sample best, in closed form
-    (:func:`btforge.fitspace.ridge_by_leave_one_out`, with the settled smoothness as a fixed penalty).
+    deviations from the mean predict each left-out sample best, in closed form with the mean re-estimated
+    without that sample (:func:`prior_leave_one_out_errors`, with the settled smoothness as a fixed penalty);
+    ties go to the smaller weight.
     """
     grid = SampleStack(np.ascontiguousarray(held_out_grid(stack)), stack.lights, stack.views, stack.channels,
                        stack.encoding)
@@ -632,8 +633,12 @@ def check_prior(prior, n_channel: int | None = None, light_order: int | None = N
         return
     found = f"found {prior!r}" if not isinstance(prior, dict) else f"found a dict with keys {sorted(prior)}"
     if not isinstance(prior, dict) or set(prior) != {"weight", "mean"}:
-        raise BtforgeInputError("sh.fit 'prior'", f"expected none, mean or a settled {{weight, mean}}, {found}")
-    weight, mean = prior["weight"], np.asarray(prior["mean"], dtype=np.float64)
+        raise BtforgeInputError("sh.fit 'prior'", f"expected none, mean, auto or a settled {{weight, mean}}, {found}")
+    weight = prior["weight"]
+    try:
+        mean = np.asarray(prior["mean"], dtype=np.float64)
+    except (TypeError, ValueError):
+        mean = np.full((0,), np.nan)       # ragged or not numbers: refused below with its shape
     if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < math.inf:
         raise BtforgeInputError("sh.fit 'prior'", f"expected a weight >= 0, found {weight!r}")
     shape = (n_channel, light_order * light_order) if n_channel is not None and light_order is not None else None
