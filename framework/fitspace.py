@@ -107,15 +107,12 @@ RIDGE_WEIGHTS = (0.0, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)  # ``ridge: auto`` tries the
 LEVERAGE_FLOOR = 1e-9  # 1 - h_ii below this: the fit passes through that light whatever it holds (no LOO test)
 
 
-def ridge_solve(design: np.ndarray, ridge: float, rcond: float = 0.0, free: tuple[int, ...] = (),
-                fixed: np.ndarray | None = None) -> np.ndarray:
+def ridge_solve(design: np.ndarray, ridge: float, rcond: float = 0.0, free: tuple[int, ...] = ()) -> np.ndarray:
     """``(A^T A + lambda P)^-1 A^T`` ``[k, L]`` for ``design`` ``A [L, k]``, ``lambda = ridge * s_max^2`` (``s_max``
     the largest singular value of ``A``) and ``P`` the identity but for the columns ``free`` (e.g. a constant
     term, so that a constant texel is fitted exactly whatever the weight).  Singular directions below ``rcond *
     s_max`` get weight 0 (the directions the lights leave undetermined stay at zero, as in a truncated
-    pseudo-inverse); the solve runs in the kept directions.  ``fixed`` ``[k]`` (optional) adds a penalty
-    ``sum_j fixed_j c_j^2`` in absolute units that the weight does not scale (e.g. a smoothness penalty that is
-    already settled)."""
+    pseudo-inverse); the solve runs in the kept directions."""
     a = np.asarray(design, np.float64)
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     if not s.size or s[0] <= 0:
@@ -125,14 +122,11 @@ def ridge_solve(design: np.ndarray, ridge: float, rcond: float = 0.0, free: tupl
     penalty = np.ones(a.shape[1])
     penalty[np.asarray(free, dtype=np.int64)] = 0.0
     system = np.diag(s * s) + ridge * s[0] ** 2 * (v.T * penalty) @ v     # in the kept directions
-    if fixed is not None:
-        system += (v.T * np.asarray(fixed, np.float64)) @ v
     return v @ np.linalg.solve(system, s[:, None] * u.T)
 
 
 def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_WEIGHTS,
-                         rcond: float = 0.0, free: tuple[int, ...] = (),
-                         fixed: np.ndarray | None = None) -> np.ndarray:
+                         rcond: float = 0.0, free: tuple[int, ...] = ()) -> np.ndarray:
     """The leave-one-out mean squared error of the ridge fit at each weight of ``ridges``, over all columns.
 
     ``design A [L, k]`` is shared by every column of ``samples [L, N]`` (the texels of a capture see the same
@@ -140,14 +134,13 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
     sample ``i`` when light ``i`` is left out of the fit is ``r_i / (1 - H_ii)`` for ``r`` the residual of the fit
     to all lights: scoring every weight costs a few matrix products instead of ``L`` fits per texel.  A light the
     fit must pass through (``H_ii`` = 1: fewer lights than coefficients, or an isolated light, without a ridge)
-    leaves no test; its weight scores ``inf``.  ``fixed``: a settled diagonal penalty added at every weight
-    (:func:`ridge_solve`).
+    leaves no test; its weight scores ``inf``.
     """
     a = np.asarray(design, np.float64)
     y = np.asarray(samples, np.float64).reshape(len(a), -1)
     errors = np.empty(len(ridges))
     for index, ridge in enumerate(ridges):
-        solve = ridge_solve(a, ridge, rcond, free, fixed)
+        solve = ridge_solve(a, ridge, rcond, free)
         hat = a @ solve
         slack = 1.0 - np.diag(hat)
         if y.shape[1] == 0:
@@ -162,13 +155,12 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
 
 
 def ridge_by_leave_one_out(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_WEIGHTS,
-                           rcond: float = 0.0, free: tuple[int, ...] = (),
-                           fixed: np.ndarray | None = None) -> tuple[float, dict]:
+                           rcond: float = 0.0, free: tuple[int, ...] = ()) -> tuple[float, dict]:
     """The weight of ``ridges`` whose fits predict each left-out light best (:func:`leave_one_out_errors`), and
     every weight's error; ties go to the smaller weight.  A ridge pulls each texel's coefficients towards zero
     where the lights determine them poorly (grazing, clustered or few lights, noisy or saturated samples), at the
     cost of a small bias where they determine them well; the samples decide how much."""
-    errors = leave_one_out_errors(design, samples, ridges, rcond, free, fixed)
+    errors = leave_one_out_errors(design, samples, ridges, rcond, free)
     finite = np.where(np.isfinite(errors), errors, np.inf)
     best = int(np.argmin(finite)) if np.isfinite(finite).any() else len(ridges) - 1
     return float(ridges[best]), {float(r): float(e) for r, e in zip(ridges, errors)}

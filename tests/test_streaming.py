@@ -165,29 +165,3 @@ def test_a_capture_under_the_streaming_size_is_held_in_memory(capture, tmp_path,
     result = btforge.run(_graph(capture), only=["ptm"], out_dir=tmp_path, use_cache=False)
     nodes = _by_node(result)
     assert nodes["read"].notes["streamed"] is False and nodes["ptm"].placement == {"where": "local"}
-
-
-def test_a_streamed_sh_fit_with_a_prior_equals_the_whole_fit(capture, tmp_path, small_bands):
-    from tolerances import summation_order_tolerance
-
-    from btforge.plugins.sh.model import sh_solver
-    params = {"light_order": 3, "prior": "mean"}
-    streamed = btforge.run(_graph(capture, sh_params=params), only=["sh"], out_dir=tmp_path, use_cache=False)
-    whole = btforge.run(_graph(capture, whole_reader=True, sh_params=params), only=["sh", "split"],
-                        out_dir=tmp_path, use_cache=False)
-    s, w = _by_node(streamed), _by_node(whole)
-    assert s["sh"].placement["bands"] == 5 and w["sh"].placement == {"where": "local"}
-    # the prior's mean and weight are settled once on the whole stack, before the bands
-    settled = s["sh"].notes["settled"]["prior"]
-    assert settled["weight"] == s["sh"].notes["prior_weight"] == w["sh"].notes["prior_weight"]
-    a, b = streamed["sh"]["model"], whole["sh"]["model"]
-    # Bands only regroup texels into launches: each texel's projection U^T y sums its 14 samples (display values,
-    # at most 1; |U| <= 1) in another order, the solve scales each projection by at most 1 / s_min (the smallest
-    # kept singular value), and each coefficient sums k_l = 9 such terms; the prior's offsets are the same array
-    # in both runs.
-    from btforge.plugins.stackio.images import load_stack
-    stack = load_stack(capture)
-    solver = sh_solver(stack.lights, stack.views, 3, 1, 0.0, settled["weight"])
-    kept = solver.s[solver.s > 0]
-    tol = summation_order_tolerance(np.ones(1), terms=14 + 9, amplification=1.0 / float(kept.min()))
-    np.testing.assert_allclose(a.coeffs, b.coeffs, rtol=0, atol=tol)

@@ -13,7 +13,6 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
 @declare_stage(
     "sh.fit",
     role="fit",
-    version="2",
     sweep=[{"light_order": "auto"}] + [{"light_order": n, "smoothness": 0} for n in (2, 3, 4, 5, 6)],
     inputs={"stack": "SampleStack"},
     outputs={"model": "SHModel"},
@@ -30,12 +29,6 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
         Param("smoothness", "any", "auto", "weight of a penalty on the fitted function's squared gradient over the "
               "sphere (relative to the fit to the samples): a number >= 0 (0: none), or auto: the weight (0 or "
               "0.003 to 0.03), with the light order, whose fits predict held-out lights of a sample of texels best"),
-        Param("prior", "any", "none", "what each texel's coefficients are pulled towards where its lights determine "
-              "them poorly: none (zero, through the energy bound and smoothness); mean: the capture's mean "
-              "coefficients, with a ridge weight (0 or 1e-4 to 3e-2 of the light design's largest squared singular "
-              "value) chosen by leave-one-out on a sample of texels; auto: mean or none, whichever predicts "
-              "held-out lights of a sample of texels better (judged with the order); settled once on the whole "
-              "stack; single-view stacks only"),
         Param("energy_factor", "float", DEFAULT_ENERGY_FACTOR, "scales the energy bound of the constrained fit; 1 "
               "lets the function hold as much energy below the horizon as above (the mirror rule), smaller "
               "regularises more, larger less", low=1e-6, high=1e6),
@@ -46,7 +39,7 @@ __all__ = ["SHModel", "fit_sh", "real_sh", "compression_rate"]
     settle=lambda inputs, params: _settle_choices(inputs["stack"], params),
     device=True,
 )
-def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, smoothness, prior, energy_factor):
+def sh_fit(ctx, stack, *, light_order, view_order, quantize, space, smoothness, energy_factor):
     """Fit double spherical harmonics ``f(l, v) = sum c[a, b] Y_a(v) Y_b(l)`` per texel and channel, on OpenCL.
 
     Order N means SH bands 0 .. N-1, i.e. N^2 coefficients: ``k_l = light_order^2`` over the light and
@@ -95,17 +88,6 @@ the bound also caps the relit value in every direction, below the horizon includ
     setting, no smoothing included: a smoothed higher order often predicts held-out lights better than a
     truncated lower one (the accuracy figures in the docs).
 
-    ``prior: mean`` fits each texel's deviation from the capture's mean coefficients (those of a grid of up to
-    4096 texels fitted without a prior) with a ridge ``w s_max^2 |c - m|^2``; ``w`` (0, or 1e-4 to 3e-2) is
-    the weight whose fits predict each left-out sample of the grid best, in closed form (one hat matrix serves
-    every texel, and the mean is re-estimated without the left-out sample, so that sample cannot vouch for
-    the pull towards a mean it helped make).  Texels then lean towards the capture's typical response instead
-    of towards zero between and beyond the lights; the energy bound and smoothness apply to the deviation.
-    With ``light_order`` or ``smoothness`` auto the held-out folds judge every candidate with its own prior,
-    settled on the fold's lights; ``prior: auto`` judges every candidate with and without it and keeps the
-    better.  The prior's mean and weight are settled on the whole stack before a streamed or distributed fit
-    splits the texels (the note ``settled`` gives them); ``prior`` and ``prior_weight`` are noted.
-
     With ``quantize`` each coefficient is stored as ``uint8`` with a scale and bias per coefficient index,
     covering its range over all texels and channels; coefficients are then within half a step of the fit.
 
@@ -126,7 +108,7 @@ the bound also caps the relit value in every direction, below the horizon includ
     if stack.n_view == 1 and view_order != 1:
         ctx.note("view_order_ignored", f"view_order {view_order} ignored: the stack has a single view (k_v = 1)")
     model, stats = fit_sh(stack, light_order, view_order, quantize, energy_factor=energy_factor, space=space,
-                          smoothness=smoothness, prior=prior)
+                          smoothness=smoothness)
     k_l, k_v = model.k_l, model.k_v
     n_samples = stack.n_light * stack.n_view
     if n_samples < k_l * k_v:
@@ -147,33 +129,21 @@ the bound also caps the relit value in every direction, below the horizon includ
     ctx.note("space", stats["space"])
     ctx.note("light_order", stats["light_order"])
     ctx.note("smoothness", stats["smoothness"])
-    ctx.note("prior", stats["prior"])
-    ctx.note("prior_weight", stats["prior_weight"])
     if stats["held_out_errors"]:
         ctx.note("held_out_mse", {key: float(f"{value:.4g}") for key, value in stats["held_out_errors"].items()})
     return {"model": model}
 
 
 def _settle_choices(stack, params):
-    """``auto`` order, space, smoothness and prior (and the prior's mean and weight) judged once on a grid of
-    texels of the whole stack, so every band of a streamed or distributed fit uses the settings the whole-stack
-    fit would choose."""
-    from .model import check_prior, resolve_choices, settle_prior
-    prior = params["prior"]
-    check_prior(prior)
-    if "auto" not in (params["light_order"], params["space"], params["smoothness"], prior) and prior != "mean":
+    """``auto`` order, space and smoothness judged once on a grid of texels of the whole stack, so every band of
+    a streamed or distributed fit uses the settings the whole-stack fit would choose."""
+    from .model import resolve_choices
+    if "auto" not in (params["light_order"], params["space"], params["smoothness"]):
         return params
     view_order = 1 if stack.n_view == 1 else params["view_order"]
-    single = stack.n_view == 1   # a multi-view stack takes no prior (auto: none; mean: refused by the fit)
-    if not single:
-        prior = "none" if prior == "auto" else prior
-    order, space, smoothness, chosen, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
-                                                          params["smoothness"], "opencl", params["energy_factor"],
-                                                          prior if single else "none")
-    prior = chosen if isinstance(prior, str) and single else prior
-    if prior == "mean" and single:
-        prior = settle_prior(stack, order, space, smoothness, "opencl", params["energy_factor"])
-    return {**params, "light_order": order, "space": space, "smoothness": smoothness, "prior": prior}
+    order, space, smoothness, _ = resolve_choices(stack, params["light_order"], view_order, params["space"],
+                                                  params["smoothness"], "opencl", params["energy_factor"])
+    return {**params, "light_order": order, "space": space, "smoothness": smoothness}
 
 
 @hookimpl

@@ -54,8 +54,7 @@ from btforge.numerics import fibonacci_directions, real_sh, texel_chunks
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen, linear_to_srgb,
                              scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, LEVERAGE_FLOOR, best_held_out, held_out_grid,
-                              resolve_space, ridge_solve)
+from btforge.fitspace import AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, best_held_out, held_out_grid, resolve_space
 from btforge.spill import finite_range, release, spilled_empty
 
 KERNELS = Path(__file__).with_name("sh.cl")
@@ -75,10 +74,6 @@ AUTO_ORDERS = (2, 3, 4, 5, 6)  # the light orders ``light_order="auto"`` chooses
 # captures: the accuracy figures in the docs).
 AUTO_ORDER_TIE = 0.05
 AUTO_SMOOTHNESS = (0.003, 0.01, 0.03)  # the smoothness weights ``smoothness="auto"`` tries (0 is tried too)
-PRIORS = ("none", "mean", "auto")
-# ``prior="mean"`` tries these multiples of the light design's largest squared singular value as the weight of
-# the pull towards the capture's mean coefficients (0: none)
-PRIOR_WEIGHTS = (0.0, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2)
 
 
 # ----------------------------------------------------------------------------------------------- basis
@@ -358,17 +353,12 @@ def smoothness_rows(light_order: int, n_light: int, smoothness: float) -> np.nda
 
 
 def sh_solver(lights: np.ndarray, views: np.ndarray, light_order: int, view_order: int,
-              smoothness: float = 0.0, prior_weight: float = 0.0) -> SHSolver:
+              smoothness: float = 0.0) -> SHSolver:
     """SVD of the light and view SH design matrices (the design matrix's Kronecker factors); with
-    ``smoothness`` the light factor carries the rows of :func:`smoothness_rows` below the lights, and with
-    ``prior_weight`` rows ``sqrt(prior_weight) s_max I`` (``s_max`` the light design's largest singular value):
-    a ridge on what is fitted (the deviation from the prior mean, see :func:`fit_sh`)."""
+    ``smoothness`` the light factor carries the rows of :func:`smoothness_rows` below the lights."""
     design = real_sh(light_order, lights)
-    penalty = np.diag(smoothness_rows(light_order, len(lights), smoothness)) ** 2 if smoothness > 0 else 0.0
-    if prior_weight > 0 and design.size:
-        penalty = penalty + prior_weight * np.linalg.norm(design, 2) ** 2
-    if np.any(np.asarray(penalty) > 0):
-        design = np.vstack([design, np.diag(np.sqrt(np.broadcast_to(penalty, (design.shape[1],))))])
+    if smoothness > 0:
+        design = np.vstack([design, smoothness_rows(light_order, len(lights), smoothness)])
     u_l, s_l, v_l = _factor_svd(design)
     u_v, s_v, v_v = _factor_svd(real_sh(view_order, views))
     return SHSolver(u_v, s_v, v_v, u_l, s_l, v_l)
@@ -481,26 +471,17 @@ def _fitted_values(stack: SampleStack, rows: slice, cols: slice, space: str) -> 
 
 
 def _fit_blocks(stack: SampleStack, solver: SHSolver, solve, space: str, energy_factor: float, budget_bytes: int,
-                coeffs: np.ndarray, lam: np.ndarray, prior_mean: np.ndarray | None = None) -> None:
-    """Fit ``coeffs [H, W, C, k_v, k_l]`` and ``lam [H, W, C]`` block of texels by block of texels; with
-    ``prior_mean [C, k_v, k_l]`` the fit is of each texel's deviation from it (:func:`fit_sh`)."""
-    offsets = None
-    if prior_mean is not None:   # the prior mean's values at the samples, [V, L, 1, 1, C]
-        view_order, light_order = math.isqrt(coeffs.shape[3]), math.isqrt(coeffs.shape[4])
-        offsets = np.einsum("va,cab,lb->vlc", real_sh(view_order, stack.views), prior_mean,
-                            real_sh(light_order, stack.lights)).astype(np.float32)[:, :, None, None, :]
+                coeffs: np.ndarray, lam: np.ndarray) -> None:
+    """Fit ``coeffs [H, W, C, k_v, k_l]`` and ``lam [H, W, C]`` block of texels by block of texels."""
     for rows, cols in stack.texel_blocks(max(1, budget_bytes)):
         y = _fitted_values(stack, rows, cols, space)
         block = y.shape[2:4]
-        if offsets is not None:
-            y = y - offsets
         y = np.ascontiguousarray(y).reshape(stack.n_view, stack.n_light, -1)
         proj = solver.project(y)
         root = energy_root(y, energy_factor)
         del y
         part, part_lam = solve(proj, root, solver)
-        part = part.reshape(*block, *coeffs.shape[2:])
-        coeffs[rows, cols] = part if prior_mean is None else part + prior_mean.astype(np.float32)
+        coeffs[rows, cols] = part.reshape(*block, *coeffs.shape[2:])
         lam[rows, cols] = part_lam.reshape(*block, lam.shape[2])
         release(coeffs[rows, cols])
 
@@ -519,132 +500,40 @@ def few_lights_order(n_light: int) -> int:
 
 
 def resolve_choices(stack: SampleStack, light_order, view_order: int, space: str, smoothness, engine: str,
-                    energy_factor: float, prior="none") -> tuple[int, str, float, str, dict]:
-    """The light order, space, smoothness and prior to fit, and the held-out error of each setting ``auto``
-    compared (keyed ``"order space smoothness"``, with `` mean`` for a candidate fitted with the mean prior).
+                    energy_factor: float) -> tuple[int, str, float, dict]:
+    """The light order, space and smoothness to fit, and the held-out error of each setting ``auto`` compared
+    (keyed ``"order space smoothness"``).
 
     ``light_order="auto"`` fits every order of :func:`auto_orders` (in each space ``space`` allows) to a grid of
     texels with every light held out once (:func:`btforge.fitspace.best_held_out`) and keeps the pair whose fits
     predict the held-out lights best (the highest order among near ties, :func:`highest_near_best`).
     ``smoothness="auto"`` then tries that order and the higher ones, in that space, at each smoothness of
     :data:`AUTO_SMOOTHNESS`, and keeps the best setting, unsmoothed included.  With fewer than
-    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, no prior, and the
-    space ``auto`` takes without a test.  With ``prior="mean"`` every candidate is judged with its own prior,
-    settled on each fold's fitting lights (:func:`settle_prior`), so the order is chosen with the prior;
-    ``prior="auto"`` judges every candidate both without and with it and keeps the better.
+    ``AUTO_MIN_LIGHTS`` lights nothing is held out: :func:`few_lights_order`, no smoothing, and the space
+    ``auto`` takes without a test.
     """
     def predict(fit, candidate, lights, views):
-        order, sp, smooth, pr = candidate
+        order, sp, smooth = candidate
         return fit_sh(fit, order, view_order, engine=engine, energy_factor=energy_factor, space=sp,
-                      smoothness=smooth, prior=pr)[0].evaluate(lights, views)
+                      smoothness=smooth)[0].evaluate(lights, views)
 
     orders = auto_orders(stack.n_light) if light_order == "auto" else (light_order,)
     spaces = (space,) if space != "auto" else ("srgb", "linear") if stack.encoding == "srgb8" else ("linear",)
-    priors = ("none", "mean") if prior == "auto" else ("mean",) if prior == "mean" else ("none",)
     smooth = 0.0 if smoothness == "auto" else float(smoothness)
-    fixed_prior = prior if prior in PRIORS else "none"   # a settled prior, or auto without a test
     if stack.n_light < AUTO_MIN_LIGHTS:
         order = few_lights_order(stack.n_light) if light_order == "auto" else light_order
-        return order, resolve_space(stack, space), smooth, fixed_prior, {}
-    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto" and prior != "auto":
-        return orders[0], spaces[0], smooth, fixed_prior, {}
+        return order, resolve_space(stack, space), smooth, {}
+    if len(orders) == 1 and len(spaces) == 1 and smoothness != "auto":
+        return orders[0], spaces[0], smooth, {}
     grid = held_out_grid(stack)
-    candidates = [(o, sp, smooth, pr) for o in orders for sp in spaces for pr in priors]
-    _, errors = best_held_out(grid, stack, candidates, predict)
-    order, sp = highest_near_best({(o, sp): min(errors[(o, sp, smooth, pr)] for pr in priors)
-                                   for o, sp, _, _ in candidates})
-    best = min([(order, sp, smooth, pr) for pr in priors], key=errors.get)
+    _, errors = best_held_out(grid, stack, [(o, sp, smooth) for o in orders for sp in spaces], predict)
+    order, sp = highest_near_best({(o, sp): e for (o, sp, _), e in errors.items()})
+    best = (order, sp, smooth)
     if smoothness == "auto":
-        smoothed = [(o, sp, value, pr) for o in orders if o >= order for value in AUTO_SMOOTHNESS for pr in priors]
+        smoothed = [(o, sp, value) for o in orders if o >= order for value in AUTO_SMOOTHNESS]
         errors.update(best_held_out(grid, stack, smoothed, predict)[1])
         best = min([best] + smoothed, key=errors.get)
-    return (*best, {f"{o} {sp} {value:g}" + " mean" * (pr == "mean"): e for (o, sp, value, pr), e in errors.items()})
-
-
-def settle_prior(stack: SampleStack, light_order: int, space: str, smoothness: float, engine: str,
-                 energy_factor: float) -> dict:
-    """``prior="mean"`` settled on a grid of texels of the whole stack: ``{"weight": w, "mean": [C][k_l]}``.
-
-    The mean is that of the grid texels' coefficients fitted without a prior (at ``light_order``, in ``space``,
-    with ``smoothness``); the weight, of :data:`PRIOR_WEIGHTS`, is the one whose fits of the grid texels'
-    deviations from the mean predict each left-out sample best, in closed form with the mean re-estimated
-    without that sample (:func:`prior_leave_one_out_errors`, with the settled smoothness as a fixed penalty);
-    ties go to the smaller weight.
-    """
-    grid = SampleStack(np.ascontiguousarray(held_out_grid(stack)), stack.lights, stack.views, stack.channels,
-                       stack.encoding)
-    model, _ = fit_sh(grid, light_order, 1, engine=engine, energy_factor=energy_factor, space=space,
-                      smoothness=smoothness)
-    n_channel, k_l = stack.n_channel, light_order * light_order
-    mean = model.coeffs.astype(np.float64).reshape(-1, n_channel, k_l).mean(axis=0)        # [C, k_l]
-    design = np.kron(real_sh(1, stack.views), real_sh(light_order, stack.lights))          # [V L, k_l]
-    y = _fitted_values(grid, slice(None), slice(None), space).astype(np.float64)
-    deviation = y.reshape(len(design), -1, n_channel) - (design @ mean.T)[:, None, :]
-    # smoothness rows pair with every view: in whole-model units their penalty is V / 4 pi times theirs
-    fixed = None
-    if smoothness > 0:
-        fixed = np.diag(smoothness_rows(light_order, stack.n_light, smoothness)) ** 2 * stack.n_view / FOUR_PI
-    errors = prior_leave_one_out_errors(design, deviation, y.reshape(len(design), -1, n_channel).mean(axis=1), fixed)
-    finite = np.where(np.isfinite(errors), errors, np.inf)
-    weight = PRIOR_WEIGHTS[int(np.argmin(finite))] if np.isfinite(finite).any() else PRIOR_WEIGHTS[-1]
-    return {"weight": weight, "mean": mean.astype(np.float32).tolist()}
-
-
-def prior_leave_one_out_errors(design: np.ndarray, deviation: np.ndarray, mean_samples: np.ndarray,
-                               fixed: np.ndarray | None) -> np.ndarray:
-    """The leave-one-out mean squared error at each of :data:`PRIOR_WEIGHTS` of fits of ``deviation [S, N, C]``
-    (samples minus the prior mean's values) with the design ``[S, k]``, the prior mean re-estimated without the
-    left-out sample.
-
-    The mean comes from the same samples, so a plain leave-one-out (:func:`btforge.fitspace.leave_one_out_errors`)
-    would let the left-out sample speak through the mean and favour pulling hard towards it.  Leaving sample
-    ``i`` out moves the mean by about ``P_-i ybar_-i - P ybar`` (``ybar [S, C]`` the texels' mean samples, ``P``
-    the unweighted least-squares solve): its values ``delta_i`` shift every texel's deviation, and as the fit is
-    linear the left-out residual becomes ``((I - H) (d - delta_i))_i / (1 - H_ii)``: the plain one minus a term
-    shared by all texels.
-    """
-    n_sample = len(design)
-    full = design @ ridge_solve(design, 0.0, RCOND, fixed=fixed) @ mean_samples              # [S, C]
-    shifts = np.empty((n_sample, n_sample, mean_samples.shape[1]))                           # [i, S, C]
-    for left_out in range(n_sample):
-        kept = np.arange(n_sample) != left_out
-        solve = ridge_solve(design[kept], 0.0, RCOND, fixed=fixed)
-        shifts[left_out] = design @ (solve @ mean_samples[kept]) - full
-    errors = np.empty(len(PRIOR_WEIGHTS))
-    for index, weight in enumerate(PRIOR_WEIGHTS):
-        hat = design @ ridge_solve(design, weight, RCOND, fixed=fixed)
-        slack = 1.0 - np.diag(hat)
-        if np.any(slack < LEVERAGE_FLOOR):
-            errors[index] = math.inf
-            continue
-        residual = deviation - np.einsum("st,tnc->snc", hat, deviation)                    # [S, N, C]
-        # ((I - H) delta_i)_i for every left-out i: row i of (I - H) applied to shift i
-        correction = shifts[np.arange(n_sample), np.arange(n_sample)] - np.einsum("it,itc->ic", hat, shifts)
-        errors[index] = float(np.mean(((residual - correction[:, None, :]) / slack[:, None, None]) ** 2))
-    return errors
-
-
-def check_prior(prior, n_channel: int | None = None, light_order: int | None = None) -> None:
-    """Refuse a ``prior`` that is neither a name of :data:`PRIORS` nor a settled ``{"weight", "mean"}`` (with a
-    mean of ``n_channel`` rows of ``light_order^2`` finite values, when those are given)."""
-    if isinstance(prior, str):
-        if prior not in PRIORS:
-            raise BtforgeInputError("sh.fit 'prior'", f"expected one of {', '.join(PRIORS)}, found {prior!r}")
-        return
-    found = f"found {prior!r}" if not isinstance(prior, dict) else f"found a dict with keys {sorted(prior)}"
-    if not isinstance(prior, dict) or set(prior) != {"weight", "mean"}:
-        raise BtforgeInputError("sh.fit 'prior'", f"expected none, mean, auto or a settled {{weight, mean}}, {found}")
-    weight = prior["weight"]
-    try:
-        mean = np.asarray(prior["mean"], dtype=np.float64)
-    except (TypeError, ValueError):
-        mean = np.full((0,), np.nan)       # ragged or not numbers: refused below with its shape
-    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 <= weight < math.inf:
-        raise BtforgeInputError("sh.fit 'prior'", f"expected a weight >= 0, found {weight!r}")
-    shape = (n_channel, light_order * light_order) if n_channel is not None and light_order is not None else None
-    if mean.ndim != 2 or (shape and mean.shape != shape) or not np.isfinite(mean).all():
-        raise BtforgeInputError("sh.fit 'prior'", f"expected a finite mean of shape {shape or '[C, k_l]'}, found "
-                                f"shape {mean.shape}", "let sh.fit settle it: prior: mean")
+    return (*best, {f"{o} {sp} {value:g}": e for (o, sp, value), e in errors.items()})
 
 
 def highest_near_best(errors: dict) -> tuple[int, str]:
@@ -659,7 +548,7 @@ def highest_near_best(errors: dict) -> tuple[int, str]:
 def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, quantize: bool = False, *,
            engine: str = "opencl", budget_bytes: int = 64 << 20,
            energy_factor: float = DEFAULT_ENERGY_FACTOR, space: str = "auto",
-           smoothness: float | str = 0.0, prior: str | dict = "none") -> tuple[SHModel, dict]:
+           smoothness: float | str = 0.0) -> tuple[SHModel, dict]:
     """Constrained least-squares double-SH fit of a stack, streamed over bands of rows.
 
     ``view_order`` is forced to 1 for a single-view stack.  Returns the model and a dict of statistics:
@@ -668,12 +557,6 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
     ``n_coefficients``, ``n_samples``, ``rank``, ``underdetermined``, ``view_order``, ``energy_factor``.
     ``energy_factor=inf`` (plain least squares) refuses fewer lights than ``light_order^2`` or fewer views than
     ``view_order^2``: nothing would then choose among the exact fits.
-
-    ``prior="mean"`` (or its settled ``{"weight", "mean"}``, :func:`settle_prior`) fits each texel's deviation
-    from the capture's mean coefficients ``m`` with a ridge ``weight s_max^2 |c - m|^2``: texels shrink towards
-    the capture's typical response instead of towards zero, where their lights determine them poorly.  The
-    energy bound and ``smoothness`` then apply to the deviation (the bound measured on the samples' deviation
-    from the mean's values).  It needs a single-view stack.
     """
     for name, value in (("light_order", light_order), ("view_order", view_order)):
         if name == "light_order" and value == "auto":
@@ -690,25 +573,10 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         raise BtforgeInputError("sh.fit 'engine'", f"expected 'opencl' or 'numpy', found {engine!r}")
     if space not in SPACES + ("auto",):
         raise BtforgeInputError("sh.fit 'space'", f"expected one of auto, linear, srgb, found {space!r}")
-    check_prior(prior)
     if stack.n_view == 1:
         view_order = 1
-    if prior == "auto" and stack.n_view != 1:
-        prior = "none"      # auto: the prior serves single-view stacks only
-    if prior != "none" and stack.n_view != 1:
-        # its leave-one-out would refit without each of views x lights samples (6561 for an 81 x 81 BTF)
-        raise BtforgeInputError("sh.fit 'prior'", f"a prior needs a single-view stack, found {stack.n_view} views",
-                                "use prior: none for a multi-view stack")
-    light_order, space, smoothness, chosen_prior, held_out_errors = resolve_choices(
-        stack, light_order, view_order, space, smoothness, engine, energy_factor, prior)
-    prior = chosen_prior if isinstance(prior, str) else prior
-    if prior == "mean":
-        prior = settle_prior(stack, light_order, space, smoothness, engine, energy_factor)
-    prior_weight, prior_mean = 0.0, None
-    if isinstance(prior, dict):
-        check_prior(prior, stack.n_channel, light_order)
-        prior_weight = float(prior["weight"])
-        prior_mean = np.asarray(prior["mean"], np.float64).reshape(stack.n_channel, 1, light_order ** 2)
+    light_order, space, smoothness, held_out_errors = resolve_choices(stack, light_order, view_order, space,
+                                                                      smoothness, engine, energy_factor)
     k_l, k_v = light_order ** 2, view_order ** 2
     if math.isinf(energy_factor) and (stack.n_light < k_l or stack.n_view < k_v):
         # Without the energy bound nothing picks among the exact fits: the minimum-norm one is arbitrary.
@@ -718,7 +586,7 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
             f"coefficients) for {stack.n_light} light(s) and view_order {view_order} ({k_v}) for {stack.n_view} "
             f"view(s): {stack.n_light * stack.n_view} samples for {k_l * k_v} coefficients",
             "lower the orders, or keep the energy constraint (a finite energy_factor, default 1)")
-    solver = sh_solver(stack.lights, stack.views, light_order, view_order, smoothness, prior_weight)
+    solver = sh_solver(stack.lights, stack.views, light_order, view_order, smoothness)
     solve = cls_coeffs_numpy if engine == "numpy" else cls_coeffs_opencl
     h, w, c = stack.height, stack.width, stack.n_channel
     n_samples = stack.n_view * stack.n_light
@@ -729,7 +597,7 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
     # Working set per texel: the samples plus projections, weights and coefficients.
     scale = n_samples / (n_samples + 2 * solver.rank + k_v * k_l)
     with single_threaded_blas():
-        _fit_blocks(stack, solver, solve, space, energy_factor, int(budget_bytes * scale), coeffs, lam, prior_mean)
+        _fit_blocks(stack, solver, solve, space, energy_factor, int(budget_bytes * scale), coeffs, lam)
     if coeffs.size and not finite_range(coeffs):  # cannot happen; guard anyway
         raise BtforgeInputError("sh.fit", "the solve produced non-finite coefficients",
                                 "lower the orders or use a finite energy_factor")
@@ -757,8 +625,6 @@ def fit_sh(stack: SampleStack, light_order: int | str = 4, view_order: int = 1, 
         "space": space,
         "light_order": light_order,
         "smoothness": smoothness,
-        "prior": "none" if prior_mean is None else "mean",
-        "prior_weight": prior_weight,
         "held_out_errors": held_out_errors,
         "sigma_max_sq": float(solver.s.max() ** 2) if solver.rank else 0.0,
     }
