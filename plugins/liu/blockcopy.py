@@ -320,7 +320,7 @@ def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.n
 
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
                hole_size: int = 3, seed: int = 0, engine: str = "fast", threads: int = 1,
-               feather: int = FEATHER, relax: int | None = None) -> BlockCopy:
+               feather: int = FEATHER, relax: int = RELAX) -> BlockCopy:
     """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module;
     the greedy pass is :func:`place_blocks`); the block indexes are built on up to ``threads`` threads."""
     rng = np.random.default_rng(seed)
@@ -370,12 +370,12 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         covered[pixels[:, 0], pixels[:, 1]] = True
         queries += len(pixels)
     mean_ssd = float(placed.costs.mean()) if len(placed.costs) else 0.0
-    relax = RELAX if relax is None else relax
     if relax > 0:
         source = relax_block_seams(source, reference, valid, relax)
-        out = reference[source[..., 0], source[..., 1]].astype(np.float32)
     if feather > 0:
         out = feather_seams(source, reference, valid, feather, guide)
+    elif relax > 0:   # the relaxed sources' texels (feathering gathers them itself)
+        out = reference[source[..., 0], source[..., 1]].astype(np.float32)
     return BlockCopy(out, source, len(placed.pixels), hole_pixels, mean_ssd, queries, placed.rounds)
 
 

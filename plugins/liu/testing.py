@@ -119,8 +119,9 @@ SEAM_TARGETS = ((65, 30), (45, 100), (70, 200), (30, 300))   # (tilt, azimuth) o
 
 def field_block_seams(refs, field, feather: int, relax: int | None = None) -> list[float]:
     """:func:`block_seam_visibility` of single block copies from ``refs`` under ``field``'s templates at the
-    :data:`SEAM_TARGETS` lights, view straight down."""
+    :data:`SEAM_TARGETS` lights, view straight down (``relax`` None: the block copy's default)."""
     from . import blockcopy, settings, synthesis, template
+    relax = blockcopy.RELAX if relax is None else relax
     views, lights, pairs = synthesis.reference_table(refs)
     view = np.float32([[0, 0, 1]])
     out = []
