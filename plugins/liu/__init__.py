@@ -48,11 +48,15 @@ def _block_sizes(block_sizes):
         Param("relax", "int", 4, "sweeps of seam relaxation before feathering: each pixel may take the "
               "continuation of a neighbouring block where that lowers the colour jump across the block boundary, "
               "so boundaries move to where the blocks agree in colour (0: off)", low=0, high=64),
+        Param("colour", "float", 1.0, "weight of colour agreement in the block matching: among the template's "
+              "nearest blocks and the continuations of the neighbouring blocks, each block is chosen by its "
+              "template SSD plus this times the mean squared colour difference between its continuation and the "
+              "pixels already copied around it (0: the template alone, as in the paper)", low=0.0),
     ],
     precheck=_grid_precheck,
-    version="2",
+    version="3",
 )
-def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_sizes, seed, feather, relax):
+def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_sizes, seed, feather, relax, colour):
     """Synthesize a BTF of a height field on a grid of views x lights from real reference images.
 
     Liu, Yu & Shum (2001), sec. 6.  For every target setting: a template (grey shading of the height field with
@@ -78,7 +82,8 @@ def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_s
     views, lights = parse_grid(grid, ctx.paths)
     block_sizes = _block_sizes(block_sizes)
     stack, templates, stats = synthesize(height, references, views, lights, isotropic=isotropic, count=nearest,
-                                         block_sizes=block_sizes, seed=seed, feather=feather, relax=relax)
+                                         block_sizes=block_sizes, seed=seed, feather=feather, relax=relax,
+                                         colour=colour)
     ctx.note("settings", int(len(views) * len(lights)))
     ctx.note("seconds", {k: round(v, 3) for k, v in stats["seconds"].items()})
     ctx.note("hole_fraction", round(stats["hole_pixels"] / max(stack.size // stack.shape[-1] * nearest, 1), 4))

@@ -44,6 +44,8 @@ WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a r
 GUIDE_SPREAD = 0.5     # feathering follows the template within this share of its spread (feather_seams)
 FEATHER = 2            # texels on each side of a block boundary blended with the other block's continuation
 RELAX = 4              # sweeps of seam relaxation over the block copy's source map (relax_block_seams)
+CANDIDATES = 8         # template matches per block among which the colour agreement with its surroundings chooses
+COLOUR = 1.0           # weight of that colour agreement against the template SSD (0: the template alone)
 
 
 def warp(image: np.ndarray, rotation: float, mirrored: bool, out_shape: tuple[int, int]):
@@ -108,6 +110,7 @@ class _Index:
     mean: np.ndarray
     axes: np.ndarray       # [D, d]
     search: BlockIndex     # over the projected vectors [N, d]
+    inside: np.ndarray     # [h, w] bool: centres whose whole block lies on valid reference pixels
 
 
 def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: str) -> _Index | None:
@@ -133,7 +136,7 @@ def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: st
         _, axes = np.linalg.eigh(sample.T @ sample)
         axes = np.ascontiguousarray(axes[:, ::-1][:, :SEARCH_DIMS], np.float32)
         projected = (vectors - mean) @ axes
-    return _Index(size, centres, vectors, mean, axes, BlockIndex(projected, engine))
+    return _Index(size, centres, vectors, mean, axes, BlockIndex(projected, engine), inside)
 
 
 @functools.lru_cache(maxsize=64)
@@ -167,7 +170,7 @@ class BlockCopy:
     source: np.ndarray     # [H, W, 2] int32: reference pixel each output pixel was copied from
     blocks: int
     hole_pixels: int       # pixels filled by hole filling
-    mean_ssd: float
+    mean_cost: float       # the greedy pass's mean block cost (see _choose)
     queries: int = 0       # block searches made (one per fitting size per block centre, plus one per hole pixel)
     rounds: int = 0
 
@@ -260,17 +263,19 @@ class Placement:
     rounds: int
 
 
-def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
+def place_blocks(rank: np.ndarray, sizes, cost, context: int = 0, on_round=None) -> Placement:
     """The sequential greedy pass over ``rank [H, W]`` (highest first): each pixel that is still uncovered takes,
     of the ``sizes`` (descending) whose block (clipped at the edge) overlaps no earlier block, the one of lowest
     ``cost(size_index, pixels [n, 2]) -> (costs [n], centres [n, 2])``.
 
+    The cost may depend on the earlier blocks within ``context`` cells around the block: ``on_round(size_index
+    [n], pixels [n, 2], centres [n, 2])`` receives each round's new blocks before the next round is costed.
     Computed in rounds: a pixel is processed once every higher-ranked pixel near enough to interact with it is
     done, so one round's pixels are costed in one batch per size, and only pixels still uncovered at their turn
     are costed at all.  The result is that of visiting the pixels one by one in rank order.
     """
     H, W = rank.shape
-    reach = 2 * (max(sizes) // 2) if len(sizes) else 0
+    reach = 2 * (max(sizes) // 2) + context if len(sizes) else 0
     grow = sizes[-1] // 2 if len(sizes) else 0    # a pixel this near a block cannot take even the smallest block
     pending = _Pending(rank, reach, (max(sizes) // 2 if len(sizes) else 0) + grow)
     frame = pending.frame
@@ -302,27 +307,20 @@ def place_blocks(rank: np.ndarray, sizes, cost) -> Placement:
         pending.done(flat)
         picked = np.flatnonzero(placed)
         parts.append((pixels[picked], best[picked], centres[best[picked], picked], costs[best[picked], picked]))
+        if on_round is not None:
+            on_round(best[picked], pixels[picked], centres[best[picked], picked])
     if not parts:
         return Placement(np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int64),
                          np.zeros(0), queries, rounds)
     return Placement(*(np.concatenate(column) for column in zip(*parts)), queries, rounds)
 
 
-def _block_cells(pixels: np.ndarray, size: int, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows, columns and owning block of every cell of the ``size x size`` blocks at ``pixels``, inside ``shape``."""
-    r = size // 2
-    dr, dc = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
-    rows, cols = pixels[:, :1] + dr.ravel()[None], pixels[:, 1:] + dc.ravel()[None]
-    owner = np.broadcast_to(np.arange(len(pixels))[:, None], rows.shape)
-    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
-    return rows[inside], cols[inside], owner[inside]
-
-
 def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, block_sizes=(3, 5, 9),
                hole_size: int = 3, seed: int = 0, engine: str = "fast", threads: int = 1,
-               feather: int = FEATHER, relax: int = RELAX) -> BlockCopy:
+               feather: int = FEATHER, relax: int = RELAX, colour: float = COLOUR) -> BlockCopy:
     """Synthesize an image shaped like ``template [H, W]`` from blocks of ``reference [h, w, C]`` (see module;
-    the greedy pass is :func:`place_blocks`); the block indexes are built on up to ``threads`` threads."""
+    the greedy pass is :func:`place_blocks`, the choice among a block's candidates :func:`_choose`); the block
+    indexes are built on up to ``threads`` threads."""
     rng = np.random.default_rng(seed)
     H, W = template.shape
     grey = reference.mean(axis=2)
@@ -344,49 +342,180 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
                                 f"{hole_size} x {hole_size} block", "give larger reference images")
     pad = max([i.size for i in indexes] + [hole_index.size]) // 2
     padded = np.ascontiguousarray(np.pad(guide, pad, mode="reflect"), np.float32)
+    grey = np.ascontiguousarray(grey, np.float32)
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
     rank = np.empty(H * W, np.int64)
     rank[np.argsort(-response, axis=None, kind="stable")] = np.arange(H * W, 0, -1)
-    rank = rank.reshape(H, W)
+    canvas = _Canvas((H, W), reference, valid, pad + 1)
 
     def cost(s, pixels):
-        centres, ssd = _match(indexes[s], _gather(padded, pad, pixels, indexes[s].size))
-        return ssd, centres
+        queries = _gather(padded, pad, pixels, indexes[s].size)
+        return _choose(indexes[s], queries, grey, canvas, pixels, indexes[s].size, colour)
 
-    placed = place_blocks(rank, [ix.size for ix in indexes], cost)
-    out = np.zeros((H, W, reference.shape[2]), np.float32)
-    source = np.zeros((H, W, 2), np.int32)
-    covered = np.zeros((H, W), bool)
-    for s, ix in enumerate(indexes):
-        chosen = placed.size_index == s
-        _paste(out, source, covered, reference, placed.pixels[chosen], placed.centres[chosen], ix.size)
-    queries = placed.queries
-    hole_pixels = int((~covered).sum())
-    if hole_pixels:
-        pixels = np.argwhere(~covered)
-        centres, _ = _match(hole_index, _gather(padded, pad, pixels, hole_index.size))
-        out[pixels[:, 0], pixels[:, 1]] = reference[centres[:, 0], centres[:, 1]]
-        source[pixels[:, 0], pixels[:, 1]] = centres
-        covered[pixels[:, 0], pixels[:, 1]] = True
-        queries += len(pixels)
-    mean_ssd = float(placed.costs.mean()) if len(placed.costs) else 0.0
+    def paste(size_index, pixels, centres):
+        for s, ix in enumerate(indexes):
+            canvas.paste(pixels[size_index == s], centres[size_index == s], ix.size)
+
+    placed = place_blocks(rank.reshape(H, W), [ix.size for ix in indexes], cost, context=1, on_round=paste)
+    hole_pixels = int((canvas.uncovered()).sum())
+    queries = placed.queries + _fill_holes(canvas, hole_index, padded, pad, grey, colour)
+    source = canvas.core(canvas.source).astype(np.int32)
+    mean_cost = float(placed.costs.mean()) if len(placed.costs) else 0.0
     if relax > 0:
         source = relax_block_seams(source, reference, valid, relax)
     if feather > 0:
         out = feather_seams(source, reference, valid, feather, guide)
-    elif relax > 0:   # the relaxed sources' texels (feathering gathers them itself)
+    else:
         out = reference[source[..., 0], source[..., 1]].astype(np.float32)
-    return BlockCopy(out, source, len(placed.pixels), hole_pixels, mean_ssd, queries, placed.rounds)
+    return BlockCopy(out, source, len(placed.pixels), hole_pixels, mean_cost, queries, placed.rounds)
 
 
-def _paste(out, source, covered, reference, pixels, centres, size):
-    """Copy the ``size x size`` reference blocks at ``centres [n, 2]`` to ``pixels [n, 2]``, clipped at the edge."""
-    rows, cols, owner = _block_cells(pixels, size, covered.shape)
-    src_rows = rows - pixels[owner, 0] + centres[owner, 0]
-    src_cols = cols - pixels[owner, 1] + centres[owner, 1]
-    out[rows, cols] = reference[src_rows, src_cols]
-    source[rows, cols, 0], source[rows, cols, 1] = src_rows, src_cols
-    covered[rows, cols] = True
+@functools.lru_cache(maxsize=64)
+def _ring(size: int) -> np.ndarray:
+    """Offsets ``[n, 2]`` of the cells just outside a ``size x size`` block (Chebyshev distance size // 2 + 1)."""
+    r = size // 2 + 1
+    k = range(-r, r + 1)
+    return _frozen(np.array([(i, j) for i in k for j in k if max(abs(i), abs(j)) == r], np.int64))
+
+
+@functools.lru_cache(maxsize=64)
+def _compass(size: int) -> np.ndarray:
+    """The 8 compass points ``[8, 2]`` of :func:`_ring`: the blocks covering them, continued, are candidates."""
+    r = size // 2 + 1
+    return _frozen(np.array([(i, j) for i in (-r, 0, r) for j in (-r, 0, r) if i or j], np.int64))
+
+
+class _Canvas:
+    """The block copy as it grows: each pixel's reference source row and column (-1: not covered yet) and colour,
+    and the reference with its validity, all in frames with a ``margin`` (uncovered, invalid) on every side, so
+    the cells around any block or candidate are flat indices, with no clipping."""
+
+    def __init__(self, shape, reference: np.ndarray, valid: np.ndarray, margin: int):
+        self.frame, self.ref_frame = _Frame(tuple(shape), margin), _Frame(valid.shape, margin)
+        self.m = m = margin
+        self.source = np.full(self.frame.padded + (2,), -1, np.int64)
+        self.colour = np.zeros(self.frame.padded + (reference.shape[2],), np.float32)
+        ref = np.pad(reference.astype(np.float32), ((m, m), (m, m), (0, 0)))
+        self.reference = ref.reshape(-1, reference.shape[2])
+        self.valid = np.pad(valid, m).reshape(-1)
+        texels = reference[valid] if valid.any() else reference.reshape(-1, reference.shape[2])
+        # a continuation onto no data counts as a random texel: the mean squared difference of two of them
+        self.unseen = float(2 * texels.astype(np.float64).var(0).mean())
+
+    def core(self, array: np.ndarray) -> np.ndarray:
+        m, (H, W) = self.m, self.frame.shape
+        return array[m:m + H, m:m + W]
+
+    def uncovered(self) -> np.ndarray:
+        return self.core(self.source)[..., 0] < 0
+
+    def paste(self, pixels: np.ndarray, centres: np.ndarray, size: int) -> None:
+        """Copy the ``size x size`` reference blocks at ``centres [n, 2]`` to ``pixels [n, 2]``, clipped at the
+        edge (the cells pasted into the margin are cleared again)."""
+        cells = self.frame.block(self.frame.flat(pixels), size).ravel()
+        rows, cols = _square_rows_cols(size)
+        source = self.source.reshape(-1, 2)
+        source[cells, 0] = (centres[:, :1] + rows[None]).ravel()
+        source[cells, 1] = (centres[:, 1:] + cols[None]).ravel()
+        self.colour.reshape(-1, self.colour.shape[2])[cells] = self.reference[
+            self.ref_frame.block(self.ref_frame.flat(centres), size).ravel()]
+        m = self.m
+        self.source[:m], self.source[-m:], self.source[:, :m], self.source[:, -m:] = -1, -1, -1, -1
+
+    def disagreement(self, pixels: np.ndarray, centres: np.ndarray, ring: np.ndarray) -> np.ndarray:
+        """``[n, k]`` mean squared colour difference (per channel) between the covered ``ring [R, 2]`` cells
+        around ``pixels [n, 2]`` and what the reference blocks at ``centres [n, k, 2]`` continue to there (0
+        where no ring cell is covered yet)."""
+        n, k = centres.shape[:2]
+        out = np.zeros((n, k), np.float32)
+        cells = self.frame.flat(pixels)[:, None] + _flat(ring, self.frame.padded[1])[None]        # [n, R]
+        covered = self.source.reshape(-1, 2)[cells, 0] >= 0
+        near = np.flatnonzero(covered.any(1))      # blocks with no covered neighbour yet cost nothing
+        if len(near) == 0:
+            return out
+        cells, covered = cells[near], covered[near]
+        have = self.colour.reshape(-1, self.colour.shape[2])[cells]                             # [m, R, C]
+        ahead = (self.ref_frame.flat(centres[near].reshape(-1, 2)).reshape(len(near), k)[..., None]
+                 + _flat(ring, self.ref_frame.padded[1])[None, None])                            # [m, k, R]
+        diff = np.square(self.reference[ahead] - have[:, None]).mean(-1)
+        diff = np.where(self.valid[ahead], diff, np.float32(self.unseen))
+        out[near] = (diff * covered[:, None]).sum(-1) / covered.sum(1)[:, None]
+        return out
+
+    def continuations(self, pixels: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The reference centres ``[n, p, 2]`` that continue the blocks covering ``pixels + points`` to
+        ``pixels``, and whether each exists ``[n, p]`` (its cell is covered and the centre lies in the
+        reference)."""
+        cells = self.frame.flat(pixels)[:, None] + _flat(points, self.frame.padded[1])[None]
+        src = self.source.reshape(-1, 2)[cells]
+        centres = src - points[None]
+        h, w = self.ref_frame.shape
+        ok = (src[..., 0] >= 0) & (centres >= 0).all(-1) & (centres[..., 0] < h) & (centres[..., 1] < w)
+        return centres, ok
+
+
+@functools.lru_cache(maxsize=64)
+def _square_rows_cols(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets of a ``size x size`` square's cells about its centre, in :func:`_square`'s order."""
+    r = np.arange(-(size // 2), size // 2 + 1)
+    return _frozen(np.repeat(r, size)), _frozen(np.tile(r, size))
+
+
+def _flat(offsets: np.ndarray, stride: int) -> np.ndarray:
+    """Flat offsets of ``offsets [n, 2]`` (rows, columns) in an array of row length ``stride``."""
+    return offsets[:, 0] * stride + offsets[:, 1]
+
+
+def _choose(index: _Index, queries: np.ndarray, grey: np.ndarray, canvas: _Canvas, pixels: np.ndarray,
+            size: int, colour: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(costs [n], centres [n, 2])``: the reference block to paste as ``size x size`` at each of ``pixels``.
+
+    Candidates: the ``CANDIDATES`` blocks nearest to the template's (``queries [n, D]``, the k-d tree), and the
+    continuations of the blocks already covering the 8 compass points just outside the block.  Cost: the
+    normalised template SSD plus ``colour`` times the colour disagreement of the block's continuation with the
+    cells already covered around it (:meth:`_Canvas.disagreement`), so a block is chosen to join its
+    neighbours in colour, which the grey template cannot see."""
+    lossless = index.axes.shape[0] == index.axes.shape[1]
+    centred = queries - index.mean
+    idx, _ = index.search.query(centred if lossless else centred @ index.axes,
+                                CANDIDATES if lossless else max(CANDIDATES, RERANK))
+    found = index.centres[idx]                                          # [n, k, 2]
+    joins, ok = canvas.continuations(pixels, _compass(size))
+    ok[ok] = index.inside[joins[ok][:, 0], joins[ok][:, 1]]
+    joins = np.where(ok[..., None], joins, found[:, :1])                # (unusable ones: the nearest match again)
+    centres = np.concatenate([found, joins], 1)
+    n, k = centres.shape[:2]
+    blocks = _gather(grey, 0, centres.reshape(-1, 2), index.size).reshape(n, k, -1)
+    costs = ((blocks - queries[:, None]) ** 2).mean(-1)
+    if colour > 0:
+        costs = costs + colour * canvas.disagreement(pixels, centres, _ring(size))
+    best = costs.argmin(1)
+    return costs[np.arange(n), best], centres[np.arange(n), best]
+
+
+def _fill_holes(canvas: _Canvas, index: _Index, padded: np.ndarray, pad: int, grey: np.ndarray,
+                colour: float) -> int:
+    """Cover every pixel the greedy pass left uncovered, from the holes' rims inwards, each pixel taking the
+    centre of the block :func:`_choose` picks for the ``index.size`` template block about it (as a 1 x 1
+    block, so its neighbours are what it must join).  A wave is the uncovered pixels next to covered ones, in
+    four interleaved batches (row and column parity) so no two pixels of a batch touch.  Returns the searches
+    made."""
+    searches = 0
+    H, W = canvas.frame.shape
+    parity = np.add.outer(np.arange(H) % 2 * 2, np.arange(W) % 2)
+    while True:
+        uncovered = canvas.uncovered()
+        if not uncovered.any():
+            return searches
+        rim = ndimage.binary_dilation(~uncovered, np.ones((3, 3), bool)) & uncovered
+        wave = rim if rim.any() else uncovered
+        for batch in range(4):
+            pixels = np.argwhere(wave & (parity == batch))
+            if len(pixels):
+                queries = _gather(padded, pad, pixels, index.size)
+                _, centres = _choose(index, queries, grey, canvas, pixels, 1, colour)
+                canvas.paste(pixels, centres, 1)
+                searches += len(pixels)
 
 
 def relax_block_seams(source: np.ndarray, reference: np.ndarray, valid: np.ndarray, sweeps: int) -> np.ndarray:

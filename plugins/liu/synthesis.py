@@ -54,7 +54,7 @@ def reference_table(references):
 
 
 def synthesize_image(template_image, references, choice: Choice, pairs, block_sizes, seed, engine="fast",
-                     feather=blockcopy.FEATHER, relax=blockcopy.RELAX):
+                     feather=blockcopy.FEATHER, relax=blockcopy.RELAX, colour=blockcopy.COLOUR):
     """One target image ``[H, W, C]``: block copy from each chosen reference, blended with eq. 8's weights.
 
     The references' block copies are independent (each has its own seed) and, with the ``fast`` engine, run on
@@ -67,7 +67,7 @@ def synthesize_image(template_image, references, choice: Choice, pairs, block_si
                                        template_image.shape)
         return blockcopy.block_copy(template_image, warped, valid, block_sizes, seed=seed + 7919 * i, engine=engine,
                                     threads=_WORKERS if count == 1 else 1, feather=feather,
-                                    relax=relax)
+                                    relax=relax, colour=colour)
     count = len(choice.indices)
     if count > 1 and _WORKERS > 1 and engine == "fast":   # (the exact engine's OpenCL kernels are not shared)
         with concurrent.futures.ThreadPoolExecutor(min(count, _WORKERS)) as pool:
@@ -88,7 +88,8 @@ def first_equal(directions: np.ndarray, tolerance: float = 1e-6) -> np.ndarray:
 
 
 def synthesize(field, references, views, lights, *, isotropic=True, count=3, block_sizes=(3, 5, 9), seed=0,
-               out=None, templates_out=None, progress=None, feather=blockcopy.FEATHER, relax=blockcopy.RELAX):
+               out=None, templates_out=None, progress=None, feather=blockcopy.FEATHER, relax=blockcopy.RELAX,
+               colour=blockcopy.COLOUR):
     """The BTF ``[V, L, H, W, C]`` and templates ``[V, L, H, W, 1]`` of ``field`` on the grid ``views x lights``.
 
     ``out`` / ``templates_out`` may be given (e.g. memory-mapped arrays) to receive the images.
@@ -121,7 +122,8 @@ def synthesize(field, references, views, lights, *, isotropic=True, count=3, blo
             start = time.perf_counter()
             choice = choose_references(views[v], lights[l], ref_views, ref_lights, count, isotropic)
             out[v, l], stats = synthesize_image(images[l], references, choice, pairs, block_sizes,
-                                                seed + 104729 * (v * L + l), feather=feather, relax=relax)
+                                                seed + 104729 * (v * L + l), feather=feather, relax=relax,
+                                                colour=colour)
             seconds["synthesis"] += time.perf_counter() - start
             blocks += sum(s[0] for s in stats)
             holes += sum(s[1] for s in stats)

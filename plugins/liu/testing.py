@@ -106,22 +106,24 @@ def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.n
     return float(seam_jumps.mean() / base) if seam_jumps.size and base > 0 else 0.0
 
 
-def block_copy_seams(feather: int, size: int = 112, seed: int = 1, relax: int | None = None) -> list[float]:
+def block_copy_seams(feather: int, size: int = 112, seed: int = 1, relax: int | None = None,
+                     colour: float | None = None) -> list[float]:
     """:func:`block_seam_visibility` of single block copies (one reference each) of the shadow fixture at four
-    target lights between the references' azimuths (``relax``: the block copy's seam relaxation sweeps, None:
-    its default)."""
+    target lights between the references' azimuths (``relax``: the block copy's seam relaxation sweeps,
+    ``colour``: its colour-agreement weight; None: their defaults)."""
     refs, field = shadow_fixture(size, (45, 65), seed)
-    return field_block_seams(refs, field, feather, relax)
+    return field_block_seams(refs, field, feather, relax, colour)
 
 
 SEAM_TARGETS = ((65, 30), (45, 100), (70, 200), (30, 300))   # (tilt, azimuth) of the block-seam measurements
 
 
-def field_block_seams(refs, field, feather: int, relax: int | None = None) -> list[float]:
+def field_block_seams(refs, field, feather: int, relax: int | None = None, colour: float | None = None) -> list[float]:
     """:func:`block_seam_visibility` of single block copies from ``refs`` under ``field``'s templates at the
-    :data:`SEAM_TARGETS` lights, view straight down (``relax`` None: the block copy's default)."""
+    :data:`SEAM_TARGETS` lights, view straight down (``relax``, ``colour`` None: the block copy's defaults)."""
     from . import blockcopy, settings, synthesis, template
     relax = blockcopy.RELAX if relax is None else relax
+    colour = blockcopy.COLOUR if colour is None else colour
     views, lights, pairs = synthesis.reference_table(refs)
     view = np.float32([[0, 0, 1]])
     out = []
@@ -132,7 +134,7 @@ def field_block_seams(refs, field, feather: int, relax: int | None = None) -> li
         v, l = pairs[choice.indices[0]]
         warped, valid = blockcopy.warp(refs.image(v, l), float(choice.rotations[0]), bool(choice.mirrored[0]),
                                        images[0].shape)
-        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather, relax=relax)
+        copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather, relax=relax, colour=colour)
         out.append(block_seam_visibility(copy.image, copy.source, warped, valid))
     return out
 
