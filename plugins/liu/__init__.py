@@ -45,7 +45,7 @@ def _block_sizes(block_sizes):
         Param("seed", "int", 0, "random seed (tie-breaks of the Harris order)"),
         Param("feather", "int", 2, "texels on each side of a block boundary blended with the neighbouring block's "
               "continuation, where it agrees with the template (0: hard block edges)", low=0, high=8),
-        Param("relax", "int", 4, "sweeps of seam relaxation before feathering: each pixel may take the "
+        Param("relax", "int", 2, "sweeps of seam relaxation before feathering: each pixel may take the "
               "continuation of a neighbouring block where that lowers the colour jump across the block boundary, "
               "so boundaries move to where the blocks agree in colour (0: off)", low=0, high=64),
         Param("colour", "float", 1.0, "weight of colour agreement in the block matching: among the template's "
@@ -63,8 +63,11 @@ def liu_synthesize(ctx, height, references, *, grid, isotropic, nearest, block_s
     attached and cast shadows, occlusion and foreshortening, in the texture frame) is rendered on OpenCL; the
     ``nearest`` reference images by eq. 7 (or eq. 6) are rotated about the normal (and mirrored) to the target's
     light azimuth; each is block-copied under the template (histogram-matched template, Harris order, the best
-    of ``block_sizes`` by normalised SSD, non-overlapping blocks, then holes filled with 3 x 3 blocks); block
-    boundaries are first moved texel by texel to where the blocks agree in colour (``relax`` sweeps), then
+    of ``block_sizes`` by normalised SSD, non-overlapping blocks, then holes filled with 3 x 3 blocks), each
+    block chosen among the template's nearest blocks and its neighbours' continuations by its template SSD plus
+    ``colour`` times its colour disagreement with the pixels already copied around it (the grey template
+    cannot tell hues apart, so without it neighbouring blocks form colour islands); block boundaries are then
+    moved texel by texel to where the blocks agree in colour (``relax`` sweeps), then
     blended over ``feather`` texels with the neighbouring block's continuation in the reference,
     as far as it agrees with the template, so no square block edges show; the copies are blended with eq. 8's
     weights.  References need not be registered to each other or to the height field.

@@ -7,14 +7,19 @@ resampling about the image centres.  Where the rotated image has no data the val
 
 Block copy.  The template is histogram-matched to the grey reference; its pixels are visited in order of Harris
 corner response; at each uncovered pixel, every block size whose square would not overlap an earlier block is
-matched against the reference (normalised SSD, i.e. SSD per compared pixel) and the best block is copied in
-colour.  That greedy pass runs in rounds (:func:`place_blocks`), each round's pixels searched in one batch per
-size.  Remaining holes are filled with the smallest blocks, which may overlap: each hole pixel is matched
-with the ``hole_size`` block centred on it (overlapping its neighbours) and takes that block's centre, so the
-fill is one batched search and every pixel ends up covered.  Blocks are compared on a sub-sampled grid of at
-most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels; the search (:class:`.search.BlockIndex`) runs on all their
-values when there are at most ``FULL_DIMS``, else on their leading principal components, the ``RERANK``
-nearest then re-ranked by their full sub-sampled SSD.
+matched against the reference and the best block is copied in colour.  Liu et al. match on the grey template
+alone (normalised SSD, i.e. SSD per compared pixel), which cannot see colour: neighbouring blocks of the same
+grey level but different hue make colour islands and visible block edges.  So each block is chosen among
+``CANDIDATES`` nearest blocks by the template and the continuations of the blocks already copied around it, by
+the template SSD plus ``colour`` times the colour disagreement between the candidate's continuation just outside
+the block and the pixels already copied there (:func:`_choose`; ``colour`` 0: the template alone).  The
+template keeps guiding the geometry (shadows, occlusion); the colour term only decides among blocks that fit
+it.  That greedy pass runs in rounds (:func:`place_blocks`), each round's pixels searched in one batch per
+size.  Remaining holes are filled from their rims inwards with the smallest blocks, which may overlap: each hole
+pixel is matched with the ``hole_size`` block centred on it, among candidates chosen the same way, and takes
+that block's centre (:func:`_fill_holes`), so every pixel ends up covered.  Blocks are compared on a sub-sampled
+grid of at most ``BLOCK_SAMPLES`` x ``BLOCK_SAMPLES`` pixels; the search (:class:`.search.BlockIndex`) runs on
+all their values when there are at most ``FULL_DIMS``, else on their leading principal components.
 """
 from __future__ import annotations
 
@@ -33,7 +38,6 @@ ndimage = lazy_module("scipy.ndimage")
 
 BLOCK_SAMPLES = 5      # a block is compared on at most 5 x 5 evenly spaced pixels
 SEARCH_DIMS = 8        # principal components the k-d tree searches for blocks of more than FULL_DIMS values
-RERANK = 8             # candidates re-ranked by the full block distance (when the tree sees fewer dimensions)
 FULL_DIMS = 9          # blocks of at most this many compared values are searched without projection
 PCA_ROWS = 4096        # blocks the principal axes are estimated from
 MAX_POSITIONS = 30000  # reference block positions per size (a coarser position grid beyond)
@@ -43,8 +47,8 @@ HARRIS_K = 0.04
 WARP_ORDER = 0         # nearest-neighbour resampling: every output pixel is a real reference pixel
 GUIDE_SPREAD = 0.5     # feathering follows the template within this share of its spread (feather_seams)
 FEATHER = 2            # texels on each side of a block boundary blended with the other block's continuation
-RELAX = 4              # sweeps of seam relaxation over the block copy's source map (relax_block_seams)
-CANDIDATES = 8         # template matches per block among which the colour agreement with its surroundings chooses
+RELAX = 2              # sweeps of seam relaxation over the block copy's source map (relax_block_seams)
+CANDIDATES = 16        # template matches per block among which the colour agreement with its surroundings chooses
 COLOUR = 1.0           # weight of that colour agreement against the template SSD (0: the template alone)
 
 
@@ -102,11 +106,11 @@ def _frozen(array: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass
 class _Index:
-    """The reference blocks of one size: centres, sub-sampled grey vectors, their PCA projection."""
+    """The reference blocks of one size: centres and the search over their sub-sampled grey vectors' PCA
+    projection."""
 
     size: int
     centres: np.ndarray    # [N, 2] row, col
-    vectors: np.ndarray    # [N, D]
     mean: np.ndarray
     axes: np.ndarray       # [D, d]
     search: BlockIndex     # over the projected vectors [N, d]
@@ -136,7 +140,7 @@ def _block_index(grey: np.ndarray, valid: np.ndarray, size: int, rng, engine: st
         _, axes = np.linalg.eigh(sample.T @ sample)
         axes = np.ascontiguousarray(axes[:, ::-1][:, :SEARCH_DIMS], np.float32)
         projected = (vectors - mean) @ axes
-    return _Index(size, centres, vectors, mean, axes, BlockIndex(projected, engine), inside)
+    return _Index(size, centres, mean, axes, BlockIndex(projected, engine), inside)
 
 
 @functools.lru_cache(maxsize=64)
@@ -151,17 +155,6 @@ def _gather(image: np.ndarray, pad: int, pixels: np.ndarray, size: int) -> np.nd
     padded by ``pad`` on every side."""
     flat = (pixels[:, 0] + pad) * image.shape[1] + pixels[:, 1] + pad
     return image.reshape(-1)[flat[:, None] + _sample_offsets(size, image.shape[1])[None]]
-
-
-def _match(index: _Index, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Best reference centre ``[M, 2]`` and normalised SSD ``[M]`` for template block vectors ``[M, D]``."""
-    lossless = index.axes.shape[0] == index.axes.shape[1]
-    centred = queries - index.mean
-    idx, _ = index.search.query(centred if lossless else centred @ index.axes, 1 if lossless else RERANK)
-    full = ((index.vectors[idx] - queries[:, None]) ** 2).sum(-1)
-    best = full.argmin(1)
-    chosen = idx[np.arange(len(idx)), best]
-    return index.centres[chosen], full[np.arange(len(idx)), best] / queries.shape[1]
 
 
 @dataclasses.dataclass
@@ -477,8 +470,7 @@ def _choose(index: _Index, queries: np.ndarray, grey: np.ndarray, canvas: _Canva
     neighbours in colour, which the grey template cannot see."""
     lossless = index.axes.shape[0] == index.axes.shape[1]
     centred = queries - index.mean
-    idx, _ = index.search.query(centred if lossless else centred @ index.axes,
-                                CANDIDATES if lossless else max(CANDIDATES, RERANK))
+    idx, _ = index.search.query(centred if lossless else centred @ index.axes, CANDIDATES)
     found = index.centres[idx]                                          # [n, k, 2]
     joins, ok = canvas.continuations(pixels, _compass(size))
     ok[ok] = index.inside[joins[ok][:, 0], joins[ok][:, 1]]
