@@ -49,6 +49,7 @@ GUIDE_SPREAD = 0.5     # feathering follows the template within this share of it
 FEATHER = 2            # texels on each side of a block boundary blended with the other block's continuation
 RELAX = 2              # sweeps of seam relaxation over the block copy's source map (relax_block_seams)
 CANDIDATES = 16        # template matches per block among which the colour agreement with its surroundings chooses
+RING = 2               # rings of pixels around a block whose colours its continuation is compared with
 COLOUR = 1.0           # weight of that colour agreement against the template SSD (0: the template alone)
 
 
@@ -339,7 +340,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
     response = harris_response(guide) + rng.uniform(0, 1e-12, (H, W))   # random tie-break
     rank = np.empty(H * W, np.int64)
     rank[np.argsort(-response, axis=None, kind="stable")] = np.arange(H * W, 0, -1)
-    canvas = _Canvas((H, W), reference, valid, pad + 1)
+    canvas = _Canvas((H, W), reference, valid, pad + RING)
 
     def cost(s, pixels):
         queries = _gather(padded, pad, pixels, indexes[s].size)
@@ -349,7 +350,7 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
         for s, ix in enumerate(indexes):
             canvas.paste(pixels[size_index == s], centres[size_index == s], ix.size)
 
-    placed = place_blocks(rank.reshape(H, W), [ix.size for ix in indexes], cost, context=1, on_round=paste)
+    placed = place_blocks(rank.reshape(H, W), [ix.size for ix in indexes], cost, context=RING, on_round=paste)
     hole_pixels = int((canvas.uncovered()).sum())
     queries = placed.queries + _fill_holes(canvas, hole_index, padded, pad, grey, colour)
     source = canvas.core(canvas.source).astype(np.int32)
@@ -364,16 +365,17 @@ def block_copy(template: np.ndarray, reference: np.ndarray, valid: np.ndarray, b
 
 
 @functools.lru_cache(maxsize=64)
-def _ring(size: int) -> np.ndarray:
-    """Offsets ``[n, 2]`` of the cells just outside a ``size x size`` block (Chebyshev distance size // 2 + 1)."""
-    r = size // 2 + 1
-    k = range(-r, r + 1)
-    return _frozen(np.array([(i, j) for i in k for j in k if max(abs(i), abs(j)) == r], np.int64))
+def _ring(size: int, width: int) -> np.ndarray:
+    """Offsets ``[n, 2]`` of the cells of the ``width`` rings just outside a ``size x size`` block."""
+    r = size // 2
+    k = range(-r - width, r + width + 1)
+    return _frozen(np.array([(i, j) for i in k for j in k if max(abs(i), abs(j)) > r], np.int64))
 
 
 @functools.lru_cache(maxsize=64)
 def _compass(size: int) -> np.ndarray:
-    """The 8 compass points ``[8, 2]`` of :func:`_ring`: the blocks covering them, continued, are candidates."""
+    """The 8 compass points ``[8, 2]`` of the first ring around a block: the blocks covering them, continued,
+    are candidates."""
     r = size // 2 + 1
     return _frozen(np.array([(i, j) for i in (-r, 0, r) for j in (-r, 0, r) if i or j], np.int64))
 
@@ -423,16 +425,16 @@ class _Canvas:
         out = np.zeros((n, k), np.float32)
         cells = self.frame.flat(pixels)[:, None] + _flat(ring, self.frame.padded[1])[None]        # [n, R]
         covered = self.source.reshape(-1, 2)[cells, 0] >= 0
-        near = np.flatnonzero(covered.any(1))      # blocks with no covered neighbour yet cost nothing
-        if len(near) == 0:
+        block, cell = np.nonzero(covered)          # only the covered cells are compared (sorted by block)
+        if len(block) == 0:
             return out
-        cells, covered = cells[near], covered[near]
-        have = self.colour.reshape(-1, self.colour.shape[2])[cells]                             # [m, R, C]
-        ahead = (self.ref_frame.flat(centres[near].reshape(-1, 2)).reshape(len(near), k)[..., None]
-                 + _flat(ring, self.ref_frame.padded[1])[None, None])                            # [m, k, R]
+        have = self.colour.reshape(-1, self.colour.shape[2])[cells[block, cell]]                # [P, C]
+        ahead = (self.ref_frame.flat(centres.reshape(-1, 2)).reshape(n, k)[block]
+                 + _flat(ring, self.ref_frame.padded[1])[cell][:, None])                         # [P, k]
         diff = np.square(self.reference[ahead] - have[:, None]).mean(-1)
         diff = np.where(self.valid[ahead], diff, np.float32(self.unseen))
-        out[near] = (diff * covered[:, None]).sum(-1) / covered.sum(1)[:, None]
+        near, starts, count = np.unique(block, return_index=True, return_counts=True)
+        out[near] = np.add.reduceat(diff, starts, axis=0) / count[:, None]
         return out
 
     def continuations(self, pixels: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -480,7 +482,7 @@ def _choose(index: _Index, queries: np.ndarray, grey: np.ndarray, canvas: _Canva
     blocks = _gather(grey, 0, centres.reshape(-1, 2), index.size).reshape(n, k, -1)
     costs = ((blocks - queries[:, None]) ** 2).mean(-1)
     if colour > 0:
-        costs = costs + colour * canvas.disagreement(pixels, centres, _ring(size))
+        costs = costs + colour * canvas.disagreement(pixels, centres, _ring(size, RING))
     best = costs.argmin(1)
     return costs[np.arange(n), best], centres[np.arange(n), best]
 
