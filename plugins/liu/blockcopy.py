@@ -431,7 +431,8 @@ class _Canvas:
         have = self.colour.reshape(-1, self.colour.shape[2])[cells[block, cell]]                # [P, C]
         ahead = (self.ref_frame.flat(centres.reshape(-1, 2)).reshape(n, k)[block]
                  + _flat(ring, self.ref_frame.padded[1])[cell][:, None])                         # [P, k]
-        diff = np.square(self.reference[ahead] - have[:, None]).mean(-1)
+        delta = self.reference[ahead] - have[:, None]                                           # [P, k, C]
+        diff = np.einsum("pkc,pkc->pk", delta, delta) / np.float32(delta.shape[2])
         diff = np.where(self.valid[ahead], diff, np.float32(self.unseen))
         near, starts, count = np.unique(block, return_index=True, return_counts=True)
         out[near] = np.add.reduceat(diff, starts, axis=0) / count[:, None]
