@@ -51,6 +51,7 @@ RELAX = 2              # sweeps of seam relaxation over the block copy's source 
 CANDIDATES = 16        # template matches per block among which the colour agreement with its surroundings chooses
 RING = 2               # rings of pixels around a block whose colours its continuation is compared with
 COLOUR = 1.0           # weight of that colour agreement against the template SSD (0: the template alone)
+HOLE_CHUNK = 4096      # hole pixels costed at once: bounds the candidates' working memory (about 20 MB per 1000)
 
 
 def warp(image: np.ndarray, rotation: float, mirrored: bool, out_shape: tuple[int, int]):
@@ -505,12 +506,13 @@ def _fill_holes(canvas: _Canvas, index: _Index, padded: np.ndarray, pad: int, gr
         rim = ndimage.binary_dilation(~uncovered, np.ones((3, 3), bool)) & uncovered
         wave = rim if rim.any() else uncovered
         for batch in range(4):
-            pixels = np.argwhere(wave & (parity == batch))
-            if len(pixels):
+            found = np.argwhere(wave & (parity == batch))
+            for start in range(0, len(found), HOLE_CHUNK):   # (a batch's pixels do not touch: any split will do)
+                pixels = found[start:start + HOLE_CHUNK]
                 queries = _gather(padded, pad, pixels, index.size)
                 _, centres = _choose(index, queries, grey, canvas, pixels, 1, colour)
                 canvas.paste(pixels, centres, 1)
-                searches += len(pixels)
+            searches += len(found)
 
 
 def relax_block_seams(source: np.ndarray, reference: np.ndarray, valid: np.ndarray, sweeps: int) -> np.ndarray:
