@@ -40,7 +40,6 @@ from btforge.plugins.web.hsh import MIN_ELEVATION as HSH_MIN_ELEVATION
 
 from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
                          smooth_resample_matrix, table_weights)
-from .lightout import moment_table, place_ycc_planes, sample_moments, table_factors, to_display
 from .model import KERNELS, LightTableModel
 
 SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
@@ -111,7 +110,10 @@ def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tu
     mean = np.clip(ycc.mean(axis=0, dtype=np.float64), 0.0, 1.0)
     table = np.zeros((planes + 1, d, 3))
     for comp, count in enumerate(yccplanes):
-        place_ycc_planes(table, comp, _principal(ycc[:, :, comp] - mean[:, comp].astype(ycc.dtype), count), yccplanes)
+        vectors = _principal(ycc[:, :, comp] - mean[:, comp].astype(ycc.dtype), count)
+        for yp in range(count):
+            p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
+            table[p + 1, :, comp] = vectors[yp]
     table[0] = mean
     return table
 
@@ -416,93 +418,24 @@ def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplane
     return model, {**stats, "sigma": sigma}
 
 
-def grid_samples(stack: SampleStack, space: str) -> np.ndarray:
-    """The samples ``[N, L, 3]`` float64 in ``space`` of the texel grid ``auto`` choices judge on."""
-    grid = held_out_grid(stack)[0]                                         # [L, h, w, 3]
-    like = SampleStack(grid[None], stack.lights, stack.views, stack.channels, stack.encoding)
-    values = fitted_values(like, space).astype(np.float64)
-    return np.moveaxis(values, 0, 2).reshape(-1, stack.n_light, 3)
-
-
-def bilinear_light_out_error(values: np.ndarray, truth: np.ndarray, lights: np.ndarray, space: str,
-                             side: int, settings: dict) -> float:
-    """Mean squared error of display values (``truth [N, L, 3]``) at each light left out of a bilinear fit of
-    the samples ``values [N, L, 3]`` (in ``space``) on a ``side x side`` grid: every fold refits the resampling,
-    the PCA table (from the samples' moments, :mod:`.lightout`) and the coefficients without that light."""
-    planes, colorspace, ycc = settings["planes"], settings["colorspace"], settings["ycc"]
-    mean, second = sample_moments(values)
-    factors = table_factors(second, colorspace)
-    n_light = len(lights)
-    flat = values.reshape(len(values), -1)
-    total = 0.0
-    for index in range(n_light):
-        keep = np.arange(n_light) != index
-        resample = np.zeros((side * side, n_light))
-        resample[:, keep] = settings["resample"](lights[keep], side)
-        table = moment_table(mean, factors, resample, planes, colorspace, ycc)
-        args = {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                "resolution": side, "space": space}
-        if settings["coefficients"] == "projection":
-            proj, offset = pca_projection(table, resample, colorspace)
-        else:
-            lw = table_light_weights(args, lights)
-            lw[index] = 0.0
-            proj, offset = least_squares(lw)[:2]
-        at = table_light_weights(args, lights[index:index + 1])[0]             # [P + 1, 3]
-        # the prediction at the light left out, as one map from the samples: [3 L, 3]
-        through = proj.reshape(len(proj), -1).T @ at[1:]
-        predicted = to_display(flat @ through + (at[0] - offset @ at[1:]), space)
-        total += float(np.sum((predicted - truth[:, index]) ** 2))
-    return total / max(truth.size, 1)
-
-
-def bilinear_side(stack: SampleStack, space: str, sides, settings: dict) -> int:
-    """``resolution: 0``: the grid side whose fits in ``space`` best predict each light left out of the texel
-    grid (:func:`bilinear_light_out_error`).  With fewer than 10 lights: the middle side."""
-    if stack.n_light < AUTO_MIN_LIGHTS or len(sides) == 1:
-        return sides[len(sides) // 2]
-    lights = unit_lights(stack.lights)
-    truth, values = grid_samples(stack, "srgb"), grid_samples(stack, space)
-    with single_threaded_blas():  # many small products: threads only contend
-        errors = [bilinear_light_out_error(values, truth, lights, space, side, settings) for side in sides]
-    return sides[int(np.argmin(errors))]
-
-
-def bilinear_space(stack: SampleStack, space: str, engine: str = "opencl") -> str:
-    """``space: auto`` for bilinear.fit: the space in which HSH of order 3 predicts held-out lights better
-    (:func:`resolve_table_space`, every light held out once in five folds).  Which values are smoother in the
-    light is a property of the capture (a camera's tone curve, or radiance rendered linear in n . l); a smooth
-    low-order basis judges it, where a grid's held-out error mostly says how the lights fall against its lines."""
-    return resolve_table_space(stack, space, lambda part, candidate: fit_hsh(part, 27, "rgb", engine, 0.0,
-                                                                             candidate)[0])
-
-
-def unit_lights(lights: np.ndarray) -> np.ndarray:
-    d = np.asarray(lights, np.float64)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
-                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "auto"):
-    """bilinear.fit: PCA table on the light grid (``space`` auto: :func:`bilinear_space`; ``resolution`` 0: the
-    side that best predicts each light left out, :func:`bilinear_side`)."""
+                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "srgb"):
+    """bilinear.fit: PCA table on the light grid (``resolution`` 0 and ``space`` auto: chosen together on
+    held-out lights, :func:`held_out_choice`)."""
     _check_stack(stack, "bilinear.fit")
-
-    def make_resample(lights, side):
-        if resampling == "smooth":
-            return smooth_resample_matrix(lights, side, smoothness)
-        return resample_matrix(lights, side, sigma, regularization)
-
-    ycc = ycc_split(planes, yplanes) if colorspace == "ycc" else (0, 0, 0)
-    space = bilinear_space(stack, space, engine)
-    if not resolution:
-        need = planes if colorspace == "rgb" else 3 * max(ycc)
-        sides = [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
-        resolution = bilinear_side(stack, space, sides, {"planes": planes, "colorspace": colorspace, "ycc": ycc,
-                                                         "resample": make_resample, "coefficients": coefficients})
+    if space == "auto" or not resolution:
+        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
+        sides = [resolution] if resolution else [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
+        space, resolution = held_out_choice(stack, candidate_spaces(stack, space), sides, lambda part, sp, value:
+                                            fit_bilinear(part, planes, value, colorspace, yplanes, sigma,
+                                                         regularization, coefficients, resampling, smoothness,
+                                                         engine, sp)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
-    resample = make_resample(stack.lights, resolution)
+    if resampling == "smooth":
+        resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
+    else:
+        resample = resample_matrix(stack.lights, resolution, sigma, regularization)
     sampled = pca_responses(stack, space)                                            # [N, L, 3]
     n = len(sampled)
     # one matrix product (einsum would loop): [D, L] @ [L, N * 3]

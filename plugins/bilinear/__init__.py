@@ -18,7 +18,7 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
     params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
-                          "(relight's -r); 0: the side (4 to 12) whose fits best predict each light left out in turn", low=0, high=20),
+                          "(relight's -r); 0: the side (every one from 4 to 12) that predicts held-out lights best", low=0, high=20),
             COLORSPACE, YPLANES,
             Param("resampling", "choice", "smooth", "how samples become grid values: smooth: the grid whose "
                   "interpolation reproduces the samples while bending least (weight smoothness); relight: relight's, "
@@ -28,11 +28,9 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
             SIGMA,
             Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
                   "undetermined towards their Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS,
-            Param("space", "choice", "auto", "what the coefficients fit: srgb, the display values an 8-bit capture "
-                  "holds (as relight's -I srgb and RTI viewers); linear, the linear radiance they stand for (as "
-                  "relight's default), which evaluation clips to [0, 1] instead of decoding; auto: for an 8-bit "
-                  "capture the one in which HSH of order 3 predicts held-out lights of a grid of texels better, "
-                  "display values otherwise", choices=SPACE_PARAM.choices)],
+            Param("space", "choice", "srgb", SPACE_PARAM.doc.replace("auto: for", "auto (chosen together with "
+                  "resolution 0): for") + "; auto is not the default: held-out folds of a dome's lights leave holes in "
+                  "the grid and misjudge linear fits (see the docs' benchmarks)", choices=SPACE_PARAM.choices)],
     expects={"stack": ONE_VIEW},
     precheck=pca_precheck,
 )
@@ -47,11 +45,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     ``resampling: relight`` as relight does (pulled towards a Gaussian estimate) - the leading principal
     components of the resampled responses become the planes, and each texel's coefficients are its resampled
     responses projected on them (``coefficients: lsq``: fitted at the capture's lights instead), on OpenCL.
-    ``resolution: 0`` picks the grid side (4 to 12) that best predicts each light left out of a grid of texels,
-    in closed form from the samples' moments (the PCA table is rebuilt without the light).  The samples are
-    display values, or with ``space: linear`` the linear radiance of an 8-bit capture (``auto``: whichever HSH of
-    order 3 predicts held-out lights better in; which values are smoother in the light is a property of the
-    capture, and a grid's held-out error mostly says how the lights fall against its lines).  ``resolution: 8, resampling: relight`` is
+    ``resolution: 0`` picks the grid side by held-out lights.  The samples are display values, or with ``space:
+    linear`` the linear radiance of an 8-bit capture (``auto``: whichever predicts held-out lights better).  ``resolution: 8, resampling: relight`` is
     relight's own fit.
 
     Outputs
