@@ -302,3 +302,25 @@ def test_the_representation_bench_sweeps_the_new_fits():
     names = {s.name for s in default_registry().stages_with_role("fit")}
     assert {"hsh.fit", "rbf.fit", "bilinear.fit"} <= names
     assert not least_squares(np.zeros((4, 3, 3)))[2]["rank"]  # an all-zero basis: rank 0, no division by zero
+
+
+def grid_shaded_capture(side: int, n_light: int = 150, seed: int = 0) -> SampleStack:
+    """An 8-bit capture whose every texel's display values are a bilinear function on a ``side x side`` grid
+    of light directions (random node values, so its kinks are where that grid's lines are)."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.1, 1, n_light)
+    phi = rng.uniform(0, 2 * np.pi, n_light)
+    lights = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    nodes = rng.uniform(0.1, 0.9, (2, side * side, 3))                 # two patterns over the grid's nodes
+    mix = rng.uniform(0, 1, (6, 6, 1, 1))
+    response = bilinear_weights(lights, side) @ nodes                   # [2, L, 3]
+    display_values = mix * response[0] + (1 - mix) * response[1]        # [h, w, L, 3]
+    samples = np.round(np.moveaxis(display_values, 2, 0) * 255).astype(np.uint8)
+    return SampleStack(samples[None], lights, [[0, 0, 1]], encoding="srgb8")
+
+
+@pytest.mark.parametrize("side", range(4, 13))
+def test_resolution_auto_finds_the_grid_side_of_a_response_built_on_that_grid(side):
+    # every side is a candidate: a capture's held-out error can jump by dB from one side to the next
+    model = fitted("bilinear.fit", {"planes": 6, "resolution": 0}, grid_shaded_capture(side))
+    assert model.resolution == side

@@ -43,7 +43,9 @@ from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights
 from .model import KERNELS, LightTableModel
 
 SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
-RESOLUTIONS = (4, 5, 6, 8, 10, 12)          # resolution auto: these grid sides are tried
+# resolution auto tries every side from 4 to 12: the held-out error is far from smooth in the side (where a
+# capture's rings of lights fall against the grid lines decides it), so a side skipped can be the best by dB
+RESOLUTIONS = tuple(range(4, 13))
 TABLE_DAMPING = 0.1   # the interpolating rbf table stays this close (relatively) to the components at the lights
 RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
 PCA_SAMPLES = 1 << 16  # texels whose responses the PCA sees (relight samples 65536 by default)

@@ -13,12 +13,12 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 @declare_stage(
     "bilinear.fit",
     role="fit",
-    version="2",
+    version="3",
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
     params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
-                          "(relight's -r); 0: the side (4 to 12) that predicts held-out lights best", low=0, high=20),
+                          "(relight's -r); 0: the side (every one from 4 to 12) that predicts held-out lights best", low=0, high=20),
             COLORSPACE, YPLANES,
             Param("resampling", "choice", "smooth", "how samples become grid values: smooth: the grid whose "
                   "interpolation reproduces the samples while bending least (weight smoothness); relight: relight's, "
