@@ -122,11 +122,3 @@ def test_bad_parameters_and_damaged_models_are_refused_with_the_reason():
     with pytest.raises(BtforgeInputError, match="layer_sizes"):
         NeuralModel(model.codes[..., :-1], model.weights, model.layer_sizes, model.light_order, model.decoder)
 
-
-def test_automatic_light_order_is_one_of_the_candidates_and_few_lights_skip_the_search():
-    from btforge.plugins.neural.fit import AUTO_ORDERS, fit_neural
-    settings = {k: v for k, v in SMALL.items() if k != "light_order"}
-    _, stats = fit_neural(capture(n=30, size=(8, 6)), "harmonics", light_order="auto", seed=0, **settings)
-    assert stats["light_order"] in AUTO_ORDERS
-    few = fitted(capture(n=6, size=(4, 4)), light_order="auto")
-    assert few.light_order == AUTO_ORDERS[0]

@@ -15,7 +15,7 @@ __all__ = ["NeuralModel", "fit_neural"]
 
 def neural_precheck(params, paths=None):
     low = 2 if params.get("decoder", "harmonics") == "harmonics" else 0
-    if params["light_order"] != "auto" and (params["light_order"] < low or params["light_order"] == 1):
+    if params["light_order"] < low or params["light_order"] == 1:
         raise BtforgeInputError("neural.fit 'light_order'", f"expected {'0 or ' if low == 0 else ''}2 .. "
                                 f"{MAX_LIGHT_ORDER} for the {params.get('decoder', 'harmonics')} decoder, found "
                                 f"{params['light_order']}", "order 1 is the constant band alone; 0 (the direction's "
@@ -36,11 +36,10 @@ def neural_precheck(params, paths=None):
         Param("latent", "int", 12, "values of the latent code per texel (NeuralRTI: 9)", low=1, high=64),
         Param("hidden", "int", 50, "units of each hidden layer of the decoder", low=4, high=256),
         Param("layers", "int", 3, "hidden layers of the decoder", low=1, high=6),
-        Param("light_order", "choice", "auto", "harmonics decoder: the order N of the harmonics it outputs (bands "
-              "0 .. N-1, N^2 coefficients per channel); light decoder: its light input, the harmonics of bands 1 .. "
-              "N-1 of the direction (N^2 - 1 values), or for 0 the direction's x and y, as NeuralRTI; auto: 3 or 4, "
-              "whichever predicts every fifth light better from the others on 5000 of the training texels",
-              choices=("auto", 0) + tuple(range(2, MAX_LIGHT_ORDER + 1))),
+        Param("light_order", "int", 4, "harmonics decoder: the order N of the harmonics it outputs (bands 0 .. "
+              "N-1, N^2 coefficients per channel); light decoder: its light input, the harmonics of bands 1 .. N-1 "
+              "of the direction (N^2 - 1 values), or for 0 the direction's x and y, as NeuralRTI", low=0,
+              high=MAX_LIGHT_ORDER),
         Param("jitter", "float", 0.03, "light decoder: each step moves the lights at random by about this many "
               "radians, so the decoder sees their neighbourhoods and interpolates between them more smoothly",
               low=0.0, high=0.5),
@@ -73,8 +72,7 @@ def neural_fit(ctx, stack, *, decoder, latent, hidden, layers, light_order, jitt
 
     Notes
     -----
-    ``light_order`` (as used), ``train_psnr_db`` on the training texels (their last epoch), ``texels``
-    trained on.
+    ``train_psnr_db`` on the training texels (their last epoch), ``texels`` trained on.
     """
     neural_precheck({"light_order": light_order, "decoder": decoder})
     if stack.n_view != 1:
@@ -82,7 +80,6 @@ def neural_fit(ctx, stack, *, decoder, latent, hidden, layers, light_order, jitt
                                 "select one view with stackio.select first")
     with single_threaded_blas():  # small products: threads only contend, and one thread is reproducible
         model, stats = fit_neural(stack, decoder, latent, hidden, layers, light_order, epochs, texels, seed, jitter)
-    ctx.note("light_order", stats["light_order"])
     ctx.note("train_psnr_db", stats["train_psnr_db"])
     ctx.note("texels", stats["texels"])
     return {"model": model}

@@ -15,9 +15,6 @@ from .network import (Adam, decoder_backward, decoder_forward, init_layers, mlp_
 ENCODER_HIDDEN = (64, 64)  # the encoder is used only while fitting: small, it costs little next to the decoder
 BATCH_TEXELS = 32          # texels per step, each with all its lights
 LEARNING_RATE = 5e-3       # Adam's step at the start, decaying to 0 along a cosine
-AUTO_ORDERS = (3, 4)       # light_order auto: the orders tried (on dome captures higher orders predicted worse)
-AUTO_TEXELS = 5000         # training texels the orders are judged on
-AUTO_MIN_LIGHTS = 10       # fewer lights are not split: the lowest order is used
 
 
 def texel_responses(stack: SampleStack, index: np.ndarray | slice) -> np.ndarray:
@@ -123,45 +120,16 @@ def build_model(codes: np.ndarray, decoder_layers, light_order: int, decoder: st
     return NeuralModel(codes, pack_layers(decoder_layers), sizes, light_order, decoder, tuple(channels))
 
 
-def held_out_error(values: np.ndarray, lights: np.ndarray, decoder: str, light_order: int, settings: dict,
-                   seed: int) -> float:
-    """Mean squared error (display values) at every fifth light (from the third) of a fit to the others."""
-    from btforge.buffers import linear_to_srgb
-    held = np.arange(len(lights)) % 5 == 2
-    encoder, decoder_layers, mean, _ = train(values[:, ~held], lights[~held], decoder, light_order, seed=seed,
-                                             **settings)
-    codes = mlp_forward(encoder, (values[:, ~held] - mean).reshape(len(values), -1))[-1]
-    model = build_model(codes[:, None], decoder_layers, light_order, decoder, ("c",) * values.shape[2])
-    predicted = linear_to_srgb(model.evaluate(lights[held])[0, :, :, 0])
-    return float(np.mean((np.moveaxis(predicted, 0, 1) - values[:, held]) ** 2))
-
-
-def choose_light_order(values: np.ndarray, lights: np.ndarray, decoder: str, settings: dict, seed: int) -> int:
-    """``light_order: auto``: of :data:`AUTO_ORDERS`, the one whose fit to all but every fifth light predicts
-    those best, judged on :data:`AUTO_TEXELS` of the training texels (the largest order without a held-out
-    fold when the lights are fewer than :data:`AUTO_MIN_LIGHTS`)."""
-    if len(lights) < AUTO_MIN_LIGHTS:
-        return AUTO_ORDERS[0]
-    judged = values[:AUTO_TEXELS]
-    errors = {order: held_out_error(judged, lights, decoder, order, settings, seed) for order in AUTO_ORDERS}
-    return min(errors, key=errors.get)
-
-
-def fit_neural(stack: SampleStack, decoder: str, latent: int, hidden: int, layers: int, light_order: int | str,
+def fit_neural(stack: SampleStack, decoder: str, latent: int, hidden: int, layers: int, light_order: int,
                epochs: int, texels: int, seed: int, jitter: float = 0.0) -> tuple[NeuralModel, dict]:
-    """The model of a one-view stack and ``{"train_psnr_db", "texels", "light_order"}`` (the training sample's
-    last epoch; the order used)."""
+    """The model of a one-view stack and ``{"train_psnr_db", "texels"}`` (the training sample's last epoch)."""
     rng = np.random.default_rng(seed)
     n_texel = stack.height * stack.width
-    sample = rng.permutation(n_texel)[:min(texels, n_texel)]   # a random sample, in random order
-    values, lights = texel_responses(stack, np.sort(sample)), np.asarray(stack.lights, np.float64)
-    values = values[np.argsort(np.argsort(sample))]            # back in the sample's random order
-    settings = {"latent": latent, "hidden": hidden, "layers": layers, "epochs": epochs, "jitter": jitter}
-    train_seed = int(rng.integers(2 ** 31))
-    if light_order == "auto":
-        light_order = choose_light_order(values, lights, decoder, settings, train_seed)
-    encoder, decoder_layers, mean, mse = train(values, lights, decoder, light_order, seed=train_seed, **settings)
+    sample = np.sort(rng.choice(n_texel, min(texels, n_texel), replace=False))
+    encoder, decoder_layers, mean, mse = train(texel_responses(stack, sample), np.asarray(stack.lights, np.float64),
+                                               decoder, light_order, latent=latent, hidden=hidden, layers=layers,
+                                               epochs=epochs, jitter=jitter, seed=int(rng.integers(2 ** 31)))
     codes = encode(stack, encoder, mean).reshape(stack.height, stack.width, latent)
     model = build_model(codes, decoder_layers, light_order, decoder, stack.channels)
     psnr = float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
-    return model, {"train_psnr_db": round(psnr, 2), "texels": len(sample), "light_order": light_order}
+    return model, {"train_psnr_db": round(psnr, 2), "texels": len(sample)}
