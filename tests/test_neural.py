@@ -122,3 +122,8 @@ def test_bad_parameters_and_damaged_models_are_refused_with_the_reason():
     with pytest.raises(BtforgeInputError, match="layer_sizes"):
         NeuralModel(model.codes[..., :-1], model.weights, model.layer_sizes, model.light_order, model.decoder)
 
+
+
+def test_web_export_refuses_the_model_with_the_reason(tmp_path):
+    with pytest.raises(BtforgeInputError, match="NeuralModel"):
+        btforge.stage("web.export")(model=fitted(capture(n=10, size=(4, 4))), dir=str(tmp_path / "web"))

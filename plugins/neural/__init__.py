@@ -38,7 +38,8 @@ def neural_precheck(params, paths=None):
         Param("layers", "int", 3, "hidden layers of the decoder", low=1, high=6),
         Param("light_order", "int", 4, "harmonics decoder: the order N of the harmonics it outputs (bands 0 .. "
               "N-1, N^2 coefficients per channel); light decoder: its light input, the harmonics of bands 1 .. N-1 "
-              "of the direction (N^2 - 1 values), or for 0 the direction's x and y, as NeuralRTI", low=0,
+              "of the direction (N^2 - 1 values), or for 0 the direction's x and y, as NeuralRTI (which predicts held-out "
+              "lights better)", low=0,
               high=MAX_LIGHT_ORDER),
         Param("jitter", "float", 0.03, "light decoder: each step moves the lights at random by about this many "
               "radians, so the decoder sees their neighbourhoods and interpolates between them more smoothly",
