@@ -1,5 +1,7 @@
 """``NeuralModel``: a latent code per texel and a small decoder network shared by every texel (NeuralRTI,
-Dulecha et al. 2020).
+Dulecha et al. 2020).  Relighting runs in NumPy: the decoder's products are small dense matrix products, and a
+per-texel OpenCL kernel of them was no faster on the CPU device (1.2-1.6 s where NumPy took 0.7-1.5 s, 321^2
+texels at 10 lights, loaded 2-core machine).
 
 A texel's display value (sRGB, in [0, 1]) under a light ``l`` is ``decoder([code, f(l)])``: a multilayer
 perceptron with ELU between its layers and a linear output layer, whose input is the texel's latent code and
@@ -105,7 +107,7 @@ class NeuralModel(ReflectanceModel):
         layers = self.layers()
         for chunk in texel_chunks(codes.shape[0], 4 * 4 * max(max(self.layer_sizes), len(lights))):
             if self.decoder == "light":
-                out[:, chunk] = evaluate_numpy(codes[chunk], light_features(lights, self.light_order), layers)
+                out[:, chunk] = evaluate_light_numpy(codes[chunk], light_features(lights, self.light_order), layers)
             else:
                 coeffs = self.coefficients(codes[chunk], layers)
                 out[:, chunk] = decode_display(np.moveaxis(harmonics(lights, self.light_order) @ coeffs, 1, 0))
@@ -139,7 +141,7 @@ def decode_display(value: np.ndarray) -> np.ndarray:
     return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
 
 
-def evaluate_numpy(codes: np.ndarray, features: np.ndarray, layers) -> np.ndarray:
+def evaluate_light_numpy(codes: np.ndarray, features: np.ndarray, layers) -> np.ndarray:
     """Linear radiance ``[L, T, C]`` of ``codes [T, K]`` at lights of ``features [L, F]``: the first layer's code
     part once per texel, its light part once per light."""
     (w1, b1), k = layers[0], codes.shape[1]
