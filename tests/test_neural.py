@@ -127,3 +127,19 @@ def test_bad_parameters_and_damaged_models_are_refused_with_the_reason():
 def test_web_export_refuses_the_model_with_the_reason(tmp_path):
     with pytest.raises(BtforgeInputError, match="NeuralModel"):
         btforge.stage("web.export")(model=fitted(capture(n=10, size=(4, 4))), dir=str(tmp_path / "web"))
+
+
+def test_relight_stage_and_synthesis_take_the_model():
+    from btforge.context import StageContext
+    from btforge.plugins.synth import materialize
+    from btforge.plugins.synth.quilting import quilt
+    model = fitted(capture(n=20, size=(16, 16)))
+    lights = [[0.3, 0.2, 0.93], [0, 0, 1.0]]
+    relit = btforge.stage("relight.images")(model=model, lights=lights)["stack"]
+    assert np.array_equal(relit.samples, model.evaluate(lights))
+    coords = quilt(ctx=StageContext(node="quilt"), exemplar=model, size=[24, 24], seam="cut", seed=1, block=8,
+                   overlap=2)["coords"]
+    grown = materialize(coords=coords, source=model)["output"]
+    assert isinstance(grown, NeuralModel) and grown.codes.shape == (24, 24, model.latent)
+    rows, cols = coords.coords[..., 0], coords.coords[..., 1]
+    np.testing.assert_allclose(grown.evaluate(lights), model.evaluate(lights)[:, :, rows, cols], atol=1e-6)

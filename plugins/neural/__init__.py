@@ -57,14 +57,18 @@ def neural_precheck(params, paths=None):
 )
 def neural_fit(ctx, stack, *, decoder, latent, hidden, layers, light_order, jitter, epochs, texels, seed):
     """Fit a learned basis (NeuralRTI, Dulecha et al. 2020): a latent code per texel and a decoder network,
-    shared by every texel, from the code and the light direction to the display value.
+    shared by every texel, from the code to the texel's function of the light.
 
-    An encoder (two hidden layers of 64 ELU units) maps a texel's display values at the capture's lights to its
-    ``latent`` code; the decoder (``layers`` hidden layers of ``hidden`` ELU units, linear output) maps the code
-    and features of a light direction to RGB.  Both are trained together, by mini-batch Adam (128 texels with
-    all their lights per step, the step decaying along a cosine, gradients clipped), to reproduce the display
-    values of ``texels`` texels sampled at random; then every texel is encoded.  Only the codes and the decoder
-    are kept.  Training runs in NumPy on one thread and is deterministic for a given ``seed``.
+    An encoder (two hidden layers of 64 ELU units) maps a texel's display values at the capture's lights (an
+    8-bit capture's bytes / 255; a linear capture's radiance sRGB-encoded, so relighting clips it at 1) to its
+    ``latent`` code.  The decoder (``layers`` hidden layers of ``hidden`` ELU units, linear output) maps the code
+    to the texel's spherical-harmonic coefficients of order ``light_order``, weighted at a light by the
+    harmonics there (``decoder: harmonics``), or maps the code and features of a light direction to the value
+    (``decoder: light``, NeuralRTI's).  Both networks are trained together by mini-batch Adam (32 texels with
+    all their lights per step, the step decaying from 5e-3 along a cosine, gradients clipped to norm 1) to
+    reproduce the display values of ``texels`` texels sampled at random; then every texel is encoded.  Only the
+    codes and the decoder are kept.  Training and relighting run in NumPy on one thread; a fit is
+    deterministic for a given ``seed``.
 
     Outputs
     -------
