@@ -1,6 +1,6 @@
-"""``neural.fit``'s training: a per-texel encoder of the light responses to a latent code and a decoder (code +
-light features -> display value) shared by every texel, trained jointly by mini-batch Adam on a random sample
-of texels; then every texel is encoded."""
+"""``neural.fit``'s training: a per-texel encoder of the light responses to a latent code and a decoder shared by
+every texel (code -> spherical-harmonic coefficients, or code + light features -> display value), trained jointly
+by mini-batch Adam on a random sample of texels; then every texel is encoded."""
 from __future__ import annotations
 
 import numpy as np
