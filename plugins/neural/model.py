@@ -3,11 +3,16 @@ Dulecha et al. 2020).  Relighting runs in NumPy: the decoder's products are smal
 per-texel OpenCL kernel of them was no faster on the CPU device (1.2-1.6 s where NumPy took 0.7-1.5 s, 321^2
 texels at 10 lights, loaded 2-core machine).
 
-A texel's display value (sRGB, in [0, 1]) under a light ``l`` is ``decoder([code, f(l)])``: a multilayer
-perceptron with ELU between its layers and a linear output layer, whose input is the texel's latent code and
-features ``f(l)`` of the light direction (real spherical harmonics of bands 1 .. ``light_order`` - 1, or for
-``light_order`` 0 the direction's x and y, NeuralRTI's own input).  Evaluation clips the value to [0, 1] and
-decodes it to linear radiance.
+A texel's display value (sRGB, in [0, 1]) under a light ``l`` comes from a multilayer perceptron with ELU
+between its layers and a linear output layer (``decoder``):
+
+* ``harmonics``: ``sum_p Y_p(l) D(code)[p]``, the decoder ``D`` mapping the texel's latent code to its real
+  spherical-harmonic coefficients of bands 0 .. ``light_order`` - 1 (per channel; :func:`harmonics`, scaled so
+  that the constant one is 1);
+* ``light`` (NeuralRTI's): ``D([code, f(l)])``, with features ``f(l)`` of the light direction: the harmonics
+  of bands 1 .. ``light_order`` - 1, or for ``light_order`` 0 the direction's x and y.
+
+Evaluation clips the value to [0, 1] and decodes it to linear radiance.
 """
 from __future__ import annotations
 
