@@ -86,8 +86,8 @@ def test_bench_commands_come_from_plugins_and_clash_by_name():
         return {"ptm": bench_numbers}
     registry = Registry()
     assert {"ptm", "render", "representations", "quilt", "kcoherence", "synthesis"} <= set(registry.bench_commands)
-    assert [st.name for st in registry.stages_with_role("fit")] == ["bilinear.fit", "hsh.fit", "lafortune.fit", "ptm.fit",
-                                                                  "rbf.fit", "sh.fit"]
+    assert [st.name for st in registry.stages_with_role("fit")] == ["bilinear.fit", "hsh.fit", "lafortune.fit",
+                                                                  "neural.fit", "ptm.fit", "rbf.fit", "sh.fit"]
     with pytest.raises(BtforgeInputError, match="bench 'ptm'.*contributed by both"):
         registry.register(_plugin(BTFORGE_PLUGIN_API=1, btforge_bench_commands=btforge_bench_commands), name="mine")
 
