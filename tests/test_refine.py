@@ -8,7 +8,7 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
 from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.refine import refine_map, window_starts
+from btforge.plugins.synth.refine import jittered_windows, refine_map, window_starts
 from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
 
 SIZE, OUT = 40, 72
@@ -81,6 +81,20 @@ def test_window_starts_cover_every_texel(wrap):
         for s in starts:
             covered[(s + np.arange(8)) % length if wrap else slice(s, s + 8)] = True
         assert covered.all(), (length, offset)
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_jittered_windows_cover_every_texel_and_break_the_grid(wrap):
+    for (h, w), seed in (((72, 72), 0), ((37, 45), 1), ((8, 19), 2), ((64, 64), 3)):
+        rows, cols = jittered_windows(h, w, 8, wrap, np.random.default_rng(seed))
+        covered = np.zeros((h, w), bool)
+        for r, c in zip(rows.reshape(-1, 8), cols.reshape(-1, 8)):
+            covered[np.ix_(r, c)] = True
+            if not wrap:  # windows stay inside an output that does not wrap
+                assert np.all(np.diff(r) == 1) and np.all(np.diff(c) == 1)
+        assert covered.all(), (h, w, seed)
+        if min(h, w) >= 64:  # the windows' left sides do not all line up down a column of windows
+            assert len(np.unique(cols[:, 1, 0])) > 1
 
 
 def test_pinned_texels_keep_their_sources_and_blends_and_shape_the_rest(stones):

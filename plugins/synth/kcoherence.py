@@ -458,7 +458,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="10",  # 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="11",  # 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -482,11 +482,11 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
-        *refine_params(),
+        *refine_params(scales=1),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, keep, refine, occurrence):
+               coverage, blocks, keep, refine, occurrence, scales):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -535,8 +535,12 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     seams of the blocks too); with ``blocks: 0`` the coarsest level gets a second, toroidal causal pass in which
     pixels not yet redone (across the seams) are read from the first pass; the result tiles seamlessly.
 
-    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
-    texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
+    **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``; :mod:`.refine`): the map finally goes
+    through the shared texture optimisation with an occurrence term and corrections, at half resolution first
+    (``scales: 1``), so seams follow the content instead of the block grid, and colour areas larger than a block
+    are no longer cut into squares.  ``scales: 2`` lowers seams further (1.23 instead of 1.32 on the held-out
+    procedural exemplar) but moves the patch statistics of fine textures away from the exemplar's (sliced
+    Wasserstein distance 1.60 x the shuffled-block baseline's on fibres, against 1.21).
 
     Outputs
     -------
@@ -568,7 +572,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     ctx.note("seconds_analysis", round(result.seconds_analysis, 3))
     ctx.note("seconds_synthesis", round(result.seconds_synthesis, 3))
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
-    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, seed=seed)}
+    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed)}
 
 
 STAGES = [kcoherence]

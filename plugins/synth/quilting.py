@@ -259,7 +259,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="5",  # 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="6",  # 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -275,7 +275,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
         *refine_params(),
     ],
 )
-def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, spread, refine, occurrence):
+def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, spread, refine, occurrence, scales):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
@@ -294,8 +294,10 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     candidates, and only the survivors get full distances.  Safety margins make it exact: it returns the same
     eligible blocks, hence the same picks, as ``search: brute``.  The stored projections take up to 128 MB.
 
-    **Refinement** (``refine`` rounds, ``occurrence`` weight; :mod:`.refine`): the map finally goes through the shared
-    texture optimisation with an occurrence term and corrections, so seams follow the content instead of a grid.
+    **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``; :mod:`.refine`): the map finally goes
+    through the shared texture optimisation with an occurrence term and corrections, at two coarser scales first,
+    so seams follow the content, and structures larger than the fine windows (colour areas, cut stones) are
+    matched as a whole.
 
     Outputs
     -------
@@ -314,7 +316,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
                             seed=seed, spread=spread)
     for key, value in result.stats.items():
         ctx.note(key, value)
-    return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, seed=seed)}
+    return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed)}
 
 
 STAGES = [quilt]

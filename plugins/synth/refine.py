@@ -47,6 +47,8 @@ SEARCH_EPS = 2.0
 CORRECTIONS = 1
 #: Weight of the seam cost against the window match cost in the vote.
 SEAM_WEIGHT = 1.0
+#: A coarser scale is refined first only while its exemplar and output are at least this many windows across.
+COARSE_FIT = 4
 #: Checkerboard sweeps of the vote's labelling.
 SWEEPS = 4
 #: Window positions sampled to fit the window PCA.
@@ -95,31 +97,67 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
 
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
-               seed: int = 0, pinned: np.ndarray | None = None) -> CoordMap:
+               seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
     result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is.
     ``pinned`` (boolean ``[H, W]``, optional) marks output texels that keep their sources (and blends): they
-    still serve as context for their neighbours' windows, seams and corrections."""
+    still serve as context for their neighbours' windows, seams and corrections.  ``scales`` coarser scales (each
+    at half the resolution of the next) are refined first, while their exemplar and output stay
+    :data:`COARSE_FIT` windows across (:func:`_coarse_first`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
     if pinned is not None and pinned.all():
         return coords
-    index = window_index(features, patch)
     eh, ew = coords.source_size
     src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
     if coords.blend_weight.size:
         partner = coords.blend_coords[..., 0].astype(np.int64) * ew + coords.blend_coords[..., 1]
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
+    src = _refine_sources(features, src, coords.wrap, iterations, occurrence, patch, rng, pinned, scales)
+    return _with_kept_blends(coords, src)
+
+
+def _refine_sources(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales):
+    """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0 and a half-size exemplar and
+    output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here."""
+    if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
+        src = _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales - 1)
+    index = window_index(features, patch)
     keep = (lambda new: new) if pinned is None else (lambda new, start=src: np.where(pinned, start, new))
     for _ in range(iterations):
-        src = keep(optimise_step(index, src, coords.wrap, occurrence, rng, keep))
+        src = keep(optimise_step(index, src, wrap, occurrence, rng, keep))
         for _ in range(CORRECTIONS):
-            src = keep(correction_pass(index.texels, src, coords.wrap, rng))
-    return _with_kept_blends(coords, src)
+            src = keep(correction_pass(index.texels, src, wrap, rng))
+    return src
+
+
+def _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales):
+    """``src`` after the refinement of its half-resolution version (2 x 2 averaged exemplar, every other output
+    texel's source halved): where a coarse texel changed source, its 2 x 2 output texels take the new source's
+    2 x 2 exemplar texels; elsewhere (and where pinned) the fine sources stay.  Windows of the same size cover
+    twice the texture there, so structures larger than a window (colour areas, the sides of copied blocks) are
+    matched and cut as a whole."""
+    eh, ew = features.shape[:2]
+    ch, cw = eh // 2, ew // 2
+    coarse_features = features[:2 * ch, :2 * cw].reshape(ch, 2, cw, 2, -1).mean(axis=(1, 3))
+    sy, sx = np.divmod(src[::2, ::2], ew)
+    before = np.minimum(sy // 2, ch - 1) * cw + np.minimum(sx // 2, cw - 1)
+    coarse_pinned = None if pinned is None else pinned[::2, ::2]
+    after = _refine_sources(coarse_features, before, wrap and src.shape[0] % 2 == 0 and src.shape[1] % 2 == 0,
+                            iterations, occurrence, patch, rng, coarse_pinned, scales)
+    h, w = src.shape
+    rows, cols = np.arange(h) // 2, np.arange(w) // 2
+    changed = (after != before)[np.ix_(rows, cols)]
+    ay, ax = np.divmod(after[np.ix_(rows, cols)], cw)
+    fine_y = np.minimum(2 * ay + (np.arange(h) % 2)[:, None], eh - 1)
+    fine_x = np.minimum(2 * ax + (np.arange(w) % 2)[None, :], ew - 1)
+    if pinned is not None:
+        changed &= ~pinned
+    return np.where(changed, fine_y * ew + fine_x, src)
 
 
 def _pinned_mask(pinned, coords: CoordMap) -> np.ndarray | None:
@@ -163,23 +201,39 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
                   rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
     """One texture-optimisation round: every window matched (with the occurrence term), then the coherent vote."""
     p = index.patch
-    stride = max(1, p // 2)
     h, w = src.shape
     eh, ew = index.texels.shape[:2]
-    ys = window_starts(h, p, stride, int(rng.integers(stride)), wrap)
-    xs = window_starts(w, p, stride, int(rng.integers(stride)), wrap)
-    rows = (ys[:, None] + np.arange(p)) % h                      # [ny, p]
-    cols = (xs[:, None] + np.arange(p)) % w                      # [nx, p]
-    window_src = src[rows[:, None, :, None], cols[None, :, None, :]]          # [ny, nx, p, p]
+    rows, cols = jittered_windows(h, w, p, wrap, rng)                         # [ny, nx, p] each
+    window_src = src[rows[..., :, None], cols[..., None, :]]                  # [ny, nx, p, p]
+    ny, nx = rows.shape[:2]
     texels = index.texels.reshape(eh * ew, -1)
-    query = texels[window_src].reshape(len(ys) * len(xs), -1)
+    query = texels[window_src].reshape(ny * nx, -1)
     origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
-                 + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(len(ys), len(xs), p, p)
-    cost = (distance / (p * p)).reshape(len(ys), len(xs))
+                 + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(ny, nx, p, p)
+    cost = (distance / (p * p)).reshape(ny, nx)
     return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng, keep)
+
+
+def jittered_windows(h: int, w: int, patch: int, wrap: bool, rng: np.random.Generator):
+    """Rows and columns ``[ny, nx, patch]`` of the output windows of one round: a grid half a window apart at a
+    random offset, each window then shifted by its own random 0 .. stride - 1 texels down and across (a window
+    flush with an unwrapped border stays there).  Every texel stays covered (the window one grid step up and left
+    of it reaches it whatever its shift), and the cuts the vote leaves along window sides no longer line up into
+    long straight seams from window to window."""
+    stride = max(1, patch // 2)
+    ys = window_starts(h, patch, stride, int(rng.integers(stride)), wrap)
+    xs = window_starts(w, patch, stride, int(rng.integers(stride)), wrap)
+    shape = (len(ys), len(xs))
+    top = ys[:, None] + rng.integers(0, stride, shape)
+    left = xs[None, :] + rng.integers(0, stride, shape)
+    if not wrap:
+        top = np.where(ys[:, None] == 0, 0, np.minimum(top, max(0, h - patch)))
+        left = np.where(xs[None, :] == 0, 0, np.minimum(left, max(0, w - patch)))
+    steps = np.arange(patch)
+    return (top[..., None] + steps) % h, (left[..., None] + steps) % w
 
 
 def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray, src: np.ndarray,
@@ -241,7 +295,7 @@ def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.
     appearance agrees (a per-texel choice would scatter fragments of windows)."""
     h, w = src.shape
     n = h * w
-    target = np.broadcast_to(rows[:, None, :, None] * w + cols[None, :, None, :], proposals.shape).ravel()
+    target = (rows[..., :, None] * w + cols[..., None, :]).ravel()
     per_texel = np.broadcast_to(cost[:, :, None, None], proposals.shape).ravel()
     order = np.argsort(target, kind="stable")
     target = target[order]
@@ -253,7 +307,7 @@ def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.
     data = np.full((n, slots), np.inf, np.float32)
     data[target, slot] = per_texel[order]
     votes[:, -1] = src.ravel()
-    data[:, -1] = data[:, :-1].min(axis=1)
+    data[:, -1] = np.minimum(data[:, :-1].min(axis=1), np.float32(1e30))  # a texel no window covers keeps its source
     start = np.argmin(data + np.float32(1e-6) * rng.random(data.shape, np.float32), axis=1)
     labels = keep(votes[np.arange(n), start].reshape(h, w))
     return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap, keep)

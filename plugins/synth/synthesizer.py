@@ -45,10 +45,15 @@ REFINE = 2
 #: Default weight of the refinement's occurrence term: at 1 an overused window costs as much as a random one, which
 #: cuts seams where the plain optimisation would keep copying the same well-matched windows.
 OCCURRENCE = 1.0
+#: Default coarser scales the refinement goes through first: at 2 its 8 x 8 windows also span 16 and 32 texels, so
+#: areas and copied blocks larger than a fine window are matched and cut as a whole (square patchworks of colour
+#: areas are gone; seams drop on every exemplar measured).
+SCALES = 2
 
 
-def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE) -> list[Param]:
-    """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds and the ``occurrence`` weight."""
+def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES) -> list[Param]:
+    """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
+    coarser ``scales`` refined first."""
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
                   "overlapping 8 x 8 windows matched to the exemplar (with the occurrence term), whole windows kept "
                   "where they match best and cut where the appearance agrees, then corrections; seams follow the "
@@ -56,16 +61,20 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE) -> li
                   low=0, high=20),
             Param("occurrence", "float", occurrence, "weight of the refinement's occurrence term: an exemplar window "
                   "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
-                  "squared distance of two random windows (0: plain texture optimisation)", low=0.0)]
+                  "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
+            Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
+                  "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least 32 windows' texels "
+                  "across there: structures larger than a window (colour areas, the sides of copied blocks) are "
+                  "matched and cut as a whole (0: the full resolution only)", low=0, high=6)]
 
 
-def refined(ctx, features, coords, *, refine: int, occurrence: float, seed: int):
+def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`), with its time noted."""
     import time
 
     from .refine import refine_map
     start = time.perf_counter()
-    out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed)
+    out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 
