@@ -5,7 +5,8 @@ A map names, per output texel, the exemplar texel it copies; its output is the e
 gathered through it.  :func:`refine_map` improves the map where the eye looks first, in two alternating steps:
 
 1. *Texture optimisation* (Kwatra et al. 2005) with an *occurrence* term (Kaspar et al. 2015): the output is cut
-   into overlapping ``patch x patch`` windows (half a window apart, the grid jittered at each iteration); each
+   into overlapping ``patch x patch`` windows (half a window apart, the grid at a random offset each iteration
+   and each window shifted by its own 0 .. stride - 1 texels, so that cuts along window sides do not line up); each
    window is matched to the exemplar window whose appearance is nearest (an approximate k-d tree search on
    PCA-reduced windows; the window it copies now is always a candidate; candidates ranked by their full distance)
    plus a penalty for exemplar windows already used more than their fair share.  A window that copies a whole
@@ -19,6 +20,9 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 2. *Corrections* (as in Lefebvre & Hoppe 2005): each texel, in a random half of the texels per pass, may take
    the continuation of a 4-neighbour's source (or keep its own), whichever makes its neighbourhood (itself and
    its 4-neighbours) most like the exemplar's around that source.  Seams then follow the content instead of a grid.
+
+With ``scales`` > 0 both steps run first on half-resolution versions of the map and the exemplar (recursively),
+so that an 8 x 8 window also spans 16 and 32 texels and structures larger than a fine window are matched whole.
 
 Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration.
 """
@@ -54,7 +58,8 @@ SWEEPS = 4
 #: Window positions sampled to fit the window PCA.
 PCA_SAMPLE = 4000
 
-_analyses = ContentCache(4)
+#: Window indices kept: one per exemplar, patch and scale (three scales of four exemplars).
+_analyses = ContentCache(12)
 
 
 @dataclasses.dataclass(frozen=True)

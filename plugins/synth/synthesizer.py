@@ -63,8 +63,8 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
                   "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
-                  "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least 32 windows' texels "
-                  "across there: structures larger than a window (colour areas, the sides of copied blocks) are "
+                  "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows (32 "
+                  "texels) across there: structures larger than a window (colour areas, the sides of copied blocks) are "
                   "matched and cut as a whole (0: the full resolution only)", low=0, high=6)]
 
 
