@@ -1,6 +1,7 @@
 """neural.fit and NeuralModel: a learned basis (latent code per texel, shared decoder)."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -124,9 +125,145 @@ def test_bad_parameters_and_damaged_models_are_refused_with_the_reason():
 
 
 
-def test_web_export_refuses_the_model_with_the_reason(tmp_path):
-    with pytest.raises(BtforgeInputError, match="NeuralModel"):
-        btforge.stage("web.export")(model=fitted(capture(n=10, size=(4, 4))), dir=str(tmp_path / "web"))
+OPENLIME = {"decoder": "light", "light_order": 0, "latent": 9, "layers": 2}   # NeuralRTI's network
+PROBE = np.array([[0, 0, 1.0], [0.6, 0.2, 0.77], [-0.5, -0.5, 0.71], [0.1, 0.9, 0.42], [-0.95, 0.1, 0.3]])
+PROBE = PROBE / np.linalg.norm(PROBE, axis=1, keepdims=True)
+
+
+def quantisation_bound(model, steps: np.ndarray) -> np.ndarray:
+    """Per (light, texel, channel), how far the display value can move when every code moves by up to half its
+    8-bit step: the sum over codes of the larger secant change over +-half a step (first order in each code;
+    exact for a decoder linear in the codes)."""
+    codes = model.codes.reshape(-1, model.latent).astype(np.float64)
+    base = model.display_values(codes.astype(np.float32), PROBE).astype(np.float64)
+    bound = np.zeros_like(base)
+    for k, half in enumerate(steps / 2):
+        moved = [model.display_values((codes + sign * half * np.eye(model.latent)[k]).astype(np.float32), PROBE)
+                 for sign in (1, -1)]
+        bound += np.maximum(*(np.abs(m - base) for m in moved))
+    return bound
+
+
+@pytest.mark.parametrize("decoder", ["harmonics", "light"])
+def test_web_export_round_trips_within_the_code_quantisation(tmp_path, decoder):
+    model = fitted(capture(n=20, size=(12, 10)), decoder=decoder, epochs=20)
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "web"))
+    back = btforge.stage("web.read")(path=str(tmp_path / "web"))["model"]
+    assert isinstance(back, NeuralModel) and np.array_equal(back.weights, model.weights)   # JSON keeps float32
+    assert (back.layer_sizes, back.light_order, back.decoder) == (model.layer_sizes, model.light_order, decoder)
+    steps = np.ptp(model.codes, axis=(0, 1)) / 255.0
+    assert np.all(np.abs(back.codes - model.codes) <= steps / 2 * (1 + 1e-5) + 1e-7)
+    # the relit display values move by at most what half a step of every code can move them (1.5x for the
+    # decoder's curvature across a step); clipping and the sRGB decode only shrink differences in display space
+    flat = back.codes.reshape(-1, back.latent)
+    moved = np.abs(back.display_values(flat, PROBE) - model.display_values(model.codes.reshape(flat.shape), PROBE))
+    assert np.all(moved <= 1.5 * quantisation_bound(model, steps) + 1e-5)
+    before, after = (linear_to_srgb(m.evaluate(PROBE)) for m in (model, back))
+    assert np.abs(after - before).max() <= 1.5 * quantisation_bound(model, steps).max() + 1e-5
+    assert 10 * np.log10(1 / np.mean((after - before) ** 2)) >= 45
+
+
+def test_openlime_layout_of_neuralrti_networks(tmp_path):
+    model = fitted(capture(n=20, size=(8, 6)), **OPENLIME)
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "nrti"), format="jpg")
+    info = json.loads((tmp_path / "nrti" / "info.json").read_text())
+    assert sorted(p.name for p in (tmp_path / "nrti").iterdir()) == ["info.json", "plane_1.jpg", "plane_2.jpg",
+                                                                       "plane_3.jpg"]
+    assert (info["type"], info["colorspace"], info["planes"], info["samples"]) == ("neural", "rgb", 9, 16)
+    assert np.array(info["min"]).shape == (3, 3) and np.array(info["max"]).shape == (3, 3)
+    # ShaderNeural's uniforms: layer1 c x n, layer2 n x n, layer3 3 x n (c = 9 + 2 padded to 12, n = 16)
+    assert [len(w) for w in info["weights"]] == [16 * 12, 16 * 16, 3 * 16]
+    assert [len(b) for b in info["biases"]] == [16, 16, 3] and info["btforge"]["openlime"]
+    w1 = np.array(info["weights"][0]).reshape(16, 12)   # output-major: row o holds the inputs of unit o
+    np.testing.assert_array_equal(w1[:, :11], model.layers()[0][0].T)
+    assert not w1[:, 11:].any()
+    harmonics = fitted(capture(n=20, size=(8, 6)))
+    btforge.stage("web.export")(model=harmonics, dir=str(tmp_path / "sh"))
+    assert not json.loads((tmp_path / "sh" / "info.json").read_text())["btforge"]["openlime"]
+
+
+def test_a_layout_without_btforge_fields_reads_as_neuralrti(tmp_path):
+    model = fitted(capture(n=20, size=(8, 6)), **OPENLIME)
+    btforge.stage("web.export")(model=model, dir=str(tmp_path / "w"))
+    info = json.loads((tmp_path / "w" / "info.json").read_text())
+    del info["btforge"]
+    (tmp_path / "w" / "info.json").write_text(json.dumps(info))
+    back = btforge.stage("web.read")(path=str(tmp_path / "w"))["model"]
+    assert (back.decoder, back.light_order, back.layer_sizes) == ("light", 0, (11, 16, 16, 3))
+    assert np.array_equal(back.weights, model.weights)
+
+
+code_values = st.floats(-1e30, 1e30, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(["constant", "huge", "mixed", "tiny"]), value=code_values, seed=st.integers(0, 99))
+def test_code_quantisation_is_exact_to_half_a_step_and_finite_on_hard_codes(tmp_path, kind, value, seed):
+    import tempfile
+    from btforge.plugins.web.layout import read_web, write_web
+    rng = np.random.default_rng(seed)
+    codes = {"constant": np.full((3, 4, 5), value),
+             "huge": rng.uniform(-1, 1, (3, 4, 5)) * abs(value),
+             "mixed": np.concatenate([np.full((3, 4, 2), value), rng.normal(0, 1e6, (3, 4, 3))], axis=2),
+             "tiny": value * 1e-35 + rng.normal(0, 1e-30, (3, 4, 5))}[kind].astype(np.float32)
+    layers = [[rng.normal(0, 0.3, (5, 8)).astype(np.float32), np.zeros(8, np.float32)],
+              [rng.normal(0, 0.3, (8, 12)).astype(np.float32), np.full(12, 0.1, np.float32)]]
+    from btforge.plugins.neural.network import pack_layers
+    model = NeuralModel(codes, pack_layers(layers), (5, 8, 12), 2, "harmonics")
+    with tempfile.TemporaryDirectory(dir=tmp_path) as folder:
+        write_web(model, folder)
+        back = read_web(folder)
+    span = np.ptp(codes.astype(np.float64), axis=(0, 1))
+    assert np.isfinite(back.codes).all()
+    # half a step, plus float32 rounding of the code and of min + byte / 255 * span
+    tolerance = span / 510 + 4 * np.finfo(np.float32).eps * np.abs(codes.astype(np.float64)).max(axis=(0, 1)) + 1e-37
+    assert np.all(np.abs(back.codes.astype(np.float64) - codes) <= tolerance)
+    if kind == "constant":
+        assert np.array_equal(back.codes, codes)
+    relit = back.evaluate(PROBE)
+    assert np.isfinite(relit).all() and relit.min() >= 0 and relit.max() <= 1
+
+
+def broken_layout(tmp_path, change) -> Path:
+    model = fitted(capture(n=10, size=(6, 5)))
+    folder = tmp_path / "w"
+    btforge.stage("web.export")(model=model, dir=str(folder))
+    info = json.loads((folder / "info.json").read_text())
+    change(info, folder)
+    (folder / "info.json").write_text(json.dumps(info))
+    return folder
+
+
+@pytest.mark.parametrize("change,expected", [
+    (lambda info, f: info.pop("weights"), ["'weights': expected 3 lists", "found none"]),
+    (lambda info, f: info["weights"][1].pop(), ["'weights[1]': expected 256 finite numbers", "16 outputs x 16 inputs",
+                                                 "found 255 values"]),
+    (lambda info, f: info["btforge"].update(layer_sizes=[6, 16, 16, 3]),
+     ["btforge.layer_sizes", "27 outputs, found 6 to 3"]),
+    (lambda info, f: info.update(planes=7, samples="fifty"), ["'planes'", "'samples'"]),
+    (lambda info, f: info["biases"][0].__setitem__(0, "x"), ["'biases[0]'"]),
+    (lambda info, f: info.update(min=[[0, 0, 0]]), ["'min': expected 2 [r, g, b] triples"]),
+])
+def test_malformed_neural_layouts_are_named_with_the_fix(tmp_path, change, expected):
+    from btforge.plugins.web.layout import read_web
+    folder = broken_layout(tmp_path, change)
+    with pytest.raises(BtforgeInputError) as err:
+        read_web(folder)
+    text = str(err.value)
+    assert str(folder / "info.json") in text and "export the model again" in text
+    for part in expected:
+        assert part in text, (part, text)
+
+
+def test_a_code_image_of_the_wrong_size_is_named(tmp_path):
+    from PIL import Image
+    from btforge.plugins.web.layout import read_web
+    folder = broken_layout(tmp_path, lambda info, f: Image.new("RGB", (3, 3)).save(f / "plane_2.png"))
+    with pytest.raises(BtforgeInputError, match=r"plane_2.png.*expected 5 x 6 pixels.*found 3 x 3"):
+        read_web(folder)
+    (folder / "plane_2.png").unlink()
+    with pytest.raises(BtforgeInputError, match="plane_2.png"):
+        read_web(folder)
 
 
 def test_relight_stage_and_synthesis_take_the_model():

@@ -23,31 +23,12 @@ import numpy as np
 
 from btforge.buffers import ReflectanceModel, check_array, frozen, scattered_lookup, unit_directions
 from btforge.errors import BtforgeInputError
-from btforge.numerics import real_sh, texel_chunks
+from btforge.numerics import texel_chunks
 
+from .lightinput import DECODERS, MAX_LIGHT_ORDER, harmonics, light_features, n_light_features
 from .network import decoder_layers_forward, elu, unpack_layers
 
-MAX_LIGHT_ORDER = 8
-DECODERS = ("light", "harmonics")
-
-
-def light_features(lights: np.ndarray, light_order: int) -> np.ndarray:
-    """The decoder's light input ``[L, F]`` float32 for unit ``lights [L, 3]`` (see the module docs)."""
-    lights = np.asarray(lights, np.float64).reshape(-1, 3)
-    if light_order == 0:
-        return lights[:, :2].astype(np.float32)
-    return real_sh(light_order, lights)[:, 1:].astype(np.float32)  # the constant band adds nothing to a bias
-
-
-def harmonics(lights: np.ndarray, light_order: int) -> np.ndarray:
-    """Real spherical harmonics of bands 0 .. ``light_order`` - 1 at ``lights [L, 3]``, ``[L, N^2]`` float32,
-    scaled by sqrt(4 pi) so that the constant one is 1 (a texel's first coefficient is then its mean value)."""
-    return (real_sh(light_order, np.asarray(lights, np.float64).reshape(-1, 3)) * np.sqrt(4 * np.pi)).astype(np.float32)
-
-
-def n_light_features(light_order: int) -> int:
-    return 2 if light_order == 0 else light_order ** 2 - 1
-
+__all__ = ["NeuralModel", "DECODERS", "MAX_LIGHT_ORDER", "harmonics", "light_features", "n_light_features"]
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class NeuralModel(ReflectanceModel):
@@ -58,6 +39,8 @@ class NeuralModel(ReflectanceModel):
     type_name: ClassVar[str] = "NeuralModel"
     texel_fields: ClassVar[tuple[str, ...]] = ("codes",)
     blendable: ClassVar[bool] = False  # a blend of two codes does not decode to the blend of their functions
+    web_types: ClassVar[tuple[str, ...]] = ("neural",)   # web layouts web.read reads into this class
+    web_colorspaces: ClassVar[tuple[str, ...]] = ("rgb",)
 
     codes: np.ndarray
     weights: np.ndarray
@@ -111,12 +94,16 @@ class NeuralModel(ReflectanceModel):
         out = np.empty((len(lights), codes.shape[0], len(self.channel_names)), np.float32)
         layers = self.layers()
         for chunk in texel_chunks(codes.shape[0], 4 * 4 * max(max(self.layer_sizes), len(lights))):
-            if self.decoder == "light":
-                out[:, chunk] = evaluate_light_numpy(codes[chunk], light_features(lights, self.light_order), layers)
-            else:
-                coeffs = self.coefficients(codes[chunk], layers)
-                out[:, chunk] = decode_display(np.moveaxis(harmonics(lights, self.light_order) @ coeffs, 1, 0))
+            out[:, chunk] = decode_display(self.display_values(codes[chunk], lights, layers))
         return out.reshape(1, len(lights), self.height, self.width, len(self.channel_names))
+
+    def display_values(self, codes: np.ndarray, lights: np.ndarray, layers=None) -> np.ndarray:
+        """The decoder's display values ``[L, T, C]`` float32 of ``codes [T, K]`` at unit ``lights [L, 3]``,
+        before clipping."""
+        layers = layers or self.layers()
+        if self.decoder == "light":
+            return display_light_numpy(codes, light_features(lights, self.light_order), layers)
+        return np.moveaxis(harmonics(lights, self.light_order) @ self.coefficients(codes, layers), 1, 0)
 
     def evaluate_texels(self, rows: np.ndarray, cols: np.ndarray, lights_local: np.ndarray,
                         views_local: np.ndarray | None = None) -> np.ndarray:
@@ -134,6 +121,27 @@ class NeuralModel(ReflectanceModel):
         first = elu(codes @ w1[:k] + features @ w1[k:] + b1)
         return decode_display(decoder_layers_forward(layers[1:], first))
 
+    def write_web_layout(self, folder, image_format: str, quality: int):
+        """Write the model in relight's web layout (see :mod:`.weblayout`); returns the files written."""
+        from .weblayout import write_neural_web
+        return write_neural_web(self, folder, image_format, quality)
+
+    @staticmethod
+    def web_info_problems(info: dict) -> list[str]:
+        from .weblayout import web_info_problems
+        return web_info_problems(info)
+
+    @staticmethod
+    def web_plane_ranges(info: dict):
+        """(planes, low, span, first image index) of a checked neural info.json: value = byte / 255 * span + low."""
+        from .weblayout import FIRST_PLANE, plane_ranges
+        return plane_ranges(info) + (FIRST_PLANE,)
+
+    @classmethod
+    def from_web(cls, info: dict, planes: np.ndarray) -> "NeuralModel":
+        from .weblayout import model_from_web
+        return model_from_web(cls, info, planes)
+
     def coefficients(self, codes: np.ndarray, layers=None) -> np.ndarray:
         """A harmonics decoder's spherical-harmonic coefficients ``[T, N^2, C]`` of ``codes [T, K]``."""
         layers = layers or self.layers()
@@ -142,17 +150,19 @@ class NeuralModel(ReflectanceModel):
 
 
 def decode_display(value: np.ndarray) -> np.ndarray:
+    """Linear radiance of display values, clipped to [0, 1] first (fmin / fmax: a NaN becomes 0, as in
+    neural.cl)."""
     from btforge.buffers import srgb_to_linear
-    return srgb_to_linear(np.clip(value, 0.0, 1.0)).astype(np.float32)
+    return srgb_to_linear(np.fmin(np.fmax(value, 0.0), 1.0)).astype(np.float32)
 
 
-def evaluate_light_numpy(codes: np.ndarray, features: np.ndarray, layers) -> np.ndarray:
-    """Linear radiance ``[L, T, C]`` of ``codes [T, K]`` at lights of ``features [L, F]``: the first layer's code
-    part once per texel, its light part once per light."""
+def display_light_numpy(codes: np.ndarray, features: np.ndarray, layers) -> np.ndarray:
+    """Display values ``[L, T, C]`` (not clipped) of ``codes [T, K]`` at lights of ``features [L, F]``: the
+    first layer's code part once per texel, its light part once per light."""
     (w1, b1), k = layers[0], codes.shape[1]
     code_part = codes @ w1[:k]
     light_part = features @ w1[k:] + b1
     out = np.empty((len(features), codes.shape[0], layers[-1][0].shape[1]), np.float32)
     for i in range(len(features)):
         out[i] = decoder_layers_forward(layers[1:], elu(code_part + light_part[i]))
-    return decode_display(out)
+    return out

@@ -25,14 +25,20 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
     side_effects=True,
 )
 def export_web(ctx, model, *, dir, format, quality):
-    """Write a PTM (rgb, lrgb), an SH model (light order <= 3), an HSH model or an ``hsh.fit`` / ``rbf.fit`` /
-    ``bilinear.fit`` model in relight's web layout.
+    """Write a PTM (rgb, lrgb), an SH model (light order <= 3), an HSH model, an ``hsh.fit`` / ``rbf.fit`` /
+    ``bilinear.fit`` model or a ``neural.fit`` model in relight's web layout.
 
     ``info.json`` with the basis, colour space and a scale and bias per coefficient plane, and the planes packed
     three to a PNG or JPEG, as OpenLIME and ``btforge view`` read them; ``rbf`` and ``bilinear`` add their light
     table (``basis``, 8 bits) and its lights or grid resolution.  Every plane's scale and bias cover its
     whole range, so with PNG the export is exact up to 8-bit rounding (relight's exporter clips at a quantile).
     Models of linear radiance (SH fits, linear PTMs) are marked ``"btforge": {"transfer": "linear"}``.
+
+    A ``neural.fit`` model is written as OpenLIME's neural layer reads it (``"type": "neural"``): its latent
+    codes as 8-bit images ``plane_1 ..`` (three codes each, ``min`` / ``max`` per image covering the whole range)
+    and the decoder's weights in info.json.  OpenLIME opens those of NeuralRTI's network (``decoder: light``,
+    ``light_order: 0``, ``latent: 9``, ``layers: 2``) exported as ``format: jpg``; ``btforge view`` and
+    ``web.read`` open every neural export, the harmonics decoder's too.
     """
     written = write_web(model, ctx.paths.output(dir), format, quality)
     ctx.note("files", len(written))
@@ -52,19 +58,19 @@ def _model_precheck(params, paths):
 
 
 @declare_stage("web.read", outputs={"model": "ReflectanceModel"},
-               params=[Param("path", "path", REQUIRED, "a web layout (its folder or info.json: ptm, hsh, sh, rbf "
-                             "or bilinear) "
+               params=[Param("path", "path", REQUIRED, "a web layout (its folder or info.json: ptm, hsh, sh, rbf, "
+                             "bilinear or neural) "
                              "or an HSH .rti file")],
                precheck=_model_precheck)
 def web_read(ctx, *, path):
-    """Read a model saved for viewers: relight's web layout (PTM, HSH, SH, RBF, bilinear) or an RTIBuilder HSH
-    ``.rti`` file.
+    """Read a model saved for viewers: relight's web layout (PTM, HSH, SH, RBF, bilinear, neural) or an RTIBuilder
+    HSH ``.rti`` file.
 
     Outputs
     -------
     model : ReflectanceModel
-        A PTMModel, HSHModel, SHModel or LightTableModel (rbf, bilinear); PTM, HSH, RBF and bilinear layouts hold
-        display values (``space: srgb``).
+        A PTMModel, HSHModel, SHModel, LightTableModel (rbf, bilinear) or NeuralModel; PTM, HSH, RBF, bilinear
+        and neural layouts hold display values (``space: srgb``).
     """
     target = ctx.paths.input(path)
     model = read_rti(target) if target.suffix.lower() == ".rti" else read_web(target)

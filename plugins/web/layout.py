@@ -14,7 +14,9 @@ OpenLIME's order:
   usual normalisations);
 - ``hsh``: hemispherical harmonics (see :mod:`.hsh`);
 - ``rbf`` and ``bilinear`` (colorspace ``mrgb`` / ``mycc``): a light table in ``basis``, laid out and read by the
-  model class that declares them in ``web_types`` (``btforge.plugins.bases.weblayout``).
+  model class that declares them in ``web_types`` (``btforge.plugins.bases.weblayout``);
+- ``neural``: latent codes and a decoder network, OpenLIME's neural layout (``btforge.plugins.neural.weblayout``):
+  the model class writes and checks it itself (``write_web_layout``, ``web_info_problems``).
 
 Each plane's scale and bias cover its whole range (relight's exporter clips at a quantile), so the export is
 exact up to the 8-bit rounding.  A model of linear radiance (every SH fit, a PTM fitted in ``space: linear``)
@@ -111,21 +113,16 @@ def quantize_planes(planes: np.ndarray) -> tuple[np.ndarray, list[float], list[f
     return levels.astype(np.uint8), [float(s) for s in scale], [float(b) for b in bias]
 
 
-def write_web(model, folder, image_format: str = "png", quality: int = 95) -> list[Path]:
-    """Write ``info.json`` and ``plane_0 .. plane_{n-1}`` images; returns the files written."""
+def write_plane_images(folder: Path, levels: np.ndarray, image_format: str, quality: int,
+                       first: int = 0) -> list[Path]:
+    """Bytes ``[P, H, W]`` as images ``plane_{first} ..``, three planes to an image (zeros fill the last)."""
     from PIL import Image
-    if image_format not in FORMATS:
-        raise BtforgeInputError("web.export 'format'", f"expected png or jpg, found {image_format!r}")
-    info, planes = _model_planes(model)
-    material = info.pop("material", {})
-    levels, scale, bias = quantize_planes(planes)
-    n = len(planes)
+    n = len(levels)
     padded = np.concatenate([levels, np.zeros(((-n) % 3,) + levels.shape[1:], np.uint8)])
-    folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     for j in range(len(padded) // 3):
-        target = folder / f"plane_{j}.{image_format}"
+        target = folder / f"plane_{first + j}.{image_format}"
         image = Image.fromarray(np.ascontiguousarray(padded[3 * j:3 * j + 3].transpose(1, 2, 0)), "RGB")
         with atomic_write(target) as handle:
             if image_format == "jpg":
@@ -133,8 +130,23 @@ def write_web(model, folder, image_format: str = "png", quality: int = 95) -> li
             else:
                 image.save(handle, format="PNG", compress_level=1)  # speed over size: PNG is for exactness
         written.append(target)
-    scale += [1.0] * (len(padded) - n)
-    bias += [0.0] * (len(padded) - n)
+    return written
+
+
+def write_web(model, folder, image_format: str = "png", quality: int = 95) -> list[Path]:
+    """Write ``info.json`` and ``plane_0 .. plane_{n-1}`` images; returns the files written."""
+    if image_format not in FORMATS:
+        raise BtforgeInputError("web.export 'format'", f"expected png or jpg, found {image_format!r}")
+    if hasattr(model, "write_web_layout"):  # a plugin's model with a layout of its own (neural)
+        return model.write_web_layout(Path(folder), image_format, quality)
+    info, planes = _model_planes(model)
+    material = info.pop("material", {})
+    levels, scale, bias = quantize_planes(planes)
+    n = len(planes)
+    folder = Path(folder)
+    written = write_plane_images(folder, levels, image_format, quality)
+    scale += [1.0] * (3 * len(written) - n)
+    bias += [0.0] * (3 * len(written) - n)
     content = {"width": model.width, "height": model.height, "format": image_format, **info, "nplanes": n,
                "quality": quality, "materials": [{**material, "scale": scale, "bias": bias}]}
     atomic_write_text(folder / "info.json", json.dumps(content, indent=1) + "\n")
@@ -160,18 +172,50 @@ def read_info(path) -> dict:
                                 "give an exported folder or its info.json") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise BtforgeInputError(str(path), f"is not valid JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise BtforgeInputError(str(path), f"expected a JSON object, found {type(info).__name__}",
+                                "export the model again (relight or web.export)")
+    own = layout_class(info["type"]) if isinstance(info.get("type"), str) else None
+    own = own if hasattr(own, "web_info_problems") else None
+    problems = _size_problems(info) + (own.web_info_problems(info) if own else _plane_problems(info))
+    if info.get("format", "jpg") not in FORMATS:
+        problems.append(f"'format' {info.get('format')!r} is not jpg or png")
+    if problems:
+        raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or web.export)")
+    info["_folder"] = str(path.parent)
+    if own:
+        count, low, span, first = own.web_plane_ranges(info)
+    else:  # a coefficient is (byte / 255 - bias) * scale
+        count, first = info["nplanes"], 0
+        span = np.asarray(info["materials"][0]["scale"][:count], np.float64)
+        low = -np.asarray(info["materials"][0]["bias"][:count], np.float64) * span
+    info["_planes"] = {"count": count, "low": low, "span": span, "first": first}
+    return info
+
+
+def _size_problems(info: dict) -> list[str]:
     problems = []
-    for key, kind in (("width", int), ("height", int), ("nplanes", int), ("type", str), ("colorspace", str),
-                      ("materials", list)):
+    for key, kind in (("width", int), ("height", int), ("type", str)):
         if not isinstance(info.get(key), kind):
             problems.append(f"'{key}' missing or not {kind.__name__}")
-    for key, top in (("width", MAX_SIDE), ("height", MAX_SIDE), ("nplanes", MAX_PLANES)):
-        if isinstance(info.get(key), int) and not 1 <= info[key] <= top:
-            problems.append(f"'{key}' must be 1 to {top}, found {info[key]}")
-    if not problems:
+    for key in ("width", "height"):
+        if isinstance(info.get(key), int) and not 1 <= info[key] <= MAX_SIDE:
+            problems.append(f"'{key}' must be 1 to {MAX_SIDE}, found {info[key]}")
+    return problems
+
+
+def _plane_problems(info: dict) -> list[str]:
+    """What is wrong with the plane fields of a layout of coefficient planes (ptm, hsh, sh, rbf, bilinear)."""
+    problems = []
+    for key, kind in (("nplanes", int), ("colorspace", str), ("materials", list)):
+        if not isinstance(info.get(key), kind):
+            problems.append(f"'{key}' missing or not {kind.__name__}")
+    if isinstance(info.get("nplanes"), int) and not 1 <= info["nplanes"] <= MAX_PLANES:
+        problems.append(f"'nplanes' must be 1 to {MAX_PLANES}, found {info['nplanes']}")
+    if not problems and isinstance(info.get("type"), str):
         plugin = layout_class(info["type"]) if info["type"] not in ("ptm", "hsh", "sh") else None
         if info["type"] not in ("ptm", "hsh", "sh") and plugin is None:
-            problems.append(f"'type' {info['type']!r} is not ptm, hsh, sh, rbf or bilinear")
+            problems.append(f"'type' {info['type']!r} is not ptm, hsh, sh, rbf, bilinear or neural")
         elif plugin is not None and info["colorspace"] not in plugin.web_colorspaces:
             problems.append(f"colorspace {info['colorspace']!r} with type {info['type']!r} is not supported "
                             f"({' or '.join(plugin.web_colorspaces)})")
@@ -185,12 +229,7 @@ def read_info(path) -> dict:
             if not isinstance(values, list) or len(values) < info["nplanes"] or not all(
                     isinstance(v, (int, float)) and math.isfinite(v) for v in values):
                 problems.append(f"materials[0].{key} must list {info['nplanes']} finite numbers")
-        if info.get("format", "jpg") not in FORMATS:
-            problems.append(f"'format' {info.get('format')!r} is not jpg or png")
-    if problems:
-        raise BtforgeInputError(str(path), "; ".join(problems), "export the model again (relight or web.export)")
-    info["_folder"] = str(path.parent)
-    return info
+    return problems
 
 
 def layout_class(kind: str):
@@ -204,15 +243,14 @@ def layout_class(kind: str):
 
 
 def _read_planes(info: dict) -> np.ndarray:
+    """The decoded planes ``[count, H, W]`` float32 of a checked layout (``info['_planes']``)."""
     from PIL import Image
-    folder, fmt = Path(info["_folder"]), info.get("format", "jpg")
-    n, h, w = info["nplanes"], info["height"], info["width"]
+    folder, fmt, spec = Path(info["_folder"]), info.get("format", "jpg"), info["_planes"]
+    n, h, w = spec["count"], info["height"], info["width"]
     planes = np.empty((n, h, w), np.float32)  # 8-bit steps are far above float32 rounding
-    scale = np.asarray(info["materials"][0]["scale"], np.float64)
-    bias = np.asarray(info["materials"][0]["bias"], np.float64)
     lut = np.arange(256) / 255.0
     for j in range(-(-n // 3)):
-        path = folder / f"plane_{j}.{fmt}"
+        path = folder / f"plane_{spec['first'] + j}.{fmt}"
         try:
             with Image.open(path) as image:
                 pixels = np.asarray(image.convert("RGB"))
@@ -221,11 +259,12 @@ def _read_planes(info: dict) -> np.ndarray:
                                     "every plane_J image the info.json implies must be present") from None
         if pixels.shape[:2] != (h, w):
             raise BtforgeInputError(str(path), f"expected {w} x {h} pixels as info.json says, found "
-                                    f"{pixels.shape[1]} x {pixels.shape[0]}")
+                                    f"{pixels.shape[1]} x {pixels.shape[0]}",
+                                    "export the model again: every plane image has the size info.json gives")
         for c in range(3):
             p = 3 * j + c
             if p < n:
-                planes[p] = ((lut - bias[p]) * scale[p]).astype(np.float32)[pixels[..., c]]
+                planes[p] = (lut * spec["span"][p] + spec["low"][p]).astype(np.float32)[pixels[..., c]]
     return planes
 
 
@@ -239,7 +278,7 @@ def read_web(path):
     linear = (info.get("btforge") or {}).get("transfer") == "linear"
     kind, space = info["type"], "linear" if linear else "srgb"
     if kind not in ("ptm", "hsh", "sh"):
-        return layout_class(kind).from_web(info, planes)
+        return layout_class(kind).from_web(info, planes)   # rbf, bilinear, neural: their plugin's class
     if kind == "ptm":
         inverse = np.argsort(PTM_ORDER)
         if info["colorspace"] == "rgb":
@@ -275,6 +314,7 @@ def _expect_planes(info, n):
 def describe_web(path) -> dict:
     """Facts of a web layout for ``btforge info``."""
     info = read_info(path)
-    return {"kind": "relight web layout", "type": info["type"], "colorspace": info["colorspace"],
-            "size": [info["width"], info["height"]], "planes": info["nplanes"], "format": info.get("format", "jpg"),
+    return {"kind": "relight web layout", "type": info["type"], "colorspace": info.get("colorspace", "rgb"),
+            "size": [info["width"], info["height"]], "planes": info["_planes"]["count"],
+            "format": info.get("format", "jpg"),
             "transfer": (info.get("btforge") or {}).get("transfer", "srgb")}
