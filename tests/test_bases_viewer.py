@@ -1,4 +1,4 @@
-"""btforge view shows the hsh, rbf and bilinear fits as relight shows them (headless Chromium; skipped, with the
+"""btforge view shows the hsh, rbf, bilinear and neural fits as relight shows them (headless Chromium; skipped, with the
 reason, without a browser or Playwright)."""
 from __future__ import annotations
 
@@ -18,7 +18,14 @@ from test_web_export import capture  # noqa: E402
 
 FITS = {"hsh": ("hsh.fit", {}), "hsh_ycc": ("hsh.fit", {"colorspace": "ycc"}), "rbf": ("rbf.fit", {}),
         "yrbf": ("rbf.fit", {"colorspace": "ycc", "planes": 12}), "bilinear": ("bilinear.fit", {}),
-        "ybilinear": ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 6})}
+        "ybilinear": ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 6}),
+        # neural.fit: the harmonics decoder (default), NeuralRTI's network (as OpenLIME opens it) and a light
+        # decoder of harmonic light features with a code of 5 (codes and layers both padded)
+        "neural": ("neural.fit", {"hidden": 24, "epochs": 5, "texels": 2000}),
+        "nrti": ("neural.fit", {"decoder": "light", "light_order": 0, "latent": 9, "layers": 2, "hidden": 24,
+                                "epochs": 5, "texels": 2000}),
+        "neural_l3": ("neural.fit", {"decoder": "light", "light_order": 3, "latent": 5, "hidden": 18, "epochs": 5,
+                                     "texels": 2000})}
 
 
 @pytest.fixture(scope="module")

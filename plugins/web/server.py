@@ -74,8 +74,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         route = unquote(urlparse(self.path).path)
         if route in ("/", "/index.html"):
             return self._file(STATIC / "index.html")
-        if route == "/viewer.js":
-            return self._file(STATIC / "viewer.js")
+        if route in ("/viewer.js", "/neural.js"):
+            return self._file(STATIC / route[1:])
         if route == "/favicon.ico":
             return self._send(204, b"", "image/x-icon")
         if route == "/models.json":

@@ -1,6 +1,7 @@
 // btforge view: relight a model in relight's web layout (info.json + coefficient planes) with WebGL.
 // The decoding follows the layout: coefficient = (byte / 255 - bias) * scale, planes packed three per image,
 // relit value = sum of coefficient x basis(light); models marked "transfer": "linear" are sRGB-encoded for display.
+// Neural layouts (latent codes and a decoder network) are evaluated per pixel by neural.js.
 "use strict";
 
 const params = new URLSearchParams(location.search);
@@ -209,18 +210,23 @@ async function loadModel(index) {
     const response = await fetch(model.url + "info.json");
     if (!response.ok) throw new Error(`info.json: HTTP ${response.status}`);
     info = await response.json();
-    for (const key of ["width", "height", "nplanes", "type", "colorspace"])
+    const neural = info.type === "neural";
+    for (const key of ["width", "height", "type"].concat(neural ? [] : ["nplanes", "colorspace"]))
       if (info[key] === undefined) throw new Error(`info.json has no '${key}'`);
-    if (!["ptm", "sh", "hsh", "rbf", "bilinear", "bln"].includes(info.type))
+    if (!["ptm", "sh", "hsh", "rbf", "bilinear", "bln", "neural"].includes(info.type))
       throw new Error(`type '${info.type}' is not supported`);
     if (usesTable(info) && !(info.basis && info.materials && info.materials[0].range))
       throw new Error(`a ${info.type} layout needs 'basis' and materials[0].range`);
     const material = (info.materials || [])[0] || {};
-    if (!material.scale || material.scale.length < info.nplanes || !material.bias || material.bias.length < info.nplanes)
+    if (!neural && (!material.scale || material.scale.length < info.nplanes || !material.bias ||
+                    material.bias.length < info.nplanes))
       throw new Error("materials[0] must give a scale and a bias per plane");
-    const images = await Promise.all(Array.from({ length: Math.ceil(info.nplanes / 3) },
-      (_, j) => loadImage(`${model.url}plane_${j}.${info.format || "jpg"}`)));
+    // a neural layout's code images are plane_1 .. (OpenLIME's neural layer names its output plane_0)
+    const first = neural ? 1 : 0, count = Math.ceil((neural ? info.planes : info.nplanes) / 3);
+    const images = await Promise.all(Array.from({ length: count },
+      (_, j) => loadImage(`${model.url}plane_${first + j}.${info.format || "jpg"}`)));
     for (const t of state.textures) gl.deleteTexture(t);
+    if (state.info && state.info._neural) gl.deleteTexture(state.info._neural.tex);
     state.textures = images.map((img) => {
       const tex = gl.createTexture();
       gl.bindTexture(gl.TEXTURE_2D, tex);
@@ -235,7 +241,8 @@ async function loadModel(index) {
     });
     const program = gl.createProgram();
     gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, fragmentSource(info)));
+    const source = neural ? neuralPrepare(gl, info) : fragmentSource(info);
+    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, source));
     gl.linkProgram(program);
     if (!gl.getProgramParameter(program, gl.LINK_STATUS)) throw new Error("program: " + gl.getProgramInfoLog(program));
     state.program = program;
@@ -280,17 +287,23 @@ function draw() {
   gl.uniform2f(gl.getUniformLocation(prog, "u_size"), info.width, info.height);
   gl.uniform2f(gl.getUniformLocation(prog, "u_canvas"), canvas.width, canvas.height);
   gl.uniform1f(gl.getUniformLocation(prog, "u_zoom"), state.zoom);
-  const m = info.materials[0];
-  if (usesTable(info)) gl.uniform3fv(gl.getUniformLocation(prog, "u_w3[0]"), tableWeights(info, state.light));
-  else gl.uniform1fv(gl.getUniformLocation(prog, "u_w[0]"), planeWeights(info, state.light));
-  gl.uniform1fv(gl.getUniformLocation(prog, "u_scale[0]"), new Float32Array(m.scale.slice(0, info.nplanes)));
-  gl.uniform1fv(gl.getUniformLocation(prog, "u_bias[0]"), new Float32Array(m.bias.slice(0, info.nplanes)));
+  if (info.type === "neural") neuralUniforms(gl, prog, info, state.light, state.textures.length);
+  else planeUniforms(gl, prog, info);
   state.textures.forEach((tex, j) => {
     gl.activeTexture(gl.TEXTURE0 + j);
     gl.bindTexture(gl.TEXTURE_2D, tex);
     gl.uniform1i(gl.getUniformLocation(prog, `u_plane${j}`), j);
   });
   gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+}
+
+// The basis weights at the light and every plane's scale and bias (the layouts of coefficient planes).
+function planeUniforms(gl, prog, info) {
+  const m = info.materials[0];
+  if (usesTable(info)) gl.uniform3fv(gl.getUniformLocation(prog, "u_w3[0]"), tableWeights(info, state.light));
+  else gl.uniform1fv(gl.getUniformLocation(prog, "u_w[0]"), planeWeights(info, state.light));
+  gl.uniform1fv(gl.getUniformLocation(prog, "u_scale[0]"), new Float32Array(m.scale.slice(0, info.nplanes)));
+  gl.uniform1fv(gl.getUniformLocation(prog, "u_bias[0]"), new Float32Array(m.bias.slice(0, info.nplanes)));
 }
 
 // The light follows the pointer over the canvas: x right, y up, on the unit disc (outside it: the horizon).
