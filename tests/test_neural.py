@@ -280,3 +280,51 @@ def test_relight_stage_and_synthesis_take_the_model():
     assert isinstance(grown, NeuralModel) and grown.codes.shape == (24, 24, model.latent)
     rows, cols = coords.coords[..., 0], coords.coords[..., 1]
     np.testing.assert_allclose(grown.evaluate(lights), model.evaluate(lights)[:, :, rows, cols], atol=1e-6)
+
+
+def exact_relight(model, lights) -> np.ndarray:
+    """The model's relighting ``[L, T, C]`` evaluated in float64 (the reference both float32 engines round)."""
+    from btforge.plugins.neural.model import decode_display
+    layers = [[a.astype(np.float64) for a in layer] for layer in model.layers()]
+    display = model.display_values(model.codes.reshape(-1, model.latent).astype(np.float64), lights, layers)
+    return decode_display(display).astype(np.float64), display
+
+
+def random_model(rng, decoder, light_order, latent, sizes, codes):
+    from btforge.plugins.neural.network import init_layers
+    layers = init_layers(rng, sizes)
+    for layer in layers:
+        layer[1][:] = rng.normal(0, 0.2, layer[1].shape)
+    return NeuralModel(codes.astype(np.float32), np.concatenate([a.reshape(-1) for l in layers for a in l]),
+                       sizes, light_order, decoder)
+
+
+GRAZING = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, -1.0, 0], [0.6, 0, -0.8], [0.7, 0.7, 0.01], [0.3, -0.2, 0.93]])
+
+
+@pytest.mark.parametrize("decoder,light_order,latent,hidden", [("harmonics", 4, 12, 50), ("harmonics", 2, 5, 7),
+                                                               ("light", 0, 9, 50), ("light", 3, 12, 21)])
+@pytest.mark.parametrize("codes_kind", ["random", "zero", "large", "huge"])
+def test_opencl_kernel_matches_its_numpy_twin(decoder, light_order, latent, hidden, codes_kind):
+    from btforge.plugins.neural.lightinput import n_light_features
+    rng = np.random.default_rng(7)
+    shape = (9, 13, latent)   # 117 texels: not a multiple of the kernel's 8 lanes
+    codes = {"random": rng.normal(0, 1, shape), "zero": np.zeros(shape), "large": rng.normal(0, 1e4, shape),
+             "huge": rng.normal(0, 1e15, shape)}[codes_kind]
+    n_in = latent + (n_light_features(light_order) if decoder == "light" else 0)
+    n_out = 3 if decoder == "light" else 3 * light_order ** 2
+    model = random_model(rng, decoder, light_order, latent, (n_in, hidden, hidden, hidden, n_out), codes)
+    lights = np.vstack([GRAZING, rng.normal(size=(4, 3))])
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    kernel, twin = (model.evaluate(lights, engine=e)[0].reshape(len(lights), -1, 3) for e in ("opencl", "numpy"))
+    assert np.isfinite(kernel).all() and kernel.min() >= 0 and kernel.max() <= 1
+    # both are float32 evaluations of one network, summing in their own order: the kernel may stray from the
+    # float64 value by a few times as much as the twin does, plus a few ulps of expm1 / powr (OpenCL allows 16)
+    exact, display = exact_relight(model, lights)
+    twin_error = np.abs(twin - exact).max()
+    assert np.abs(kernel - exact).max() <= 4 * twin_error + 16 * np.finfo(np.float32).eps
+    # where the value is clipped beyond doubt, both give the clipped value exactly
+    sure = np.abs(display - 0.5) > 0.5 + 1e-3
+    assert np.array_equal(kernel[sure], twin[sure])
+    if codes_kind == "zero":   # every texel decodes the same code
+        assert np.ptp(kernel, axis=1).max() == 0

@@ -66,8 +66,10 @@ def neural_fit(ctx, stack, *, decoder, latent, hidden, layers, light_order, jitt
     (``decoder: light``, NeuralRTI's).  Both networks are trained together by mini-batch Adam (32 texels with
     all their lights per step, the step decaying from 5e-3 along a cosine, gradients clipped to norm 1) to
     reproduce the display values of ``texels`` texels sampled at random; then every texel is encoded.  Only the
-    codes and the decoder are kept.  Training and relighting run in NumPy on one thread; a fit is
-    deterministic for a given ``seed``.
+    codes and the decoder are kept.  Training runs in NumPy on one thread (a fit is deterministic for a given
+    ``seed``); relighting runs on the OpenCL device.  ``web.export`` writes the model in OpenLIME's neural
+    layout (OpenLIME opens NeuralRTI's network: ``decoder: light``, ``light_order: 0``, ``latent: 9``,
+    ``layers: 2``); ``btforge view`` shows both decoders.
 
     Outputs
     -------

@@ -1,7 +1,6 @@
 """``NeuralModel``: a latent code per texel and a small decoder network shared by every texel (NeuralRTI,
-Dulecha et al. 2020).  Relighting runs in NumPy: the decoder's products are small dense matrix products, and a
-per-texel OpenCL kernel of them was no faster on the CPU device (1.2-1.6 s where NumPy took 0.7-1.5 s, 321^2
-texels at 10 lights, loaded 2-core machine).
+Dulecha et al. 2020).  Relighting runs on the OpenCL device (kernel ``neural_relight`` in ``neural.cl``, eight
+texels to a work-item as the lanes of a vector; :mod:`.kernel`), or in NumPy with ``engine="numpy"`` (its twin).
 
 A texel's display value (sRGB, in [0, 1]) under a light ``l`` comes from a multilayer perceptron with ELU
 between its layers and a linear output layer (``decoder``):
@@ -27,6 +26,8 @@ from btforge.numerics import texel_chunks
 
 from .lightinput import DECODERS, MAX_LIGHT_ORDER, harmonics, light_features, n_light_features
 from .network import decoder_layers_forward, elu, unpack_layers
+
+ENGINE = "opencl"   # NeuralModel.evaluate's default engine
 
 __all__ = ["NeuralModel", "DECODERS", "MAX_LIGHT_ORDER", "harmonics", "light_features", "n_light_features"]
 
@@ -87,14 +88,22 @@ class NeuralModel(ReflectanceModel):
     def layers(self) -> list[list[np.ndarray]]:
         return unpack_layers(self.weights, self.layer_sizes)
 
-    def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None) -> np.ndarray:
-        """Linear radiance ``[1, L, H, W, C]``: the decoded display value clipped to [0, 1] and decoded."""
+    def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None, *, engine: str = ENGINE) -> np.ndarray:
+        """Linear radiance ``[1, L, H, W, C]``: the decoded display value clipped to [0, 1] and decoded.
+
+        ``engine``: ``opencl`` runs kernel ``neural_relight`` (:mod:`.kernel`), ``numpy`` its twin here."""
+        if engine not in ("opencl", "numpy"):
+            raise BtforgeInputError("neural evaluation 'engine'", f"must be 'opencl' or 'numpy', got {engine!r}")
         lights = unit_directions("lights", lights, owner="neural evaluation")
         codes = self.codes.reshape(-1, self.latent)
-        out = np.empty((len(lights), codes.shape[0], len(self.channel_names)), np.float32)
         layers = self.layers()
-        for chunk in texel_chunks(codes.shape[0], 4 * 4 * max(max(self.layer_sizes), len(lights))):
-            out[:, chunk] = decode_display(self.display_values(codes[chunk], lights, layers))
+        if engine == "opencl":
+            from .kernel import relight_opencl
+            out = relight_opencl(codes, lights, layers, self.decoder, self.light_order, len(self.channel_names))
+        else:
+            out = np.empty((len(lights), codes.shape[0], len(self.channel_names)), np.float32)
+            for chunk in texel_chunks(codes.shape[0], 4 * 4 * max(max(self.layer_sizes), len(lights))):
+                out[:, chunk] = decode_display(self.display_values(codes[chunk], lights, layers))
         return out.reshape(1, len(lights), self.height, self.width, len(self.channel_names))
 
     def display_values(self, codes: np.ndarray, lights: np.ndarray, layers=None) -> np.ndarray:
