@@ -99,3 +99,9 @@ def btforge_stages():
 @hookimpl
 def btforge_buffer_types():
     return [NeuralModel]
+
+
+@hookimpl
+def btforge_bench_commands():
+    from .bench import bench_neural
+    return {"neural": bench_neural}
