@@ -177,6 +177,22 @@ def test_openlime_layout_of_neuralrti_networks(tmp_path):
     w1 = np.array(info["weights"][0]).reshape(16, 12)   # output-major: row o holds the inputs of unit o
     np.testing.assert_array_equal(w1[:, :11], model.layers()[0][0].T)
     assert not w1[:, 11:].any()
+    # ShaderNeural's evaluation, from info.json and the images alone: inputs (9 codes, light x, y, 0), vec4 row
+    # i * c / 4 + j of layer1_weights against inputs[j] (so weights[0] is [n, c] row-major), ELU, ..., linear out
+    from PIL import Image
+    pixels = np.concatenate([np.asarray(Image.open(tmp_path / "nrti" / f"plane_{j}.jpg").convert("RGB"))
+                             for j in (1, 2, 3)], axis=2) / 255.0
+    low, high = np.array(info["min"]).reshape(-1), np.array(info["max"]).reshape(-1)
+    codes = (pixels * (high - low) + low).reshape(-1, 9)
+    light = PROBE[1]
+    x = np.hstack([codes, np.tile([light[0], light[1], 0.0], (len(codes), 1))])
+    elu = lambda v: np.where(v > 0, v, np.expm1(np.minimum(v, 0)))  # noqa: E731
+    for i, (rows, cols) in enumerate([(16, 12), (16, 16), (3, 16)]):
+        x = x @ np.array(info["weights"][i]).reshape(rows, cols).T + np.array(info["biases"][i])
+        x = elu(x) if i < 2 else x
+    back = btforge.stage("web.read")(path=str(tmp_path / "nrti"))["model"]
+    expected = back.display_values(back.codes.reshape(-1, 9), light[None])[0]
+    np.testing.assert_allclose(x, expected, atol=1e-5)
     harmonics = fitted(capture(n=20, size=(8, 6)))
     btforge.stage("web.export")(model=harmonics, dir=str(tmp_path / "sh"))
     assert not json.loads((tmp_path / "sh" / "info.json").read_text())["btforge"]["openlime"]
@@ -328,3 +344,18 @@ def test_opencl_kernel_matches_its_numpy_twin(decoder, light_order, latent, hidd
     assert np.array_equal(kernel[sure], twin[sure])
     if codes_kind == "zero":   # every texel decodes the same code
         assert np.ptp(kernel, axis=1).max() == 0
+
+
+def test_bench_times_both_engines_on_a_capture(tmp_path, capsys):
+    from btforge.plugins.neural.bench import bench_neural
+    from btforge.plugins.ptm.bench import make_synthetic_capture
+    lp = make_synthetic_capture(tmp_path, 16, 12)
+    assert bench_neural([str(lp), "--lights", "3", "--repeat", "1", "--epochs", "1",
+                         "--json", str(tmp_path / "f.json")]) == 0
+    figures = json.loads((tmp_path / "f.json").read_text())
+    assert figures["size"] == [16, 16] and figures["lights"] == 3
+    for decoder in ("harmonics", "light"):
+        row = figures[decoder]
+        assert row["numpy"]["cpu_s_per_mp"] >= 0 and row["opencl"]["wall_s_per_mp"] > 0
+        assert row["max_abs_difference"] < 1e-4
+    assert "relit megapixel" in capsys.readouterr().out
