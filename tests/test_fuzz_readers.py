@@ -6,7 +6,7 @@ plugins' writers or as text).  Each case damages one of them (tests/fuzzing.py) 
 ``btforge info FILE``, or a one-node graph under ``btforge run`` whose stage reads it.  Cases run in worker
 processes, so a segmentation fault or a hang in native code is a failed case, not a dead test run.
 
-CI runs ``BTFORGE_FUZZ_CASES`` (default 230, 10 per reader) cases with a fixed seed (``BTFORGE_FUZZ_SEED``,
+CI runs ``BTFORGE_FUZZ_CASES`` (default 240, 10 per reader) cases with a fixed seed (``BTFORGE_FUZZ_SEED``,
 default 0); set them higher (e.g. 10000) to explore, and ``BTFORGE_FUZZ_READERS`` (e.g. ``.ply,scene``) to fuzz
 only some readers.  A failure lists the reader, the damaged file, the mutation
 and the case seed.
@@ -27,7 +27,7 @@ import btforge
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fuzzing import Reader, make_cases, run_cases, summary  # noqa: E402
 
-CASES = int(os.environ.get("BTFORGE_FUZZ_CASES", "230"))
+CASES = int(os.environ.get("BTFORGE_FUZZ_CASES", "240"))
 SEED = int(os.environ.get("BTFORGE_FUZZ_SEED", "0"))
 ONLY = os.environ.get("BTFORGE_FUZZ_READERS", "")  # fuzz only readers whose name contains one of these (comma-separated)
 
@@ -41,6 +41,8 @@ nodes:
   saved:    {stage: models.write, params: {path: model.btfm}, inputs: {model: fit.model}}
   web:      {stage: web.export, params: {dir: web}, inputs: {model: fit.model}}
   web_jpg:  {stage: web.export, params: {dir: web_jpg, format: jpg}, inputs: {model: fit.model}}
+  neural:   {stage: neural.fit, params: {latent: 5, hidden: 8, layers: 2, epochs: 1, texels: 50}, inputs: {stack: material.stack}}
+  web_nn:   {stage: web.export, params: {dir: web_neural}, inputs: {model: neural.model}}
   height:   {stage: height.from_shading, params: {iterations: 3, rounds: 1}, inputs: {stack: material.stack}}
   ply:      {stage: height.write, params: {path: height.ply}, inputs: {height: height.height}}
   tiles:    {stage: wang.tiles, params: {tile: 8, edge: 2, seed: 1}, inputs: {exemplar: material.stack}}
@@ -99,7 +101,8 @@ def _write_extra_files(folder: Path) -> None:
               "read_png.yaml": _one_node("stackio.read", "capture_png/lights.lp"),
               "read_jpg.yaml": _one_node("stackio.read", "capture_jpg/lights.lp"),
               "fit_jpg.yaml": _one_node("ptm.fit_capture", "capture_jpg/lights.lp"),
-              "read_web_jpg.yaml": _one_node("web.read", "web_jpg/info.json")}
+              "read_web_jpg.yaml": _one_node("web.read", "web_jpg/info.json"),
+              "read_web_neural.yaml": _one_node("web.read", "web_neural/info.json")}
     for name, text in graphs.items():
         (folder / name).write_text(text)
 
@@ -159,6 +162,7 @@ def readers(seed: Path) -> list[Reader]:
         Reader("info web layout", web, _info("web/info.json")),
         Reader("web.read", web, _run("read_web.yaml")),
         Reader("web.read (JPEG planes)", ("web_jpg/plane_1.jpg", "web_jpg/info.json"), _run("read_web_jpg.yaml")),
+        Reader("web.read (neural)", ("web_neural/info.json", "web_neural/plane_2.png"), _run("read_web_neural.yaml")),
         Reader("info .rti (HSH)", ("model.rti",), _info("model.rti")),
         Reader("info .zarr store", store, _info("store.zarr")),
         Reader("info .btf (UBO2014)", ("capture.btf",), _info("capture.btf")),

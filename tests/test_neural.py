@@ -257,7 +257,8 @@ def broken_layout(tmp_path, change) -> Path:
     (lambda info, f: info["btforge"].update(layer_sizes=[6, 16, 16, 3]),
      ["btforge.layer_sizes", "27 outputs, found 6 to 3"]),
     (lambda info, f: info.update(planes=7, samples="fifty"), ["'planes'", "'samples'"]),
-    (lambda info, f: info["biases"][0].__setitem__(0, "x"), ["'biases[0]'"]),
+    (lambda info, f: info["biases"][0].__setitem__(3, "x"), ["'biases[0]': expected 16 finite numbers",
+                                                            "found 'x' at index 3"]),
     (lambda info, f: info.update(min=[[0, 0, 0]]), ["'min': expected 2 [r, g, b] triples"]),
 ])
 def test_malformed_neural_layouts_are_named_with_the_fix(tmp_path, change, expected):

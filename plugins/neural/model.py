@@ -31,6 +31,7 @@ ENGINE = "opencl"   # NeuralModel.evaluate's default engine
 
 __all__ = ["NeuralModel", "DECODERS", "MAX_LIGHT_ORDER", "harmonics", "light_features", "n_light_features"]
 
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class NeuralModel(ReflectanceModel):
     """Latent codes ``codes [H, W, K]`` float32 and a decoder: ``weights`` (every layer's weight matrix then bias,

@@ -119,6 +119,17 @@ def _finite_list(values, length: int) -> bool:
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values))
 
 
+def _what_list(values, length: int) -> str:
+    """What a list that should hold ``length`` finite numbers holds instead."""
+    if not isinstance(values, list):
+        return type(values).__name__
+    if len(values) != length:
+        return f"{len(values)} values"
+    bad = next(i for i, v in enumerate(values) if isinstance(v, bool) or not isinstance(v, (int, float))
+               or not math.isfinite(v))
+    return f"{values[bad]!r} at index {bad}"
+
+
 def layer_sizes_of(info: dict) -> tuple[str, int, list]:
     """(decoder, light order, layer sizes) a neural info.json declares, NeuralRTI's network when it says none."""
     extra = info.get("btforge") if isinstance(info.get("btforge"), dict) else {}
@@ -141,8 +152,8 @@ def _size_problems(info: dict) -> list[str]:
     inputs = info["planes"] + (n_light_features(order) if light else 0)
     outputs = 3 if light else 3 * order ** 2
     if (sizes[0], sizes[-1]) != (inputs, outputs):
-        return [f"btforge.layer_sizes: a {decoder} decoder of 'planes' = {info['planes']} codes (light order {order}) runs "
-                f"from {inputs} inputs to {outputs} outputs, found {sizes[0]} to {sizes[-1]}"]
+        return [f"btforge.layer_sizes: a {decoder} decoder of 'planes' = {info['planes']} codes (light order "
+                f"{order}) runs from {inputs} inputs to {outputs} outputs, found {sizes[0]} to {sizes[-1]}"]
     return []
 
 
@@ -159,7 +170,7 @@ def _weight_problems(info: dict) -> list[str]:
             rows, cols = padded_shape(i, sizes)
             length = rows * cols if key == "weights" else rows
             if not _finite_list(values, length):
-                found = f"{len(values)} values" if isinstance(values, list) else type(values).__name__
+                found = _what_list(values, length)
                 shape = f"{rows} outputs x {cols} inputs" if key == "weights" else f"{rows} outputs"
                 problems.append(f"'{key}[{i}]': expected {length} finite numbers ({shape}: layer {i + 1}, "
                                 f"{sizes[i]} -> {sizes[i + 1]} units, padded to multiples of 4), found {found}")
@@ -184,6 +195,11 @@ def web_info_problems(info: dict) -> list[str]:
         if not (isinstance(triples, list) and len(triples) >= images and all(_finite_list(t, 3) for t in triples[:images])):
             problems.append(f"'{key}': expected {images} [r, g, b] triples of finite numbers (one per code image), "
                             f"found {json.dumps(triples)[:80] if triples is not None else 'none'}")
+    if not problems:
+        span = np.subtract(info["max"][:images], info["min"][:images], dtype=np.float64)
+        if not np.all(np.isfinite(span) & (span >= 0)):
+            problems.append("'max' - 'min': expected a finite range >= 0 for every code, found "
+                            f"{json.dumps(span.reshape(-1).tolist())[:80]}")
     sizes_wrong = _size_problems(info)
     return problems + sizes_wrong + (_weight_problems(info) if not (sizes_wrong or problems) else [])
 

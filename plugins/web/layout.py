@@ -247,7 +247,7 @@ def _read_planes(info: dict) -> np.ndarray:
     from PIL import Image
     folder, fmt, spec = Path(info["_folder"]), info.get("format", "jpg"), info["_planes"]
     n, h, w = spec["count"], info["height"], info["width"]
-    planes = np.empty((n, h, w), np.float32)  # 8-bit steps are far above float32 rounding
+    planes = None  # allocated once an image has the size info.json says (a damaged size must not allocate)
     lut = np.arange(256) / 255.0
     for j in range(-(-n // 3)):
         path = folder / f"plane_{spec['first'] + j}.{fmt}"
@@ -261,6 +261,8 @@ def _read_planes(info: dict) -> np.ndarray:
             raise BtforgeInputError(str(path), f"expected {w} x {h} pixels as info.json says, found "
                                     f"{pixels.shape[1]} x {pixels.shape[0]}",
                                     "export the model again: every plane image has the size info.json gives")
+        if planes is None:
+            planes = np.empty((n, h, w), np.float32)  # 8-bit steps are far above float32 rounding
         for c in range(3):
             p = 3 * j + c
             if p < n:
