@@ -52,3 +52,26 @@ def test_page_matches_relight_at_three_lights(served, browser, index, name):
         # 8-bit planes and basis: a couple of levels off at worst, far above 35 dB on average
         assert psnr(screenshot(page), relit_display(models[name], light)) >= 35
         page.close()
+
+
+def test_a_neural_layout_with_wrong_weights_shows_the_reason(served, browser, tmp_path):
+    """btforge view refuses such a folder up front (web.read's check); a file damaged while the page is served
+    is refused by the page itself."""
+    import json
+    from btforge.errors import BtforgeInputError
+    _, models = served
+    btforge.stage("web.export")(model=models["nrti"], dir=str(tmp_path / "bad"))
+    info = json.loads((tmp_path / "bad" / "info.json").read_text())
+    info["weights"][1] = info["weights"][1][:-4]
+    server, thread, scratch = start([tmp_path / "bad"], 0)
+    try:
+        (tmp_path / "bad" / "info.json").write_text(json.dumps(info))
+        page = open_page(browser, f"{server.url}?bar=0&zoom=1")
+        assert page.evaluate("document.body.dataset.state") == "error"
+        assert "weights[1] must hold 24 x 24 numbers" in page.inner_text("#message")
+        page.close()
+    finally:
+        server.shutdown()
+        shutil.rmtree(scratch, ignore_errors=True)
+    with pytest.raises(BtforgeInputError, match=r"'weights\[1\]': expected 576 finite numbers"):
+        start([tmp_path / "bad"], 0)

@@ -52,8 +52,11 @@ function neuralNetwork(info) {
       throw new Error(`weights[${i}] must hold ${rows} x ${cols} numbers and biases[${i}] ${rows}`);
     layers.push({ rows, cols, w: Float32Array.from(info.weights[i]), b: Float32Array.from(info.biases[i]) });
   }
+  const expectedIn = info.planes + (decoder === "light" ? (order === 0 ? 2 : order * order - 1) : 0);
   const expectedOut = decoder === "light" ? 3 : 3 * order * order;
-  if (sizes[sizes.length - 1] !== expectedOut) throw new Error(`a ${decoder} decoder has ${expectedOut} outputs`);
+  if (sizes[0] !== expectedIn || sizes[sizes.length - 1] !== expectedOut)
+    throw new Error(`a ${decoder} decoder of ${info.planes} codes runs from ${expectedIn} inputs to ${expectedOut} ` +
+                    `outputs, found ${sizes[0]} to ${sizes[sizes.length - 1]}`);
   return { decoder, order, codes: info.planes, layers };
 }
 
