@@ -360,3 +360,20 @@ def test_bench_times_both_engines_on_a_capture(tmp_path, capsys):
         assert row["numpy"]["cpu_s_per_mp"] >= 0 and row["opencl"]["wall_s_per_mp"] > 0
         assert row["max_abs_difference"] < 1e-4
     assert "relit megapixel" in capsys.readouterr().out
+
+
+@settings(max_examples=20, deadline=None)
+@given(lights=light_sets(), scale=st.sampled_from([0.0, 1e-30, 1.0, 30.0, 1e4, 1e30]),
+       decoder=st.sampled_from(["harmonics", "light"]), seed=st.integers(0, 99))
+def test_kernel_stays_finite_bounded_and_with_its_twin_on_hard_lights_and_codes(lights, scale, decoder, seed):
+    rng = np.random.default_rng(seed)
+    n_in, n_out = (6, 27) if decoder == "harmonics" else (6 + 8, 3)
+    model = random_model(rng, decoder, 3, 6, (n_in, 12, 12, n_out), rng.normal(0, 1, (5, 7, 6)) * scale)
+    kernel, twin = (model.evaluate(lights, engine=e)[0].reshape(len(lights), -1, 3) for e in ("opencl", "numpy"))
+    assert np.isfinite(kernel).all() and kernel.min() >= 0 and kernel.max() <= 1
+    exact, display = exact_relight(model, lights)
+    finite = np.isfinite(display)   # 1e30 codes overflow float32 on the way: NaN or inf, then clipped
+    assert np.abs(kernel - exact)[finite].max(initial=0) <= 4 * np.abs(twin - exact)[finite].max(initial=0) + \
+        16 * np.finfo(np.float32).eps
+    sure = finite & (np.abs(display - 0.5) > 0.5 + 1e-3)
+    assert np.array_equal(kernel[sure], twin[sure])
