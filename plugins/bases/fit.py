@@ -49,7 +49,7 @@ RESOLUTIONS = tuple(range(4, 13))
 # resampling spline: its smoothing weight (space auto: and the space) is chosen by leave-one-out among these, and
 # resolution 0 is the smallest side from SPLINE_SIDES whose grid reproduces the spline between the lights to
 # within SPLINE_SIDE_TOLERANCE (RMS, display levels of 1/255) - finer grids cost PCA time and gain little
-SPLINE_SMOOTHNESS = (3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
+SPLINE_SMOOTHNESS = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
 SPLINE_SIDES = tuple(range(8, 25))
 SPLINE_SIDE_TOLERANCE = 0.5 / 255.0
 SIDE_JUDGE_STEP = 8      # ... on every eighth value of the judged texels (a smooth error: 1536 values judge it)

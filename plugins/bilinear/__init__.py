@@ -28,7 +28,7 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
                   "(weight smoothness); relight: relight's, pulled towards the Gaussian estimate (weights sigma, "
                   "regularization)", choices=("spline", "smooth", "relight")),
             Param("smoothness", "float", 0.0, "resampling spline: weight of the misfit at the lights against the "
-                  "spline's bending (0: chosen with space by leave-one-out among 3e-4 to 0.1); resampling smooth: "
+                  "spline's bending (0: chosen with space by leave-one-out among 0.001 to 0.1); resampling smooth: "
                   "weight of the grid's bending (squared Laplacian) against the samples (0: 0.003)", low=0.0, high=1e3),
             SIGMA,
             Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
