@@ -535,7 +535,8 @@ def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, color
     if resampling == "spline":
         resample = spline_weights(stack.lights, octa_directions(resolution), smoothness)
     elif resampling == "smooth":
-        resample = smooth_resample_matrix(stack.lights, resolution, smoothness or SMOOTH_RESAMPLING)
+        smoothness = smoothness or SMOOTH_RESAMPLING
+        resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
     else:
         resample = resample_matrix(stack.lights, resolution, sigma, regularization)
     table = pca_table(pca_responses(stack, space), planes, colorspace, ycc, resample)

@@ -66,7 +66,7 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
 
     Notes
     -----
-    ``resolution``, ``space`` and ``smoothness`` (as used), ``planes``, ``condition_number`` of the interpolated basis
+    ``resolution``, ``space`` and (but for relight's resampling) ``smoothness`` as used, ``planes``, ``condition_number`` of the interpolated basis
     at the capture's lights.
     """
     pca_precheck({"planes": planes, "colorspace": colorspace, "yplanes": yplanes, "resolution": resolution})
@@ -75,7 +75,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
                                      coefficients, resampling, smoothness, space=space)
     ctx.note("resolution", stats["resolution"])
     ctx.note("space", stats["space"])
-    ctx.note("smoothness", stats["smoothness"])
+    if resampling != "relight":  # relight's resampling is weighted by sigma and regularization instead
+        ctx.note("smoothness", stats["smoothness"])
     return report_fit(ctx, model, stats)
 
 
