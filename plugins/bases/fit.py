@@ -22,8 +22,11 @@ planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coeffic
 responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
 it is the default for bilinear, whose resampling already fits the samples.
 
-The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
-``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with ``space: auto``.
+The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and the grid
+resamplings' ``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with
+``space: auto``.  bilinear's default spline resampling chooses its smoothing and space by exact leave-one-out
+(:func:`spline_settings`) and its grid side by how closely the grid reproduces the spline (:func:`spline_side`);
+its PCA is solved in the span of the resampling (:func:`_principal`).
 """
 from __future__ import annotations
 
