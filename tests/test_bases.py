@@ -23,7 +23,8 @@ from test_web_export import capture  # noqa: E402
 FITS = [("hsh.fit", {"planes": 12}), ("hsh.fit", {}), ("hsh.fit", {"colorspace": "ycc"}),
         ("rbf.fit", {}), ("rbf.fit", {"colorspace": "ycc", "planes": 12}),
         ("rbf.fit", {"sigma": 0.125, "table": "responses", "coefficients": "projection"}),
-        ("bilinear.fit", {"resolution": 6}), ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 0}),
+        ("bilinear.fit", {}), ("bilinear.fit", {"resolution": 6, "resampling": "smooth", "space": "srgb"}),
+        ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 0}),
         ("bilinear.fit", {"resolution": 8, "resampling": "relight"})]
 
 
@@ -161,6 +162,7 @@ def hard_stack(lights, seed):
 HARD_FITS = [("hsh.fit", {}), ("hsh.fit", {"colorspace": "ycc"}), ("rbf.fit", {"planes": 6}),
              ("rbf.fit", {"planes": 6, "table": "responses", "coefficients": "projection", "sigma": 0.125}),
              ("bilinear.fit", {"planes": 6, "resolution": 4}), ("bilinear.fit", {"planes": 6, "resolution": 0}),
+             ("bilinear.fit", {"planes": 6, "resolution": 0, "resampling": "smooth"}),
              ("bilinear.fit", {"planes": 6, "resolution": 8, "resampling": "relight"})]
 
 
@@ -322,5 +324,6 @@ def grid_shaded_capture(side: int, n_light: int = 150, seed: int = 0) -> SampleS
 @pytest.mark.parametrize("side", range(4, 13))
 def test_resolution_auto_finds_the_grid_side_of_a_response_built_on_that_grid(side):
     # every side is a candidate: a capture's held-out error can jump by dB from one side to the next
-    model = fitted("bilinear.fit", {"planes": 6, "resolution": 0}, grid_shaded_capture(side))
+    model = fitted("bilinear.fit", {"planes": 6, "resolution": 0, "resampling": "smooth", "space": "srgb"},
+                   grid_shaded_capture(side))
     assert model.resolution == side

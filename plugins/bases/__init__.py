@@ -72,7 +72,7 @@ def pca_precheck(params, paths=None):
     if params["colorspace"] == "ycc":
         ycc_split(params["planes"], params["yplanes"])
     if params.get("resolution") == 1:
-        raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 20, found 1",
+        raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 24, found 1",
                                 "a grid needs at least 2 x 2 nodes")
 
 

@@ -22,8 +22,11 @@ planes; ``ycc`` runs one PCA per YCoCg component.  relight's projection (coeffic
 responses, centred, projected on the planes: :func:`pca_projection`) is the other way to get coefficients;
 it is the default for bilinear, whose resampling already fits the samples.
 
-The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and bilinear's
-``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with ``space: auto``.
+The rbf table can be solved to interpolate (:func:`interpolating_table`), and rbf's ``sigma`` and the grid
+resamplings' ``resolution`` can be chosen by held-out lights (:func:`held_out_choice`), each together with
+``space: auto``.  bilinear's default spline resampling chooses its smoothing and space by exact leave-one-out
+(:func:`spline_settings`) and its grid side by how closely the grid reproduces the spline (:func:`spline_side`);
+its PCA is solved in the span of the resampling (:func:`_principal`).
 """
 from __future__ import annotations
 
@@ -38,14 +41,23 @@ from btforge.fitspace import (AUTO_HOLD_EVERY, AUTO_MIN_LIGHTS, RIDGE_WEIGHTS, h
                               ridge_by_leave_one_out, ridge_solve)
 from btforge.plugins.web.hsh import MIN_ELEVATION as HSH_MIN_ELEVATION
 
-from .lightfuncs import (RGB_TO_YCC, colour_matrix, octa_directions, rbf_weights, resample_matrix,
-                         smooth_resample_matrix, table_weights)
+from .lightfuncs import (RGB_TO_YCC, bilinear_weights, colour_matrix, octa_directions, rbf_weights,
+                         resample_matrix, smooth_resample_matrix, spline_inverse, spline_weights, table_weights)
 from .model import KERNELS, LightTableModel
 
 SIGMA_FACTORS = (0.7, 1.0, 1.4, 2.0, 2.8)  # sigma auto: these multiples of the lights' spacing are tried
 # resolution auto tries every side from 4 to 12: the held-out error is far from smooth in the side (where a
 # capture's rings of lights fall against the grid lines decides it), so a side skipped can be the best by dB
 RESOLUTIONS = tuple(range(4, 13))
+# resampling spline: its smoothing weight (space auto: and the space) is chosen by leave-one-out among these, and
+# resolution 0 is the smallest side from SPLINE_SIDES whose grid reproduces the spline between the lights to
+# within SPLINE_SIDE_TOLERANCE (RMS, display levels of 1/255) - finer grids cost PCA time and gain little
+SPLINE_SMOOTHNESS = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)
+SPLINE_SIDES = tuple(range(8, 25))
+SPLINE_SIDE_TOLERANCE = 0.5 / 255.0
+SIDE_JUDGE_STEP = 8      # ... on every eighth value of the judged texels (a smooth error: 1536 values judge it)
+SPLINE_PROBE_SIDE = 41  # the directions the side is judged at: the nodes of this finer grid the lights cover
+SMOOTH_RESAMPLING = 0.003  # resampling smooth: the grid's bending weight when smoothness is 0
 TABLE_DAMPING = 0.1   # the interpolating rbf table stays this close (relatively) to the components at the lights
 RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
 PCA_SAMPLES = 1 << 16  # texels whose responses the PCA sees (relight samples 65536 by default)
@@ -84,37 +96,61 @@ def ycc_split(planes: int, yplanes: int) -> tuple[int, int, int]:
     return y, (planes - y) // 2, (planes - y) // 2
 
 
-def _principal(x: np.ndarray, count: int) -> np.ndarray:
-    """The ``count`` leading unit eigenvectors ``[count, dim]`` of the second moments of the (centred) rows ``x``,
-    each signed so its largest component is positive (deterministic)."""
-    # float32 products (half the time of float64; display values in [0, 1] lose nothing an eigenvector notices)
-    x32 = np.ascontiguousarray(x, np.float32)
-    cov = (x32.T @ x32).astype(np.float64) / max(len(x), 1)
-    values, vectors = np.linalg.eigh(cov)
-    top = vectors[:, np.argsort(values)[::-1][:count]].T
+def _leading(second_moments: np.ndarray, count: int, basis: np.ndarray | None = None) -> np.ndarray:
+    """The ``count`` leading unit eigenvectors ``[count, dim]`` of ``second_moments`` (taken to the full space by
+    the orthonormal ``basis [dim, k]`` when they are given in its coordinates), each signed so its largest
+    component is positive (deterministic)."""
+    values, vectors = np.linalg.eigh(second_moments)
+    top = vectors[:, np.argsort(values)[::-1][:count]]
+    top = (top if basis is None else basis @ top).T
     pivot = top[np.arange(count), np.argmax(np.abs(top), axis=1)]
     return top * np.where(pivot < 0, -1.0, 1.0)[:, None]
 
 
-def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tuple[int, int, int]) -> np.ndarray:
-    """Table ``[planes + 1, D, 3]`` from display ``responses [N, D, 3]`` (relight's plane order for ycc:
-    (Y, Co, Cg) triplets while chroma planes last, then the remaining Y planes)."""
-    n, d, _ = responses.shape
+def _principal(x: np.ndarray, count: int, mapping: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean [dim], components [count, dim])``: the mean of the rows ``x @ mapping.T`` (``mapping`` None: the
+    identity) clipped to [0, 1], and the leading eigenvectors of their second moments about it.
+
+    With a ``mapping [dim, k]`` from fewer values (a texel's samples resampled onto a finer grid) the rows lie
+    in its column space plus the clipped mean's offset, so the eigenproblem is solved there (``k + 1`` values
+    instead of ``dim``) and taken back: the same components, at a fraction of the time."""
+    mean_x = x.mean(axis=0, dtype=np.float64)
+    centred = np.ascontiguousarray(x - mean_x.astype(x.dtype), np.float32)
+    # float32 products (half the time of float64; display values in [0, 1] lose nothing an eigenvector notices)
+    moments = (centred.T @ centred).astype(np.float64) / max(len(x), 1)
+    if mapping is None:
+        mean = np.clip(mean_x, 0.0, 1.0)
+        return mean, _leading(moments + np.outer(mean_x - mean, mean_x - mean), count)
+    full_mean = mapping @ mean_x
+    mean = np.clip(full_mean, 0.0, 1.0)
+    # rows - mean = [mapping | offset] @ [x - mean_x; 1]: their second moments in an orthonormal basis of that span
+    basis, tri = np.linalg.qr(np.c_[mapping, full_mean - mean])
+    extended = np.zeros((len(mean_x) + 1,) * 2)
+    extended[:-1, :-1] = moments
+    extended[-1, -1] = 1.0
+    return mean, _leading(tri @ extended @ tri.T, count, basis)
+
+
+def pca_table(responses: np.ndarray, planes: int, colorspace: str, yccplanes: tuple[int, int, int],
+              resample: np.ndarray | None = None) -> np.ndarray:
+    """Table ``[planes + 1, D, 3]`` from display ``responses [N, D, 3]``, or given ``resample [D, L]``, from
+    responses ``[N, L, 3]`` at the lights resampled by it onto the ``D`` table directions (relight's plane
+    order for ycc: (Y, Co, Cg) triplets while chroma planes last, then the remaining Y planes)."""
+    n = responses.shape[0]
+    d = responses.shape[1] if resample is None else resample.shape[0]
     # The stored mean must lie in [0, 1] (the web layout keeps it as bytes); the components are taken about that
     # clipped mean, so whatever the clipping removed is a direction of the data they capture.
     if colorspace == "rgb":
-        mean = np.clip(responses.mean(axis=0, dtype=np.float64), 0.0, 1.0)
-        vectors = _principal((responses - mean.astype(responses.dtype)).reshape(n, -1), planes).reshape(planes, d, 3)
-        return np.concatenate([mean[None], vectors])
+        mapping = None if resample is None else np.kron(resample, np.eye(3))
+        mean, vectors = _principal(responses.reshape(n, -1), planes, mapping)
+        return np.concatenate([mean.reshape(1, d, 3), vectors.reshape(planes, d, 3)])
     ycc = responses @ RGB_TO_YCC.T.astype(responses.dtype)
-    mean = np.clip(ycc.mean(axis=0, dtype=np.float64), 0.0, 1.0)
     table = np.zeros((planes + 1, d, 3))
     for comp, count in enumerate(yccplanes):
-        vectors = _principal(ycc[:, :, comp] - mean[:, comp].astype(ycc.dtype), count)
+        table[0, :, comp], vectors = _principal(ycc[:, :, comp], count, resample)
         for yp in range(count):
             p = 3 * yp + comp if yp < yccplanes[1] else 3 * yccplanes[1] + yp - yccplanes[1]
             table[p + 1, :, comp] = vectors[yp]
-    table[0] = mean
     return table
 
 
@@ -346,6 +382,23 @@ def light_spacing(lights: np.ndarray) -> float:
     return float(max(np.median(dist.min(axis=1)), 1e-3))
 
 
+def _fold(stack: SampleStack, fold: int = AUTO_HOLD_EVERY // 2) -> tuple[SampleStack, SampleStack]:
+    """``(part, held)``: the grid of at most 4096 texels ``auto`` choices judge on, split into the lights kept
+    and those held out (every fifth light, from ``fold``)."""
+    grid = held_out_grid(stack)
+    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == fold
+
+    def select(mask):
+        return SampleStack(np.ascontiguousarray(grid[:, mask]), stack.lights[mask], stack.views, stack.channels,
+                           stack.encoding)
+    return select(~held), select(held)
+
+
+def _held_out_error(model, held: SampleStack) -> float:
+    """Mean squared error of ``model``'s display values at the lights of ``held``."""
+    return float(np.mean((linear_to_srgb(model.evaluate(held.lights)[0]) - display_values(held)) ** 2))
+
+
 def held_out_choice(stack: SampleStack, spaces, values, fit) -> tuple[str, object]:
     """The (space, value) pair whose ``fit(part, space, value)`` model predicts held-out lights best: on a grid
     of at most 4096 texels, every fifth light held out (one of the folds ``space: auto`` judges on), mean squared
@@ -355,21 +408,14 @@ def held_out_choice(stack: SampleStack, spaces, values, fit) -> tuple[str, objec
     fallback = (spaces[0], values[len(values) // 2])
     if stack.n_light < AUTO_MIN_LIGHTS or len(spaces) * len(values) == 1:
         return fallback
-    grid = held_out_grid(stack)
-    held = np.arange(stack.n_light) % AUTO_HOLD_EVERY == AUTO_HOLD_EVERY // 2
-    part = SampleStack(np.ascontiguousarray(grid[:, ~held]), stack.lights[~held], stack.views, stack.channels,
-                       stack.encoding)
-    truth = SampleStack(np.ascontiguousarray(grid[:, held]), stack.lights[held], stack.views, stack.channels,
-                        stack.encoding)
-    target = display_values(truth)
+    part, held = _fold(stack)
     candidates = [(space, value) for space in spaces for value in values]
     errors = []
     for candidate in candidates:
         try:
-            predicted = linear_to_srgb(fit(part, *candidate).evaluate(truth.lights)[0])
+            errors.append(_held_out_error(fit(part, *candidate), held))
         except BtforgeInputError:  # the lights left for fitting cannot hold that many planes: nothing to judge
             return fallback
-        errors.append(float(np.mean((predicted - target) ** 2)))
     return candidates[int(np.argmin(errors))]
 
 
@@ -418,13 +464,70 @@ def fit_rbf(stack: SampleStack, planes: int = 9, colorspace: str = "rgb", yplane
     return model, {**stats, "sigma": sigma}
 
 
+def _judged_values(stack: SampleStack, space: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(y [L, T], truth [L, T])`` float64: the values in ``space`` and the display values of the grid of texels
+    ``auto`` choices judge on (colour components folded into ``T``)."""
+    grid = held_out_grid(stack)[0]
+    like = SampleStack(grid[None], stack.lights, stack.views, stack.channels, stack.encoding)
+    y = fitted_values(like, space).reshape(stack.n_light, -1).astype(np.float64)
+    return y, display_values(like).reshape(stack.n_light, -1).astype(np.float64)
+
+
+def _as_display(values: np.ndarray, space: str) -> np.ndarray:
+    return np.clip(values if space != "linear" else linear_to_srgb(np.clip(values, 0.0, None)), 0.0, 1.0)
+
+
+def spline_settings(stack: SampleStack, spaces, smoothness: float) -> tuple[str, float]:
+    """(space, smoothing weight) of bilinear.fit's spline resampling: ``smoothness`` (0: each of
+    :data:`SPLINE_SMOOTHNESS`) in each of ``spaces``, whichever predicts every fitting light best from the
+    others (exact leave-one-out of the linear smoother: the residual over one minus the light's leverage),
+    judged on display values of a grid of at most 4096 texels."""
+    weights = (smoothness,) if smoothness else SPLINE_SMOOTHNESS
+    if stack.n_light < AUTO_MIN_LIGHTS or len(spaces) * len(weights) == 1:
+        return spaces[0], smoothness or SPLINE_SMOOTHNESS[len(SPLINE_SMOOTHNESS) // 2]
+    scores = {}
+    for space in spaces:
+        y, truth = _judged_values(stack, space)
+        for weight in weights:
+            hat = spline_weights(stack.lights, stack.lights, weight)
+            leverage = 1.0 - np.diag(hat)
+            judged = leverage > 1e-6  # a light the spline passes through whatever it holds cannot be judged
+            left_out = y[judged] - (y[judged] - (hat @ y)[judged]) / leverage[judged, None]
+            scores[(space, weight)] = float(np.mean((_as_display(left_out, space) - truth[judged]) ** 2))
+    return min(scores, key=scores.get)
+
+
+def spline_side(stack: SampleStack, space: str, smoothness: float, sides=SPLINE_SIDES) -> int:
+    """The smallest grid side whose bilinear interpolation of the spline's node values reproduces the spline
+    itself to within :data:`SPLINE_SIDE_TOLERANCE` at the directions the lights cover (elevations from the lowest
+    light's up), on every eighth texel of the judged grid; the largest side when none does."""
+    y = _judged_values(stack, space)[0][:, ::SIDE_JUDGE_STEP]
+    unit = stack.lights / np.linalg.norm(stack.lights, axis=1, keepdims=True)
+    probes = octa_directions(SPLINE_PROBE_SIDE)
+    probes = probes[probes[:, 2] >= unit[:, 2].min() - 1e-9]
+    inverse = spline_inverse(stack.lights, smoothness)
+    exact = _as_display(spline_weights(stack.lights, probes, smoothness, inverse=inverse) @ y, space)
+    for side in sides:
+        nodes = spline_weights(stack.lights, octa_directions(side), smoothness, inverse=inverse) @ y
+        approx = _as_display(bilinear_weights(probes, side) @ nodes, space)
+        if math.sqrt(float(np.mean((approx - exact) ** 2))) <= SPLINE_SIDE_TOLERANCE:
+            return side
+    return sides[-1]
+
+
 def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
-                 resampling: str = "smooth", smoothness: float = 0.003, engine: str = "opencl", space: str = "srgb"):
-    """bilinear.fit: PCA table on the light grid (``resolution`` 0 and ``space`` auto: chosen together on
-    held-out lights, :func:`held_out_choice`)."""
+                 resampling: str = "spline", smoothness: float = 0.0, engine: str = "opencl", space: str = "auto"):
+    """bilinear.fit: PCA table on the light grid (spline resampling: space and smoothing by leave-one-out,
+    :func:`spline_settings`, ``resolution`` 0 by :func:`spline_side`; the others: ``resolution`` 0 and ``space``
+    auto chosen together on held-out lights, :func:`held_out_choice`)."""
     _check_stack(stack, "bilinear.fit")
-    if space == "auto" or not resolution:
+    if resampling == "spline":
+        space, smoothness = spline_settings(stack, candidate_spaces(stack, space), smoothness)
+        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
+        resolution = resolution or spline_side(stack, space, smoothness,
+                                               tuple(r for r in SPLINE_SIDES if need <= 3 * r * r) or SPLINE_SIDES[-1:])
+    elif space == "auto" or not resolution:
         need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
         sides = [resolution] if resolution else [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
         space, resolution = held_out_choice(stack, candidate_spaces(stack, space), sides, lambda part, sp, value:
@@ -432,20 +535,18 @@ def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, color
                                                          regularization, coefficients, resampling, smoothness,
                                                          engine, sp)[0])
     ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
-    if resampling == "smooth":
+    if resampling == "spline":
+        resample = spline_weights(stack.lights, octa_directions(resolution), smoothness)
+    elif resampling == "smooth":
+        smoothness = smoothness or SMOOTH_RESAMPLING
         resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
     else:
         resample = resample_matrix(stack.lights, resolution, sigma, regularization)
-    sampled = pca_responses(stack, space)                                            # [N, L, 3]
-    n = len(sampled)
-    # one matrix product (einsum would loop): [D, L] @ [L, N * 3]
-    responses = (resample.astype(np.float32) @ sampled.transpose(1, 0, 2).reshape(stack.n_light, -1)).reshape(-1, n, 3)
-    responses = responses.transpose(1, 0, 2)
-    table = pca_table(responses, planes, colorspace, ycc)
+    table = pca_table(pca_responses(stack, space), planes, colorspace, ycc, resample)
     model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
                                      "resolution": resolution, "space": space}, engine,
                              resample if coefficients == "projection" else None)
-    return model, {**stats, "resolution": resolution}
+    return model, {**stats, "resolution": resolution, "smoothness": smoothness, "resampling": resampling}
 
 
 __all__ = ["fit_hsh", "fit_rbf", "fit_bilinear", "fit_table", "least_squares", "project_numpy", "project_opencl",

@@ -22,6 +22,11 @@ RBF_DROP = 0.001      # relight drops interpolation weights below this share of 
 RESAMPLE_DROP = 0.005  # ... and, building the bilinear grid, weights below this share
 MEAN_PULL = 1e-4      # smooth resampling: weight pulling every grid node towards the texel's mean response
 
+# ridge on the slope of the spline's affine part: the same as adding the linear kernel l.l' / SLOPE_RIDGE to the
+# polyharmonic one (at most 8 for the cubic): a slope the lights determine stays, one a tight cluster of
+# lights would extrapolate from their noise shrinks
+SLOPE_RIDGE = 1e-2
+
 # YCoCg (relight's and OpenLIME's "ycc"): Y = (r + 2g + b) / 4, Co = r - b, Cg = g - (r + b) / 2.
 RGB_TO_YCC = np.array([[0.25, 0.5, 0.25], [1.0, 0.0, -1.0], [-0.5, 1.0, -0.5]])
 YCC_TO_RGB = np.linalg.inv(RGB_TO_YCC)
@@ -126,6 +131,51 @@ def smooth_resample_matrix(lights: np.ndarray, resolution: int, smoothness: floa
     # lights from extrapolating without bound; a constant response still gives the constant grid exactly.
     system = a.T @ a + smoothness * lap.T @ lap + MEAN_PULL * np.eye(n)
     return np.linalg.solve(system, a.T + MEAN_PULL / len(lights))
+
+
+def _polyharmonic(a: np.ndarray, b: np.ndarray, power: int) -> np.ndarray:
+    """The polyharmonic kernel ``|a_i - b_j|^power`` ``[A, B]`` between unit directions (chordal distance)."""
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
+    return np.maximum(d2, 0.0) ** (0.5 * power)
+
+
+def _unit(directions: np.ndarray) -> np.ndarray:
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.where(norm > 0, norm, 1.0)
+
+
+def spline_inverse(lights: np.ndarray, smoothness: float, power: int = 3) -> np.ndarray:
+    """``[L + 4, L]``: the spline's kernel and affine coefficients per sample (see :func:`spline_weights`)."""
+    light = _unit(lights)
+    n = len(light)
+    poly = np.c_[np.ones(n), light]
+    system = np.zeros((n + 4, n + 4))
+    system[:n, :n] = _polyharmonic(light, light, power) + smoothness * np.eye(n)
+    system[:n, n:] = poly
+    system[n:, :n] = poly.T
+    system[n + 1:, n + 1:] = -SLOPE_RIDGE * np.eye(3)
+    return np.linalg.pinv(system, rcond=1e-10, hermitian=True)[:, :n]
+
+
+def spline_weights(lights: np.ndarray, queries: np.ndarray, smoothness: float, power: int = 3,
+                   inverse: np.ndarray | None = None) -> np.ndarray:
+    """``S [Q, L]``: the smoothing spline through samples at ``lights`` evaluated at ``queries`` (``S @ y``).
+
+    A polyharmonic spline over the unit directions (kernel ``|l - l_i|^power``, the chordal distance; the
+    cubic by default) plus an affine function of the direction, minimising its bending energy plus
+    ``1 / smoothness`` times the squared misfit at the lights.  An affine response (Lambertian shading of a lit
+    texel in linear radiance) is reproduced exactly; between and beyond the lights the spline continues as
+    smoothly as it can, on the sphere itself, so its values at grid nodes do not depend on where the grid lines
+    fall.  The affine part's slope carries a faint ridge (:data:`SLOPE_RIDGE`): where the lights leave it
+    undetermined (all on one ring, or in one tight cluster) it is flat instead of a ramp extrapolated without
+    bound.  ``inverse``: the lights' own
+    :func:`spline_inverse`, when several sets of queries share it.
+    """
+    if inverse is None:
+        inverse = spline_inverse(lights, smoothness, power)
+    query = _unit(queries)
+    return np.c_[_polyharmonic(query, _unit(lights), power), np.ones(len(query)), query] @ inverse
 
 
 def table_weights(kind: str, lights: np.ndarray, *, terms: int = 9, table_lights: np.ndarray | None = None,

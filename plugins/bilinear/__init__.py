@@ -13,24 +13,29 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 @declare_stage(
     "bilinear.fit",
     role="fit",
-    version="3",
+    version="4",
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
     params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
-                          "(relight's -r); 0: the side (every one from 4 to 12) that predicts held-out lights best", low=0, high=20),
+                          "(relight's -r); 0: for resampling spline the smallest side from 8 to 24 whose grid "
+                          "reproduces the spline between the lights to within half a display level, for the others "
+                          "the side (every one from 4 to 12) that predicts held-out lights best", low=0, high=24),
             COLORSPACE, YPLANES,
-            Param("resampling", "choice", "smooth", "how samples become grid values: smooth: the grid whose "
-                  "interpolation reproduces the samples while bending least (weight smoothness); relight: relight's, "
-                  "pulled towards the Gaussian estimate (weights sigma, regularization)", choices=("smooth", "relight")),
-            Param("smoothness", "float", 0.003, "resampling smooth: weight of the grid's bending (squared Laplacian) "
-                  "against the samples", low=1e-6, high=1e3),
+            Param("resampling", "choice", "spline", "how samples become grid values: spline: the values at the "
+                  "nodes of a smoothing spline through the samples over the sphere of directions (weight "
+                  "smoothness); smooth: the grid whose interpolation reproduces the samples while bending least "
+                  "(weight smoothness); relight: relight's, pulled towards the Gaussian estimate (weights sigma, "
+                  "regularization)", choices=("spline", "smooth", "relight")),
+            Param("smoothness", "float", 0.0, "resampling spline: weight of the misfit at the lights against the "
+                  "spline's bending (0: chosen with space by leave-one-out among 0.001 to 0.1); resampling smooth: "
+                  "weight of the grid's bending (squared Laplacian) against the samples (0: 0.003)", low=0.0, high=1e3),
             SIGMA,
             Param("regularization", "float", 0.1, "resampling relight: pull of grid nodes the lights leave "
                   "undetermined towards their Gaussian estimate (relight's -R)", low=0.0, high=1e6), COEFFICIENTS,
-            Param("space", "choice", "srgb", SPACE_PARAM.doc.replace("auto: for", "auto (chosen together with "
-                  "resolution 0): for") + "; auto is not the default: held-out folds of a dome's lights leave holes in "
-                  "the grid and misjudge linear fits (see the docs' benchmarks)", choices=SPACE_PARAM.choices)],
+            Param("space", "choice", "auto", SPACE_PARAM.doc.replace("auto: for", "auto (for resampling spline "
+                  "chosen with smoothness by leave-one-out, for the others with resolution 0 on held-out lights): "
+                  "for"), choices=SPACE_PARAM.choices)],
     expects={"stack": ONE_VIEW},
     precheck=pca_precheck,
 )
@@ -40,14 +45,19 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     ``-b bilinear`` (``colorspace: ycc`` is ``-b ybilinear``).
 
     The grid is the octahedral map of the hemisphere rotated 45 degrees (the zenith at its centre, the horizon
-    its border).  Each texel's samples are resampled onto the grid - by default as the thin plate through them
-    (the grid whose bilinear interpolation reproduces the samples while bending least), or with
-    ``resampling: relight`` as relight does (pulled towards a Gaussian estimate) - the leading principal
+    its border).  Each texel's samples are resampled onto the grid - by default as the values at the grid's
+    nodes of a smoothing spline through them over the sphere of directions (so that what the grid holds
+    between rings of lights does not depend on where its lines fall), with ``resampling: smooth`` as the thin
+    plate on the grid itself (the grid whose bilinear interpolation reproduces the samples while bending least),
+    or with ``resampling: relight`` as relight does (pulled towards a Gaussian estimate) - the leading principal
     components of the resampled responses become the planes, and each texel's coefficients are its resampled
     responses projected on them (``coefficients: lsq``: fitted at the capture's lights instead), on OpenCL.
-    ``resolution: 0`` picks the grid side by held-out lights.  The samples are display values, or with ``space:
-    linear`` the linear radiance of an 8-bit capture (``auto``: whichever predicts held-out lights better).  ``resolution: 8, resampling: relight`` is
-    relight's own fit.
+    The samples are display values, or with ``space: linear`` the linear radiance of an 8-bit capture.  For the
+    spline, ``space: auto`` and ``smoothness: 0`` are chosen together by how well the spline predicts each
+    fitting light from the others (exact leave-one-out) and ``resolution: 0`` is the smallest side whose
+    bilinear grid reproduces the spline to within half a display level; for the other resamplings
+    ``resolution: 0`` and ``space: auto`` are chosen together on held-out lights.  ``resolution: 8,
+    resampling: relight, space: srgb`` is relight's own fit.
 
     Outputs
     -------
@@ -56,7 +66,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
 
     Notes
     -----
-    ``resolution`` and ``space`` (as used), ``planes``, ``condition_number`` of the interpolated basis at the capture's lights.
+    ``resolution``, ``space`` and (but for relight's resampling) ``smoothness`` as used, ``planes``, ``condition_number`` of the interpolated basis
+    at the capture's lights.
     """
     pca_precheck({"planes": planes, "colorspace": colorspace, "yplanes": yplanes, "resolution": resolution})
     with single_threaded_blas():  # small dense algebra: threads only contend
@@ -64,6 +75,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
                                      coefficients, resampling, smoothness, space=space)
     ctx.note("resolution", stats["resolution"])
     ctx.note("space", stats["space"])
+    if resampling != "relight":  # relight's resampling is weighted by sigma and regularization instead
+        ctx.note("smoothness", stats["smoothness"])
     return report_fit(ctx, model, stats)
 
 
