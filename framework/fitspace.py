@@ -136,7 +136,12 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
     fit must pass through (``H_ii`` = 1: fewer lights than coefficients, or an isolated light, without a ridge)
     leaves no test; its weight scores ``inf``.
     """
-    a = np.asarray(design, np.float64)
+    from .backend import single_threaded_blas
+    with single_threaded_blas():  # L x L by L x N products: BLAS threads only spin against busy cores
+        return _leave_one_out_errors(np.asarray(design, np.float64), samples, ridges, rcond, free)
+
+
+def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: float, free) -> np.ndarray:
     y = np.asarray(samples, np.float64).reshape(len(a), -1)
     errors = np.empty(len(ridges))
     for index, ridge in enumerate(ridges):
