@@ -144,6 +144,7 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
 def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: float, free) -> np.ndarray:
     y = np.asarray(samples, np.float64).reshape(len(a), -1)
     errors = np.empty(len(ridges))
+    residual = np.empty_like(y)  # one working array for every weight: its pages are faulted in once
     for index, ridge in enumerate(ridges):
         solve = ridge_solve(a, ridge, rcond, free)
         hat = a @ solve
@@ -154,8 +155,11 @@ def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: flo
         if np.any(slack < LEVERAGE_FLOOR):
             errors[index] = math.inf
             continue
-        residual = (y - hat @ y) / slack[:, None]
-        errors[index] = float(np.mean(residual * residual))
+        np.matmul(hat, y, out=residual)
+        np.subtract(y, residual, out=residual)
+        residual /= slack[:, None]
+        np.multiply(residual, residual, out=residual)
+        errors[index] = float(np.mean(residual))
     return errors
 
 
