@@ -46,6 +46,8 @@ class StageContext:
     streamed
         The outputs (of those the stage declares ``streams``) the runner wants as stacks read band by band,
         because every node reading them runs per texel.
+    band_arrays
+        Set by the runner while it runs a stage band by band: the memory :meth:`output_array` lends every band.
     """
 
     node: str
@@ -53,6 +55,24 @@ class StageContext:
     notes: dict[str, Any] = dataclasses.field(default_factory=dict)
     quiet: bool = False
     streamed: frozenset[str] = frozenset()
+    band_arrays: dict[str, Any] | None = dataclasses.field(default=None, repr=False)
+
+    def output_array(self, name: str, shape: tuple[int, ...], dtype) -> Any:
+        """An uninitialised array to compute an output's values into (``name`` tells a stage's arrays apart).
+        Run band by band, where the runner copies each band's outputs out before the next band runs, every band
+        gets the same memory, faulted in once (a new array of a few MB per band cost a page fault per 4 kB as
+        the stage wrote it); otherwise a new array."""
+        import math
+
+        import numpy as np
+        if self.band_arrays is None:
+            return np.empty(shape, dtype)
+        size, dtype = math.prod(shape), np.dtype(dtype)
+        memory = self.band_arrays.get(name)
+        if memory is None or memory.size < size or memory.dtype != dtype:
+            memory = self.band_arrays[name] = np.empty(size, dtype)
+        memory.flags.writeable = True  # the buffer built on it for the band before froze it; that band was joined
+        return memory[:size].reshape(shape)
 
     def note(self, key: str, value: Any) -> None:
         self.notes[key] = value

@@ -98,9 +98,10 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
     bands = list(stack.row_bands(BAND_BYTES // 2 if isinstance(stack.samples, np.ndarray) else BAND_BYTES))
     joiners: dict[str, Joiner] = {}
     notes = []
+    band_arrays: dict[str, np.ndarray] = {}  # what StageContext.output_array lends every band
     with _BandReader(stack, bands) as reader:
         for index, rows in enumerate(bands):
-            band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True)
+            band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True, band_arrays=band_arrays)
             band = reader.band(index)  # and the next band's samples start to be read meanwhile
             with warnings.catch_warnings():
                 if index:  # every band warns alike: the first band's warnings are raised, the others' noted

@@ -483,12 +483,14 @@ def check_ridge(ridge, owner: str = "ptm.fit") -> None:
 
 
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
-            rcond: float = DEFAULT_RCOND, ridge="auto", budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
+            rcond: float = DEFAULT_RCOND, ridge="auto", budget_bytes: int = 64 << 20,
+            output_array=None) -> tuple[PTMModel, PTMSolve]:
     """Regularised least-squares PTM fit of a single-view stack (``ridge``: a weight, or ``auto``).
 
     The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
     result, so memory stays near the stack plus its coefficients; other paths go band by band, and so does a
-    stack read from a store (``stack.chunked``), one band of chunk rows at a time.
+    stack read from a store (``stack.chunked``), one band of chunk rows at a time.  ``output_array(name, shape,
+    dtype)`` gives the arrays the result is computed into (a stage passes ``ctx.output_array``); default new ones.
     """
     if stack.n_view != 1:
         raise BtforgeInputError(
@@ -503,8 +505,9 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     solver = ptm_solver(stack.lights, rcond, ridge)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c
-    coeffs = np.empty((h * w, k, N_TERMS), np.float32)
-    albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
+    output_array = output_array or (lambda name, shape, dtype: np.empty(shape, dtype))
+    coeffs = output_array("coeffs", (h * w, k, N_TERMS), np.float32)
+    albedo = output_array("albedo", (h * w, c if variant == "lrgb" else 0), np.float32)
     lut, byte_scale, convert = _kernel_input(stack, space)
     if stack.chunked:  # a store: one band of chunk rows at a time, each fitted like a whole stack
         for rows in stack.row_bands(budget_bytes):
