@@ -801,11 +801,16 @@ def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
 
 
 def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file into
-    one buffer, never made resident)."""
-    buffer = np.empty(min(rows, flat.shape[0]) * flat.shape[1], flat.dtype)
-    parts = [_column_range(read_block(flat, 0, slice(start, start + rows), buffer))
-             for start in range(0, flat.shape[0], rows)]
+    """:func:`_column_range` a block of rows at a time, ``WRITE_THREADS`` blocks at once (a spilled model is read
+    block by block from its file into one buffer per thread, never made resident)."""
+    local = threading.local()
+
+    def block_range(start: int) -> tuple[np.ndarray, np.ndarray]:
+        if not hasattr(local, "buffer"):
+            local.buffer = np.empty(min(rows, flat.shape[0]) * flat.shape[1], flat.dtype)
+        return _column_range(read_block(flat, 0, slice(start, start + rows), local.buffer))
+
+    parts = list(_in_order(block_range, list(range(0, flat.shape[0], rows)), WRITE_THREADS))
     return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
 
 
