@@ -800,7 +800,7 @@ def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
                            for start in range(0, flat.shape[0], step)])
 
 
-def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
+def _paged_column_range(flat: np.ndarray, rows: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_column_range` a block of rows at a time, ``WRITE_THREADS`` blocks at once (a spilled model is read
     block by block from its file into one buffer per thread, never made resident)."""
     local = threading.local()
@@ -875,7 +875,7 @@ class _Quantizer:
         return out
 
 
-WRITE_BAND_BYTES = 4 << 20  # float64 working set of one band of rows while writing
+WRITE_BAND_BYTES = 2 << 20  # float64 working set of one band of rows while writing (one band per thread)
 WRITE_THREADS = 2  # bands encoded at once (NumPy's arithmetic runs without the GIL)
 
 
