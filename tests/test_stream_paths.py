@@ -195,3 +195,20 @@ def test_an_in_process_main_leaves_collection_on(tmp_path):
     assert gc.isenabled()
     assert main(["validate", str(tmp_path / "missing.yaml")]) != 0
     assert gc.isenabled() and not gc.get_freeze_count()
+
+
+def test_a_fresh_run_reports_its_own_peak_not_its_parents(tmp_path):
+    """The kernel's peak of a child starts from its parent's peak; the run's report gives the child's own."""
+    import json
+
+    from btforge.bench import fresh_run
+    lp = jpeg_capture(tmp_path / "cap")
+    graph = tmp_path / "g.yaml"
+    graph.write_text(f"nodes:\n  read: {{stage: stackio.read, params: {{path: '{lp}'}}}}\n"
+                     "  fit: {stage: ptm.fit, params: {space: srgb}, inputs: {stack: read.stack}}\n")
+    ballast = np.ones(400 << 20, np.uint8)  # this process peaks above 400 MB
+    report = tmp_path / "report.json"
+    figures = fresh_run(graph, tmp_path / "out", "--report", str(report))
+    del ballast
+    own = json.loads(report.read_text())["startup"]["peak_rss_mb"]
+    assert figures["peak_rss_mb"] == round(own, 1) and 0 < own < 400
