@@ -937,10 +937,15 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
         # Files store the bottom row first; an rgb file holds each channel's plane in turn, then lrgb its colours.
         # Each band of rows is read once and its bytes placed in every channel's plane.
         bands = [slice(max(0, stop - rows_per_band), stop) for stop in range(height, 0, -rows_per_band)]
-        for stop, band in zip((rows.stop for rows in bands), _in_order(quantizer.levels, bands, WRITE_THREADS)):
-            for channel in range(coeffs.shape[2]):
+
+        def planes(rows: slice) -> list[np.ndarray]:  # each channel's bytes of the band, bottom row first
+            band = quantizer.levels(rows)
+            return [np.ascontiguousarray(band[::-1, :, channel]) for channel in range(coeffs.shape[2])]
+
+        for stop, parts in zip((rows.stop for rows in bands), _in_order(planes, bands, WRITE_THREADS)):
+            for channel, part in enumerate(parts):
                 handle.seek(start + channel * plane + (height - stop) * width * N_COEFFS)
-                handle.write(memoryview(np.ascontiguousarray(band[::-1, :, channel])).cast("B"))
+                handle.write(memoryview(part).cast("B"))
         handle.seek(start + coeffs.shape[2] * plane)
         if variant == "lrgb":
             for stop in range(height, 0, -rows_per_band):
