@@ -91,8 +91,8 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
                types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], int]:
     """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled);
     return its outputs joined along the texel grid, and the number of bands.  Each band's pages are handed back
-    after it ran.  Bands paged in from a file are read into one buffer, faulted into memory once: a band's outputs
-    are copied out (:class:`Joiner`) before the next band is read."""
+    after it ran.  Bands paged in from a file are read into two buffers in turn (:class:`_BandReader`), and a
+    band's outputs are written to their files while the next band runs (:class:`Joiner`)."""
     from .context import StageContext
     # a spilled stack's bands are read ahead into two buffers (_BandReader): half a band each, the memory of one
     bands = list(stack.row_bands(BAND_BYTES // 2 if isinstance(stack.samples, np.ndarray) else BAND_BYTES))
@@ -101,7 +101,8 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
     band_arrays: dict[str, np.ndarray] = {}  # what StageContext.output_array lends every band
     with _BandReader(stack, bands) as reader:
         for index, rows in enumerate(bands):
-            band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True, band_arrays=band_arrays)
+            band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True, band_arrays=band_arrays,
+                                    band_index=index)
             band = reader.band(index)  # and the next band's samples start to be read meanwhile
             with warnings.catch_warnings():
                 if index:  # every band warns alike: the first band's warnings are raised, the others' noted
@@ -109,12 +110,13 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
                 outputs = stage.fn(band_ctx, **{port: band}, **params)
             del band
             for name, buffer in outputs.items():
-                joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height)).add(
-                    index, (type(buffer).type_name, *buffer.payload()))
+                joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height,
+                                                reader.defer)).add(index, (type(buffer).type_name, *buffer.payload()))
             del outputs
             notes.append(band_ctx.notes)
             if isinstance(stack.samples, np.ndarray):
                 release(stack.samples[:, :, rows])
+        reader.finish()
     ctx.notes.update(merge_band_notes(notes))
     with values_already_checked():  # each band's outputs were checked as buffers of their types in this process
         return {name: joiner.buffer() for name, joiner in joiners.items()}, len(bands)
@@ -123,12 +125,15 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
 class _BandReader:
     """The band stacks of a walk over ``bands`` in order.  A spilled stack's bands are read from its file into
     two buffers in turn (each faulted into memory once), the next band in a thread while the stage runs on
-    this one: the read (a copy out of the file) overlaps the stage's work.  A band's outputs are joined (copied
-    out) before the band after next is read into its buffer."""
+    this one: the read (a copy out of the file) overlaps the stage's work.  The same thread writes each band's
+    outputs out (:meth:`defer`) while the next band runs, in order, before it reads the band after next: so a
+    buffer, or memory lent to every other band's outputs (``StageContext.output_array``), is taken again only
+    once what was in it has been written out."""
 
     def __init__(self, stack: SampleStack, bands: list[slice]):
         self.stack, self.bands = stack, bands
         self.pool = self.next = None
+        self.writes: list = []
         if isinstance(stack.samples, np.ndarray) and len(bands) > 1:
             import concurrent.futures
             rows = max(band.stop - band.start for band in bands)
@@ -151,6 +156,19 @@ class _BandReader:
         band = self.next.result()
         self.next = self.pool.submit(self._read, index + 1) if index + 1 < len(self.bands) else None
         return band
+
+    def defer(self, function, *args) -> None:
+        """``function(*args)`` on the reading thread, after the read under way (at once without that thread)."""
+        if self.pool is None:
+            function(*args)
+            return
+        self.writes.append(self.pool.submit(function, *args))
+
+    def finish(self) -> None:
+        """Wait for every deferred write; the first one that failed raises."""
+        writes, self.writes = self.writes, []
+        for write in writes:
+            write.result()
 
     def __enter__(self):
         return self
@@ -179,8 +197,10 @@ class Joiner:
     every other field must be the same in every band.  The joined arrays are spilled to a file, so the result
     never becomes resident until a stage reads it."""
 
-    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
+    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int, defer=None):
         self.types, self.starts, self.height = types, starts, height
+        # how whole rows are written to their file: at once, or handed to a thread (run_banded's reader)
+        self.defer = defer or (lambda function, *args: function(*args))
         self.type_name = self.meta = None
         self.arrays: dict[str, np.ndarray] = {}
 
@@ -209,7 +229,7 @@ class Joiner:
                 shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
                 self.arrays[name] = spilled_empty(shape, piece.dtype)
             if axis == 0:  # whole rows: plain writes to the file, no pages mapped
-                write_items(self.arrays[name], self.starts[band], piece)
+                self.defer(write_items, self.arrays[name], self.starts[band], piece)
                 continue
             index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
             self.arrays[name][index] = piece

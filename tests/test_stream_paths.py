@@ -125,6 +125,27 @@ def test_output_arrays_are_new_outside_bands_and_lent_within_them():
     assert shorter.shape == (2, 4) and np.shares_memory(shorter, first)
     other = banded.output_array("y", (6, 4), np.float64)
     assert other.dtype == np.float64 and not np.shares_memory(other, first)
+    # the next band's outputs are computed while this band's are written out: other memory, every other band
+    next_band = StageContext(node="n", band_arrays=banded.band_arrays, band_index=1).output_array("x", (6, 4),
+                                                                                                np.float32)
+    after = StageContext(node="n", band_arrays=banded.band_arrays, band_index=2).output_array("x", (6, 4), np.float32)
+    assert not np.shares_memory(next_band, first) and np.shares_memory(after, first)
+
+
+def test_band_outputs_written_on_the_reading_thread_are_all_written_in_order():
+    calls = []
+    reader = btforge.streaming._BandReader.__new__(btforge.streaming._BandReader)
+    import concurrent.futures
+    reader.pool, reader.writes = concurrent.futures.ThreadPoolExecutor(1), []
+    try:
+        for index in range(5):
+            reader.defer(calls.append, index)
+        reader.defer(lambda: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            reader.finish()
+        assert calls == list(range(5))
+    finally:
+        reader.pool.shutdown()
 
 
 def test_values_already_checked_skips_only_the_value_check():
