@@ -12,6 +12,8 @@ give it a ``type_name``, validate in ``__post_init__``, and return the class fro
 from __future__ import annotations
 
 import abc
+import contextlib
+import contextvars
 import dataclasses
 import hashlib
 import io
@@ -29,6 +31,21 @@ from .spill import finite_range, pages, write_npy
 
 def _shape_text(shape: Sequence[Any]) -> str:
     return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+_VALUES_CHECKED = contextvars.ContextVar("btforge_values_checked", default=False)
+
+
+@contextlib.contextmanager
+def values_already_checked():
+    """Within it, buffers are built without the checks of their values (:func:`check_array`'s ``finite``): for
+    arrays joined from parts that were each checked as a buffer of the same type (the bands of a streamed
+    fit), whose second check would read every value again.  Shapes and types are still checked."""
+    token = _VALUES_CHECKED.set(True)
+    try:
+        yield
+    finally:
+        _VALUES_CHECKED.reset(token)
 
 
 def check_array(
@@ -63,7 +80,7 @@ def check_array(
     if not ok:
         raise BtforgeInputError(what, f"'{name}' must be {want}, got {got}")
     # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the array
-    if finite and value.dtype.kind == "f" and value.size and not finite_range(value):
+    if finite and value.dtype.kind == "f" and value.size and not _VALUES_CHECKED.get() and not finite_range(value):
         bad = int((~np.isfinite(value)).sum())
         raise BtforgeInputError(what, f"'{name}' must be finite, found {bad} NaN/Inf values",
                                 "mask or repair the bad samples before building the buffer")

@@ -46,6 +46,9 @@ class StageContext:
     streamed
         The outputs (of those the stage declares ``streams``) the runner wants as stacks read band by band,
         because every node reading them runs per texel.
+    band_arrays, band_index
+        Set by the runner while it runs a stage band by band: the memory :meth:`output_array` lends the bands,
+        and which band this is.
     """
 
     node: str
@@ -53,6 +56,26 @@ class StageContext:
     notes: dict[str, Any] = dataclasses.field(default_factory=dict)
     quiet: bool = False
     streamed: frozenset[str] = frozenset()
+    band_arrays: dict[Any, Any] | None = dataclasses.field(default=None, repr=False)
+    band_index: int = 0
+
+    def output_array(self, name: str, shape: tuple[int, ...], dtype) -> Any:
+        """An uninitialised array to compute an output's values into (``name`` tells a stage's arrays apart).
+        Run band by band, every other band gets the same memory, faulted in once (a new array of a few MB per band
+        cost a page fault per 4 kB as the stage wrote it): the runner writes a band's outputs out while the next
+        band runs, before the band after it.  Otherwise a new array."""
+        import math
+
+        import numpy as np
+        if self.band_arrays is None:
+            return np.empty(shape, dtype)
+        size, dtype = math.prod(shape), np.dtype(dtype)
+        key = (name, self.band_index % 2)
+        memory = self.band_arrays.get(key)
+        if memory is None or memory.size < size or memory.dtype != dtype:
+            memory = self.band_arrays[key] = np.empty(size, dtype)
+        memory.flags.writeable = True  # a buffer built on it two bands before froze it; that band was written out
+        return memory[:size].reshape(shape)
 
     def note(self, key: str, value: Any) -> None:
         self.notes[key] = value

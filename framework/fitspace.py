@@ -132,25 +132,34 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
     ``design A [L, k]`` is shared by every column of ``samples [L, N]`` (the texels of a capture see the same
     lights), so the hat matrix ``H = A (A^T A + lambda P)^-1 A^T`` (:func:`ridge_solve`) is one ``L x L`` matrix, and the residual of
     sample ``i`` when light ``i`` is left out of the fit is ``r_i / (1 - H_ii)`` for ``r`` the residual of the fit
-    to all lights: scoring every weight costs a few matrix products instead of ``L`` fits per texel.  A light the
-    fit must pass through (``H_ii`` = 1: fewer lights than coefficients, or an isolated light, without a ridge)
-    leaves no test; its weight scores ``inf``.
+    to all lights: scoring every weight costs a few matrix products instead of ``L`` fits per texel.  The sum of
+    squares of light ``i``'s residuals over all columns is ``[(I - H) G (I - H)^T]_ii`` for the ``L x L`` Gram matrix
+    ``G = Y Y^T`` of the samples, formed once: each weight then costs products of ``L x L`` matrices, whatever
+    the number of columns.  A light the fit must pass through (``H_ii`` = 1: fewer lights than coefficients, or an
+    isolated light, without a ridge) leaves no test; its weight scores ``inf``.
     """
-    a = np.asarray(design, np.float64)
+    from .backend import single_threaded_blas
+    with single_threaded_blas():  # small products: BLAS threads only spin against busy cores
+        return _leave_one_out_errors(np.asarray(design, np.float64), samples, ridges, rcond, free)
+
+
+def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: float, free) -> np.ndarray:
     y = np.asarray(samples, np.float64).reshape(len(a), -1)
+    gram = y @ y.T
     errors = np.empty(len(ridges))
     for index, ridge in enumerate(ridges):
         solve = ridge_solve(a, ridge, rcond, free)
-        hat = a @ solve
-        slack = 1.0 - np.diag(hat)
+        residual_map = np.eye(len(a)) - a @ solve           # I - H: samples to residuals
+        slack = np.diag(residual_map)                       # 1 - H_ii
         if y.shape[1] == 0:
             errors[index] = 0.0
             continue
         if np.any(slack < LEVERAGE_FLOOR):
             errors[index] = math.inf
             continue
-        residual = (y - hat @ y) / slack[:, None]
-        errors[index] = float(np.mean(residual * residual))
+        squares = np.einsum("ij,ij->i", residual_map @ gram, residual_map)  # each light's sum over columns
+        # rounding can leave a residual of exactly fitted samples a hair below zero
+        errors[index] = float(np.sum(np.maximum(squares, 0.0) / (slack * slack))) / y.size
     return errors
 
 

@@ -28,6 +28,16 @@ def seconds_since_process_start() -> float | None:
         return None
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM: unlike ru_maxrss it is not inherited from the parent)."""
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    import resource  # not Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def record_phase(name: str, seconds: float) -> None:
     """Add ``seconds`` to start-up phase ``name`` (e.g. ``"device_start"``)."""
     with _lock:
@@ -72,4 +82,6 @@ def format_profile(report: dict[str, Any]) -> str:
         lines.append(f"      {n['node']} ({n['stage']}): {n['seconds']:.3f} s {n['status']}")
     if "process_s" in start:
         lines.append(f"  {'whole process so far':28s} {start['process_s']:7.3f} s")
+    if "peak_rss_mb" in start:
+        lines.append(f"  {'peak memory so far':28s} {start['peak_rss_mb']:7.0f} MB (MiB: 2^20 bytes)")
     return "\n".join(lines)

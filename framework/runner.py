@@ -363,6 +363,7 @@ def run(graph, only: list[str] | None = None, set: Mapping[str, Any] | None = No
     process_s = profile.seconds_since_process_start()
     if process_s is not None:
         result.startup["process_s"] = round(process_s, 3)
+    result.startup["peak_rss_mb"] = round(profile.peak_rss_mb(), 1)  # the whole process's, so far
     if report_path:
         atomic_write_text(report_path, json.dumps(result.report_dict(), indent=2, default=str))
     return result

@@ -21,6 +21,7 @@ import math
 import mmap
 import os
 import tempfile
+import threading
 import weakref
 from typing import Any, Iterator, Sequence
 
@@ -88,8 +89,24 @@ def _available_memory_bytes() -> int:
 
 
 def _forget(key: int, memory_bytes: int) -> None:
-    _files.pop(key, None)
+    handle = _files.pop(key, None)
     _memory_file_bytes[0] -= memory_bytes
+    if handle is not None:  # the array is gone: its file's pages are freed in a thread, off the caller's path
+        try:
+            threading.Thread(target=_discard, args=(os.dup(handle.fileno()),), name="btforge-spill-free",
+                             daemon=True).start()
+        except (OSError, RuntimeError):  # no descriptor or thread to spare: the pages go when the file closes
+            pass
+
+
+def _discard(descriptor: int) -> None:
+    """Free a dead spill's data (freeing a 154 MB memory file takes 0.05-0.1 s of system time)."""
+    try:
+        os.ftruncate(descriptor, 0)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
 
 
 _memory_file_bytes = [0]  # bytes of this process's live spills held in memory files

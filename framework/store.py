@@ -229,7 +229,14 @@ class SpilledSampleStack(SampleStack):
     def in_memory(self) -> SampleStack:
         return SampleStack(self.samples, self.lights, self.views, self.channels, self.encoding, self.names)
 
+    def keep_texel_grid(self, step: int, grid: np.ndarray) -> None:
+        """Remember :meth:`texel_grid` ``(step)``, gathered by the reader while each image was in memory."""
+        object.__setattr__(self, "_grids", {**self.__dict__.get("_grids", {}), step: grid})
+
     def texel_grid(self, step: int) -> np.ndarray:
+        known = self.__dict__.get("_grids", {}).get(step)
+        if known is not None:
+            return known.copy()
         # row by row from the file: a strided read of the mapping would make the whole capture resident
         return np.concatenate([read_block(self.samples, 2, slice(row, row + 1))[:, :, :, ::step]
                                for row in range(0, self.height, step)], axis=2)

@@ -21,11 +21,13 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .buffers import Buffer, PerTexel, SampleStack
+from .buffers import Buffer, PerTexel, SampleStack, values_already_checked
 from .errors import BtforgeInputError
 from .spill import read_block, release, spilled_empty, write_items
 
-BAND_BYTES = 64 << 20  # linear float32 samples of one band of rows (a uint8 capture reads a quarter of it)
+# linear float32 samples of the bands of rows in memory at once (a uint8 capture reads a quarter of it): one
+# band of a store, two half-size bands of a spilled capture (one of them read ahead)
+BAND_BYTES = 64 << 20
 
 
 def streamed_outputs(graph, order: list[str], targets: set[str]) -> dict[str, frozenset[str]]:
@@ -89,40 +91,93 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
                types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], int]:
     """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled);
     return its outputs joined along the texel grid, and the number of bands.  Each band's pages are handed back
-    after it ran.  Bands paged in from a file are read into one buffer, faulted into memory once: a band's outputs
-    are copied out (:class:`Joiner`) before the next band is read."""
+    after it ran.  Bands paged in from a file are read into two buffers in turn (:class:`_BandReader`), and a
+    band's outputs are written to their files while the next band runs (:class:`Joiner`)."""
     from .context import StageContext
-    bands = list(stack.row_bands(BAND_BYTES))
+    # a spilled stack's bands are read ahead into two buffers (_BandReader): half a band each, the memory of one
+    bands = list(stack.row_bands(BAND_BYTES // 2 if isinstance(stack.samples, np.ndarray) else BAND_BYTES))
     joiners: dict[str, Joiner] = {}
     notes = []
-    band_buffer = _band_buffer(stack, bands)
-    for index, rows in enumerate(bands):
-        band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True)
-        if band_buffer is not None and band_buffer.size != stack.samples[:, :, rows].size:
-            band_buffer = None  # a shorter last band: a view of part of the buffer would be copied when frozen
-        if band_buffer is not None:  # the band stack before froze it in place; that stack is done with (above)
-            band_buffer.flags.writeable = True
-        with warnings.catch_warnings():
-            if index:  # every band warns alike: the first band's warnings are raised, the others' noted
-                warnings.simplefilter("ignore")
-            outputs = stage.fn(band_ctx, **{port: band_stack(stack, rows, band_buffer)}, **params)
-        for name, buffer in outputs.items():
-            joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height)).add(
-                index, (type(buffer).type_name, *buffer.payload()))
-        del outputs
-        notes.append(band_ctx.notes)
-        if isinstance(stack.samples, np.ndarray):
-            release(stack.samples[:, :, rows])
+    band_arrays: dict[str, np.ndarray] = {}  # what StageContext.output_array lends every band
+    with _BandReader(stack, bands) as reader:
+        for index, rows in enumerate(bands):
+            band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True, band_arrays=band_arrays,
+                                    band_index=index)
+            band = reader.band(index)  # and the next band's samples start to be read meanwhile
+            with warnings.catch_warnings():
+                if index:  # every band warns alike: the first band's warnings are raised, the others' noted
+                    warnings.simplefilter("ignore")
+                outputs = stage.fn(band_ctx, **{port: band}, **params)
+            del band
+            for name, buffer in outputs.items():
+                joiners.setdefault(name, Joiner(types, [band.start for band in bands], stack.height,
+                                                reader.defer)).add(index, (type(buffer).type_name, *buffer.payload()))
+            del outputs
+            notes.append(band_ctx.notes)
+            if isinstance(stack.samples, np.ndarray):
+                release(stack.samples[:, :, rows])
+        reader.finish()
     ctx.notes.update(merge_band_notes(notes))
-    return {name: joiner.buffer() for name, joiner in joiners.items()}, len(bands)
+    with values_already_checked():  # each band's outputs were checked as buffers of their types in this process
+        return {name: joiner.buffer() for name, joiner in joiners.items()}, len(bands)
 
 
-def _band_buffer(stack: SampleStack, bands: list[slice]) -> np.ndarray | None:
-    """A buffer for the samples of the largest band of an in-process (spilled) stack, or None (a store)."""
-    if not isinstance(stack.samples, np.ndarray) or not bands:
-        return None
-    rows = max(band.stop - band.start for band in bands)
-    return np.empty(stack.samples[:, :, :rows].size, stack.samples.dtype)
+class _BandReader:
+    """The band stacks of a walk over ``bands`` in order.  A spilled stack's bands are read from its file into
+    two buffers in turn (each faulted into memory once), the next band in a thread while the stage runs on
+    this one: the read (a copy out of the file) overlaps the stage's work.  The same thread writes each band's
+    outputs out (:meth:`defer`) while the next band runs, in order, before it reads the band after next: so a
+    buffer, or memory lent to every other band's outputs (``StageContext.output_array``), is taken again only
+    once what was in it has been written out."""
+
+    def __init__(self, stack: SampleStack, bands: list[slice]):
+        self.stack, self.bands = stack, bands
+        self.pool = self.next = None
+        self.writes: list = []
+        if isinstance(stack.samples, np.ndarray) and len(bands) > 1:
+            import concurrent.futures
+            rows = max(band.stop - band.start for band in bands)
+            self.buffers = [np.empty(stack.samples[:, :, :rows].size, stack.samples.dtype) for _ in range(2)]
+            self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="btforge-band")
+            self.next = self.pool.submit(self._read, 0)
+
+    def _read(self, index: int) -> SampleStack:
+        rows = self.bands[index]
+        buffer = self.buffers[index % 2]
+        if buffer.size != self.stack.samples[:, :, rows].size:
+            buffer = None  # a shorter last band: a view of part of the buffer would be copied when frozen
+        else:  # the band stack read into it two bands before froze it; that band was joined before this read began
+            buffer.flags.writeable = True
+        return band_stack(self.stack, rows, buffer)
+
+    def band(self, index: int) -> SampleStack:
+        if self.pool is None:
+            return band_stack(self.stack, self.bands[index])
+        band = self.next.result()
+        self.next = self.pool.submit(self._read, index + 1) if index + 1 < len(self.bands) else None
+        return band
+
+    def defer(self, function, *args) -> None:
+        """``function(*args)`` on the reading thread, after the read under way (at once without that thread)."""
+        if self.pool is None:
+            function(*args)
+            return
+        self.writes.append(self.pool.submit(function, *args))
+
+    def finish(self) -> None:
+        """Wait for every deferred write; the first one that failed raises."""
+        writes, self.writes = self.writes, []
+        for write in writes:
+            write.result()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            if self.next is not None:
+                self.next.cancel()
+            self.pool.shutdown(wait=True)
 
 
 def merge_band_notes(band_notes: list[dict[str, Any]]) -> dict[str, Any]:
@@ -142,8 +197,10 @@ class Joiner:
     every other field must be the same in every band.  The joined arrays are spilled to a file, so the result
     never becomes resident until a stage reads it."""
 
-    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int):
+    def __init__(self, types: Mapping[str, type[Buffer]], starts: list[int], height: int, defer=None):
         self.types, self.starts, self.height = types, starts, height
+        # how whole rows are written to their file: at once, or handed to a thread (run_banded's reader)
+        self.defer = defer or (lambda function, *args: function(*args))
         self.type_name = self.meta = None
         self.arrays: dict[str, np.ndarray] = {}
 
@@ -172,7 +229,7 @@ class Joiner:
                 shape = piece.shape[:axis] + (self.height,) + piece.shape[axis + 1:]
                 self.arrays[name] = spilled_empty(shape, piece.dtype)
             if axis == 0:  # whole rows: plain writes to the file, no pages mapped
-                write_items(self.arrays[name], self.starts[band], piece)
+                self.defer(write_items, self.arrays[name], self.starts[band], piece)
                 continue
             index = (slice(None),) * axis + (slice(self.starts[band], self.starts[band] + piece.shape[axis]),)
             self.arrays[name][index] = piece

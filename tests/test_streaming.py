@@ -48,8 +48,9 @@ def stream_small_captures(monkeypatch):
 
 @pytest.fixture
 def small_bands(monkeypatch):
-    # 5 rows a band of the 24-row capture (linear float32 bytes of 5 rows): 5 bands, the last one short
-    monkeypatch.setattr(btforge.streaming, "BAND_BYTES", 5 * 20 * 14 * 3 * 4)
+    # 5 rows a band of the 24-row capture (linear float32 bytes of two bands of 5 rows, one of them read ahead):
+    # 5 bands, the last one short
+    monkeypatch.setattr(btforge.streaming, "BAND_BYTES", 2 * 5 * 20 * 14 * 3 * 4)
 
 
 def test_streamed_fits_equal_the_fits_of_the_whole_stack(capture, tmp_path, small_bands):

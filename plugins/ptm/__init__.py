@@ -67,7 +67,7 @@ def ptm_fit(ctx, stack, *, variant, space, basis, rcond, ridge):
     model : PTMModel
         ``[H, W, K, 6]`` coefficients in the order (lu^2, lv^2, lu*lv, lu, lv, 1).
     """
-    model, solver = fit_ptm(stack, variant, space, rcond=rcond, ridge=ridge)
+    model, solver = fit_ptm(stack, variant, space, rcond=rcond, ridge=ridge, output_array=ctx.output_array)
     return {"model": _report_fit(ctx, model.with_basis(basis), solver, rcond)}
 
 

@@ -235,6 +235,9 @@ class PTMSolve:
         return design.T @ design + self.penalty * np.eye(N_TERMS)
 
 
+_SOLVERS: dict[tuple, PTMSolve] = {}  # the last few solvers: every band of a streamed fit asks for the same one
+
+
 def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND, ridge: float = 0.0) -> PTMSolve:
     """Pseudo-inverse of the PTM design matrix, dropping singular values below ``rcond`` x the largest, with a
     ridge ``ridge x s_max^2`` (``btforge.fitspace.ridge_solve``; 0: plain least squares).
@@ -249,14 +252,25 @@ def ptm_solver(lights: np.ndarray, rcond: float = DEFAULT_RCOND, ridge: float = 
         raise BtforgeInputError(
             "ptm.fit", f"expected at least {N_TERMS} lights for a 6-coefficient PTM, found {len(lights)}",
             "capture more lights, or use a representation with fewer coefficients")
+    key = (lights.shape, lights.tobytes(), float(rcond), float(ridge))
+    solver = _SOLVERS.get(key)
+    if solver is None:
+        if len(_SOLVERS) >= 4:
+            _SOLVERS.pop(next(iter(_SOLVERS)))
+        solver = _SOLVERS[key] = _new_solver(lights, rcond, ridge)
+    return solver
+
+
+def _new_solver(lights: np.ndarray, rcond: float, ridge: float) -> PTMSolve:
     design = ptm_terms(lights)
     s = np.linalg.svd(design, compute_uv=False)
     floor = s[0] * rcond
     condition = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
     clamped = int((s < floor).sum())
-    solve = ridge_solve(design, ridge, rcond)
-    return PTMSolve(solve.astype(np.float32), design.astype(np.float32), condition, clamped, float(ridge),
-                    float(ridge * s[0] ** 2))
+    solve = ridge_solve(design, ridge, rcond).astype(np.float32)
+    design = design.astype(np.float32)
+    solve.flags.writeable = design.flags.writeable = False  # shared by every caller with these lights
+    return PTMSolve(solve, design, condition, clamped, float(ridge), float(ridge * s[0] ** 2))
 
 
 def _kernel_input(stack: SampleStack, space: str):
@@ -469,12 +483,14 @@ def check_ridge(ridge, owner: str = "ptm.fit") -> None:
 
 
 def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, engine: str = "opencl",
-            rcond: float = DEFAULT_RCOND, ridge="auto", budget_bytes: int = 64 << 20) -> tuple[PTMModel, PTMSolve]:
+            rcond: float = DEFAULT_RCOND, ridge="auto", budget_bytes: int = 64 << 20,
+            output_array=None) -> tuple[PTMModel, PTMSolve]:
     """Regularised least-squares PTM fit of a single-view stack (``ridge``: a weight, or ``auto``).
 
     The OpenCL path reads an 8-bit or linear capture in place and writes coefficients straight into the
     result, so memory stays near the stack plus its coefficients; other paths go band by band, and so does a
-    stack read from a store (``stack.chunked``), one band of chunk rows at a time.
+    stack read from a store (``stack.chunked``), one band of chunk rows at a time.  ``output_array(name, shape,
+    dtype)`` gives the arrays the result is computed into (a stage passes ``ctx.output_array``); default new ones.
     """
     if stack.n_view != 1:
         raise BtforgeInputError(
@@ -489,8 +505,9 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     solver = ptm_solver(stack.lights, rcond, ridge)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c
-    coeffs = np.empty((h * w, k, N_TERMS), np.float32)
-    albedo = np.empty((h * w, c if variant == "lrgb" else 0), np.float32)
+    output_array = output_array or (lambda name, shape, dtype: np.empty(shape, dtype))
+    coeffs = output_array("coeffs", (h * w, k, N_TERMS), np.float32)
+    albedo = output_array("albedo", (h * w, c if variant == "lrgb" else 0), np.float32)
     lut, byte_scale, convert = _kernel_input(stack, space)
     if stack.chunked:  # a store: one band of chunk rows at a time, each fitted like a whole stack
         for rows in stack.row_bands(budget_bytes):

@@ -50,10 +50,13 @@ JPEG_LRGB
 """
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import dataclasses
 import io
 import math
 import os
+import threading
 from typing import Callable
 
 import numpy as np
@@ -186,8 +189,15 @@ def relit_display_values(coeffs: np.ndarray, albedo: np.ndarray | None, lights) 
 # ----------------------------------------------------------------------------------------------- validation
 
 
-def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = True):
-    """Check a (variant, coeffs, albedo) triple; returns the arrays unchanged."""
+def _not_finite(owner: str, coeffs: np.ndarray):
+    bad = np.argwhere(~np.isfinite(coeffs))[0]
+    raise BtforgeInputError(f"{owner} 'coeffs'", f"expected finite values, found NaN/Inf at row {bad[0]}, column "
+                            f"{bad[1]}", "repair the fit before saving it")
+
+
+def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = True, coeffs_finite_later: bool = False):
+    """Check a (variant, coeffs, albedo) triple; returns the arrays unchanged.  ``coeffs_finite_later``: the
+    caller checks that the coefficients are finite on its own pass over them."""
     if variant not in VARIANT_CHANNELS:
         raise BtforgeInputError(f"{owner} 'variant'", f"expected 'lrgb' or 'rgb', found {variant!r}")
     channels = VARIANT_CHANNELS[variant]
@@ -202,11 +212,8 @@ def _checked_model(owner: str, variant, coeffs, albedo, check_values: bool = Tru
             "lrgb models have one luminance polynomial per pixel (K = 1), rgb models one per channel (K = 3)")
     height, width = coeffs.shape[:2]
     # min and max see every NaN (they propagate it) and every infinity, without a mask the size of the model
-    if check_values and not finite_range(coeffs):  # page by page: a spilled model is not made resident
-        bad = np.argwhere(~np.isfinite(coeffs))[0]
-        raise BtforgeInputError(f"{owner} 'coeffs'",
-                                f"expected finite values, found NaN/Inf at row {bad[0]}, column {bad[1]}",
-                                "repair the fit before saving it")
+    if check_values and not coeffs_finite_later and not finite_range(coeffs):  # page by page: a spilled model is not made resident
+        _not_finite(owner, coeffs)
     if variant == "rgb":
         if albedo is not None:
             raise BtforgeInputError(f"{owner} 'albedo'", "expected None for an rgb PTM, found an array",
@@ -793,12 +800,17 @@ def _spread_sample(flat: np.ndarray, runs: int = 64) -> np.ndarray:
                            for start in range(0, flat.shape[0], step)])
 
 
-def _paged_column_range(flat: np.ndarray, rows: int = 1 << 18) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_column_range` a block of rows at a time (a spilled model is read block by block from its file into
-    one buffer, never made resident)."""
-    buffer = np.empty(min(rows, flat.shape[0]) * flat.shape[1], flat.dtype)
-    parts = [_column_range(read_block(flat, 0, slice(start, start + rows), buffer))
-             for start in range(0, flat.shape[0], rows)]
+def _paged_column_range(flat: np.ndarray, rows: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_column_range` a block of rows at a time, ``WRITE_THREADS`` blocks at once (a spilled model is read
+    block by block from its file into one buffer per thread, never made resident)."""
+    local = threading.local()
+
+    def block_range(start: int) -> tuple[np.ndarray, np.ndarray]:
+        if not hasattr(local, "buffer"):
+            local.buffer = np.empty(min(rows, flat.shape[0]) * flat.shape[1], flat.dtype)
+        return _column_range(read_block(flat, 0, slice(start, start + rows), local.buffer))
+
+    parts = list(_in_order(block_range, list(range(0, flat.shape[0], rows)), WRITE_THREADS))
     return np.min([low for low, _ in parts], axis=0), np.max([high for _, high in parts], axis=0)
 
 
@@ -810,12 +822,14 @@ class _Quantizer:
     model takes no copy of it.
     """
 
-    def __init__(self, coeffs: np.ndarray):
+    def __init__(self, coeffs: np.ndarray, owner: str = "write_ptm"):
         self.coeffs = coeffs
-        self._buffers: dict[str, np.ndarray] = {}
+        self._local = threading.local()  # working arrays, one set per thread: bands are encoded in parallel
         flat = coeffs.reshape(-1, N_COEFFS)
         sample = _spread_sample(flat)
         lows, highs = _paged_column_range(flat)
+        if not (np.isfinite(lows).all() and np.isfinite(highs).all()):  # min and max see every NaN and Inf
+            _not_finite(owner, coeffs)
         self.scales, self.biases, self.steps, self.whole = [], [], [], {}
         for i in range(N_COEFFS):
             low, high = float(lows[i]), float(highs[i])
@@ -834,9 +848,10 @@ class _Quantizer:
     def _buffer(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
         """A flat working array of at least ``shape``'s size, kept for the next band."""
         size = math.prod(shape)
-        found = self._buffers.get(name)
+        buffers = self._local.__dict__.setdefault("buffers", {})
+        found = buffers.get(name)
         if found is None or found.size < size or found.dtype != dtype:
-            found = self._buffers[name] = np.empty(size, dtype)
+            found = buffers[name] = np.empty(size, dtype)
         return found
 
     def levels(self, rows: slice) -> np.ndarray:
@@ -860,7 +875,28 @@ class _Quantizer:
         return out
 
 
-WRITE_BAND_BYTES = 4 << 20  # float64 working set of one band of rows while writing
+WRITE_BAND_BYTES = 2 << 20  # float64 working set of one band of rows while writing (one band per thread)
+WRITE_THREADS = 2  # bands encoded at once (NumPy's arithmetic runs without the GIL)
+
+
+def _in_order(function: Callable, items: list, threads: int):
+    """``function(item)`` for each of ``items``, in order, computed ``threads`` at a time a little ahead of the
+    caller (at most ``2 * threads`` results wait)."""
+    if threads < 2 or len(items) < 2:
+        yield from map(function, items)
+        return
+    with concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="btforge-write") as pool:
+        pending = collections.deque()
+        try:
+            for item in items:
+                pending.append(pool.submit(function, item))
+                if len(pending) >= 2 * threads:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for future in pending:
+                future.cancel()
 
 
 def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None) -> None:
@@ -882,7 +918,8 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
     albedo
         Float ``[H, W, 3]`` in ``[0, 1]`` for lrgb; ``None`` for rgb.
     """
-    coeffs, albedo = _checked_model("write_ptm", variant, coeffs, albedo)
+    # the coefficients are checked finite by the quantizer's pass over them
+    coeffs, albedo = _checked_model("write_ptm", variant, coeffs, albedo, coeffs_finite_later=True)
     height, width = coeffs.shape[:2]
     quantizer = _Quantizer(coeffs)
     header = "\n".join([
@@ -899,12 +936,16 @@ def write_ptm(path, variant: str, coeffs: np.ndarray, albedo: np.ndarray | None)
         start = handle.write(header.encode("ascii"))
         # Files store the bottom row first; an rgb file holds each channel's plane in turn, then lrgb its colours.
         # Each band of rows is read once and its bytes placed in every channel's plane.
-        for stop in range(height, 0, -rows_per_band):
-            rows = slice(max(0, stop - rows_per_band), stop)
+        bands = [slice(max(0, stop - rows_per_band), stop) for stop in range(height, 0, -rows_per_band)]
+
+        def planes(rows: slice) -> list[np.ndarray]:  # each channel's bytes of the band, bottom row first
             band = quantizer.levels(rows)
-            for channel in range(coeffs.shape[2]):
+            return [np.ascontiguousarray(band[::-1, :, channel]) for channel in range(coeffs.shape[2])]
+
+        for stop, parts in zip((rows.stop for rows in bands), _in_order(planes, bands, WRITE_THREADS)):
+            for channel, part in enumerate(parts):
                 handle.seek(start + channel * plane + (height - stop) * width * N_COEFFS)
-                handle.write(memoryview(np.ascontiguousarray(band[::-1, :, channel])).cast("B"))
+                handle.write(memoryview(part).cast("B"))
         handle.seek(start + coeffs.shape[2] * plane)
         if variant == "lrgb":
             for stop in range(height, 0, -rows_per_band):

@@ -521,6 +521,7 @@ def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto",
     capture, and decoding never waits for a batch to fill.  Same samples, lights and errors as
     :func:`load_stack` (the error reported is the one of the earliest line).
     """
+    from btforge.fitspace import auto_grid_step
     from btforge.spill import spilled_empty, write_items
     from btforge.store import SpilledSampleStack
     reader = CaptureReader(light_file, transfer=transfer)
@@ -529,12 +530,17 @@ def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto",
         return _read_whole(reader, threads)
     samples = spilled_empty((reader.n_view, reader.n_light) + reader.shape, reader.dtype)
     slots = [(v, l) for v in range(reader.n_view) for l in range(reader.n_light)]
+    # the texel grid `auto` choices judge on, taken from each image while it is in memory (read from the file
+    # afterwards, it would cost a read per grid row of every image)
+    step = auto_grid_step(*reader.shape[:2])
+    grid = np.empty((reader.n_view, reader.n_light) + samples[0, 0, ::step, ::step].shape, reader.dtype)
     own = threading.local()
 
     def decode(index: int) -> None:
         if not hasattr(own, "image"):
             own.image = np.empty((1,) + reader.shape, reader.dtype)
         reader.read_into([slots[index]], own.image, threads=1)
+        grid[slots[index]] = own.image[0, ::step, ::step]
         write_items(samples, index, own.image)
 
     with concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="btforge-decode") as pool:
@@ -546,8 +552,10 @@ def load_stack_spilled(light_file: str | os.PathLike, *, transfer: str = "auto",
             for future in futures:
                 future.cancel()
             raise
-    return SpilledSampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
-                              encoding=reader.encoding, names=reader.names)
+    stack = SpilledSampleStack(samples=samples, lights=reader.lights, views=reader.views, channels=reader.channels,
+                               encoding=reader.encoding, names=reader.names)
+    stack.keep_texel_grid(step, grid)
+    return stack
 
 
 # ----------------------------------------------------------------------------------------------- writing
