@@ -21,10 +21,14 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
    the continuation of a 4-neighbour's source (or keep its own), whichever makes its neighbourhood (itself and
    its 4-neighbours) most like the exemplar's around that source.  Seams then follow the content instead of a grid.
 
-With ``scales`` > 0 both steps run first on half-resolution versions of the map and the exemplar (recursively),
+3. *Re-cutting* (:mod:`.recut`, after the finest scale): seams left in straight runs, where no single-texel move
+   pays, are re-cut by minimum cuts between the continuations of their two sides (Kwatra et al. 2003).
+
+With ``scales`` > 0 the first two steps run first on half-resolution versions of the map and the exemplar (recursively),
 so that an 8 x 8 window also spans 16 and 32 texels and structures larger than a fine window are matched whole.
 
-Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration.
+Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration, and
+scipy's maximum flow for the cuts.
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ import numpy as np
 from btforge.buffers import CoordMap
 
 from .features import pca_reduce
+from .recut import recut_straight_seams
 from .search import ContentCache, content_key
 from .search_base import leading_eigenpairs
 
@@ -102,7 +107,7 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
 
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
-               seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0) -> CoordMap:
+               seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -110,7 +115,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     ``pinned`` (boolean ``[H, W]``, optional) marks output texels that keep their sources (and blends): they
     still serve as context for their neighbours' windows, seams and corrections.  ``scales`` coarser scales (each
     at half the resolution of the next) are refined first, while their exemplar and output stay
-    :data:`COARSE_FIT` windows across (:func:`_coarse_first`)."""
+    :data:`COARSE_FIT` windows across (:func:`_coarse_first`).  With ``recut`` the straight seams left are then
+    re-cut by minimum cuts (:func:`.recut.recut_straight_seams`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -123,6 +129,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
     src = _refine_sources(features, src, coords.wrap, iterations, occurrence, patch, rng, pinned, scales)
+    if recut:
+        src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned)
     return _with_kept_blends(coords, src)
 
 

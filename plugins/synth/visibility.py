@@ -64,23 +64,28 @@ class SeamEdges:
 def seam_edges(coords: CoordMap, run: int = STRAIGHT_RUN) -> SeamEdges:
     """The seam edges of a map (its dominant sources; with ``wrap`` the wrap-around pairs too)."""
     src = dominant_source(coords)
-    nxt_c = np.roll(src, -1, axis=1)
-    nxt_r = np.roll(src, -1, axis=0)
-    across_columns = (nxt_c[..., 0] != src[..., 0]) | (nxt_c[..., 1] != src[..., 1] + 1)
-    across_rows = (nxt_r[..., 0] != src[..., 0] + 1) | (nxt_r[..., 1] != src[..., 1])
-    if not coords.wrap:
-        across_columns[:, -1] = False
-        across_rows[-1, :] = False
+    across_columns, across_rows = seam_masks(src[..., 0], src[..., 1], coords.wrap)
     tile = int(getattr(coords, "tile", 0) or 0)
     candidates_c, candidates_r = across_columns.copy(), across_rows.copy()
     if tile > 0:  # a tiling's tile borders are straight by design
         candidates_c[:, (np.arange(coords.width) + 1) % tile == 0] = False
         candidates_r[(np.arange(coords.height) + 1) % tile == 0, :] = False
-    return SeamEdges(across_columns, across_rows, _in_long_runs(candidates_c, 0, run),
-                     _in_long_runs(candidates_r, 1, run))
+    return SeamEdges(across_columns, across_rows, in_long_runs(candidates_c, 0, run),
+                     in_long_runs(candidates_r, 1, run))
 
 
-def _in_long_runs(mask: np.ndarray, axis: int, run: int) -> np.ndarray:
+def seam_masks(rows: np.ndarray, cols: np.ndarray, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``across_columns, across_rows`` (as in :class:`SeamEdges`) of a map whose texels copy exemplar texels
+    ``(rows, cols)`` (``[H, W]`` each)."""
+    across_columns = (np.roll(rows, -1, axis=1) != rows) | (np.roll(cols, -1, axis=1) != cols + 1)
+    across_rows = (np.roll(rows, -1, axis=0) != rows + 1) | (np.roll(cols, -1, axis=0) != cols)
+    if not wrap:
+        across_columns[:, -1] = False
+        across_rows[-1, :] = False
+    return across_columns, across_rows
+
+
+def in_long_runs(mask: np.ndarray, axis: int, run: int) -> np.ndarray:
     """Elements of ``mask`` in runs of at least ``run`` consecutive True values along ``axis``."""
     from scipy.ndimage import label
     structure = np.zeros((3, 3), bool)

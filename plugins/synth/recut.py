@@ -1,0 +1,189 @@
+"""Straight seams re-cut by minimum cuts, as Graphcut Textures (Kwatra et al. 2003) re-cuts old seams.
+
+The refinement's labelling (:mod:`.refine`) changes one texel at a time.  A seam that runs straight along the side
+of a copied block stays where it is whenever every single-texel move costs more seam than it saves: typically
+where it cuts across a stone or a colour area whose far side lies beyond one window.  The eye picks such straight
+cuts out first.
+
+Here every seam edge in a straight run of :data:`~.visibility.STRAIGHT_RUN` or more texels gets a band of
+:data:`BAND` texels on either side, in which each texel may take the continuation of the source on either side of
+the seam (the exemplar texels that lie, in the exemplar, where the band texel lies in the output).  Two expansion
+moves follow (the first side's continuations, then the second's).  Each is a binary labelling, keep or take, of
+least seam cost (zero between texels whose sources continue each other, else the squared appearance difference of
+each texel and the other's exemplar neighbour), solved exactly by a minimum s-t cut (scipy's Dinic maximum flow).
+The cut runs where the two sides agree: the mortar between stones, the soft edge of a colour area.  A move is kept
+only when it lowers the seam cost of the edges it touches.  Pinned texels keep their sources, and a band stops at
+them (its continuations do not reach across a pinned ring into another tile of a mosaic).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .visibility import STRAIGHT_RUN, in_long_runs, seam_masks
+
+#: Texels on either side of a straight seam that may take a continuation of either side.
+BAND = 8
+#: Rounds of re-cutting (each finds the straight runs again).
+PASSES = 2
+#: Largest total capacity of a cut's graph (scipy's maximum flow counts in 32-bit integers).
+CAPACITY_BUDGET = 1.5e9
+#: Finest resolution of a capacity, relative to the largest seam cost of the graph.
+CAPACITY_STEPS = 1e6
+
+
+def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned: np.ndarray | None = None,
+                         passes: int = PASSES) -> np.ndarray:
+    """``src [H, W]`` (flat exemplar indices into ``texels [eh, ew, d]``) with its straight seams re-cut (module
+    docstring); ``pinned [H, W]`` (optional) texels keep their sources."""
+    eh, ew = texels.shape[:2]
+    h, w = src.shape
+    if min(h, w) < 2:
+        return src
+    pinned = np.zeros((h, w), bool) if pinned is None else pinned
+    for _ in range(passes):
+        before = src
+        for run_mask, axis in straight_runs(src, ew, wrap, pinned):
+            for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
+                src = expansion_move(texels, src, proposal, wrap, pinned)
+        if np.array_equal(before, src):
+            break
+    return src
+
+
+def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray) -> list[tuple[np.ndarray, int]]:
+    """``(mask, axis)`` per direction: the seam edges in straight runs (``axis`` 0: ``across_columns`` edges in
+    vertical runs; 1: ``across_rows`` edges in horizontal runs), leaving out edges between two pinned texels."""
+    rows, cols = np.divmod(src, ew)
+    across_columns, across_rows = seam_masks(rows, cols, wrap)
+    across_columns &= ~(pinned & np.roll(pinned, -1, axis=1))
+    across_rows &= ~(pinned & np.roll(pinned, -1, axis=0))
+    return [(in_long_runs(across_columns, 0, STRAIGHT_RUN), 0), (in_long_runs(across_rows, 1, STRAIGHT_RUN), 1)]
+
+
+def continuations(src: np.ndarray, source_size: tuple[int, int], wrap: bool, run_mask: np.ndarray, axis: int,
+                  pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per output texel, the continuation (flat exemplar index, -1: none) of the first and of the second side's
+    source of the seam edges in ``run_mask`` whose band holds it (a band ends at the output's border without
+    ``wrap``, at the exemplar's border and at a pinned texel)."""
+    eh, ew = source_size
+    h, w = src.shape
+    step = np.array([0, 1]) if axis == 0 else np.array([1, 0])
+    first = np.argwhere(run_mask)
+    out = []
+    for side in (0, 1):
+        origin = (first + side * step) % (h, w)
+        source = np.stack(np.divmod(src[origin[:, 0], origin[:, 1]], ew), axis=1)
+        proposal = np.full((h, w), -1, np.int64)
+        for direction, offsets in ((-1, range(0, BAND)), (1, range(1, BAND + 1))):
+            alive = np.ones(len(first), bool)
+            for k in offsets:
+                delta = direction * k * step
+                at = first + delta
+                if wrap:
+                    at %= (h, w)
+                else:
+                    alive &= (at[:, 0] >= 0) & (at[:, 0] < h) & (at[:, 1] >= 0) & (at[:, 1] < w)
+                    at = np.clip(at, 0, (h - 1, w - 1))
+                alive &= ~pinned[at[:, 0], at[:, 1]]
+                there = source + delta - side * step
+                ok = alive & (there[:, 0] >= 0) & (there[:, 0] < eh) & (there[:, 1] >= 0) & (there[:, 1] < ew)
+                proposal[at[ok, 0], at[ok, 1]] = there[ok, 0] * ew + there[ok, 1]
+        out.append(proposal)
+    return out[0], out[1]
+
+
+def seam_cost(flat: np.ndarray, padded: np.ndarray, source_size: tuple[int, int], a: np.ndarray, b: np.ndarray,
+              dy: int, dx: int) -> np.ndarray:
+    """Seam cost of source ``a`` at an output texel and ``b`` at its neighbour ``(dy, dx)`` away: zero where ``b``
+    continues ``a``, else half the squared appearance differences of each texel and the other's exemplar
+    neighbour on that side (edge-clamped at the exemplar's border; ``padded`` is ``texels`` edge-padded by one)."""
+    eh, ew = source_size
+    ar, ac = np.divmod(a, ew)
+    br, bc = np.divmod(b, ew)
+    beside_a = padded[(np.clip(ar + dy, -1, eh) + 1) * (ew + 2) + np.clip(ac + dx, -1, ew) + 1]
+    beside_b = padded[(np.clip(br - dy, -1, eh) + 1) * (ew + 2) + np.clip(bc - dx, -1, ew) + 1]
+    cost = 0.5 * (((beside_a - flat[b]) ** 2).sum(axis=-1) + ((beside_b - flat[a]) ** 2).sum(axis=-1))
+    return np.where((br == ar + dy) & (bc == ac + dx), 0.0, cost)
+
+
+def expansion_move(texels: np.ndarray, labels: np.ndarray, proposal: np.ndarray, wrap: bool,
+                   pinned: np.ndarray) -> np.ndarray:
+    """``labels`` after the best binary choice, per texel, between its label and its ``proposal`` (-1: none):
+    the minimum cut of the seam costs, kept only if it lowers them."""
+    eh, ew, d = texels.shape
+    h, w = labels.shape
+    flat = texels.reshape(-1, d)
+    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    current, offered = labels.ravel(), proposal.ravel()
+    free = (offered >= 0) & (offered != current) & ~pinned.ravel()
+    if not free.any():
+        return labels
+    taken = np.where(free, offered, current)
+    terms = [_edge_terms(flat, padded, (eh, ew), current, taken, free, s, t, dy, dx)
+             for s, t, dy, dx in _edges(h, w, wrap)]
+    s, t, keep_keep, keep_take, take_keep, take_take = (np.concatenate(parts) for parts in zip(*terms))
+    choice = _min_cut(h * w, free, s, t, keep_keep, keep_take, take_keep, take_take)
+    chosen = np.where(choice, taken, current)
+    cost_now = keep_keep.sum()
+    cost_then = np.where(choice[s], np.where(choice[t], take_take, take_keep),
+                         np.where(choice[t], keep_take, keep_keep)).sum()
+    return chosen.reshape(h, w) if cost_then < cost_now else labels
+
+
+def _edges(h: int, w: int, wrap: bool):
+    """``(s, t, dy, dx)`` for the right and the lower neighbour pairs (flat indices; wrap-around pairs with
+    ``wrap``; none of a texel with itself)."""
+    index = np.arange(h * w).reshape(h, w)
+    for dy, dx in ((0, 1), (1, 0)):
+        if wrap and (h, w)[dy] > 1:
+            yield index.ravel(), np.roll(index, (-dy, -dx), axis=(0, 1)).ravel(), dy, dx
+        else:
+            yield index[:h - dy, :w - dx].ravel(), index[dy:, dx:].ravel(), dy, dx
+
+
+def _edge_terms(flat, padded, source_size, current, taken, free, s, t, dy, dx):
+    """The edges touching a free texel, with their four seam costs (keep/take at ``s``, keep/take at ``t``)."""
+    touched = free[s] | free[t]
+    s, t = s[touched], t[touched]
+    costs = [seam_cost(flat, padded, source_size, first[s], second[t], dy, dx)
+             for first, second in ((current, current), (current, taken), (taken, current), (taken, taken))]
+    return (s, t, *costs)
+
+
+def _min_cut(n: int, free: np.ndarray, s, t, keep_keep, keep_take, take_keep, take_take) -> np.ndarray:
+    """Per texel, whether it takes its proposal in the least-cost labelling of the pairwise costs (only free
+    texels may; ``take_take`` lowered where needed to make the costs submodular), by a minimum s-t cut over the
+    free texels, an edge to a fixed texel counting as a cost of the free one's choice."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+    take_take = np.minimum(take_take, keep_take + take_keep - keep_keep)
+    both, only_s, only_t = free[s] & free[t], free[s] & ~free[t], ~free[s] & free[t]
+    # E(x_s, x_t) = kk + (tk - kk) x_s + (tt - tk) x_t + (kt + tk - kk - tt) (1 - x_s) x_t, with x = 1: take
+    unary = np.zeros(n)
+    np.add.at(unary, s[both | only_s], (take_keep - keep_keep)[both | only_s])
+    np.add.at(unary, t[both], (take_take - take_keep)[both])
+    np.add.at(unary, t[only_t], (keep_take - keep_keep)[only_t])
+    nodes = np.flatnonzero(free)
+    local = np.full(n, -1)
+    local[nodes] = np.arange(len(nodes))
+    unary = unary[nodes]
+    pair = (keep_take + take_keep - keep_keep - take_take)[both]
+    scale = CAPACITY_STEPS / max(float(np.abs(unary).max()), float(pair.max(initial=0)), 1e-30)
+    scale *= min(1.0, CAPACITY_BUDGET / max((np.abs(unary).sum() + pair.sum()) * scale, 1.0))
+    m = len(nodes)
+    source, sink = m, m + 1
+    ends_s, ends_t = local[s[both]], local[t[both]]
+    capacity = np.concatenate([np.maximum(unary, 0), np.maximum(-unary, 0), pair, np.zeros(len(pair))])
+    graph = csr_matrix((np.round(capacity * scale).astype(np.int32),
+                        (np.concatenate([np.full(m, source), np.arange(m), ends_s, ends_t]),
+                         np.concatenate([np.arange(m), np.full(m, sink), ends_t, ends_s]))), shape=(m + 2, m + 2))
+    graph.sum_duplicates()
+    flow = maximum_flow(graph, source, sink, method="dinic").flow
+    residual = (graph - flow).tocsr()
+    residual.data = (residual.data > 0).astype(np.int8)
+    residual.eliminate_zeros()
+    # the smallest sink side (the texels that still reach the sink): where keeping costs no more, a texel keeps
+    reaching_sink = breadth_first_order(residual.T.tocsr(), sink, directed=True, return_predecessors=False)
+    takes = np.zeros(n, bool)
+    takes[nodes[reaching_sink[reaching_sink < m]]] = True
+    return takes

@@ -1,0 +1,131 @@
+"""Straight seams re-cut by minimum cuts: exact on small cases, never costlier, pinned texels held."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from btforge.buffers import CoordMap, SampleStack
+from btforge.plugins.demo.patterns import make_pattern
+from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
+from btforge.plugins.synth import recut
+from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.visibility import seam_edges
+
+
+def seam_energy(texels: np.ndarray, labels: np.ndarray, wrap: bool) -> float:
+    """The total seam cost the re-cut lowers, over every neighbour pair of the map."""
+    eh, ew, d = texels.shape
+    flat = texels.reshape(-1, d)
+    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    h, w = labels.shape
+    flat_labels = labels.ravel()
+    return float(sum(recut.seam_cost(flat, padded, (eh, ew), flat_labels[s], flat_labels[t], dy, dx).sum()
+                     for s, t, dy, dx in recut._edges(h, w, wrap)))
+
+
+@pytest.fixture(scope="module")
+def stones():
+    lights = hemisphere_lights(8)
+    stack = SampleStack(render_lights(make_pattern("stones", 64, 64, seed=3), lights)[None], lights,
+                        np.array([[0.0, 0.0, 1.0]]))
+    features = texel_features(stack)
+    return features / features.std()
+
+
+def two_blocks(size: int, height: int, width: int, left: tuple[int, int], right: tuple[int, int]) -> np.ndarray:
+    """Flat sources of a map whose left half copies the exemplar from ``left`` and right half from ``right``."""
+    rows, cols = np.mgrid[0:height, 0:width]
+    half = width // 2
+    y = np.where(cols < half, left[0] + rows, right[0] + rows)
+    x = np.where(cols < half, left[1] + cols, right[1] + cols - half)
+    return y * size + x
+
+
+def test_a_straight_seam_between_two_blocks_is_re_cut_at_less_cost(stones):
+    src = two_blocks(64, 40, 40, (2, 3), (20, 30))
+    out = recut.recut_straight_seams(stones, src, wrap=False)
+    assert out.shape == src.shape and out.min() >= 0 and out.max() < 64 * 64
+    assert seam_energy(stones, out, False) < 0.9 * seam_energy(stones, src, False)
+    rows, cols = np.divmod(out, 64)
+    before = seam_edges(CoordMap(np.stack(np.divmod(src, 64), -1).astype(np.int32), (64, 64)))
+    after = seam_edges(CoordMap(np.stack([rows, cols], -1).astype(np.int32), (64, 64)))
+    assert after.straight_count < 0.5 * before.straight_count
+
+
+def test_pinned_texels_keep_their_sources_and_bands_stop_at_them(stones):
+    src = two_blocks(64, 40, 40, (2, 3), (20, 30))
+    pinned = np.zeros(src.shape, bool)
+    pinned[:, 16] = True                                  # a pinned column left of the seam (at 19 | 20)
+    first, second = recut.continuations(src, (64, 64), False, np.isin(np.arange(40), [19])[None, :]
+                                        & np.ones((40, 1), bool), 0, pinned)
+    assert (second[:, :17] == -1).all() and (second[:, 17:28] >= 0).all()
+    out = recut.recut_straight_seams(stones, src, wrap=False, pinned=pinned)
+    assert np.array_equal(out[pinned], src[pinned])
+
+
+def test_a_constant_exemplar_leaves_the_map_as_it_is():
+    texels = np.ones((32, 32, 3), np.float32)
+    src = two_blocks(32, 20, 20, (0, 0), (10, 12))
+    assert np.array_equal(recut.recut_straight_seams(texels, src, wrap=True), src)
+
+
+@st.composite
+def small_cases(draw):
+    d = draw(st.integers(1, 3))
+    size = draw(st.integers(3, 5))
+    scale = draw(st.sampled_from([1e-6, 1.0, 1e4]))
+    values = draw(st.lists(st.floats(-1, 1, allow_nan=False, width=32), min_size=size * size * d,
+                           max_size=size * size * d))
+    texels = (np.array(values, np.float32) * scale).reshape(size, size, d)
+    h, w = draw(st.integers(2, 3)), draw(st.integers(2, 3))
+    labels = np.array(draw(st.lists(st.integers(0, size * size - 1), min_size=h * w, max_size=h * w))).reshape(h, w)
+    proposal = np.array(draw(st.lists(st.integers(-1, size * size - 1), min_size=h * w,
+                                      max_size=h * w))).reshape(h, w)
+    pinned = np.array(draw(st.lists(st.booleans(), min_size=h * w, max_size=h * w))).reshape(h, w)
+    return texels, labels, proposal, pinned, draw(st.booleans())
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(small_cases())
+def test_an_expansion_move_is_never_costlier_and_is_exact_when_submodular(case):
+    texels, labels, proposal, pinned, wrap = case
+    moved = recut.expansion_move(texels, labels, proposal, wrap, pinned)
+    free = (proposal >= 0) & (proposal != labels) & ~pinned
+    assert np.array_equal(moved[~free], labels[~free])
+    assert np.all((moved == labels) | (moved == proposal))
+    before, after = seam_energy(texels, labels, wrap), seam_energy(texels, moved, wrap)
+    assert np.isfinite(after) and after <= before * (1 + 1e-6) + 1e-12
+    spots = np.argwhere(free)
+    best = before
+    for choice in itertools.product((False, True), repeat=len(spots)):
+        trial = labels.copy()
+        for (y, x), take in zip(spots, choice):
+            if take:
+                trial[y, x] = proposal[y, x]
+        best = min(best, seam_energy(texels, trial, wrap))
+    if _submodular(texels, labels, proposal, free, wrap):
+        # capacities are rounded to 1e-6 of the largest cost: the cut is optimal within that
+        scale = max(before, 1e-30)
+        assert after <= best + 1e-4 * scale + 1e-12
+
+
+def _submodular(texels, labels, proposal, free, wrap) -> bool:
+    """Whether every pair of free neighbours has submodular costs (then the minimum cut is exact)."""
+    eh, ew, d = texels.shape
+    flat = texels.reshape(-1, d)
+    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    h, w = labels.shape
+    now, then, ok = labels.ravel(), np.where(free, proposal, labels).ravel(), free.ravel()
+    for s, t, dy, dx in recut._edges(h, w, wrap):
+        both = ok[s] & ok[t]
+        if not both.any():
+            continue
+        cost = [recut.seam_cost(flat, padded, (eh, ew), a[s[both]], b[t[both]], dy, dx)
+                for a, b in ((now, now), (then, then), (now, then), (then, now))]
+        if np.any(cost[0] + cost[1] > cost[2] + cost[3] + 1e-9 * (1 + np.abs(cost).max())):
+            return False
+    return True
