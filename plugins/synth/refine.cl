@@ -1,0 +1,130 @@
+// The shared refinement's hot loops (refine.py).  Twins: _rank_numpy, _sweep_numpy and _correct_numpy there.
+// Exemplar texels are `texels [eh * ew * D]` (D appearance values each, row-major); sources are flat exemplar
+// texel indices y * ew + x.  Every sum runs in float32 in the order the twins use, without contraction.
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef D
+#define D 6
+#endif
+#ifndef PATCH
+#define PATCH 8
+#endif
+#ifndef CAND
+#define CAND 9
+#endif
+
+__constant int SIDE_Y[4] = {-1, 1, 0, 0};
+__constant int SIDE_X[4] = {0, 0, -1, 1};
+
+// Squared distance of exemplar texels a and b.
+inline float texel_distance(__global const float *texels, const int a, const int b)
+{
+    float sum = 0.0f;
+    for (int d = 0; d < D; ++d) {
+        const float diff = texels[a * D + d] - texels[b * D + d];
+        sum += diff * diff;
+    }
+    return sum;
+}
+
+// Candidate re-ranking, one work-item per searched query window q: of its CAND candidate exemplar windows
+// (origins flat in the gy x gx window grid, `cand [nq * CAND]`), the one of least squared distance to the query
+// (`query [nq * PATCH * PATCH * D]`, texel by texel, row-major) plus its `penalty` (per origin: the occurrence
+// term); writes its origin and its squared distance (without the penalty).  The first of equal costs wins.
+__kernel void rf_rank(__global const float *texels, const int ew, const int gx,
+                      __global const float *query, __global const int *cand, __global const float *penalty,
+                      const int nq, __global int *best_origin, __global float *best_distance)
+{
+    const int q = get_global_id(0);
+    if (q >= nq) return;
+    __global const float *mine = query + (long)q * PATCH * PATCH * D;
+    int best = cand[q * CAND];
+    float best_cost = INFINITY, best_dist = 0.0f;
+    for (int c = 0; c < CAND; ++c) {
+        const int origin = cand[q * CAND + c];
+        const int top = origin / gx, left = origin % gx;
+        float dist = 0.0f;
+        for (int dy = 0; dy < PATCH; ++dy) {
+            __global const float *row = texels + ((long)(top + dy) * ew + left) * D;
+            __global const float *qrow = mine + dy * PATCH * D;
+            for (int i = 0; i < PATCH * D; ++i) {
+                const float diff = row[i] - qrow[i];
+                dist += diff * diff;
+            }
+        }
+        const float cost = dist + penalty[origin];
+        if (cost < best_cost) { best_cost = cost; best = origin; best_dist = dist; }
+    }
+    best_origin[q] = best;
+    best_distance[q] = best_dist;
+}
+
+// One half-sweep of the vote's iterated conditional modes: every texel (y, x) with (y + x) % 2 == part takes,
+// of its candidates (`votes [h * w * slots]`, -1: none), the one of least data cost (`data`, same layout) plus
+// seam_weight x the seam cost against its 4-neighbours' current labels (up, down, left, right): 0 where the
+// neighbour's source continues the candidate, else the squared difference between the neighbour's texel and the
+// candidate's exemplar neighbour (clamped to the exemplar); no neighbour across the output's border without wrap.
+// The other half's labels are only read, so the update is in place.  The first of equal costs wins.
+__kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
+                       __global const int *votes, __global const float *data, const int slots,
+                       __global int *labels, const int h, const int w, const int wrap, const int part,
+                       const float seam_weight)
+{
+    const int across = (w + 1) / 2;           // texels of one colour per row (at most)
+    const int i = get_global_id(0);
+    const int y = i / across;
+    const int x = 2 * (i % across) + ((y + part) & 1);
+    if (y >= h || x >= w) return;
+    const int t = y * w + x;
+    int neighbour[4];
+    for (int s = 0; s < 4; ++s) {
+        const int ny = y + SIDE_Y[s], nx = x + SIDE_X[s];
+        const int outside = !wrap && (ny < 0 || ny >= h || nx < 0 || nx >= w);
+        neighbour[s] = outside ? -1 : labels[((ny + h) % h) * w + (nx + w) % w];
+    }
+    int best = slots - 1;                                // the current source (always a candidate)
+    float best_cost = INFINITY;
+    for (int k = 0; k < slots; ++k) {
+        const int choice = votes[t * slots + k];
+        if (choice < 0) continue;                        // no candidate: its data cost is infinite
+        const int vr = choice / ew, vc = choice % ew;
+        float total = data[t * slots + k];
+        for (int s = 0; s < 4; ++s) {
+            const int current = neighbour[s];
+            if (current < 0 || choice + SIDE_Y[s] * ew + SIDE_X[s] == current) continue;
+            const int cy = clamp(vr + SIDE_Y[s], 0, eh - 1), cx = clamp(vc + SIDE_X[s], 0, ew - 1);
+            total += seam_weight * texel_distance(texels, cy * ew + cx, current);
+        }
+        if (total < best_cost) { best_cost = total; best = k; }
+    }
+    labels[t] = votes[t * slots + best];
+}
+
+// The corrections' candidates, one work-item per output texel: of its own source and the continuations of its
+// 4-neighbours' sources (order: own, up, down, left, right), the first of least neighbourhood error: the squared
+// difference over the texel and its 4-neighbours (same order, wrapping around the output) between the output and
+// the exemplar around the candidate (clamped to the exemplar).  A continuation that leaves the exemplar is no
+// candidate.  Writes the chosen source (the caller picks which texels take it).
+__kernel void rf_correct(__global const float *texels, const int eh, const int ew,
+                         __global const int *src, const int h, const int w, __global int *best_source)
+{
+    const int t = get_global_id(0);
+    if (t >= h * w) return;
+    const int y = t / w, x = t % w;
+    const int cross_y[5] = {0, -1, 1, 0, 0}, cross_x[5] = {0, 0, 0, -1, 1};
+    int seen[5];
+    for (int o = 0; o < 5; ++o) seen[o] = src[((y + cross_y[o] + h) % h) * w + (x + cross_x[o] + w) % w];
+    int best = src[t];
+    float best_err = INFINITY;
+    for (int c = 0; c < 5; ++c) {
+        const int nr = seen[c] / ew - cross_y[c], nc = seen[c] % ew - cross_x[c];
+        if (nr < 0 || nr >= eh || nc < 0 || nc >= ew) continue;
+        float err = 0.0f;
+        for (int o = 0; o < 5; ++o) {
+            const int ey = clamp(nr + cross_y[o], 0, eh - 1), ex = clamp(nc + cross_x[o], 0, ew - 1);
+            err += texel_distance(texels, ey * ew + ex, seen[o]);
+        }
+        if (err < best_err) { best_err = err; best = nr * ew + nc; }
+    }
+    best_source[t] = best;
+}
