@@ -59,23 +59,23 @@ __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
     best_distance[q] = best_dist;
 }
 
-// One half-sweep of the vote's iterated conditional modes: every texel (y, x) with (y + x) % 2 == part takes,
-// of its candidates (`votes [h * w * slots]`, -1: none), the one of least data cost (`data`, same layout) plus
-// seam_weight x the seam cost against its 4-neighbours' current labels (up, down, left, right): 0 where the
-// neighbour's source continues the candidate, else the squared difference between the neighbour's texel and the
-// candidate's exemplar neighbour (clamped to the exemplar); no neighbour across the output's border without wrap.
-// The other half's labels are only read, so the update is in place.  The first of equal costs wins.
+// One half-sweep of the vote's iterated conditional modes, one work-item per output texel: every texel (y, x)
+// with (y + x) % 2 == part takes, of its candidates (`votes [h * w * slots]`, -1: none), the one of least data
+// cost (`data`, same layout) plus seam_weight x the seam cost against its 4-neighbours' labels (up, down, left,
+// right): 0 where the neighbour's source continues the candidate, else the squared difference between the
+// neighbour's texel and the candidate's exemplar neighbour (clamped to the exemplar); no neighbour across the
+// output's border without wrap.  The other texels keep their labels.  Reads `labels`, writes `next`: with wrap
+// and an odd side a texel's neighbour across the border has its colour, and all see the labels before the step.
+// The first of equal costs wins.
 __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
                        __global const int *votes, __global const float *data, const int slots,
-                       __global int *labels, const int h, const int w, const int wrap, const int part,
-                       const float seam_weight)
+                       __global const int *labels, __global int *next, const int h, const int w, const int wrap,
+                       const int part, const float seam_weight)
 {
-    const int across = (w + 1) / 2;           // texels of one colour per row (at most)
-    const int i = get_global_id(0);
-    const int y = i / across;
-    const int x = 2 * (i % across) + ((y + part) & 1);
-    if (y >= h || x >= w) return;
-    const int t = y * w + x;
+    const int t = get_global_id(0);
+    if (t >= h * w) return;
+    const int y = t / w, x = t % w;
+    if (((y + x) & 1) != part) { next[t] = labels[t]; return; }
     int neighbour[4];
     for (int s = 0; s < 4; ++s) {
         const int ny = y + SIDE_Y[s], nx = x + SIDE_X[s];
@@ -97,7 +97,7 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
         }
         if (total < best_cost) { best_cost = total; best = k; }
     }
-    labels[t] = votes[t * slots + best];
+    next[t] = votes[t * slots + best];
 }
 
 // The corrections' candidates, one work-item per output texel: of its own source and the continuations of its

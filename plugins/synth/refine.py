@@ -380,8 +380,8 @@ def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, lab
 
 
 def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
-    """:func:`_iterated_modes` by the kernel ``rf_sweep`` (one launch per half-sweep; the same float32 sums in
-    the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host after each half-sweep where it changes
+    """:func:`_iterated_modes` by the kernel ``rf_sweep`` (one launch per half-sweep, from one labels buffer to
+    the other; the same float32 sums in the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host after each half-sweep where it changes
     anything (pinned texels)."""
     from .device import launch
     backend = _backend()
@@ -393,18 +393,19 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
     pinned = keep(labels) is not labels                  # the default keep hands its argument back
     inputs = [backend.to_device(texels), backend.to_device(votes.astype(np.int32)),
               backend.to_device(np.ascontiguousarray(data, np.float32))]
-    labels_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=labels)
-    args = [inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2], np.int32(slots), labels_dev, np.int32(h),
-            np.int32(w), np.int32(bool(wrap)), np.int32(0), np.float32(SEAM_WEIGHT)]
+    flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    current, following = (cl.Buffer(backend.context, flags, hostbuf=labels) for _ in range(2))
     for _ in range(SWEEPS):
         for part in (0, 1):
-            args[10] = np.int32(part)
-            launch(backend, kernel, (h * ((w + 1) // 2),), *args)
+            launch(backend, kernel, (h * w,), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
+                   np.int32(slots), current, following, np.int32(h), np.int32(w), np.int32(bool(wrap)),
+                   np.int32(part), np.float32(SEAM_WEIGHT))
+            current, following = following, current
             if pinned:
-                cl.enqueue_copy(backend.queue, labels, labels_dev)
+                cl.enqueue_copy(backend.queue, labels, current)
                 labels = np.ascontiguousarray(keep(labels), np.int32)
-                cl.enqueue_copy(backend.queue, labels_dev, labels)
-    cl.enqueue_copy(backend.queue, labels, labels_dev)
+                cl.enqueue_copy(backend.queue, current, labels)
+    cl.enqueue_copy(backend.queue, labels, current)
     return labels.astype(np.int64)
 
 
