@@ -77,23 +77,33 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
     const int y = t / w, x = t % w;
     if (((y + x) & 1) != part) { next[t] = labels[t]; return; }
     int neighbour[4];
+    float seen[4][D];                                    // the neighbours' texels, read once
     for (int s = 0; s < 4; ++s) {
         const int ny = y + SIDE_Y[s], nx = x + SIDE_X[s];
         const int outside = !wrap && (ny < 0 || ny >= h || nx < 0 || nx >= w);
         neighbour[s] = outside ? -1 : labels[((ny + h) % h) * w + (nx + w) % w];
+        for (int d = 0; d < D; ++d) seen[s][d] = outside ? 0.0f : texels[neighbour[s] * D + d];
     }
     int best = slots - 1;                                // the current source (always a candidate)
     float best_cost = INFINITY;
     for (int k = 0; k < slots; ++k) {
         const int choice = votes[t * slots + k];
-        if (choice < 0) continue;                        // no candidate: its data cost is infinite
-        const int vr = choice / ew, vc = choice % ew;
         float total = data[t * slots + k];
-        for (int s = 0; s < 4; ++s) {
+        // seam costs are >= 0 and float sums of them never decrease: a candidate whose partial cost already
+        // reaches the best cannot win (nor can one without a candidate: its data cost is infinite)
+        if (choice < 0 || !(total < best_cost)) continue;
+        const int vr = choice / ew, vc = choice % ew;
+        for (int s = 0; s < 4 && total < best_cost; ++s) {
             const int current = neighbour[s];
             if (current < 0 || choice + SIDE_Y[s] * ew + SIDE_X[s] == current) continue;
             const int cy = clamp(vr + SIDE_Y[s], 0, eh - 1), cx = clamp(vc + SIDE_X[s], 0, ew - 1);
-            total += seam_weight * texel_distance(texels, cy * ew + cx, current);
+            __global const float *continued = texels + (cy * ew + cx) * D;
+            float seam = 0.0f;
+            for (int d = 0; d < D; ++d) {
+                const float diff = continued[d] - seen[s][d];
+                seam += diff * diff;
+            }
+            total += seam_weight * seam;
         }
         if (total < best_cost) { best_cost = total; best = k; }
     }

@@ -115,13 +115,18 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
     texels = pca_reduce(features, TEXEL_DIMS) if features.shape[2] > TEXEL_DIMS else features.astype(np.float32)
     texels = np.ascontiguousarray(texels / max(float(texels.std()), 1e-12), dtype=np.float32)
     windows = sliding_window_view(texels, (patch, patch), axis=(0, 1)).transpose(0, 1, 3, 4, 2)
-    flat = windows.reshape(-1, patch * patch * texels.shape[2])
+    gy, gx = windows.shape[:2]
     rng = np.random.default_rng(0)
-    sample = flat[rng.choice(len(flat), min(PCA_SAMPLE, len(flat)), replace=False)].astype(np.float64)
+    picked = np.divmod(rng.choice(gy * gx, min(PCA_SAMPLE, gy * gx), replace=False), gx)
+    sample = windows[picked].reshape(len(picked[0]), -1).astype(np.float64)
     mean = sample.mean(axis=0)
-    _, axes = leading_eigenpairs((sample - mean).T @ (sample - mean), WINDOW_DIMS)
+    centred = sample - mean
+    _, axes = leading_eigenpairs(centred.T @ centred, WINDOW_DIMS)   # one operand twice: half the products
     basis = np.ascontiguousarray(axes, dtype=np.float32)
-    reduced = np.ascontiguousarray((flat - mean.astype(np.float32)) @ basis)
+    reduced = np.empty((gy * gx, WINDOW_DIMS), np.float32)
+    for top in range(0, gy, 8):  # a few window rows at a time: the flattened windows stay in cache
+        rows = windows[top:top + 8].reshape(-1, basis.shape[0])
+        reduced[top * gx:top * gx + len(rows)] = (rows - mean.astype(np.float32)) @ basis
     spread = 2.0 * float(reduced.var(axis=0).sum())
     return WindowIndex(texels, patch, mean.astype(np.float32), basis, reduced, cKDTree(reduced), max(spread, 1e-12))
 
