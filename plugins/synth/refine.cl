@@ -16,6 +16,28 @@
 __constant int SIDE_Y[4] = {-1, 1, 0, 0};
 __constant int SIDE_X[4] = {0, 0, -1, 1};
 
+// c / ew and c % ew for c >= 0 without an integer division (the float quotient is at most a step or two off).
+inline int2 split_index(const int c, const int ew, const float inverse)
+{
+    int row = (int)((float)c * inverse);
+    int col = c - row * ew;
+    while (col < 0) { col += ew; --row; }
+    while (col >= ew) { col -= ew; ++row; }
+    return (int2)(row, col);
+}
+
+// The index of output texel (y + dy, x + dx), wrapped around an h x w output, or -1 outside it without wrap
+// (|dy|, |dx| <= 1).
+inline int output_neighbour(const int y, const int x, const int dy, const int dx, const int h, const int w,
+                            const int wrap)
+{
+    int ny = y + dy, nx = x + dx;
+    if (!wrap && (ny < 0 || ny >= h || nx < 0 || nx >= w)) return -1;
+    ny = ny < 0 ? ny + h : (ny >= h ? ny - h : ny);
+    nx = nx < 0 ? nx + w : (nx >= w ? nx - w : nx);
+    return ny * w + nx;
+}
+
 // Squared distance of exemplar texels a and b.
 inline float texel_distance(__global const float *texels, const int a, const int b)
 {
@@ -72,17 +94,17 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
                        __global const int *labels, __global int *next, const int h, const int w, const int wrap,
                        const int part, const float seam_weight)
 {
-    const int t = get_global_id(0);
-    if (t >= h * w) return;
-    const int y = t / w, x = t % w;
+    const int y = get_global_id(0), x = get_global_id(1);
+    if (y >= h || x >= w) return;
+    const int t = y * w + x;
     if (((y + x) & 1) != part) { next[t] = labels[t]; return; }
+    const float inverse = 1.0f / (float)ew;
     int neighbour[4];
     float seen[4][D];                                    // the neighbours' texels, read once
     for (int s = 0; s < 4; ++s) {
-        const int ny = y + SIDE_Y[s], nx = x + SIDE_X[s];
-        const int outside = !wrap && (ny < 0 || ny >= h || nx < 0 || nx >= w);
-        neighbour[s] = outside ? -1 : labels[((ny + h) % h) * w + (nx + w) % w];
-        for (int d = 0; d < D; ++d) seen[s][d] = outside ? 0.0f : texels[neighbour[s] * D + d];
+        const int q = output_neighbour(y, x, SIDE_Y[s], SIDE_X[s], h, w, wrap);
+        neighbour[s] = q < 0 ? -1 : labels[q];
+        for (int d = 0; d < D; ++d) seen[s][d] = q < 0 ? 0.0f : texels[neighbour[s] * D + d];
     }
     int best = slots - 1;                                // the current source (always a candidate)
     float best_cost = INFINITY;
@@ -92,11 +114,15 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
         // seam costs are >= 0 and float sums of them never decrease: a candidate whose partial cost already
         // reaches the best cannot win (nor can one without a candidate: its data cost is infinite)
         if (choice < 0 || !(total < best_cost)) continue;
-        const int vr = choice / ew, vc = choice % ew;
+        // the same source proposed before at no higher data cost: its seams are the same, so it costs no more
+        int repeated = 0;
+        for (int j = 0; j < k && !repeated; ++j) repeated = votes[t * slots + j] == choice && data[t * slots + j] <= total;
+        if (repeated) continue;
+        const int2 at = split_index(choice, ew, inverse);
         for (int s = 0; s < 4 && total < best_cost; ++s) {
             const int current = neighbour[s];
             if (current < 0 || choice + SIDE_Y[s] * ew + SIDE_X[s] == current) continue;
-            const int cy = clamp(vr + SIDE_Y[s], 0, eh - 1), cx = clamp(vc + SIDE_X[s], 0, ew - 1);
+            const int cy = clamp(at.x + SIDE_Y[s], 0, eh - 1), cx = clamp(at.y + SIDE_X[s], 0, ew - 1);
             __global const float *continued = texels + (cy * ew + cx) * D;
             float seam = 0.0f;
             for (int d = 0; d < D; ++d) {

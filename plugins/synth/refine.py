@@ -120,8 +120,7 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
     picked = np.divmod(rng.choice(gy * gx, min(PCA_SAMPLE, gy * gx), replace=False), gx)
     sample = windows[picked].reshape(len(picked[0]), -1).astype(np.float64)
     mean = sample.mean(axis=0)
-    centred = sample - mean
-    _, axes = leading_eigenpairs(centred.T @ centred, WINDOW_DIMS)   # one operand twice: half the products
+    _, axes = leading_eigenpairs((sample - mean).T @ (sample - mean), WINDOW_DIMS)
     basis = np.ascontiguousarray(axes, dtype=np.float32)
     reduced = np.empty((gy * gx, WINDOW_DIMS), np.float32)
     for top in range(0, gy, 8):  # a few window rows at a time: the flattened windows stay in cache
@@ -402,7 +401,7 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
     current, following = (cl.Buffer(backend.context, flags, hostbuf=labels) for _ in range(2))
     for _ in range(SWEEPS):
         for part in (0, 1):
-            launch(backend, kernel, (h * w,), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
+            launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
                    np.int32(slots), current, following, np.int32(h), np.int32(w), np.int32(bool(wrap)),
                    np.int32(part), np.float32(SEAM_WEIGHT))
             current, following = following, current
