@@ -88,23 +88,30 @@ __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
 // neighbour's texel and the candidate's exemplar neighbour (clamped to the exemplar); no neighbour across the
 // output's border without wrap.  The other texels keep their labels.  Reads `labels`, writes `next`: with wrap
 // and an odd side a texel's neighbour across the border has its colour, and all see the labels before the step.
-// The first of equal costs wins.
+// The first of equal costs wins.  A texel whose neighbours kept their labels in the last two launches
+// (`moved_last`, `moved_before`: 1 where a label changed) would choose as it did before: it keeps its label.
+// `moved_now` records this launch's changes.
 __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
                        __global const int *votes, __global const float *data, const int slots,
                        __global const int *labels, __global int *next, const int h, const int w, const int wrap,
-                       const int part, const float seam_weight)
+                       const int part, const float seam_weight, __global const uchar *moved_last,
+                       __global const uchar *moved_before, __global uchar *moved_now)
 {
     const int y = get_global_id(0), x = get_global_id(1);
     if (y >= h || x >= w) return;
     const int t = y * w + x;
-    if (((y + x) & 1) != part) { next[t] = labels[t]; return; }
+    int around[4], fresh = 0;
+    for (int s = 0; s < 4; ++s) {
+        around[s] = output_neighbour(y, x, SIDE_Y[s], SIDE_X[s], h, w, wrap);
+        if (around[s] >= 0) fresh |= moved_last[around[s]] | moved_before[around[s]];
+    }
+    if (((y + x) & 1) != part || !fresh) { next[t] = labels[t]; moved_now[t] = 0; return; }
     const float inverse = 1.0f / (float)ew;
     int neighbour[4];
     float seen[4][D];                                    // the neighbours' texels, read once
     for (int s = 0; s < 4; ++s) {
-        const int q = output_neighbour(y, x, SIDE_Y[s], SIDE_X[s], h, w, wrap);
-        neighbour[s] = q < 0 ? -1 : labels[q];
-        for (int d = 0; d < D; ++d) seen[s][d] = q < 0 ? 0.0f : texels[neighbour[s] * D + d];
+        neighbour[s] = around[s] < 0 ? -1 : labels[around[s]];
+        for (int d = 0; d < D; ++d) seen[s][d] = around[s] < 0 ? 0.0f : texels[neighbour[s] * D + d];
     }
     int best = slots - 1;                                // the current source (always a candidate)
     float best_cost = INFINITY;
@@ -134,6 +141,7 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
         if (total < best_cost) { best_cost = total; best = k; }
     }
     next[t] = votes[t * slots + best];
+    moved_now[t] = next[t] != labels[t];
 }
 
 // The corrections' candidates, one work-item per output texel: of its own source and the continuations of its

@@ -399,12 +399,15 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
               backend.to_device(np.ascontiguousarray(data, np.float32))]
     flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
     current, following = (cl.Buffer(backend.context, flags, hostbuf=labels) for _ in range(2))
+    # which labels the last two launches changed: at first, all (so every texel chooses)
+    moved = [cl.Buffer(backend.context, flags, hostbuf=np.ones(h * w, np.uint8)) for _ in range(3)]
     for _ in range(SWEEPS):
         for part in (0, 1):
             launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
                    np.int32(slots), current, following, np.int32(h), np.int32(w), np.int32(bool(wrap)),
-                   np.int32(part), np.float32(SEAM_WEIGHT))
+                   np.int32(part), np.float32(SEAM_WEIGHT), moved[0], moved[1], moved[2])
             current, following = following, current
+            moved = [moved[2], moved[0], moved[1]]
             if pinned:
                 cl.enqueue_copy(backend.queue, labels, current)
                 labels = np.ascontiguousarray(keep(labels), np.int32)
