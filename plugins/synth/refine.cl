@@ -65,8 +65,11 @@ __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
     for (int c = 0; c < CAND; ++c) {
         const int origin = cand[q * CAND + c];
         const int top = origin / gx, left = origin % gx;
+        const float extra = penalty[origin];
         float dist = 0.0f;
-        for (int dy = 0; dy < PATCH; ++dy) {
+        // squares are >= 0 and float sums of them never decrease: once the partial cost reaches the best, the
+        // candidate cannot win
+        for (int dy = 0; dy < PATCH && dist + extra < best_cost; ++dy) {
             __global const float *row = texels + ((long)(top + dy) * ew + left) * D;
             __global const float *qrow = mine + dy * PATCH * D;
             for (int i = 0; i < PATCH * D; ++i) {
@@ -74,7 +77,7 @@ __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
                 dist += diff * diff;
             }
         }
-        const float cost = dist + penalty[origin];
+        const float cost = dist + extra;
         if (cost < best_cost) { best_cost = cost; best = origin; best_dist = dist; }
     }
     best_origin[q] = best;
@@ -152,16 +155,17 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
 __kernel void rf_correct(__global const float *texels, const int eh, const int ew,
                          __global const int *src, const int h, const int w, __global int *best_source)
 {
-    const int t = get_global_id(0);
-    if (t >= h * w) return;
-    const int y = t / w, x = t % w;
+    const int y = get_global_id(0), x = get_global_id(1);
+    if (y >= h || x >= w) return;
     const int cross_y[5] = {0, -1, 1, 0, 0}, cross_x[5] = {0, 0, 0, -1, 1};
+    const float inverse = 1.0f / (float)ew;
     int seen[5];
-    for (int o = 0; o < 5; ++o) seen[o] = src[((y + cross_y[o] + h) % h) * w + (x + cross_x[o] + w) % w];
-    int best = src[t];
+    for (int o = 0; o < 5; ++o) seen[o] = src[output_neighbour(y, x, cross_y[o], cross_x[o], h, w, 1)];
+    int best = seen[0];
     float best_err = INFINITY;
     for (int c = 0; c < 5; ++c) {
-        const int nr = seen[c] / ew - cross_y[c], nc = seen[c] % ew - cross_x[c];
+        const int2 at = split_index(seen[c], ew, inverse);
+        const int nr = at.x - cross_y[c], nc = at.y - cross_x[c];
         if (nr < 0 || nr >= eh || nc < 0 || nc >= ew) continue;
         float err = 0.0f;
         for (int o = 0; o < 5; ++o) {
@@ -170,5 +174,5 @@ __kernel void rf_correct(__global const float *texels, const int eh, const int e
         }
         if (err < best_err) { best_err = err; best = nr * ew + nc; }
     }
-    best_source[t] = best;
+    best_source[y * w + x] = best;
 }

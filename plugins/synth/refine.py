@@ -24,7 +24,12 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 With ``scales`` > 0 both steps run first on half-resolution versions of the map and the exemplar (recursively),
 so that an 8 x 8 window also spans 16 and 32 texels and structures larger than a fine window are matched whole.
 
-Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration.
+The window index (PCA of the windows, a SciPy k-d tree), the tree query and the vote's bookkeeping run in NumPy on
+the host; the hot loops run as OpenCL kernels (``refine.cl``): the candidates' full distances (``rf_rank``), the
+vote's half-sweeps (``rf_sweep``; a texel whose neighbours kept their labels keeps its own) and the corrections'
+candidates (``rf_correct``).  Each has a NumPy twin here (``_rank_numpy``, ``_sweeps_numpy``, ``_correct_numpy``),
+run instead with the environment variable ``BTFORGE_REFINE_ENGINE=numpy``; the sweeps and corrections sum in the
+same float32 order as their twins (the same labels), the re-ranking in another (equal up to rounding).
 """
 from __future__ import annotations
 
@@ -477,7 +482,7 @@ def _correct_opencl(texels: np.ndarray, src: np.ndarray) -> np.ndarray:
     kernel = backend.kernel(KERNELS, "rf_correct", (f"-DD={d}",))
     best = np.empty((h, w), np.int32)
     inputs = [backend.to_device(texels), backend.to_device(src.astype(np.int32)), backend.host_output(best)]
-    launch(backend, kernel, (h * w,), inputs[0], np.int32(eh), np.int32(ew), inputs[1], np.int32(h), np.int32(w),
+    launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], np.int32(h), np.int32(w),
            inputs[2])
     backend.finish_output(inputs[2], best)
     return best.astype(np.int64)
