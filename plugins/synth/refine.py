@@ -28,8 +28,8 @@ The window index (PCA of the windows, a SciPy k-d tree), the tree query and the 
 the host; the hot loops run as OpenCL kernels (``refine.cl``): the candidates' full distances (``rf_rank``), the
 vote's half-sweeps (``rf_sweep``; a texel whose neighbours kept their labels keeps its own) and the corrections'
 candidates (``rf_correct``).  Each has a NumPy twin here (``_rank_numpy``, ``_sweeps_numpy``, ``_correct_numpy``),
-run instead with the environment variable ``BTFORGE_REFINE_ENGINE=numpy``; the sweeps and corrections sum in the
-same float32 order as their twins (the same labels), the re-ranking in another (equal up to rounding).
+run instead with the environment variable ``BTFORGE_REFINE_ENGINE=numpy``; kernels and twins sum in the same
+float32 order, so both give the same maps.
 """
 from __future__ import annotations
 
@@ -308,19 +308,22 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
 def _rank_numpy(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
     """Per query window (``[n, p * p * d]``), of its candidate exemplar windows (``cand [n, c]``, origins flat in
     the window grid) the first of least squared distance plus ``penalty`` (per window origin): its origin and its
-    squared distance (twin of ``rf_rank``)."""
+    squared distance (twin of ``rf_rank``: float32 sums over the window's values in row-major order)."""
     p = index.patch
     wy, wx = np.divmod(cand, index.grid[1])
     windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
-    diff = windows.reshape(len(cand), cand.shape[1], -1) - query[:, None, :]
-    dist = np.einsum("qkd,qkd->qk", diff, diff)
-    best = np.argmin(dist + penalty[cand], axis=1)
+    windows = windows.reshape(len(cand), cand.shape[1], -1)
+    dist = np.zeros(cand.shape, np.float32)
+    for value in range(windows.shape[2]):  # one value at a time: the kernel's order of the sum
+        diff = windows[:, :, value] - query[:, None, value]
+        dist += diff * diff
+    best = np.argmin(dist + penalty[cand].astype(np.float32), axis=1)
     pick = np.arange(len(cand))
-    return cand[pick, best], dist[pick, best]
+    return cand[pick, best], dist[pick, best].astype(np.float64)
 
 
 def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
-    """:func:`_rank_numpy` by the kernel ``rf_rank`` (float32 sums in another order: equal up to rounding)."""
+    """:func:`_rank_numpy` by the kernel ``rf_rank`` (the same float32 sums in the same order)."""
     from .device import launch
     backend = _backend()
     n, width = cand.shape
