@@ -1,4 +1,4 @@
-// The shared refinement's hot loops (refine.py).  Twins: _rank_numpy, _sweep_numpy and _correct_numpy there.
+// The shared refinement's hot loops (refine.py).  Twins: _rank_numpy, _sweeps_numpy and _correct_numpy there.
 // Exemplar texels are `texels [eh * ew * D]` (D appearance values each, row-major); sources are flat exemplar
 // texel indices y * ew + x.  Every sum runs in float32 in the order the twins use, without contraction.
 #pragma OPENCL FP_CONTRACT OFF
@@ -126,7 +126,8 @@ __kernel void rf_sweep(__global const float *texels, const int eh, const int ew,
         if (choice < 0 || !(total < best_cost)) continue;
         // the same source proposed before at no higher data cost: its seams are the same, so it costs no more
         int repeated = 0;
-        for (int j = 0; j < k && !repeated; ++j) repeated = votes[t * slots + j] == choice && data[t * slots + j] <= total;
+        for (int j = 0; j < k && !repeated; ++j)
+            repeated = votes[t * slots + j] == choice && data[t * slots + j] <= total;
         if (repeated) continue;
         const int2 at = split_index(choice, ew, inverse);
         for (int s = 0; s < 4 && total < best_cost; ++s) {

@@ -393,8 +393,8 @@ def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, lab
 
 def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
     """:func:`_iterated_modes` by the kernel ``rf_sweep`` (one launch per half-sweep, from one labels buffer to
-    the other; the same float32 sums in the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host after each half-sweep where it changes
-    anything (pinned texels)."""
+    the other; the same float32 sums in the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host
+    after each half-sweep where it changes anything (pinned texels)."""
     from .device import launch
     backend = _backend()
     cl = backend.cl
@@ -403,7 +403,7 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
     kernel = backend.kernel(KERNELS, "rf_sweep", (f"-DD={d}",))
     labels = np.ascontiguousarray(labels, np.int32).reshape(h, w).copy()
     pinned = keep(labels) is not labels                  # the default keep hands its argument back
-    inputs = [backend.to_device(texels), backend.to_device(votes.astype(np.int32)),
+    inputs = [backend.to_device(np.asarray(texels, np.float32)), backend.to_device(votes.astype(np.int32)),
               backend.to_device(np.ascontiguousarray(data, np.float32))]
     flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
     current, following = (cl.Buffer(backend.context, flags, hostbuf=labels) for _ in range(2))
@@ -484,7 +484,8 @@ def _correct_opencl(texels: np.ndarray, src: np.ndarray) -> np.ndarray:
     h, w = src.shape
     kernel = backend.kernel(KERNELS, "rf_correct", (f"-DD={d}",))
     best = np.empty((h, w), np.int32)
-    inputs = [backend.to_device(texels), backend.to_device(src.astype(np.int32)), backend.host_output(best)]
+    inputs = [backend.to_device(np.asarray(texels, np.float32)), backend.to_device(src.astype(np.int32)),
+              backend.host_output(best)]
     launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], np.int32(h), np.int32(w),
            inputs[2])
     backend.finish_output(inputs[2], best)
