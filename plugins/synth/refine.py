@@ -27,12 +27,18 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 With ``scales`` > 0 the first two steps run first on half-resolution versions of the map and the exemplar (recursively),
 so that an 8 x 8 window also spans 16 and 32 texels and structures larger than a fine window are matched whole.
 
-Everything is NumPy/SciPy on the host: a k-d tree query on short vectors and a few gathers per iteration, and
-scipy's maximum flow for the cuts.
+The window index (PCA of the windows, a SciPy k-d tree), the tree query and the vote's bookkeeping run in NumPy on
+the host; the hot loops run as OpenCL kernels (``refine.cl``): the candidates' full distances (``rf_rank``), the
+vote's half-sweeps (``rf_sweep``; a texel whose neighbours kept their labels keeps its own) and the corrections'
+candidates (``rf_correct``).  Each has a NumPy twin here (``_rank_numpy``, ``_sweeps_numpy``, ``_correct_numpy``),
+run instead with the environment variable ``BTFORGE_REFINE_ENGINE=numpy``; kernels and twins sum in the same
+float32 order, so both give the same maps.  The re-cut (:mod:`.recut`) runs on the host with scipy's maximum flow.
 """
 from __future__ import annotations
 
 import dataclasses
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -63,8 +69,31 @@ SWEEPS = 4
 #: Window positions sampled to fit the window PCA.
 PCA_SAMPLE = 4000
 
+#: The kernels of the hot loops (candidate re-ranking, the vote's sweeps, the corrections' candidates).
+KERNELS = Path(__file__).with_name("refine.cl")
+#: Where the hot loops run: OpenCL kernels, or their NumPy twins (environment variable :data:`ENGINE_VARIABLE`).
+ENGINES = ("opencl", "numpy")
+ENGINE_VARIABLE = "BTFORGE_REFINE_ENGINE"
+
 #: Window indices kept: one per exemplar, patch and scale (three scales of four exemplars).
 _analyses = ContentCache(12)
+
+
+def engine() -> str:
+    """Where the refinement's hot loops run: ``opencl`` (default) or ``numpy`` (the twins), from the environment
+    variable :data:`ENGINE_VARIABLE`."""
+    chosen = os.environ.get(ENGINE_VARIABLE, "").strip().lower() or ENGINES[0]
+    if chosen not in ENGINES:
+        from btforge.errors import BtforgeInputError
+        raise BtforgeInputError(f"environment variable {ENGINE_VARIABLE}", f"expected one of {ENGINES}, found "
+                                f"{os.environ[ENGINE_VARIABLE]!r}", "unset it (OpenCL), or set it to 'numpy' to run "
+                                "the refinement's NumPy twins")
+    return chosen
+
+
+def _backend():
+    from btforge.backend import get_backend
+    return get_backend()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,13 +124,17 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
     texels = pca_reduce(features, TEXEL_DIMS) if features.shape[2] > TEXEL_DIMS else features.astype(np.float32)
     texels = np.ascontiguousarray(texels / max(float(texels.std()), 1e-12), dtype=np.float32)
     windows = sliding_window_view(texels, (patch, patch), axis=(0, 1)).transpose(0, 1, 3, 4, 2)
-    flat = windows.reshape(-1, patch * patch * texels.shape[2])
+    gy, gx = windows.shape[:2]
     rng = np.random.default_rng(0)
-    sample = flat[rng.choice(len(flat), min(PCA_SAMPLE, len(flat)), replace=False)].astype(np.float64)
+    picked = np.divmod(rng.choice(gy * gx, min(PCA_SAMPLE, gy * gx), replace=False), gx)
+    sample = windows[picked].reshape(len(picked[0]), -1).astype(np.float64)
     mean = sample.mean(axis=0)
     _, axes = leading_eigenpairs((sample - mean).T @ (sample - mean), WINDOW_DIMS)
     basis = np.ascontiguousarray(axes, dtype=np.float32)
-    reduced = np.ascontiguousarray((flat - mean.astype(np.float32)) @ basis)
+    reduced = np.empty((gy * gx, WINDOW_DIMS), np.float32)
+    for top in range(0, gy, 8):  # a few window rows at a time: the flattened windows stay in cache
+        rows = windows[top:top + 8].reshape(-1, basis.shape[0])
+        reduced[top * gx:top * gx + len(rows)] = (rows - mean.astype(np.float32)) @ basis
     spread = 2.0 * float(reduced.var(axis=0).sum())
     return WindowIndex(texels, patch, mean.astype(np.float32), basis, reduced, cKDTree(reduced), max(spread, 1e-12))
 
@@ -274,15 +307,45 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
     rows = np.flatnonzero(searched)
     _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS)
     cand[rows, :k] = found.reshape(len(rows), k)
-    wy, wx = np.divmod(cand[rows], gx)
-    windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
-    diff = windows.reshape(len(rows), k + 1, -1) - query[rows, None, :]
-    dist = np.einsum("qkd,qkd->qk", diff, diff)
-    best = np.argmin(dist + occurrence * index.spread * overuse[cand[rows]], axis=1)
-    pick = np.arange(len(rows))
-    current[rows] = cand[rows][pick, best]
-    distance[rows] = dist[pick, best]
+    rank = _rank_numpy if engine() == "numpy" else _rank_opencl
+    current[rows], distance[rows] = rank(index, query[rows], cand[rows], occurrence * index.spread * overuse)
     return current, distance
+
+
+def _rank_numpy(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
+    """Per query window (``[n, p * p * d]``), of its candidate exemplar windows (``cand [n, c]``, origins flat in
+    the window grid) the first of least squared distance plus ``penalty`` (per window origin): its origin and its
+    squared distance (twin of ``rf_rank``: float32 sums over the window's values in row-major order)."""
+    p = index.patch
+    wy, wx = np.divmod(cand, index.grid[1])
+    windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
+    windows = windows.reshape(len(cand), cand.shape[1], -1)
+    dist = np.zeros(cand.shape, np.float32)
+    for value in range(windows.shape[2]):  # one value at a time: the kernel's order of the sum
+        diff = windows[:, :, value] - query[:, None, value]
+        dist += diff * diff
+    best = np.argmin(dist + penalty[cand].astype(np.float32), axis=1)
+    pick = np.arange(len(cand))
+    return cand[pick, best], dist[pick, best].astype(np.float64)
+
+
+def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
+    """:func:`_rank_numpy` by the kernel ``rf_rank`` (the same float32 sums in the same order)."""
+    from .device import launch
+    backend = _backend()
+    n, width = cand.shape
+    d = index.texels.shape[2]
+    kernel = backend.kernel(KERNELS, "rf_rank", (f"-DD={d}", f"-DPATCH={index.patch}", f"-DCAND={width}"))
+    origin, distance = np.empty(n, np.int32), np.empty(n, np.float32)
+    buffers = [backend.to_device(index.texels), backend.to_device(np.ascontiguousarray(query, np.float32)),
+               backend.to_device(cand.astype(np.int32)), backend.to_device(penalty.astype(np.float32)),
+               backend.host_output(origin), backend.host_output(distance)]
+    texels, queries, candidates, penalties, origin_out, distance_out = buffers
+    launch(backend, kernel, (n,), texels, np.int32(index.texels.shape[1]), np.int32(index.grid[1]), queries,
+           candidates, penalties, np.int32(n), origin_out, distance_out)
+    backend.finish_output(origin_out, origin)
+    backend.finish_output(distance_out, distance)
+    return origin.astype(np.int64), distance.astype(np.float64)
 
 
 def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
@@ -331,6 +394,45 @@ def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, lab
     """:data:`SWEEPS` checkerboard sweeps: each texel takes the candidate (``votes [h, w, s]``, -1: none) of
     least ``data`` + :data:`SEAM_WEIGHT` x seam cost against its 4-neighbours' current sources (without
     ``wrap``, none across the output's border)."""
+    sweeps = _sweeps_numpy if engine() == "numpy" else _sweeps_opencl
+    return sweeps(texels, votes, data, labels, wrap, keep)
+
+
+def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
+    """:func:`_iterated_modes` by the kernel ``rf_sweep`` (one launch per half-sweep, from one labels buffer to
+    the other; the same float32 sums in the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host
+    after each half-sweep where it changes anything (pinned texels)."""
+    from .device import launch
+    backend = _backend()
+    cl = backend.cl
+    h, w, slots = votes.shape
+    eh, ew, d = texels.shape
+    kernel = backend.kernel(KERNELS, "rf_sweep", (f"-DD={d}",))
+    labels = np.ascontiguousarray(labels, np.int32).reshape(h, w).copy()
+    pinned = keep(labels) is not labels                  # the default keep hands its argument back
+    inputs = [backend.to_device(np.asarray(texels, np.float32)), backend.to_device(votes.astype(np.int32)),
+              backend.to_device(np.ascontiguousarray(data, np.float32))]
+    flags = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    current, following = (cl.Buffer(backend.context, flags, hostbuf=labels) for _ in range(2))
+    # which labels the last two launches changed: at first, all (so every texel chooses)
+    moved = [cl.Buffer(backend.context, flags, hostbuf=np.ones(h * w, np.uint8)) for _ in range(3)]
+    for _ in range(SWEEPS):
+        for part in (0, 1):
+            launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
+                   np.int32(slots), current, following, np.int32(h), np.int32(w), np.int32(bool(wrap)),
+                   np.int32(part), np.float32(SEAM_WEIGHT), moved[0], moved[1], moved[2])
+            current, following = following, current
+            moved = [moved[2], moved[0], moved[1]]
+            if pinned:
+                cl.enqueue_copy(backend.queue, labels, current)
+                labels = np.ascontiguousarray(keep(labels), np.int32)
+                cl.enqueue_copy(backend.queue, current, labels)
+    cl.enqueue_copy(backend.queue, labels, current)
+    return labels.astype(np.int64)
+
+
+def _sweeps_numpy(texels, votes, data, labels, wrap, keep):
+    """The twin of ``rf_sweep``: :func:`_iterated_modes` in NumPy."""
     h, w, _ = votes.shape
     flat = texels.reshape(-1, texels.shape[2])
     colour = (np.add.outer(np.arange(h), np.arange(w)) % 2).ravel()
@@ -372,6 +474,34 @@ def _half_sweep_terms(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, a
 def correction_pass(texels: np.ndarray, src: np.ndarray, wrap: bool, rng: np.random.Generator) -> np.ndarray:
     """A random half of the texels each take, of its own source and the continuations of its 4-neighbours'
     sources, the one whose exemplar neighbourhood (the texel and its 4-neighbours) best matches the output's."""
+    h, w = src.shape
+    best = (_correct_numpy if engine() == "numpy" else _correct_opencl)(texels, src)
+    if not wrap:  # the border rows and columns were compared against the far side: leave them as they are
+        best[[0, -1], :] = src[[0, -1], :]
+        best[:, [0, -1]] = src[:, [0, -1]]
+    chosen = rng.random((h, w)) < 0.5
+    return np.where(chosen, best, src)
+
+
+def _correct_opencl(texels: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """:func:`_correct_numpy` by the kernel ``rf_correct`` (the same float32 sums in the same order)."""
+    from .device import launch
+    backend = _backend()
+    eh, ew, d = texels.shape
+    h, w = src.shape
+    kernel = backend.kernel(KERNELS, "rf_correct", (f"-DD={d}",))
+    best = np.empty((h, w), np.int32)
+    inputs = [backend.to_device(np.asarray(texels, np.float32)), backend.to_device(src.astype(np.int32)),
+              backend.host_output(best)]
+    launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], np.int32(h), np.int32(w),
+           inputs[2])
+    backend.finish_output(inputs[2], best)
+    return best.astype(np.int64)
+
+
+def _correct_numpy(texels: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """Per output texel, of its own source and the continuations of its 4-neighbours' sources (wrapping around the
+    output), the first whose exemplar neighbourhood best matches the output's (the twin of ``rf_correct``)."""
     eh, ew, d = texels.shape
     h, w = src.shape
     pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
@@ -393,8 +523,4 @@ def correction_pass(texels: np.ndarray, src: np.ndarray, wrap: bool, rng: np.ran
         better = ok & (err < best_err)
         best_err = np.where(better, err, best_err)
         best = np.where(better, (centre // (ew + 2) - 1) * ew + centre % (ew + 2) - 1, best)
-    if not wrap:  # the rolled border rows and columns compare against the far side: leave them as they are
-        best[[0, -1], :] = src[[0, -1], :]
-        best[:, [0, -1]] = src[:, [0, -1]]
-    chosen = rng.random((h, w)) < 0.5
-    return np.where(chosen, best, src)
+    return best
