@@ -126,6 +126,6 @@ def _submodular(texels, labels, proposal, free, wrap) -> bool:
             continue
         cost = [recut.seam_cost(flat, padded, (eh, ew), a[s[both]], b[t[both]], dy, dx)
                 for a, b in ((now, now), (then, then), (now, then), (then, now))]
-        if np.any(cost[0] + cost[1] > cost[2] + cost[3] + 1e-9 * (1 + np.abs(cost).max())):
+        if np.any(cost[0] + cost[1] > cost[2] + cost[3] + 1e-6 * np.abs(cost).max()):
             return False
     return True
