@@ -193,11 +193,13 @@ def read_info(path) -> dict:
     return info
 
 
+def _type_problems(info: dict, fields) -> list[str]:
+    """The fields (``(key, type)`` pairs) that ``info`` lacks or holds with another type."""
+    return [f"'{key}' missing or not {kind.__name__}" for key, kind in fields if not isinstance(info.get(key), kind)]
+
+
 def _size_problems(info: dict) -> list[str]:
-    problems = []
-    for key, kind in (("width", int), ("height", int), ("type", str)):
-        if not isinstance(info.get(key), kind):
-            problems.append(f"'{key}' missing or not {kind.__name__}")
+    problems = _type_problems(info, (("width", int), ("height", int), ("type", str)))
     for key in ("width", "height"):
         if isinstance(info.get(key), int) and not 1 <= info[key] <= MAX_SIDE:
             problems.append(f"'{key}' must be 1 to {MAX_SIDE}, found {info[key]}")
@@ -206,10 +208,7 @@ def _size_problems(info: dict) -> list[str]:
 
 def _plane_problems(info: dict) -> list[str]:
     """What is wrong with the plane fields of a layout of coefficient planes (ptm, hsh, sh, rbf, bilinear)."""
-    problems = []
-    for key, kind in (("nplanes", int), ("colorspace", str), ("materials", list)):
-        if not isinstance(info.get(key), kind):
-            problems.append(f"'{key}' missing or not {kind.__name__}")
+    problems = _type_problems(info, (("nplanes", int), ("colorspace", str), ("materials", list)))
     if isinstance(info.get("nplanes"), int) and not 1 <= info["nplanes"] <= MAX_PLANES:
         problems.append(f"'nplanes' must be 1 to {MAX_PLANES}, found {info['nplanes']}")
     if not problems and isinstance(info.get("type"), str):
