@@ -12,7 +12,7 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
 from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
 from btforge.plugins.synth import recut
-from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.features import edge_padded, texel_features
 from btforge.plugins.synth.visibility import seam_edges
 
 
@@ -20,7 +20,7 @@ def seam_energy(texels: np.ndarray, labels: np.ndarray, wrap: bool) -> float:
     """The total seam cost the re-cut lowers, over every neighbour pair of the map."""
     eh, ew, d = texels.shape
     flat = texels.reshape(-1, d)
-    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    padded = edge_padded(texels)
     h, w = labels.shape
     flat_labels = labels.ravel()
     return float(sum(recut.seam_cost(flat, padded, (eh, ew), flat_labels[s], flat_labels[t], dy, dx).sum()
@@ -117,7 +117,7 @@ def _submodular(texels, labels, proposal, free, wrap) -> bool:
     """Whether every pair of free neighbours has submodular costs (then the minimum cut is exact)."""
     eh, ew, d = texels.shape
     flat = texels.reshape(-1, d)
-    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    padded = edge_padded(texels)
     h, w = labels.shape
     now, then, ok = labels.ravel(), np.where(free, proposal, labels).ravel(), free.ravel()
     for s, t, dy, dx in recut._edges(h, w, wrap):

@@ -57,3 +57,17 @@ def downsample(image: np.ndarray, mode: str = "mirror") -> np.ndarray:
     blurred = convolve1d(np.asarray(image, np.float64), kernel, axis=0, mode=mode)
     blurred = convolve1d(blurred, kernel, axis=1, mode=mode)
     return np.ascontiguousarray(blurred[::2, ::2], dtype=np.float32)
+
+
+def edge_padded(texels: np.ndarray) -> np.ndarray:
+    """``texels [eh, ew, d]`` padded by one texel of its own edge on every side, flat ``[(eh + 2) * (ew + 2), d]``
+    (read through :func:`beside`)."""
+    return np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, texels.shape[2])
+
+
+def beside(padded: np.ndarray, source_size: tuple[int, int], rows: np.ndarray, cols: np.ndarray, dy: int,
+           dx: int) -> np.ndarray:
+    """The exemplar texels ``(dy, dx)`` away from ``(rows, cols)`` (any of -1, 0, 1), the exemplar's edge standing
+    in beyond its border; ``padded`` is :func:`edge_padded` of the exemplar."""
+    eh, ew = source_size
+    return padded[(np.clip(rows + dy, -1, eh) + 1) * (ew + 2) + np.clip(cols + dx, -1, ew) + 1]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .features import beside, edge_padded
 from .visibility import STRAIGHT_RUN, in_long_runs, seam_masks
 
 #: Texels on either side of a straight seam that may take a continuation of either side.
@@ -40,11 +41,12 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
     if min(h, w) < 2:
         return src
     pinned = np.zeros((h, w), bool) if pinned is None else pinned
+    padded = edge_padded(texels)
     for _ in range(passes):
         before = src
         for run_mask, axis in straight_runs(src, ew, wrap, pinned):
             for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
-                src = expansion_move(texels, src, proposal, wrap, pinned)
+                src = expansion_move(texels, src, proposal, wrap, pinned, padded)
         if np.array_equal(before, src):
             break
     return src
@@ -96,24 +98,25 @@ def seam_cost(flat: np.ndarray, padded: np.ndarray, source_size: tuple[int, int]
               dy: int, dx: int) -> np.ndarray:
     """Seam cost of source ``a`` at an output texel and ``b`` at its neighbour ``(dy, dx)`` away: zero where ``b``
     continues ``a``, else half the squared appearance differences of each texel and the other's exemplar
-    neighbour on that side (edge-clamped at the exemplar's border; ``padded`` is ``texels`` edge-padded by one)."""
-    eh, ew = source_size
+    neighbour on that side (edge-clamped at the exemplar's border; ``padded``: :func:`.features.edge_padded`)."""
+    ew = source_size[1]
     ar, ac = np.divmod(a, ew)
     br, bc = np.divmod(b, ew)
-    beside_a = padded[(np.clip(ar + dy, -1, eh) + 1) * (ew + 2) + np.clip(ac + dx, -1, ew) + 1]
-    beside_b = padded[(np.clip(br - dy, -1, eh) + 1) * (ew + 2) + np.clip(bc - dx, -1, ew) + 1]
+    beside_a = beside(padded, source_size, ar, ac, dy, dx)
+    beside_b = beside(padded, source_size, br, bc, -dy, -dx)
     cost = 0.5 * (((beside_a - flat[b]) ** 2).sum(axis=-1) + ((beside_b - flat[a]) ** 2).sum(axis=-1))
     return np.where((br == ar + dy) & (bc == ac + dx), 0.0, cost)
 
 
 def expansion_move(texels: np.ndarray, labels: np.ndarray, proposal: np.ndarray, wrap: bool,
-                   pinned: np.ndarray) -> np.ndarray:
+                   pinned: np.ndarray, padded: np.ndarray | None = None) -> np.ndarray:
     """``labels`` after the best binary choice, per texel, between its label and its ``proposal`` (-1: none):
-    the minimum cut of the seam costs, kept only if it lowers them."""
+    the minimum cut of the seam costs, kept only if it lowers them (``padded``: the exemplar's
+    :func:`.features.edge_padded`, made here if not given)."""
     eh, ew, d = texels.shape
     h, w = labels.shape
     flat = texels.reshape(-1, d)
-    padded = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    padded = edge_padded(texels) if padded is None else padded
     current, offered = labels.ravel(), proposal.ravel()
     free = (offered >= 0) & (offered != current) & ~pinned.ravel()
     if not free.any():
@@ -135,7 +138,7 @@ def _edges(h: int, w: int, wrap: bool):
     ``wrap``; none of a texel with itself)."""
     index = np.arange(h * w).reshape(h, w)
     for dy, dx in ((0, 1), (1, 0)):
-        if wrap and (h, w)[dy] > 1:
+        if wrap and (h, w)[1 - dy] > 1:
             yield index.ravel(), np.roll(index, (-dy, -dx), axis=(0, 1)).ravel(), dy, dx
         else:
             yield index[:h - dy, :w - dx].ravel(), index[dy:, dx:].ravel(), dy, dx

@@ -44,7 +44,7 @@ import numpy as np
 
 from btforge.buffers import CoordMap
 
-from .features import pca_reduce
+from .features import beside, edge_padded, pca_reduce
 from .recut import recut_straight_seams
 from .search import ContentCache, content_key
 from .search_base import leading_eigenpairs
@@ -455,9 +455,9 @@ def _half_sweep_terms(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, a
     """What does not change between the sweeps for the ``active`` texels (flat indices): their candidates and
     data costs, and per 4-neighbour its flat index, the neighbour source that continues each candidate, the
     exemplar texel that continues each candidate there, and whether the neighbour lies outside the output."""
-    eh, ew, d = texels.shape
+    eh, ew = texels.shape[:2]
     h, w, slots = votes.shape
-    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    padded = edge_padded(texels)
     choices = votes.reshape(-1, slots)[active]
     vr, vc = np.divmod(np.maximum(choices, 0), ew)
     ay, ax = np.divmod(active, w)
@@ -466,7 +466,7 @@ def _half_sweep_terms(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, a
         ny, nx = ay + dy, ax + dx
         outside = np.zeros(len(active), bool) if wrap else (ny < 0) | (ny >= h) | (nx < 0) | (nx >= w)
         neighbour = (ny % h) * w + nx % w
-        continued = pad[(np.clip(vr + dy, -1, eh) + 1) * (ew + 2) + np.clip(vc + dx, -1, ew) + 1]
+        continued = beside(padded, (eh, ew), vr, vc, dy, dx)
         sides.append((neighbour, choices + dy * ew + dx, continued, outside))
     return active, choices, data.reshape(-1, slots)[active], sides
 
@@ -504,7 +504,7 @@ def _correct_numpy(texels: np.ndarray, src: np.ndarray) -> np.ndarray:
     output), the first whose exemplar neighbourhood best matches the output's (the twin of ``rf_correct``)."""
     eh, ew, d = texels.shape
     h, w = src.shape
-    pad = np.pad(texels, ((1, 1), (1, 1), (0, 0)), mode="edge").reshape(-1, d)
+    pad = edge_padded(texels)
     out = texels.reshape(-1, d)[src]                                     # [h, w, d]
     cross = [(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)]
     seen = [np.roll(out, (-oy, -ox), axis=(0, 1)) for oy, ox in cross]
