@@ -7,10 +7,11 @@ from btforge import BtforgeInputError
 from btforge.buffers import CoordMap, SampleStack
 from btforge.context import StageContext
 from btforge.plugins.ptm.model import PTMModel
+from btforge.plugins.synth import block_start
 from btforge.plugins.synth import kcoherence as kc
 from btforge.plugins.synth import synthesizer, textons
 from btforge.plugins.synth import materialize
-from btforge.plugins.synth.features import texel_features
+from btforge.plugins.synth.features import beside, edge_padded, texel_features
 from btforge.plugins.synth.kcoherence import kcoherence
 
 LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1], [0, -1, 1], [1, 1, 2]]
@@ -96,25 +97,70 @@ def test_synthesis_kernels_match_numpy(material, wrap, levels, k, neighborhood, 
     np.testing.assert_array_equal(a.coords, b.coords)
 
 
-def test_stratified_blocks_use_the_exemplar_evenly():
+def stratum_of(origins, exemplar_size, block):
+    strata = block_start.Strata.of(exemplar_size, block)
+    return ((np.searchsorted(strata.lo_y, origins[:, 0], side="right") - 1) * (len(strata.lo_x) - 1)
+            + np.searchsorted(strata.lo_x, origins[:, 1], side="right") - 1), strata.count
+
+
+@pytest.mark.parametrize("candidates", [1, 384])
+def test_block_start_uses_the_exemplar_evenly(candidates):
     rng = np.random.default_rng(0)
-    sources = kc.stratified_blocks(rng, (48, 40), (96, 96), 8)
+    features = rng.random((48, 40, 3), dtype=np.float32)
+    sources = block_start.matched_blocks(rng, features, (96, 96), 8, candidates)
     rows, cols = np.divmod(sources.reshape(96, 96), 40)
     # whole pieces: each 8 x 8 block of the output is one coherent copy
     assert (np.diff(cols.reshape(12, 8, 12, 8), axis=3) == 1).all()
     assert (np.diff(rows.reshape(12, 8, 12, 8), axis=1) == 1).all()
     # origins: every stratum (about a block apart) once before any twice, so their use differs by at most one
     origins = np.stack([rows[::8, ::8].ravel(), cols[::8, ::8].ravel()], axis=1)
-    strata_y, strata_x = round(41 / 8), round(33 / 8)
-    lo_y, lo_x = np.arange(strata_y + 1) * 41 // strata_y, np.arange(strata_x + 1) * 33 // strata_x
-    stratum = ((np.searchsorted(lo_y, origins[:, 0], side="right") - 1) * strata_x
-               + np.searchsorted(lo_x, origins[:, 1], side="right") - 1)
-    counts = np.bincount(stratum, minlength=strata_y * strata_x)
+    stratum, count = stratum_of(origins, (48, 40), 8)
+    counts = np.bincount(stratum, minlength=count)
     assert counts.max() - counts.min() <= 1, counts
-    i_i_d = np.random.default_rng(0).integers(0, strata_y * strata_x, len(origins))
-    assert np.bincount(i_i_d).max() - np.bincount(i_i_d, minlength=strata_y * strata_x).min() > 1
+    i_i_d = np.random.default_rng(0).integers(0, count, len(origins))
+    assert np.bincount(i_i_d).max() - np.bincount(i_i_d, minlength=count).min() > 1
     assert kc.block_side((192, 200), -1) == 32 and kc.block_side((64, 64), -1) == 16
     assert kc.block_side((20, 30), 24) == 20
+
+
+def piece_edge_cost(sources, features, block, wrap):
+    """Mean seam cost over the edges between pieces (both continuation terms, as the start scores them)."""
+    eh, ew = features.shape[:2]
+    rows, cols = np.divmod(sources, ew)
+    padded = edge_padded(features)
+    total = []
+    for axis, (dy, dx) in ((1, (0, 1)), (0, (1, 0))):
+        a_r, a_c = rows, cols
+        c_r, c_c = np.roll(rows, -1, axis=axis), np.roll(cols, -1, axis=axis)
+        edge = (np.arange(rows.shape[axis]) + 1) % block == 0
+        if not wrap:
+            edge[-1] = False
+        pick = (slice(None), edge) if axis == 1 else (edge, slice(None))
+        a_r, a_c, c_r, c_c = a_r[pick], a_c[pick], c_r[pick], c_c[pick]
+        cost = ((beside(padded, (eh, ew), a_r, a_c, dy, dx) - features[c_r, c_c]) ** 2).sum(-1)
+        cost += ((features[a_r, a_c] - beside(padded, (eh, ew), c_r, c_c, -dy, -dx)) ** 2).sum(-1)
+        total.append(cost.ravel())
+    return np.concatenate(total).mean()
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_matched_pieces_continue_the_colour_areas_they_meet(wrap):
+    """Smooth colour areas (a sum of slow waves): random pieces meet as unrelated colours; matched ones continue
+    what is beside them, across the output's edges too when it wraps."""
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float32)
+    features = np.stack([np.sin(xx / 5.0 + yy / 9.0), np.cos(yy / 6.0 - xx / 11.0), np.sin((xx + yy) / 7.0)], -1)
+    costs = {}
+    for candidates in (1, 384):
+        sources = block_start.matched_blocks(np.random.default_rng(3), features, (96, 96), 16, candidates, wrap)
+        costs[candidates] = piece_edge_cost(sources.reshape(96, 96), features, 16, wrap)
+    # a wrapping output's last row and column must continue two laid sides at once (the last piece four)
+    assert costs[384] < (0.35 if wrap else 0.2) * costs[1], costs
+
+
+def test_block_start_is_exact_on_a_constant_exemplar():
+    features = np.ones((20, 20, 2), np.float32)
+    sources = block_start.matched_blocks(np.random.default_rng(0), features, (33, 17), 8, 64, True)
+    assert sources.shape == (33 * 17,) and sources.min() >= 0 and sources.max() < 400
 
 
 def test_cell_excess_counts_use_beyond_the_fair_share():

@@ -1,5 +1,7 @@
 """Image quilting: OpenCL kernels against their NumPy twins, the exact rejection search against brute force,
 seams, periodic results, and the stage on real per-texel buffers."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from btforge.plugins.synth.quilt_search import (
     shape_texels, ssd_numpy, ssd_opencl, summed_area,
 )
 from btforge.plugins.synth.quilt_seams import min_cut
-from btforge.plugins.synth.bench import benchmark_quilt, smooth_fields
+from btforge.plugins.synth.bench import benchmark_quilt, exemplar_model, smooth_fields
 from btforge.plugins.synth.quilting import axis_layout, quilt, quilt_features
 
 BLOCK, OVERLAP = 8, 2
@@ -163,6 +165,39 @@ def test_rejection_picks_exactly_what_brute_force_picks(wrap, seam):
         np.testing.assert_array_equal(rejection.coords.blend_weight, brute.coords.blend_weight)
         np.testing.assert_array_equal(rejection.coords.blend_coords, brute.coords.blend_coords)
         assert rejection.stats["full_distance_fraction"] < 0.5  # and it did reject most candidates
+
+
+@pytest.mark.parametrize("budget", [1.0, 2.0])
+def test_rejection_keeps_exactness_within_the_copy_budget(budget):
+    """Only blocks within the budget are eligible: the rejection's threshold comes from them, so it still picks
+    exactly what brute force picks among them."""
+    for seed, ex in ((0, fields(24, 9, 1)), (5, sparse_features())):
+        kwargs = dict(search="brute", seed=seed, spread=True, budget=budget, **SMALL)
+        brute = quilt_features(ex, (48, 48), **kwargs)
+        rejection = quilt_features(ex, (48, 48), **{**kwargs, "search": "rejection"})
+        np.testing.assert_array_equal(rejection.coords.coords, brute.coords.coords)
+
+
+def sparse_features(size=48, seed=0):
+    """A plain ground (faint noise) with a few bright marks."""
+    rng = np.random.default_rng(seed)
+    ex = rng.normal(0.0, 0.01, (size, size, 3)).astype(np.float32)
+    for y, x in ((6, 30), (26, 8), (36, 36)):
+        ex[y:y + 5, x:x + 5] += np.float32(3.0)
+    return ex
+
+
+def test_copy_budget_uses_all_of_an_object_on_a_plain_ground():
+    """A 192 x 192 crop of the painted icon: a face on a smooth ground.  The ground's blocks continue each other
+    almost exactly, so without a budget only ground blocks are within tolerance of the best and the output is
+    ground; within the budget the face's parts are used too."""
+    from btforge.plugins.synth.visibility import evenness
+    model = exemplar_model(str(Path(__file__).parents[1] / "graphs/data/icon_san_michele/dirs.lp"), 192)
+    features = texel_features(model)
+    even = {budget: evenness(quilt_features(features, (256, 256), block=32, overlap=5, tolerance=0.5, seed=0,
+                                            spread=True, budget=budget).coords)
+            for budget in (0.0, 2.0)}
+    assert even[0.0] < 0.3 and even[2.0] >= 0.5, even
 
 
 def tiled(period=6, reps=4, dims=3, seed=0):

@@ -25,6 +25,7 @@ from btforge.backend import get_backend
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
+from .block_start import CANDIDATES, matched_blocks
 from .device import LOCAL, launch, round_up
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
@@ -42,10 +43,11 @@ MAX_CORRECTIONS = 8
 COVERAGE = 0.5               #: default coverage tolerance (0: off; measured best of 0.05-1, README)
 COVERAGE_CELL = 4            #: exemplar texels per side of a cell whose use the coverage tie-break evens out
 ENGINES = ("opencl", "numpy")
-BLOCKS = -1                  #: default side of the stratified exemplar pieces the synthesis starts from (-1: auto)
+BLOCKS = -1                  #: default side of the exemplar pieces the synthesis starts from (-1: auto)
 MIN_AUTO_BLOCK = 16          #: auto: a sixth of the exemplar's shorter side, at least this (measured, README)
 AUTO_BLOCK_SHARE = 6
 MAX_BLOCKS = 1024
+MAX_MATCHING = 4096
 KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
 
@@ -214,31 +216,6 @@ def block_side(exemplar_size: tuple[int, int], blocks: int) -> int:
     return min(blocks, *exemplar_size)
 
 
-def stratified_blocks(rng: np.random.Generator, exemplar_size: tuple[int, int], size: tuple[int, int],
-                      block: int) -> np.ndarray:
-    """Flat exemplar sources ``[H * W]`` int32 of ``block x block`` exemplar pieces laid side by side, their
-    origins spread evenly: the exemplar's origins are cut into strata about ``block`` apart, every stratum is used
-    once (one random origin inside it, in random order) before any is used again."""
-    (eh, ew), (ho, wo) = exemplar_size, size
-    b = max(1, min(block, eh, ew))
-    by, bx = -(-ho // b), -(-wo // b)
-    span_y, span_x = eh - b + 1, ew - b + 1
-    gy, gx = max(1, round(span_y / b)), max(1, round(span_x / b))
-    lo_y, lo_x = (np.arange(gy + 1) * span_y) // gy, (np.arange(gx + 1) * span_x) // gx
-    origins = []
-    while sum(len(o) for o in origins) < by * bx:
-        strata = rng.permutation(gy * gx)
-        iy, ix = np.divmod(strata, gx)
-        oy = lo_y[iy] + (rng.random(len(strata)) * (lo_y[iy + 1] - lo_y[iy])).astype(np.int64)
-        ox = lo_x[ix] + (rng.random(len(strata)) * (lo_x[ix + 1] - lo_x[ix])).astype(np.int64)
-        origins.append(np.stack([oy, ox], axis=1))
-    origin = np.concatenate(origins)[:by * bx].reshape(by, bx, 2)
-    rows, cols = np.mgrid[0:ho, 0:wo]
-    sy = origin[rows // b, cols // b, 0] + rows % b
-    sx = origin[rows // b, cols // b, 1] + cols % b
-    return (sy * ew + sx).ravel().astype(np.int32)
-
-
 def causal_pass_numpy(level, cur, fixed, ho, wo, wrap, offs, k, use_prev=False):
     """Twin of the wavefront-ordered causal pass (``kc_causal``); updates ``cur`` (flat) in place."""
     step = int(np.abs(offs).max()) + 1
@@ -373,7 +350,8 @@ class SynthesisResult:
 def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neighborhood: int = 5, levels: int = 3,
                wrap: bool = False, seed: int = 0, textons: int = DEFAULT_TEXTONS, search: str = "fast",
                corrections: int = CORRECTIONS, coverage: float = COVERAGE, blocks: int = BLOCKS, keep: float = KEEP,
-               engine: str = "opencl", analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
+               matching: int = CANDIDATES, engine: str = "opencl",
+               analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
     """Hierarchical k-coherence synthesis on ``[H, W, D]`` features; see :func:`kcoherence` for the method."""
     if engine not in ENGINES:
         raise BtforgeInputError("kcoherence 'engine'", f"expected one of {ENGINES}, found {engine!r}",
@@ -406,7 +384,11 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
     for l in reversed(range(synthesized)):
         level = pyramid[l]
         ho, wo = out_sizes[l]
-        cur, passes_causal = _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, neighborhood // 2)
+        if cur is None and blocks:
+            # matched exemplar pieces: the correction passes repair their seams
+            cur, passes_causal = matched_blocks(rng, features, out_sizes[l], blocks, matching, wrap), []
+        else:
+            cur, passes_causal = _level_start(cur, pyramid, l, out_sizes, rng, wrap, neighborhood // 2)
         passes = corrections + 1 if l == synthesized - 1 else corrections
         if engine == "numpy":
             for fixed, use_prev in passes_causal:
@@ -427,15 +409,12 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
     return SynthesisResult(coords, pyramid, analysed - start, time.perf_counter() - analysed)
 
 
-def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
+def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
     """A level's starting sources (flat int32) and its causal passes as (fixed mask, read later neighbours from
-    the previous state)."""
+    the previous state), in the hierarchical synthesis."""
     level = pyramid[l]
     ho, wo = out_sizes[l]
     ys, xs = np.divmod(np.arange(ho * wo), wo)
-    if cur is None and blocks:
-        # stratified exemplar pieces: the correction passes repair their seams
-        return stratified_blocks(rng, (level.height, level.width), (ho, wo), blocks), []
     if cur is None:
         # coarsest level: the border (first `radius` rows and columns) seeded with random exemplar texels
         cur = rng.integers(0, level.height * level.width, ho * wo).astype(np.int32)
@@ -458,7 +437,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="12",  # 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="13",  # 13: the start's pieces matched at their edges (matching 384); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -479,6 +458,9 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
               "by side with origins spread evenly over the exemplar; only the finest level is then synthesized "
               "(its correction passes repair the seams).  -1: a sixth of the exemplar's shorter side, at least 16; "
               "0: the hierarchical synthesis from a random border over 'levels' levels", low=-1, high=MAX_BLOCKS),
+        Param("matching", "int", CANDIDATES, "exemplar origins compared for each piece of the start (drawn from the "
+              "strata not yet used): the one whose edges continue the pieces already beside it best is laid, so "
+              "colour areas continue across the pieces' edges (1: a random one)", low=1, high=MAX_MATCHING),
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
@@ -486,7 +468,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, blocks, radius):
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, keep, refine, occurrence, scales):
+               coverage, blocks, matching, keep, refine, occurrence, scales):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -496,14 +478,16 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
        exemplar texel its coherence set - itself and the k - 1 texels with the most similar n x n
        neighbourhoods of the appearance vectors (the shared search, ``search`` fast or exact; texels within one
        texel of it are left out).  The analysis is kept per exemplar: another seed or size skips it.
-    2. **Start from stratified blocks** (the default, ``blocks`` != 0): the output is tiled with ``blocks x
-       blocks`` pieces of the exemplar (-1: a sixth of its shorter side, at least 16 texels) whose origins are
-       spread evenly: the exemplar's origins are cut into strata about a block apart, and every stratum gives
-       one random origin, in random order, before any gives another.  Only the finest level is synthesized:
-       its correction passes (4. below, ``corrections`` + 1 of them) repair the seams between the pieces.  The
-       output thus copies large coherent pieces and uses the whole exemplar about evenly, which the
-       hierarchical start below does not (its passes drift to a few easily continued regions; README,
-       Benchmarks).
+    2. **Start from matched blocks** (the default, ``blocks`` != 0): the output is tiled, in scanline order,
+       with ``blocks x blocks`` pieces of the exemplar (-1: a sixth of its shorter side, at least 16 texels)
+       whose origins are spread evenly: the exemplar's origins are cut into strata about a block apart, and
+       every stratum gives one piece before any gives a second.  Among ``matching`` origins drawn from the
+       strata still open, the piece whose edges continue the pieces already laid beside it best (least seam
+       cost, as Graphcut Textures places a patch) is laid (:mod:`.block_start`); random pieces meet as
+       unrelated colour areas along straight edges.  Only the finest level is synthesized: its correction
+       passes (4. below, ``corrections`` + 1 of them) repair the seams between the pieces.  The output thus
+       copies large coherent pieces and uses the whole exemplar about evenly, which the hierarchical start
+       below does not (its passes drift to a few easily continued regions; README, Benchmarks).
     2'. **Hierarchical start** (``blocks: 0``), coarsest level: the first n // 2 rows and columns are seeded
        with random exemplar texels; every other pixel takes, among the coherence sets of the coherent sources
        suggested by its causal (L-shaped) neighbours, the candidate whose neighbourhood differs least (sums of
@@ -560,7 +544,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     features = texel_features(exemplar)
     result = synthesize(features, size, k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
                         textons=textons, search=search, corrections=corrections,
-                        coverage=coverage, blocks=blocks, keep=keep)
+                        coverage=coverage, blocks=blocks, keep=keep, matching=matching)
     ctx.note("textons", [lv.textons.count for lv in result.levels])
     ctx.note("texton_error", [round(lv.textons.error, 4) for lv in result.levels])
     if k > 1:

@@ -504,8 +504,10 @@ class QuiltSearch:
         return qp, err
 
     def _reject(self, shape: OverlapShape, block_feats: np.ndarray, query: np.ndarray,
-                hints: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
-        """The candidates the projections cannot rule out (sorted) with their full distances.
+                hints: tuple[int, ...] = (), allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The candidates the projections cannot rule out (sorted) with their full distances; with ``allowed``
+        the threshold comes from allowed candidates, so every allowed one within tolerance of the best allowed one
+        survives.
 
         Exactness.  Let d be a candidate's distance as the device computes it (float32 over m = n_pix * D terms,
         relative error below (m + 2) u32) and d* its exact value; eligible means d <= (1 + tol) min d.  The
@@ -527,7 +529,7 @@ class QuiltSearch:
         qp32 = qp.astype(np.float32)  # the kernels work in float32: rounding the query is one more error
         err_query = err_query + _U32 * np.abs(qp)
         slack = np.sqrt(np.cumsum((2 * (shape.err_proj + err_query)) ** 2))
-        thr = (tol * self._threshold_seed(shape, qp32, q64, hints) + m * 2.0 ** -100) * (1 + 4 * (m + 2) * _U32)
+        thr = (tol * self._threshold_seed(shape, qp32, q64, hints, allowed) + m * 2.0 ** -100) * (1 + 4 * (m + 2) * _U32)
         if thr > 0.25 * _FLOAT32_MAX:  # device distances may overflow to inf: no safe bound, compute them all
             return np.arange(n), self.distances(shape, query)
         limit = _round_up32((math.sqrt(thr) + slack) ** 2 * (1 + 2 * (k + 4) * _U32))
@@ -546,35 +548,46 @@ class QuiltSearch:
         self.full_distances += len(idx)
         return idx, dist[idx]
 
-    def _threshold_seed(self, shape: OverlapShape, qp32: np.ndarray, q64: np.ndarray, hints) -> float:
-        """The smallest float64 full distance among a few promising candidates: those with the lowest bound from
-        the first projections, and the ``hints`` (blocks continuing the neighbours' exemplar positions)."""
+    def _threshold_seed(self, shape: OverlapShape, qp32: np.ndarray, q64: np.ndarray, hints,
+                        allowed: np.ndarray | None = None) -> float:
+        """The smallest float64 full distance among a few promising (``allowed``) candidates: those with the
+        lowest bound from the first projections, and the ``hints`` (blocks continuing the neighbours' exemplar
+        positions)."""
         k0 = min(len(qp32), SEED_PROJECTIONS)
         head = qp32[:k0]
         # + |head|^2, the same for all: ranking only.  einsum, not a BLAS call: a threaded BLAS would fight the
         # OpenCL runtime's threads for the cores.
         lb = shape.seed_norm - 2 * np.einsum("j,jn->n", head, shape.head)
+        if allowed is not None:
+            lb = np.where(allowed, lb, np.inf)
         nominees = set(np.argpartition(lb, SEED_CANDIDATES)[:SEED_CANDIDATES].tolist())
         nominees.update(h for h in hints if 0 <= h < self.n_cand)
+        if allowed is not None:
+            nominees = {n for n in nominees if allowed[n]}
         return float(self._host_distances(shape, np.fromiter(nominees, np.int64), q64).min())
 
     def pick(self, shape: OverlapShape, block_feats: np.ndarray, rng: np.random.Generator,
-             hints: tuple[int, ...] = (), usage: np.ndarray | None = None) -> int:
+             hints: tuple[int, ...] = (), usage: np.ndarray | None = None,
+             allowed: np.ndarray | None = None) -> int:
         """One candidate drawn uniformly from those within (1 + tolerance) x the best overlap distance.
 
         ``block_feats`` is the synthesized ``[B, B, D]`` block region; only its overlap texels are compared.
         ``hints`` may name candidates likely to match well (they only speed up the rejection).  With ``usage``
         (per candidate: how much of its exemplar area the output already copies), the draw is among the
-        eligible candidates used least.
+        eligible candidates used least.  With ``allowed`` (a mask over the candidates, at least one true) only
+        allowed candidates are eligible, within tolerance of the best allowed one.
         """
         start = time.perf_counter()
         self.queries += 1
         query = np.ascontiguousarray(block_feats[shape.dy, shape.dx])
         if self.rejecting:
             with np.errstate(over="ignore", invalid="ignore"):  # huge values: float32 infinities only loosen bounds
-                idx, d = self._reject(shape, block_feats, query, hints)
+                idx, d = self._reject(shape, block_feats, query, hints, allowed)
         else:
             idx, d = np.arange(self.n_cand), self.distances(shape, query)
+        if allowed is not None:
+            keep = allowed[idx]
+            idx, d = idx[keep], d[keep]
         d = d.astype(np.float64)
         eligible = idx[d <= (1 + self.tolerance) * d.min()]  # ascending candidate order: ties resolve by the seed
         if usage is not None:

@@ -32,6 +32,7 @@ from .synthesizer import declare_synthesizer, refine_params, refined
 
 
 SEAMS = ("cut", "blend")
+BUDGET = 2.0  #: default copy budget: no exemplar area copied beyond twice its fair share (plus one copy)
 
 
 # ----------------------------------------------------------------------------------------------- layout
@@ -117,11 +118,13 @@ class QuiltResult:
 
 def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *, search: str = "rejection",
                    seam: str = "cut", tolerance: float = 0.1, wrap: bool = False, seed: int = 0,
-                   engine: str = "opencl", spread: bool = False) -> QuiltResult:
+                   engine: str = "opencl", spread: bool = False, budget: float = 0.0) -> QuiltResult:
     """Quilt appearance vectors ``feats [H, W, D]`` into a coordinate map of ``size = (H, W)``.
 
     ``engine='numpy'`` runs the searches on the NumPy references instead of OpenCL.  ``spread``: among the
-    eligible blocks, the one whose exemplar area the output copies least so far.  Returns the map and
+    eligible blocks, the one whose exemplar area the output copies least so far.  ``budget`` > 0: only blocks
+    whose exemplar area is copied at most ``budget`` x its fair share (plus one copy) are eligible (see
+    :meth:`_Canvas.within_budget`).  Returns the map and
     statistics (blocks, candidates, per-projection rejected fractions, timings).
     """
     start_time = time.perf_counter()
@@ -150,8 +153,9 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
                 hints = tuple(searcher.candidate(placed[(a, b)][0] + y - lay_y.starts[a],
                                                  placed[(a, b)][1] + x - lay_x.starts[b])
                               for a, b in ((i, j - 1), (i - 1, j), (i - 1, j - 1)) if (a, b) in placed)
+                usage = quilt.block_usage()
                 pick = searcher.pick(searcher.shape(key, projections[key]), quilt.canvas[region], rng, hints,
-                                     quilt.block_usage() if spread else None)
+                                     usage if spread else None, quilt.within_budget(usage, budget))
             placed[(i, j)] = divmod(pick, searcher.cols)
             quilt.place(region, placed[(i, j)], key)
     stats = _quilt_stats(searcher, search, len(lay_y.starts) * len(lay_x.starts), feats.shape[2], start_time)
@@ -194,6 +198,21 @@ class _Canvas:
         table = np.zeros((self.copied.shape[0] + 1, self.copied.shape[1] + 1), np.int64)
         table[1:, 1:] = self.copied.cumsum(0).cumsum(1)
         return (table[b:, b:] - table[:-b, b:] - table[b:, :-b] + table[:-b, :-b]).ravel()
+
+    def within_budget(self, usage: np.ndarray, budget: float) -> np.ndarray | None:
+        """Per candidate block, whether its exemplar area is copied at most ``budget`` x its fair share (the
+        texels copied so far spread evenly over the exemplar) plus one copy of the block; None when ``budget`` is
+        0.  The least-used block is always within it.
+
+        Efros & Freeman's tolerance is relative to the best overlap error, so where most of the exemplar is a
+        plain ground whose blocks match each other almost exactly, only ground blocks are ever eligible and the
+        exemplar's sparse features never appear; the budget moves the choice on once the ground has had its share.
+        """
+        if budget <= 0:
+            return None
+        area = self.block * self.block
+        fair = area * self.copied.sum() / self.copied.size
+        return usage <= budget * fair + area
 
     def place(self, region, origin: tuple[int, int], key: tuple[int, int, int, int]) -> None:
         r0, c0 = origin
@@ -259,7 +278,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="7",  # 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="8",  # 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -270,12 +289,17 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
               choices=SEAMS),
         Param("tolerance", "float", 0.5, "candidates within (1 + tolerance) x the best overlap error are eligible; "
               "one is picked among them (see 'spread')", low=0.0),
+        Param("budget", "float", BUDGET, "a block is eligible only while its exemplar area is copied at most "
+              "budget x its fair share (the texels copied so far spread evenly over the exemplar) plus one copy, "
+              "so a plain ground that matches itself everywhere cannot crowd out the exemplar's sparse features "
+              "(0: no limit)", low=0.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
         *refine_params(),
     ],
 )
-def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, spread, refine, occurrence, scales):
+def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,
+          occurrence, scales):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
@@ -287,6 +311,14 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     (``seam: cut``) or linear blending (``seam: blend``, recorded as the map's blend weights).  With ``wrap`` the
     last row and column of blocks are also matched against the first, so the result tiles seamlessly; block
     overlaps are then spread evenly and may be a texel wider than ``overlap``.
+
+    **Copy budget** (``budget``): only blocks whose exemplar area has been copied at most ``budget`` x its fair
+    share so far (the copied texels spread evenly over the exemplar), plus one copy of a block, are eligible, and
+    the tolerance is taken from the best of those.  Efros & Freeman's tolerance is relative to the best match:
+    where most of the exemplar is a smooth ground whose blocks continue each other almost exactly (an object on
+    a ground, a relief with a few thin lines), only ground blocks are ever within it, and the output is ground.
+    Within the budget the ground gets its share and the rest of the exemplar is used too (the occurrence idea of
+    Kaspar et al. 2015, as a hard limit).  On stationary exemplars it rarely binds.
 
     ``search: rejection`` (Hel-Or & Hel-Or 2002) projects every candidate's overlap, once per overlap shape, onto up
     to 1024 orthonormal Haar functions of the overlap (one feature dimension each, most energetic first); for each
@@ -313,7 +345,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     validate((exemplar.height, exemplar.width), size, block, overlap, wrap, tolerance)  # before any work
     feats = texel_features(exemplar)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
-                            seed=seed, spread=spread)
+                            seed=seed, spread=spread, budget=budget)
     for key, value in result.stats.items():
         ctx.note(key, value)
     return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed)}
