@@ -570,6 +570,20 @@ def _planes_needed(planes: int, colorspace: str, yplanes: int) -> int:
     return count if colorspace == "rgb" else 3 * max(ycc_split(count, yplanes))
 
 
+def auto_plane_cap(colorspace: str, yplanes: int, values: int) -> int:
+    """The most planes ``planes: 0`` may keep (at most :data:`AUTO_PLANES`) when one PCA sees ``values``
+    independent values per texel and colour component (the fewer of the grid's nodes and the lights)."""
+    if colorspace == "rgb":
+        return max(1, min(AUTO_PLANES, 3 * values))
+    for count in range(AUTO_PLANES, 0, -1):
+        try:
+            if max(ycc_split(count, yplanes)) <= values:
+                return count
+        except BtforgeInputError:  # yplanes leaves an odd number of chroma planes: not a count to keep
+            continue
+    return AUTO_PLANES  # nothing fits: the plane check names the problem
+
+
 def bilinear_resample(stack: SampleStack, resampling: str, resolution: int, smoothness: float, sigma: float,
                       regularization: float) -> tuple[np.ndarray, float]:
     """``(resample [D, L], smoothness as used)``: how each texel's samples become the grid's values."""
@@ -599,7 +613,7 @@ def fit_bilinear(stack: SampleStack, planes: int = 0, resolution: int = 8, color
                                             fit_bilinear(part, planes, value, colorspace, yplanes, sigma,
                                                          regularization, coefficients, resampling, smoothness,
                                                          engine, sp)[0])
-    count = planes or (min(AUTO_PLANES, 3 * resolution * resolution) if colorspace == "rgb" else AUTO_PLANES)
+    count = planes or auto_plane_cap(colorspace, yplanes, min(resolution * resolution, stack.n_light))
     ycc = _pca_planes(stack, "bilinear.fit", count, colorspace, yplanes, resolution * resolution)
     resample, smoothness = bilinear_resample(stack, resampling, resolution, smoothness, sigma, regularization)
     table = pca_table(pca_responses(stack, space), count, colorspace, ycc, resample)
