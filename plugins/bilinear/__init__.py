@@ -63,8 +63,8 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     bilinear grid reproduces the spline to within half a display level; for the other resamplings
     ``resolution: 0`` and ``space: auto`` are chosen together on held-out lights.  ``planes: 0`` (the default)
     keeps the fewest principal components whose truncation of the resampled grid stays within half a display
-    level (RMS) at the fitting lights: the planes the capture's light responses need beyond what the grid already
-    holds, at most 27.  ``resolution: 8,
+    level (RMS) at the fitting lights, at most 27: a capture whose responses vary in few ways keeps few planes.
+    ``resolution: 8,
     resampling: relight, space: srgb`` is relight's own fit.
 
     Outputs
