@@ -25,6 +25,7 @@ FITS = [("hsh.fit", {"planes": 12}), ("hsh.fit", {}), ("hsh.fit", {"colorspace":
         ("rbf.fit", {"sigma": 0.125, "table": "responses", "coefficients": "projection"}),
         ("bilinear.fit", {}), ("bilinear.fit", {"resolution": 6, "resampling": "smooth", "space": "srgb"}),
         ("bilinear.fit", {"colorspace": "ycc", "planes": 12, "resolution": 0}),
+        ("bilinear.fit", {"colorspace": "ycc", "planes": 0}),
         ("bilinear.fit", {"resolution": 8, "resampling": "relight"})]
 
 
@@ -163,7 +164,8 @@ HARD_FITS = [("hsh.fit", {}), ("hsh.fit", {"colorspace": "ycc"}), ("rbf.fit", {"
              ("rbf.fit", {"planes": 6, "table": "responses", "coefficients": "projection", "sigma": 0.125}),
              ("bilinear.fit", {"planes": 6, "resolution": 4}), ("bilinear.fit", {"planes": 6, "resolution": 0}),
              ("bilinear.fit", {"planes": 6, "resolution": 0, "resampling": "smooth"}),
-             ("bilinear.fit", {"planes": 6, "resolution": 8, "resampling": "relight"})]
+             ("bilinear.fit", {"planes": 6, "resolution": 8, "resampling": "relight"}),
+             ("bilinear.fit", {"planes": 0}), ("bilinear.fit", {"planes": 0, "colorspace": "ycc"})]
 
 
 @pytest.mark.parametrize("stage,params", HARD_FITS)
@@ -178,7 +180,9 @@ def test_hard_light_sets_and_texels_give_finite_bounded_correct_models(stage, pa
     # the ridge bounds every coefficient vector by |y - g0| / (2 RIDGE s_max) <= sqrt(3 L) / (2 RIDGE s_max)
     lw = model.light_weights(lights).astype(np.float64)
     s_max = np.linalg.svd(lw[:, 1:].transpose(0, 2, 1).reshape(-1, model.n_plane), compute_uv=False)[0]
-    if params.get("coefficients") != "projection":
+    # (relight's projection, bilinear's default, is no least-squares fit: its coefficients are the resampled grid's,
+    # which a spline extrapolates far from a tight cluster of lights - see docs/guide/limitations.md)
+    if params.get("coefficients", "projection" if stage == "bilinear.fit" else "lsq") != "projection":
         bound = (np.sqrt(3 * len(lights)) * (1 + np.abs(lw[:, 0]).max())) / (2 * RIDGE * s_max)
         assert np.linalg.norm(model.coeffs, axis=2).max() <= bound * 1.001
     probe = np.vstack([lights, [[0, 0, 1.0], [1.0, 0, 0], [0, -1.0, 0], [0.6, 0, -0.8]]])

@@ -1,7 +1,7 @@
 """bilinear.fit's spline resampling: the smoothing spline over the sphere of directions (constants exact, affine
 responses nearly so, finite and bounded on hard light sets), its leave-one-out choice (exact), the grid side
-choice, the PCA solved in the lights' span (the same table as the explicit one), and held-out accuracy between
-rings of a dome against the other resamplings."""
+choice, the PCA solved in the lights' span (the same table as the explicit one), the plane count choice
+(``planes: 0``), and held-out accuracy between rings of a dome against the other resamplings."""
 from __future__ import annotations
 
 import sys
@@ -13,8 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from btforge.buffers import SampleStack, linear_to_srgb, linear_to_srgb8
-from btforge.plugins.bases.fit import SPLINE_SIDES, fit_bilinear, pca_table, spline_settings, spline_side
-from btforge.plugins.bases.lightfuncs import smooth_resample_matrix, spline_weights
+from btforge.plugins.bases.fit import (AUTO_PLANES, SPLINE_SIDE_TOLERANCE, SPLINE_SIDES, fit_bilinear, nested_split,
+                                      pca_table, spline_settings, spline_side, truncation_errors)
+from btforge.plugins.bases.lightfuncs import octa_directions, smooth_resample_matrix, spline_weights
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_bases import light_sets  # noqa: E402
@@ -111,6 +112,72 @@ def test_pca_in_the_lights_span_gives_the_table_of_the_resampled_responses(color
         explicit = pca_table(resampled, 12, colorspace, ycc)
         # float32 second moments of values up to ~1: agreement to ~1e-6 (eigenvectors of well-separated values)
         np.testing.assert_allclose(pca_table(samples, 12, colorspace, ycc, resample), explicit, atol=2e-5)
+
+
+# ----------------------------------------------------------------------------------------------- planes: 0
+
+
+def test_nested_split_follows_relights_plane_order():
+    # (Y, Co, Cg) triplets while chroma planes last, then luma planes; a count ending inside a triplet is no split
+    assert [nested_split((15, 6, 6), n) for n in (3, 4, 18, 19, 27)] == [(1, 1, 1), None, (6, 6, 6), (7, 6, 6),
+                                                                          (15, 6, 6)]
+    assert nested_split((15, 6, 6), 28) is None
+
+
+def component_capture(lights, components: int, seed: int = 3, size: int = 24) -> SampleStack:
+    """Texels mixing ``components`` smooth light responses (powers of n . l for random normals, each its own
+    colour) with random weights: every texel lies in a ``components``-dimensional space of responses."""
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(0, 0.4, (components, 3)) + [0, 0, 1]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    shading = np.clip(lights @ normals.T, 0, None) ** rng.uniform(1, 3, components)          # [L, K]
+    colours = rng.uniform(0.2, 1, (components, 3))
+    weights = rng.uniform(0, 1.5 / components, (size, size, components))   # not summing to 1: K dims about the mean
+    values = np.einsum("lk,hwk,kc->lhwc", shading, weights, colours)
+    return SampleStack(np.rint(255 * linear_to_srgb(values))[None].astype(np.uint8), lights, [[0, 0, 1]],
+                       encoding="srgb8")
+
+
+@pytest.mark.parametrize("components", [1, 3, 5])
+def test_planes_auto_keeps_the_components_a_capture_is_built_from(components):
+    stack = component_capture(dome([15, 35, 55, 75], 12), components)
+    model, stats = fit_bilinear(stack, planes=0, space="linear", resolution=0)
+    # linear radiance mixes the responses linearly: the components and, at most, the direction the clipped mean
+    # leaves out; 8-bit rounding is far below the half-level tolerance
+    assert components <= stats["planes"] <= components + 1
+    fixed = fit_bilinear(stack, planes=stats["planes"] + 4, space="linear", resolution=0)[0]
+    lights = stack.lights
+    assert np.abs(model.evaluate(lights) - fixed.evaluate(lights)).max() < 4 * SPLINE_SIDE_TOLERANCE
+
+
+def test_truncation_errors_vanish_with_every_plane_and_stay_finite_on_black_and_saturated_texels():
+    rng = np.random.default_rng(2)
+    lights = hemisphere(20, 4)
+    y = rng.uniform(0, 1, (20, 50, 3))
+    y[:, 0], y[:, 1] = 0.0, 1.0                                              # black and saturated texels
+    side = 3                                                                  # 9 nodes: 27 planes hold the grid
+    resample = spline_weights(lights, octa_directions(side), 1e-2)
+    table = pca_table(y.transpose(1, 0, 2).astype(np.float32), 27, "rgb", (0, 0, 0), resample)
+    args = {"kind": "bilinear", "table": table, "colorspace": "rgb", "yccplanes": (0, 0, 0), "resolution": side,
+            "space": "srgb"}
+    errors = truncation_errors(table, args, resample, y, lights, "srgb")
+    assert errors.shape == (28,) and np.isfinite(errors).all() and errors[0] > 0.05
+    assert errors[-1] < 1e-5                      # every component: the grid itself (float32 table)
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(lights=light_sets(), seed=st.integers(0, 1000), colorspace=st.sampled_from(["rgb", "ycc"]))
+def test_planes_auto_is_a_valid_count_on_few_clustered_and_grazing_lights(lights, seed, colorspace):
+    stack = component_capture(lights, 3, seed, size=6)
+    samples = stack.samples.copy()
+    samples[0, :, 0, 0], samples[0, :, 0, 1] = 0, 255                          # black and saturated texels
+    stack = SampleStack(samples, lights, [[0, 0, 1]], encoding="srgb8")
+    model, stats = fit_bilinear(stack, planes=0, colorspace=colorspace)
+    assert 1 <= stats["planes"] <= AUTO_PLANES and model.n_plane == stats["planes"]
+    if colorspace == "ycc":
+        assert sum(model.yccplanes) == stats["planes"] and model.yccplanes[1] == model.yccplanes[2]
+    relit = model.evaluate(np.vstack([lights, [[0, 0, 1.0], [1.0, 0, 0]]]))
+    assert np.isfinite(relit).all() and relit.min() >= 0 and relit.max() <= 1
 
 
 # ----------------------------------------------------------------------------------------------- accuracy

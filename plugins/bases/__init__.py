@@ -12,7 +12,7 @@ from __future__ import annotations
 from btforge import Expect, Param, hookimpl
 from btforge.errors import BtforgeInputError
 
-from .fit import fit_bilinear, fit_hsh, fit_rbf, ycc_split
+from .fit import AUTO_PLANES, fit_bilinear, fit_hsh, fit_rbf, ycc_split
 from .model import LightTableModel
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
@@ -70,7 +70,7 @@ def settle_choices(stack, params: dict, choose) -> dict:
 
 def pca_precheck(params, paths=None):
     if params["colorspace"] == "ycc":
-        ycc_split(params["planes"], params["yplanes"])
+        ycc_split(params["planes"] or AUTO_PLANES, params["yplanes"])  # planes 0 (bilinear.fit): at most AUTO_PLANES
     if params.get("resolution") == 1:
         raise BtforgeInputError("bilinear.fit 'resolution'", "expected 0 (automatic) or 2 .. 24, found 1",
                                 "a grid needs at least 2 x 2 nodes")

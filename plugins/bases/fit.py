@@ -57,6 +57,9 @@ SPLINE_SIDES = tuple(range(8, 25))
 SPLINE_SIDE_TOLERANCE = 0.5 / 255.0
 SIDE_JUDGE_STEP = 8      # ... on every eighth value of the judged texels (a smooth error: 1536 values judge it)
 SPLINE_PROBE_SIDE = 41  # the directions the side is judged at: the nodes of this finer grid the lights cover
+# planes 0: the fewest planes (at most AUTO_PLANES) whose truncation of the resampled grid stays within
+# SPLINE_SIDE_TOLERANCE at the fitting lights, the tolerance the grid side is held to
+AUTO_PLANES = 27
 SMOOTH_RESAMPLING = 0.003  # resampling smooth: the grid's bending weight when smoothness is 0
 TABLE_DAMPING = 0.1   # the interpolating rbf table stays this close (relatively) to the components at the lights
 RIDGE = 1e-3          # lambda = (RIDGE x the largest singular value)^2
@@ -515,37 +518,110 @@ def spline_side(stack: SampleStack, space: str, smoothness: float, sides=SPLINE_
     return sides[-1]
 
 
-def fit_bilinear(stack: SampleStack, planes: int = 9, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
+def nested_split(yccplanes: tuple[int, int, int], count: int) -> tuple[int, int, int] | None:
+    """The (Y, Co, Cg) plane counts of the first ``count`` planes of a ycc table split ``yccplanes`` (relight's
+    order: (Y, Co, Cg) triplets while chroma planes last, then luma), or None when they end inside a triplet."""
+    chroma = yccplanes[1]
+    if count <= 3 * chroma:
+        return (count // 3,) * 3 if count % 3 == 0 else None
+    return (count - 2 * chroma, chroma, chroma) if count - 2 * chroma <= yccplanes[0] else None
+
+
+def truncation_errors(table: np.ndarray, args: dict, resample: np.ndarray, y: np.ndarray, lights: np.ndarray,
+                      space: str) -> np.ndarray:
+    """RMS ``[P + 1]`` (display values) by which the first ``p`` planes of ``table`` (relight's projection of the
+    values ``y [L, T, 3]`` resampled by ``resample [D, L]``) miss the resampled grid itself at ``lights``: what
+    truncating the principal components costs at the fitting lights, for p = 0 .. P."""
+    side = int(args["resolution"])
+    exact = np.einsum("ld,dm,mtk->ltk", bilinear_weights(lights, side), resample, y, optimize=True)
+    lw = table_light_weights(args, lights)                                  # [L, P + 1, 3]
+    proj, offset = pca_projection(table, resample, args["colorspace"])
+    coeffs = np.einsum("ltk,plk->tp", y, proj) - offset                   # [T, P]
+    values = np.broadcast_to(lw[:, None, 0, :], exact.shape).copy()
+    target = _as_display(exact, space)
+    errors = [math.sqrt(float(np.mean((_as_display(values, space) - target) ** 2)))]
+    for p in range(proj.shape[0]):
+        values += coeffs[None, :, p, None] * lw[:, None, p + 1, :]
+        errors.append(math.sqrt(float(np.mean((_as_display(values, space) - target) ** 2))))
+    return np.asarray(errors)
+
+
+def fewest_planes(stack: SampleStack, table: np.ndarray, args: dict, resample: np.ndarray
+                  ) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """``planes: 0``: the fewest leading planes of ``table`` (and their ycc split) whose truncation of the
+    resampled grid stays within :data:`SPLINE_SIDE_TOLERANCE` RMS at the fitting lights, on the grid of texels
+    ``auto`` choices judge on; all of them when none does."""
+    space = args["space"]
+    grid = held_out_grid(stack)[0]
+    like = SampleStack(grid[None], stack.lights, stack.views, stack.channels, stack.encoding)
+    y = fitted_values(like, space).reshape(stack.n_light, -1, 3).astype(np.float64)
+    errors = truncation_errors(table, args, resample, y, stack.lights, space)
+    ycc = args["yccplanes"]
+    for count in range(1, table.shape[0]):
+        split = nested_split(ycc, count) if args["colorspace"] == "ycc" else (0, 0, 0)
+        if split is not None and errors[count] <= SPLINE_SIDE_TOLERANCE:
+            return table[:count + 1], split
+    return table, ycc
+
+
+def _planes_needed(planes: int, colorspace: str, yplanes: int) -> int:
+    """Grid values one PCA must hold for ``planes`` (0: :data:`AUTO_PLANES`) in ``colorspace``, over 3."""
+    count = planes or AUTO_PLANES
+    return count if colorspace == "rgb" else 3 * max(ycc_split(count, yplanes))
+
+
+def auto_plane_cap(colorspace: str, yplanes: int, values: int) -> int:
+    """The most planes ``planes: 0`` may keep (at most :data:`AUTO_PLANES`) when one PCA sees ``values``
+    independent values per texel and colour component (the fewer of the grid's nodes and the lights)."""
+    if colorspace == "rgb":
+        return max(1, min(AUTO_PLANES, 3 * values))
+    for count in range(AUTO_PLANES, 0, -1):
+        try:
+            if max(ycc_split(count, yplanes)) <= values:
+                return count
+        except BtforgeInputError:  # yplanes leaves an odd number of chroma planes: not a count to keep
+            continue
+    return AUTO_PLANES  # nothing fits: the plane check names the problem
+
+
+def bilinear_resample(stack: SampleStack, resampling: str, resolution: int, smoothness: float, sigma: float,
+                      regularization: float) -> tuple[np.ndarray, float]:
+    """``(resample [D, L], smoothness as used)``: how each texel's samples become the grid's values."""
+    if resampling == "spline":
+        return spline_weights(stack.lights, octa_directions(resolution), smoothness), smoothness
+    if resampling == "smooth":
+        smoothness = smoothness or SMOOTH_RESAMPLING
+        return smooth_resample_matrix(stack.lights, resolution, smoothness), smoothness
+    return resample_matrix(stack.lights, resolution, sigma, regularization), smoothness
+
+
+def fit_bilinear(stack: SampleStack, planes: int = 0, resolution: int = 8, colorspace: str = "rgb", yplanes: int = 0,
                  sigma: float = 0.125, regularization: float = 0.1, coefficients: str = "projection",
                  resampling: str = "spline", smoothness: float = 0.0, engine: str = "opencl", space: str = "auto"):
     """bilinear.fit: PCA table on the light grid (spline resampling: space and smoothing by leave-one-out,
     :func:`spline_settings`, ``resolution`` 0 by :func:`spline_side`; the others: ``resolution`` 0 and ``space``
-    auto chosen together on held-out lights, :func:`held_out_choice`)."""
+    auto chosen together on held-out lights, :func:`held_out_choice`; ``planes`` 0 by :func:`fewest_planes`)."""
     _check_stack(stack, "bilinear.fit")
+    need = _planes_needed(planes, colorspace, yplanes)
     if resampling == "spline":
         space, smoothness = spline_settings(stack, candidate_spaces(stack, space), smoothness)
-        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
         resolution = resolution or spline_side(stack, space, smoothness,
                                                tuple(r for r in SPLINE_SIDES if need <= 3 * r * r) or SPLINE_SIDES[-1:])
     elif space == "auto" or not resolution:
-        need = planes if colorspace == "rgb" else 3 * max(ycc_split(planes, yplanes))
         sides = [resolution] if resolution else [r for r in RESOLUTIONS if need <= 3 * r * r] or [RESOLUTIONS[-1]]
         space, resolution = held_out_choice(stack, candidate_spaces(stack, space), sides, lambda part, sp, value:
                                             fit_bilinear(part, planes, value, colorspace, yplanes, sigma,
                                                          regularization, coefficients, resampling, smoothness,
                                                          engine, sp)[0])
-    ycc = _pca_planes(stack, "bilinear.fit", planes, colorspace, yplanes, resolution * resolution)
-    if resampling == "spline":
-        resample = spline_weights(stack.lights, octa_directions(resolution), smoothness)
-    elif resampling == "smooth":
-        smoothness = smoothness or SMOOTH_RESAMPLING
-        resample = smooth_resample_matrix(stack.lights, resolution, smoothness)
-    else:
-        resample = resample_matrix(stack.lights, resolution, sigma, regularization)
-    table = pca_table(pca_responses(stack, space), planes, colorspace, ycc, resample)
-    model, stats = fit_table(stack, {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc,
-                                     "resolution": resolution, "space": space}, engine,
-                             resample if coefficients == "projection" else None)
+    count = planes or auto_plane_cap(colorspace, yplanes, min(resolution * resolution, stack.n_light))
+    ycc = _pca_planes(stack, "bilinear.fit", count, colorspace, yplanes, resolution * resolution)
+    resample, smoothness = bilinear_resample(stack, resampling, resolution, smoothness, sigma, regularization)
+    table = pca_table(pca_responses(stack, space), count, colorspace, ycc, resample)
+    args = {"kind": "bilinear", "table": table, "colorspace": colorspace, "yccplanes": ycc, "resolution": resolution,
+            "space": space}
+    if not planes:
+        args["table"], args["yccplanes"] = fewest_planes(stack, table, args, resample)
+    model, stats = fit_table(stack, args, engine, resample if coefficients == "projection" else None)
     return model, {**stats, "resolution": resolution, "smoothness": smoothness, "resampling": resampling}
 
 

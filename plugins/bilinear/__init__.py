@@ -6,6 +6,10 @@ from btforge import Param, declare_stage, hookimpl
 from btforge.backend import single_threaded_blas
 from btforge.plugins.bases import (COEFFICIENTS, COLORSPACE, ONE_VIEW, PLANES, SIGMA, SPACE_PARAM, YPLANES,
                                    fit_bilinear, pca_precheck, report_fit)
+from btforge.plugins.bases.fit import AUTO_PLANES
+
+AUTO_PLANES_DOC = (f"; 0: the fewest (at most {AUTO_PLANES}) whose truncation of the resampled grid stays within half "
+                   "a display level (RMS) at the fitting lights, judged on a grid of texels")
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
@@ -13,14 +17,15 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 @declare_stage(
     "bilinear.fit",
     role="fit",
-    version="4",
+    version="5",
     sweep=[{"planes": 9}, {"planes": 18}, {"planes": 12, "colorspace": "ycc"}],
     inputs={"stack": "SampleStack"},
     outputs={"model": "LightTableModel"},
-    params=[PLANES, Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
-                          "(relight's -r); 0: for resampling spline the smallest side from 8 to 24 whose grid "
-                          "reproduces the spline between the lights to within half a display level, for the others "
-                          "the side (every one from 4 to 12) that predicts held-out lights best", low=0, high=24),
+    params=[Param("planes", "int", 0, PLANES.doc + AUTO_PLANES_DOC, low=0, high=PLANES.high),
+            Param("resolution", "int", 0, "side of the light grid over the octahedral map of the hemisphere "
+                  "(relight's -r); 0: for resampling spline the smallest side from 8 to 24 whose grid reproduces the "
+                  "spline between the lights to within half a display level, for the others the side (every one "
+                  "from 4 to 12) that predicts held-out lights best", low=0, high=24),
             COLORSPACE, YPLANES,
             Param("resampling", "choice", "spline", "how samples become grid values: spline: the values at the "
                   "nodes of a smoothing spline through the samples over the sphere of directions (weight "
@@ -56,7 +61,10 @@ def bilinear_fit(ctx, stack, *, planes, resolution, colorspace, yplanes, resampl
     spline, ``space: auto`` and ``smoothness: 0`` are chosen together by how well the spline predicts each
     fitting light from the others (exact leave-one-out) and ``resolution: 0`` is the smallest side whose
     bilinear grid reproduces the spline to within half a display level; for the other resamplings
-    ``resolution: 0`` and ``space: auto`` are chosen together on held-out lights.  ``resolution: 8,
+    ``resolution: 0`` and ``space: auto`` are chosen together on held-out lights.  ``planes: 0`` (the default)
+    keeps the fewest principal components whose truncation of the resampled grid stays within half a display
+    level (RMS) at the fitting lights, at most 27: a capture whose responses vary in few ways keeps few planes.
+    ``resolution: 8,
     resampling: relight, space: srgb`` is relight's own fit.
 
     Outputs
