@@ -123,16 +123,24 @@ def ridge_solve(design: np.ndarray, ridge: float, rcond: float = 0.0, free: tupl
     term, so that a constant texel is fitted exactly whatever the weight).  Singular directions below ``rcond *
     s_max`` get weight 0 (the directions the lights leave undetermined stay at zero, as in a truncated
     pseudo-inverse); the solve runs in the kept directions."""
+    return ridge_solves(design, (ridge,), rcond, free)[0]
+
+
+def ridge_solves(design: np.ndarray, ridges, rcond: float = 0.0, free: tuple[int, ...] = ()) -> list[np.ndarray]:
+    """:func:`ridge_solve` at each weight of ``ridges``, from one singular value decomposition of ``design``."""
     a = np.asarray(design, np.float64)
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     if not s.size or s[0] <= 0:
-        return np.zeros(a.shape[::-1])
+        return [np.zeros(a.shape[::-1]) for _ in ridges]
     kept = s >= rcond * s[0]
     u, s, v = u[:, kept], s[kept], vt[kept].T
     penalty = np.ones(a.shape[1])
     penalty[np.asarray(free, dtype=np.int64)] = 0.0
-    system = np.diag(s * s) + ridge * s[0] ** 2 * (v.T * penalty) @ v     # in the kept directions
-    return v @ np.linalg.solve(system, s[:, None] * u.T)
+    solves = []
+    for ridge in ridges:
+        system = np.diag(s * s) + ridge * s[0] ** 2 * (v.T * penalty) @ v     # in the kept directions
+        solves.append(v @ np.linalg.solve(system, s[:, None] * u.T))
+    return solves
 
 
 def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_WEIGHTS,
@@ -165,8 +173,7 @@ def leave_one_out_errors_of_gram(a: np.ndarray, gram: np.ndarray, n_column: int,
     to several subsets of the same samples.  Call it with BLAS on one thread (``single_threaded_blas``)."""
     a = np.asarray(a, np.float64)
     errors = np.empty(len(ridges))
-    for index, ridge in enumerate(ridges):
-        solve = ridge_solve(a, ridge, rcond, free)
+    for index, solve in enumerate(ridge_solves(a, ridges, rcond, free)):
         residual_map = np.eye(len(a)) - a @ solve           # I - H: samples to residuals
         slack = np.diag(residual_map)                       # 1 - H_ii
         if n_column == 0:
