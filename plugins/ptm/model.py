@@ -464,14 +464,16 @@ def ptm_held_out_errors(grid: np.ndarray, like: SampleStack, variant: str,
     """
     from btforge.backend import single_threaded_blas
     raw = np.asarray(grid[0])
-    target = scored(raw, like.encoding).reshape(len(raw), -1)
     squared = {}
     with single_threaded_blas():  # small products: BLAS threads only spin against busy cores
         for space in ("srgb", "linear"):
-            values = _grid_values(grid, like.encoding, space)
-            predicted = _held_out_predictions(values, like.lights, variant, rcond)
-            display = np.clip(predicted, 0.0, 1.0) if space == "srgb" else linear_to_srgb(predicted)
-            squared[space] = float(np.sum((display - target) ** 2))
+            predicted = _held_out_predictions(_grid_values(grid, like.encoding, space), like.lights, variant, rcond)
+            squared[space] = 0.0
+            for start in range(0, len(raw), 8):  # a few lights at a time: small temporaries
+                lights = slice(start, start + 8)
+                display = np.clip(predicted[lights], 0.0, 1.0) if space == "srgb" else linear_to_srgb(predicted[lights])
+                target = scored(raw[lights], like.encoding).reshape(len(display), -1)
+                squared[space] += float(np.sum((display - target) ** 2))
     return best_of(squared, raw.size)
 
 
