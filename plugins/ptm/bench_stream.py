@@ -9,11 +9,12 @@ import statistics
 import tempfile
 from pathlib import Path
 
-# .ptm files hold display values, so every graph fits them (auto might choose linear radiance)
+# .ptm files hold display values, so every graph fits them by default (`--space auto`: the fit's default, which
+# may choose linear radiance, and ptm.write then refuses the model)
 ORDINARY = ("nodes:\n  read: {{stage: stackio.read, params: {{path: {lp}}}}}\n"
-            "  fit: {{stage: ptm.fit, params: {{variant: {variant}, space: srgb}}, inputs: {{stack: read.stack}}}}\n"
+            "  fit: {{stage: ptm.fit, params: {{variant: {variant}, space: {space}}}, inputs: {{stack: read.stack}}}}\n"
             "  save: {{stage: ptm.write, params: {{path: out.ptm}}, inputs: {{model: fit.model}}}}\n")
-CAPTURE = ("nodes:\n  fit: {{stage: ptm.fit_capture, params: {{path: {lp}, variant: {variant}, space: srgb}}}}\n"
+CAPTURE = ("nodes:\n  fit: {{stage: ptm.fit_capture, params: {{path: {lp}, variant: {variant}, space: {space}}}}}\n"
            "  save: {{stage: ptm.write, params: {{path: out.ptm}}, inputs: {{model: fit.model}}}}\n")
 # label: (graph, extra arguments of `btforge run`); asking for the read's stack as a result keeps it whole
 RUNS = {
@@ -48,6 +49,9 @@ def bench_ptm_stream(args: list[str]) -> int:
     source.add_argument("--synthetic", type=int, metavar="SIZE", help="render a SIZE x SIZE JPEG capture first")
     parser.add_argument("--lights", type=int, default=49, help="lights of the synthetic capture (default 49)")
     parser.add_argument("--variant", default="rgb", choices=("rgb", "lrgb"))
+    parser.add_argument("--space", default="srgb", choices=("srgb", "auto"),
+                        help="ptm.fit's space (auto: chosen on held-out lights, as by default; a capture for which "
+                             "it picks linear radiance cannot be written as .ptm)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each; medians are reported")
     parser.add_argument("--scheduler", metavar="dask|tcp://HOST:PORT",
                         help="also run the ordinary graph with this --scheduler (its fit on the cluster's workers)")
@@ -65,11 +69,12 @@ def bench_ptm_stream(args: list[str]) -> int:
             lp = Path(options.stack).resolve()
         figures = {"stack": str(options.stack or f"synthetic {options.synthetic}x{options.synthetic} JPEG"),
                    "lights": options.lights if options.synthetic else None, "variant": options.variant,
+                   "space": options.space,
                    "repeat": options.repeat, "load": os.getloadavg()[0]}
         outputs = {}
         for index, (label, (text, extra)) in enumerate(runs.items()):
             graph = folder / f"graph{index}.yaml"
-            graph.write_text(text.format(lp=json.dumps(str(lp)), variant=options.variant))
+            graph.write_text(text.format(lp=json.dumps(str(lp)), variant=options.variant, space=options.space))
             out = folder / f"out{index}"
             figures[label] = _medians([_whole_process(graph, out, extra) for _ in range(max(1, options.repeat))])
             outputs[label] = (out / "out.ptm").read_bytes()
@@ -82,7 +87,7 @@ def bench_ptm_stream(args: list[str]) -> int:
 
 
 def _print(figures: dict, runs: dict, options) -> None:
-    print(f"PTM {options.variant} to .ptm, whole process (fresh `btforge run`, medians of {options.repeat}), "
+    print(f"PTM {options.variant} (space {options.space}) to .ptm, whole process (fresh `btforge run`, medians of {options.repeat}), "
           f"{figures['stack']}, load {figures['load']:.1f}")
     for label in runs:
         row = figures[label]
