@@ -9,8 +9,8 @@ import statistics
 import tempfile
 from pathlib import Path
 
-# .ptm files hold display values, so every graph fits them by default (`--space auto`: the fit's default, which
-# may choose linear radiance, and ptm.write then refuses the model)
+# `space` is the fit's default, auto, unless `--space srgb`: fed to ptm.write, auto fits display values as the
+# .ptm file holds them (the graph check narrows it), so both give the same graph
 ORDINARY = ("nodes:\n  read: {{stage: stackio.read, params: {{path: {lp}}}}}\n"
             "  fit: {{stage: ptm.fit, params: {{variant: {variant}, space: {space}}}, inputs: {{stack: read.stack}}}}\n"
             "  save: {{stage: ptm.write, params: {{path: out.ptm}}, inputs: {{model: fit.model}}}}\n")
@@ -31,14 +31,14 @@ def _whole_process(graph: Path, out: Path, extra: tuple[str, ...]) -> dict:
     report = out / "report.json"
     figures = fresh_run(graph, out, *extra, "--report", str(report))
     fit = next(node for node in json.loads(report.read_text())["nodes"] if node["node"] == "fit")
-    return {**figures, "fit_placement": fit.get("placement", {})}
+    return {**figures, "fit_placement": fit.get("placement", {}), "fit_space": fit.get("notes", {}).get("space")}
 
 
 def _medians(runs: list[dict]) -> dict:
     return {"seconds": round(statistics.median(r["seconds"] for r in runs), 3),
             "cpu_seconds": round(statistics.median(r["cpu_seconds"] for r in runs), 3),
             "peak_rss_mb": round(statistics.median(r["peak_rss_mb"] for r in runs), 1),
-            "fit_placement": runs[-1]["fit_placement"]}
+            "fit_placement": runs[-1]["fit_placement"], "fit_space": runs[-1]["fit_space"]}
 
 
 def bench_ptm_stream(args: list[str]) -> int:
@@ -49,9 +49,9 @@ def bench_ptm_stream(args: list[str]) -> int:
     source.add_argument("--synthetic", type=int, metavar="SIZE", help="render a SIZE x SIZE JPEG capture first")
     parser.add_argument("--lights", type=int, default=49, help="lights of the synthetic capture (default 49)")
     parser.add_argument("--variant", default="rgb", choices=("rgb", "lrgb"))
-    parser.add_argument("--space", default="srgb", choices=("srgb", "auto"),
-                        help="ptm.fit's space (auto: chosen on held-out lights, as by default; a capture for which "
-                             "it picks linear radiance cannot be written as .ptm)")
+    parser.add_argument("--space", default="auto", choices=("auto", "srgb"),
+                        help="ptm.fit's space (auto: ptm.fit's default, which the graph check narrows to srgb for "
+                             "ptm.write: a .ptm file holds display values)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each; medians are reported")
     parser.add_argument("--scheduler", metavar="dask|tcp://HOST:PORT",
                         help="also run the ordinary graph with this --scheduler (its fit on the cluster's workers)")
@@ -92,5 +92,5 @@ def _print(figures: dict, runs: dict, options) -> None:
     for label in runs:
         row = figures[label]
         print(f"  {label:22s} {row['seconds']:7.2f} s  cpu {row['cpu_seconds']:6.2f} s  peak "
-              f"{row['peak_rss_mb']:6.0f} MB   fit: {row['fit_placement']}")
+              f"{row['peak_rss_mb']:6.0f} MB   fit: space {row['fit_space']}, {row['fit_placement']}")
     print(f"  identical .ptm files: {figures['same_ptm_file']}")
