@@ -114,3 +114,52 @@ def test_facts_from_params_must_name_an_output_and_a_param():
     with pytest.raises(TypeError, match="facts_from_params"):
         declare_stage("toy.fit", outputs={"model": "PTMModel"}, facts_from_params={"coeffs": {"space": "space"}},
                       params=[Param("space", "choice", AUTO, "the space", choices=(AUTO, "srgb"))])(fit)
+
+
+# the mechanism itself, on toy stages the framework knows nothing of
+
+def toy_registry():
+    from btforge.registry import Registry
+    from fixtures import toy_facts_plugin, toy_plugin
+    return Registry(load_entry_points=False, extra_plugins=[toy_plugin, toy_facts_plugin])
+
+
+def toy_graph(unit=None, consumers=("toyfacts.in_metres",), through_keep=False):
+    nodes = {"measure": {"stage": "toyfacts.measure", "params": {"unit": unit} if unit else {}}}
+    source = "measure.numbers"
+    if through_keep:
+        nodes["keep"] = {"stage": "toyfacts.keep", "inputs": {"numbers": source}}
+        source = "keep.numbers"
+    for index, stage in enumerate(consumers):
+        nodes[f"use{index}"] = {"stage": stage, "inputs": {"numbers": source}}
+    return {"nodes": nodes}
+
+
+@pytest.mark.parametrize("through_keep", [False, True])
+def test_auto_is_narrowed_to_what_the_consumer_takes_and_the_run_notes_why(tmp_path, through_keep):
+    registry = toy_registry()
+    graph = toy_graph(through_keep=through_keep)
+    assert check_graph(load_graph(graph), registry).params["measure"]["unit"] == "m"
+    result = btforge.run(graph, registry=registry, out_dir=tmp_path, cache_dir=tmp_path / "cache")
+    np.testing.assert_array_equal(result["use0"]["numbers"].values, [1.0, 2.0])
+    notes = next(r.notes for r in result.report if r.node == "measure")
+    assert notes["unit"] == "m" and notes["unit (auto)"] == "m, as node 'use0' (toyfacts.in_metres) takes unit m only"
+    free = {"nodes": {"measure": graph["nodes"]["measure"]}}  # no consumer: auto decides for itself
+    assert check_graph(load_graph(free), registry).params["measure"]["unit"] == AUTO
+    assert btforge.run(free, registry=registry, out_dir=tmp_path, use_cache=False)["measure"]["numbers"].values[0] == 100
+
+
+def test_an_explicit_value_the_consumer_does_not_take_is_refused_naming_both_nodes():
+    with pytest.raises(btforge.BtforgeInputError) as refused:
+        check_graph(load_graph(toy_graph("cm", through_keep=True)), toy_registry())
+    text = refused.value.render()
+    assert "node 'use0', input 'numbers': toyfacts.in_metres expects unit: m, found cm in 'keep.numbers'" in text
+    assert "node 'measure', param 'unit'" in text and "measure with `unit: m`" in text
+
+
+def test_consumers_that_disagree_are_refused_with_the_narrowing_named():
+    with pytest.raises(btforge.BtforgeInputError) as refused:
+        check_graph(load_graph(toy_graph(consumers=("toyfacts.in_metres", "toyfacts.in_cm"))), toy_registry())
+    text = refused.value.render()
+    assert "toyfacts.in_cm expects unit: cm, found m in 'measure.numbers'" in text
+    assert "auto narrowed to m, as node 'use0' (toyfacts.in_metres)" in text
