@@ -13,7 +13,7 @@ from .buffers import Buffer, PerTexel, ReflectanceModel, SampleStack
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning
 from .hookspecs import hookimpl
 from .runner import RunResult, run
-from .stages import REQUIRED, Expect, Fact, Param, Stage, declare_stage
+from .stages import AUTO, REQUIRED, Expect, Fact, Param, Stage, declare_stage
 
 __version__ = "0.1.0"
 
@@ -27,5 +27,5 @@ def stage(name: str) -> Stage:
 __all__ = [
     "Buffer", "PerTexel", "ReflectanceModel", "SampleStack", "BtforgeError", "BtforgeInputError",
     "BtforgeWarning", "hookimpl", "run", "RunResult", "Param", "REQUIRED", "Stage", "declare_stage", "stage",
-    "Expect", "Fact",
+    "Expect", "Fact", "AUTO",
 ]

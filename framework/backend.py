@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 import threading
 import time
 from pathlib import Path
@@ -46,9 +47,28 @@ def single_threaded_blas():
     with 2 BLAS threads and 4.8 s with 1 (2-core machine).  Under load a threaded BLAS also waits for busy
     cores: a k-coherence analysis of a 192 x 192 exemplar took 29 s wall and 11 s CPU at load 6 with threads,
     6.5 s and 4.9 s without (a QR of 800 x 32: 120 ms against 0.7 ms).
+
+    The BLAS libraries are looked up once (a scan of every library the process has loaded costs 5-20 ms, more
+    than the products it is for) and again only after an extension module was imported, as a new BLAS (SciPy's)
+    comes with one.
     """
-    from threadpoolctl import threadpool_limits
-    return threadpool_limits(limits=1, user_api="blas")
+    from threadpoolctl import ThreadpoolController
+    extensions = _extension_modules()
+    with _BLAS_LOCK:
+        if _BLAS_CONTROLLER.get("extensions") != extensions:
+            _BLAS_CONTROLLER.update(extensions=extensions, controller=ThreadpoolController())
+        controller = _BLAS_CONTROLLER["controller"]
+    return controller.limit(limits=1, user_api="blas")
+
+
+_BLAS_CONTROLLER: dict = {}  # the libraries single_threaded_blas limits, and the extension modules loaded then
+_BLAS_LOCK = threading.Lock()
+
+
+def _extension_modules() -> int:
+    """How many imported modules are compiled extensions (a native library comes into the process with one)."""
+    return sum(1 for module in list(sys.modules.values())
+               if str(getattr(module, "__file__", None) or "").endswith((".so", ".pyd")))
 
 
 def _prepare_pocl_environment() -> None:

@@ -116,6 +116,9 @@ def cmd_validate(args) -> int:
     checked = check_graph(load_graph(args.graph, _parse_sets(args.set)), default_registry(),
                           Path(args.out) if args.out else None)
     print(f"{args.graph}: ok ({len(checked.stages)} nodes, {checked.dag.number_of_edges()} edges)")
+    for node, notes in checked.notes.items():  # 'auto' params the check narrowed for a consumer
+        for what, why in notes.items():
+            print(f"  node '{node}': {what}: {why}")
     return 0
 
 

@@ -62,22 +62,32 @@ def best_held_out(grid: np.ndarray, like: SampleStack, candidates, predict) -> t
     """
     display = like.encoding == "srgb8"
     errors = dict.fromkeys(candidates, 0.0)
-    lights = np.arange(like.n_light)
-    for fold in range(min(AUTO_HOLD_EVERY, like.n_light)):
-        held = lights % AUTO_HOLD_EVERY == fold
+    for held in held_out_folds(like.n_light):
         fit = SampleStack(np.ascontiguousarray(grid[:, ~held]), like.lights[~held], like.views, like.channels,
                           like.encoding)
-        target = _scored(np.ascontiguousarray(grid[:, held]), like.encoding)
+        target = scored(np.ascontiguousarray(grid[:, held]), like.encoding)
         for candidate in candidates:
             predicted = predict(fit, candidate, like.lights[held], like.views)
             predicted = linear_to_srgb(predicted) if display else predicted
             errors[candidate] += float(np.sum((predicted - target) ** 2, dtype=np.float64))
-    count = max(grid.size, 1)
-    errors = {candidate: error / count for candidate, error in errors.items()}
+    return best_of(errors, grid.size)
+
+
+def held_out_folds(n_light: int) -> list[np.ndarray]:
+    """The folds of :func:`best_held_out`: boolean masks of the lights each holds out (fold ``k``: the lights
+    whose index is ``k`` modulo ``AUTO_HOLD_EVERY``), so that every light is held out exactly once."""
+    lights = np.arange(n_light)
+    return [lights % AUTO_HOLD_EVERY == fold for fold in range(min(AUTO_HOLD_EVERY, n_light))]
+
+
+def best_of(squared_errors: dict, count: int) -> tuple[object, dict]:
+    """The candidate with the least summed squared error over ``count`` held-out samples, and every candidate's
+    mean squared error; ties go to the earlier candidate."""
+    errors = {candidate: error / max(count, 1) for candidate, error in squared_errors.items()}
     return min(errors, key=errors.get), errors
 
 
-def _scored(samples: np.ndarray, encoding: str) -> np.ndarray:
+def scored(samples: np.ndarray, encoding: str) -> np.ndarray:
     """Held-out samples as scored: an 8-bit capture's display values in [0, 1], a linear one's radiance."""
     if encoding == "srgb8":
         return samples.astype(np.float64) / 255.0
@@ -113,16 +123,24 @@ def ridge_solve(design: np.ndarray, ridge: float, rcond: float = 0.0, free: tupl
     term, so that a constant texel is fitted exactly whatever the weight).  Singular directions below ``rcond *
     s_max`` get weight 0 (the directions the lights leave undetermined stay at zero, as in a truncated
     pseudo-inverse); the solve runs in the kept directions."""
+    return ridge_solves(design, (ridge,), rcond, free)[0]
+
+
+def ridge_solves(design: np.ndarray, ridges, rcond: float = 0.0, free: tuple[int, ...] = ()) -> list[np.ndarray]:
+    """:func:`ridge_solve` at each weight of ``ridges``, from one singular value decomposition of ``design``."""
     a = np.asarray(design, np.float64)
     u, s, vt = np.linalg.svd(a, full_matrices=False)
     if not s.size or s[0] <= 0:
-        return np.zeros(a.shape[::-1])
+        return [np.zeros(a.shape[::-1]) for _ in ridges]
     kept = s >= rcond * s[0]
     u, s, v = u[:, kept], s[kept], vt[kept].T
     penalty = np.ones(a.shape[1])
     penalty[np.asarray(free, dtype=np.int64)] = 0.0
-    system = np.diag(s * s) + ridge * s[0] ** 2 * (v.T * penalty) @ v     # in the kept directions
-    return v @ np.linalg.solve(system, s[:, None] * u.T)
+    solves = []
+    for ridge in ridges:
+        system = np.diag(s * s) + ridge * s[0] ** 2 * (v.T * penalty) @ v     # in the kept directions
+        solves.append(v @ np.linalg.solve(system, s[:, None] * u.T))
+    return solves
 
 
 def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_WEIGHTS,
@@ -145,13 +163,20 @@ def leave_one_out_errors(design: np.ndarray, samples: np.ndarray, ridges=RIDGE_W
 
 def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: float, free) -> np.ndarray:
     y = np.asarray(samples, np.float64).reshape(len(a), -1)
-    gram = y @ y.T
+    return leave_one_out_errors_of_gram(a, y @ y.T, y.shape[1], ridges, rcond, free)
+
+
+def leave_one_out_errors_of_gram(a: np.ndarray, gram: np.ndarray, n_column: int, ridges=RIDGE_WEIGHTS,
+                                 rcond: float = 0.0, free: tuple[int, ...] = ()) -> np.ndarray:
+    """:func:`leave_one_out_errors` of samples ``Y [L, n_column]`` given only their Gram matrix ``G = Y Y^T``
+    ``[L, L]``: the Gram matrix of a subset of lights is the block of a larger one, so one product serves fits
+    to several subsets of the same samples.  Call it with BLAS on one thread (``single_threaded_blas``)."""
+    a = np.asarray(a, np.float64)
     errors = np.empty(len(ridges))
-    for index, ridge in enumerate(ridges):
-        solve = ridge_solve(a, ridge, rcond, free)
+    for index, solve in enumerate(ridge_solves(a, ridges, rcond, free)):
         residual_map = np.eye(len(a)) - a @ solve           # I - H: samples to residuals
         slack = np.diag(residual_map)                       # 1 - H_ii
-        if y.shape[1] == 0:
+        if n_column == 0:
             errors[index] = 0.0
             continue
         if np.any(slack < LEVERAGE_FLOOR):
@@ -159,7 +184,7 @@ def _leave_one_out_errors(a: np.ndarray, samples: np.ndarray, ridges, rcond: flo
             continue
         squares = np.einsum("ij,ij->i", residual_map @ gram, residual_map)  # each light's sum over columns
         # rounding can leave a residual of exactly fitted samples a hair below zero
-        errors[index] = float(np.sum(np.maximum(squares, 0.0) / (slack * slack))) / y.size
+        errors[index] = float(np.sum(np.maximum(squares, 0.0) / (slack * slack))) / (len(a) * n_column)
     return errors
 
 
@@ -169,7 +194,11 @@ def ridge_by_leave_one_out(design: np.ndarray, samples: np.ndarray, ridges=RIDGE
     every weight's error; ties go to the smaller weight.  A ridge pulls each texel's coefficients towards zero
     where the lights determine them poorly (grazing, clustered or few lights, noisy or saturated samples), at the
     cost of a small bias where they determine them well; the samples decide how much."""
-    errors = leave_one_out_errors(design, samples, ridges, rcond, free)
+    return best_ridge(leave_one_out_errors(design, samples, ridges, rcond, free), ridges)
+
+
+def best_ridge(errors: np.ndarray, ridges=RIDGE_WEIGHTS) -> tuple[float, dict]:
+    """:func:`ridge_by_leave_one_out`'s choice from the errors of ``ridges``."""
     finite = np.where(np.isfinite(errors), errors, np.inf)
     best = int(np.argmin(finite)) if np.isfinite(finite).any() else len(ridges) - 1
     return float(ridges[best]), {float(r): float(e) for r, e in zip(ridges, errors)}

@@ -18,7 +18,7 @@ import yaml
 
 from .errors import BtforgeInputError, collect_warnings
 from .registry import Registry, did_you_mean
-from .stages import Fact, RunPaths, Stage
+from .stages import AUTO, Fact, RunPaths, Stage
 
 NODE_KEYS = ("stage", "params", "inputs")
 
@@ -173,6 +173,7 @@ class CheckedGraph:
     dag: nx.DiGraph
     files: Mapping[str, tuple[Path, ...]] = dataclasses.field(default_factory=dict)  # what each node reads
     warnings: Mapping[str, list[str]] = dataclasses.field(default_factory=dict)  # raised while its files were read
+    notes: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict)  # 'auto' params narrowed, why
 
     def needed_for(self, targets: list[str] | None) -> list[str]:
         """Nodes to evaluate, in dependency order, to produce ``targets`` (default: every sink node)."""
@@ -239,6 +240,7 @@ class _GraphCheck:
         self.files: dict[str, tuple[Path, ...]] = {}
         self.warnings: dict[str, list[str]] = {}
         self.facts: dict[tuple[str, str], dict[str, Fact]] = {}  # (node, output port) -> what its precheck learnt
+        self.notes: dict[str, dict[str, str]] = {}  # node -> {'PARAM (auto)': what the check narrowed it to, why}
 
     def problem(self, where: str, text: str, hint: str | None = None) -> None:
         self.problems.append(f"{where}: {text}" + (f" ({hint})" if hint else ""))
@@ -368,9 +370,12 @@ class _GraphCheck:
             self.files[name] = tuple(read)
 
     def compare_facts(self) -> None:
-        """Facts flow along the edges (``keeps_facts``, ``"=port"`` outputs); a stage's ``expects`` is compared
-        with the fact of what is wired into the port, where one is known."""
+        """Facts flow along the edges (``keeps_facts``, ``"=port"`` outputs); a param left at ``auto`` that decides
+        a fact a consumer expects is narrowed to the expected value; a stage's ``expects`` is compared with the
+        fact of what is wired into the port, where one is known."""
+        self.facts_of_params()
         _pass_facts_on(self.spec, self.stages, self.dag, self.facts)
+        self.narrow_auto_params()
         for where, src, src_port, name, port in self.typed_edges:
             expect = self.stages[name].expects.get(port)
             fact = self.facts.get((src, src_port), {}).get(expect.name) if expect else None
@@ -380,13 +385,63 @@ class _GraphCheck:
                              f"{fact.value} in '{src}.{src_port}'{source}",
                              expect.hint.replace("NODE.PORT", f"{src}.{src_port}") or None)
 
+    def facts_of_params(self) -> None:
+        """The facts params decide (``facts_from_params``), where the param is not left to the stage (``auto``);
+        facts of the stage's precheck take precedence."""
+        for name, st in self.stages.items():
+            for port, facts in st.facts_from_params.items():
+                for fact, param in facts.items():
+                    value = self.params.get(name, {}).get(param, AUTO)
+                    if value != AUTO:
+                        where = self.spec.nodes[name].param_where(self.spec, param)
+                        self.facts.setdefault((name, port), {}).setdefault(fact, Fact(port, fact, value, where))
+
+    def narrow_auto_params(self) -> None:
+        """For each input that expects a fact not yet known, the ``auto`` param upstream that will decide it (through
+        nodes that keep facts) is narrowed to the expected value, when that is one of the param's choices: the node
+        then makes only the choice its consumer can take."""
+        for _where, src, src_port, name, port in self.typed_edges:
+            expect = self.stages[name].expects.get(port)
+            if expect is None or expect.name in self.facts.get((src, src_port), {}):
+                continue
+            origin = self._auto_origin(src, src_port, expect.name)
+            if origin is None:
+                continue
+            node, out_port, param = origin
+            if expect.value not in (self.stages[node].param(param).choices or ()):
+                continue
+            self.params[node] = {**self.params[node], param: expect.value}
+            why = f"{expect.value}, as node '{name}' ({self.stages[name].name}) takes {expect.name} {expect.value} only"
+            self.notes.setdefault(node, {})[f"{param} ({AUTO})"] = why
+            self.facts.setdefault((node, out_port), {})[expect.name] = Fact(
+                out_port, expect.name, expect.value, f"{self.spec.nodes[node].param_where(self.spec, param)}: {AUTO} "
+                f"narrowed to {why}")
+            _pass_facts_on(self.spec, self.stages, self.dag, self.facts)
+
+    def _auto_origin(self, node: str, port: str, fact: str) -> tuple[str, str, str] | None:
+        """(node, output port, param) of the ``auto`` param that will decide ``fact`` of ``node.port``, following the
+        outputs that keep an input's facts upstream; None when no such param decides it."""
+        seen: set[tuple[str, str]] = set()
+        while (node, port) not in seen and node in self.stages:
+            seen.add((node, port))
+            st = self.stages[node]
+            param = st.facts_from_params.get(port, {}).get(fact)
+            if param is not None:
+                return (node, port, param) if self.params.get(node, {}).get(param) == AUTO else None
+            kept_from = _kept_facts(st).get(port)
+            wired = self.spec.nodes[node].inputs.get(kept_from) if kept_from else None
+            if wired is None:
+                return None
+            node, port = wired
+        return None
+
     def result(self) -> CheckedGraph:
         if self.problems:
             if len(self.problems) == 1:
                 raise BtforgeInputError("", self.problems[0])
             raise BtforgeInputError(self.spec.source, f"{len(self.problems)} problems:\n  - " + "\n  - ".join(self.problems))
         return CheckedGraph(spec=self.spec, stages=self.stages, params=self.params, dag=self.dag, files=self.files,
-                            warnings=self.warnings)
+                            warnings=self.warnings, notes=self.notes)
 
 
 def _pass_facts_on(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.DiGraph,
@@ -399,13 +454,18 @@ def _pass_facts_on(spec: GraphSpec, stages: Mapping[str, Stage], dag: nx.DiGraph
         st = stages.get(name)
         if st is None:
             continue
-        kept = {port: declared[1:] for port, declared in st.outputs.items() if declared.startswith("=")}
-        kept.update(st.keeps_facts)
-        for out_port, in_port in kept.items():
+        for out_port, in_port in _kept_facts(st).items():
             src = spec.nodes[name].inputs.get(in_port)
             inherited = facts.get(tuple(src), {}) if src else {}
             if inherited:
                 facts[(name, out_port)] = {**inherited, **facts.get((name, out_port), {})}
+
+
+def _kept_facts(st: Stage) -> dict[str, str]:
+    """{output: input} of the outputs that keep the facts of what is wired into an input."""
+    kept = {port: declared[1:] for port, declared in st.outputs.items() if declared.startswith("=")}
+    kept.update(st.keeps_facts)
+    return kept
 
 
 def _file_params(st: Stage, values: Mapping[str, Any]):

@@ -135,6 +135,8 @@ def run_checked(graph: CheckedGraph, *, only: list[str] | None = None, registry:
         report = reports[name]
         if not quiet:
             print(f"[{index}/{len(order)}] {name} ({st.name}) ...", file=sys.stderr, flush=True)
+            for what, why in graph.notes.get(name, {}).items():  # an 'auto' param the graph check narrowed
+                print(f"      {what}: {why}", file=sys.stderr, flush=True)
         cacheable = use_cache and not st.side_effects
         key = _node_key(graph, name, values, cache, registry) if cacheable else ""
         with collect_warnings() as cache_warnings:
@@ -183,6 +185,8 @@ def _result(graph: CheckedGraph, order: list[str], targets: set[str], values: Ma
     for report in reports.values():
         if report.status == "deferred":  # no node needed its data: every consumer came from the cache
             report.status = "not needed"
+        if report.status in ("ran", "cached") and graph.notes.get(report.node):  # choices the graph check made
+            report.notes = {**graph.notes[report.node], **report.notes}
     result.report = [reports[n] for n in graph.spec.nodes]
     result.output_paths = list(dict.fromkeys(paths.requested))
     return result

@@ -160,6 +160,9 @@ class Expect:
     hint: str = ""
 
 
+AUTO = "auto"  # a choice param's value meaning "the stage decides when it runs" (see ``facts_from_params``)
+
+
 @dataclasses.dataclass(frozen=True)
 class Stage:
     """A registered stage: its function plus everything needed to check a graph without running it."""
@@ -181,6 +184,7 @@ class Stage:
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False
     expects: Mapping[str, Expect] = dataclasses.field(default_factory=dict)
     keeps_facts: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    facts_from_params: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict)
     settle: Callable[[Mapping[str, Any], Mapping[str, Any]], Mapping[str, Any]] | None = None
     streams: frozenset[str] = frozenset()
     device: bool = False
@@ -249,6 +253,7 @@ def declare_stage(
     per_texel: bool | Callable[[Mapping[str, Any]], bool] = False,
     expects: Mapping[str, Expect] | None = None,
     keeps_facts: Mapping[str, str] | None = None,
+    facts_from_params: Mapping[str, Mapping[str, str]] | None = None,
     settle: Callable | None = None,
     streams: Sequence[str] = (),
     device: bool = False,
@@ -276,6 +281,11 @@ def declare_stage(
     ``keeps_facts={output: input}`` says an output has the facts of the buffer wired into ``input`` (a stage
     that changes samples but not the views or lights, such as an exposure correction); outputs typed
     ``"=port"`` keep those of ``port`` without it.  Facts of the stage's own precheck take precedence.
+    ``facts_from_params={output: {fact: param}}`` says a fact of an output is the value of a param (a fit's
+    ``space`` is the ``space`` of its model).  A param left at ``"auto"`` (:data:`AUTO`) is decided when the
+    stage runs; where a consumer ``expects`` one of the param's choices of that fact, the graph check narrows
+    ``auto`` to it (the node's params then say so, and the run report notes why), so the stage never makes a
+    choice its consumer cannot take.  A value the param was given explicitly is compared like any other fact.
     An output typed ``"=port"`` has the type of whatever is wired into input ``port`` (a stage that crops or
     remaps any per-texel buffer returns the type it was given).
     ``dynamic_inputs(params, paths) -> {port: type}`` adds input ports that depend on parameters (a renderer
@@ -303,12 +313,18 @@ def declare_stage(
             raise TypeError(f"stage {name!r}: a stage with dynamic_inputs must accept **kwargs")
         if declared != accepted:
             raise TypeError(f"stage {name!r}: function takes {sorted(accepted)}, declared {sorted(declared)}")
+        for port, facts in (facts_from_params or {}).items():
+            unknown = [param for param in facts.values() if param not in {p.name for p in params}]
+            if port not in (outputs or {}) or unknown:
+                raise TypeError(f"stage {name!r}: facts_from_params names output {port!r} and params {sorted(facts.values())}; "
+                                f"declared outputs {sorted(outputs or {})}, params {sorted(p.name for p in params)}")
         return Stage(
             name=name, fn=fn, inputs=dict(inputs or {}), outputs=dict(outputs or {}), params=tuple(params),
             version=version, optional_inputs=frozenset(optional_inputs), side_effects=side_effects,
             precheck=precheck, plugin=fn.__module__, dynamic_inputs=dynamic_inputs, role=role,
             sweep=tuple(dict(entry) for entry in sweep), cache_outputs=cache_outputs, per_texel=per_texel,
-            expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}), settle=settle,
+            expects=dict(expects or {}), keeps_facts=dict(keeps_facts or {}),
+            facts_from_params={port: dict(facts) for port, facts in (facts_from_params or {}).items()}, settle=settle,
             streams=frozenset(streams), device=device, deprecated_names=tuple(deprecated_names),
         )
 

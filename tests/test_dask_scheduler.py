@@ -130,3 +130,26 @@ def test_a_streamed_capture_is_fitted_on_the_cluster(tmp_path, loopback_schedule
     assert nodes["ptm"].placement == {"where": loopback_scheduler, "tasks": 3, "workers": 2}
     # the same bytes per texel and the same float32 operations: a few roundings of coefficients of order 1
     np.testing.assert_allclose(remote["ptm"]["model"].coeffs, local["ptm"]["model"].coeffs, rtol=0, atol=1e-5)
+
+
+def test_a_fit_left_at_auto_for_a_ptm_file_fits_srgb_on_the_cluster(tmp_path, loopback_scheduler, monkeypatch):
+    """The graph check narrows ``space: auto`` before anything runs: the bands sent to the workers fit display
+    values, as the .ptm file holds, on a rendered capture where ``auto`` alone picks linear."""
+    import btforge.plugins.stackio.images
+    import btforge.scheduler
+    from btforge.plugins.ptm.bench import make_synthetic_capture
+    monkeypatch.setattr(btforge.plugins.stackio.images, "STREAM_MIN_BYTES", 0)  # stream even this tiny capture
+    monkeypatch.setattr(btforge.scheduler, "BAND_BYTES", 12 * 38 * 32 * 3 * 4)  # 12 rows a band: 3 tasks
+    (tmp_path / "cap").mkdir()
+    lp = make_synthetic_capture(tmp_path / "cap", 32, 38)
+    graph = {"nodes": {
+        "read": {"stage": "stackio.read", "params": {"path": str(lp)}},
+        "ptm": {"stage": "ptm.fit", "inputs": {"stack": "read.stack"}},
+        "write": {"stage": "ptm.write", "params": {"path": "m.ptm"}, "inputs": {"model": "ptm.model"}}}}
+    remote = btforge.run(graph, out_dir=tmp_path, use_cache=False, scheduler=loopback_scheduler, only=["ptm", "write"])
+    alone = btforge.run({"nodes": {n: graph["nodes"][n] for n in ("read", "ptm")}}, out_dir=tmp_path, use_cache=False)
+    assert alone["ptm"]["model"].space == "linear"  # what auto picks when no writer constrains it
+    nodes = {r.node: r for r in remote.report}
+    assert nodes["ptm"].placement == {"where": loopback_scheduler, "tasks": 3, "workers": 2}
+    assert remote["ptm"]["model"].space == nodes["ptm"].notes["space"] == "srgb"
+    assert "ptm.write" in nodes["ptm"].notes["space (auto)"] and (tmp_path / "m.ptm").stat().st_size > 0

@@ -167,3 +167,6 @@ def test_stream_bench_measures_every_way_and_compares_the_files(tmp_path, capsys
     # a capture this small is held in memory even where it could stream (STREAM_MIN_BYTES)
     assert figures["streamed (default)"]["fit_placement"] == {"where": "local"}
     assert figures["stack read whole"]["fit_placement"] == {"where": "local"}
+    # at the fit's default space: fed to ptm.write, auto fits the display values a .ptm file holds
+    assert figures["space"] == "auto" and all(figures[label]["fit_space"] == "srgb" for label in
+                                               ("streamed (default)", "stack read whole", "fit while reading"))

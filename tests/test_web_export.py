@@ -68,6 +68,14 @@ def test_linear_ptm_and_sh_round_trip_45db(tmp_path):
     assert info["type"] == "sh" and info["nplanes"] == 27 and info["btforge"] == {"transfer": "linear"}
 
 
+def test_sh_of_display_values_round_trips_marked_as_display_values(tmp_path):
+    sh = btforge.stage("sh.fit")(stack=capture(), light_order=3, space="srgb")["model"]
+    before, after, again = round_trip(sh, tmp_path)
+    assert again.type_name == "SHModel" and again.space == "srgb" and display_psnr(before, after) >= 45
+    info = json.loads((tmp_path / "web" / "info.json").read_text())
+    assert info["type"] == "sh" and "btforge" not in info  # no linear transfer: viewers show the values as they are
+
+
 def test_sh_basis_matches_openlime_and_high_orders_are_refused(tmp_path):
     from btforge.plugins.sh.model import real_sh
     rng = np.random.default_rng(1)

@@ -16,6 +16,9 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 SELECT_ONE_VIEW = ("a PTM depends on the light only: insert `pick: {stage: stackio.select, params: {views: [0]}, "
                    "inputs: {stack: NODE.PORT}}` and wire this input to pick.stack (or pick a view by its angles, "
                    "views: ['tv0_pv0']), or fit a view-dependent representation such as sh.fit or lafortune.fit")
+PTM_FILE_SPACE = ("a .ptm file holds display values: fit with `space: srgb`, or leave `space: auto` (the default), "
+                  "which then fits srgb for this writer; save a linear model with models.write or web.export")
+MODEL_SPACE = {"model": {"space": "space"}}  # the model's colour space is the fit's `space`: ptm.write checks it
 POOR_CONDITION = 100.0  # above this the fit is still unique, but noticeably noise-sensitive
 
 FIT_PARAMS = (
@@ -47,6 +50,7 @@ FIT_PARAMS = (
     settle=lambda inputs, params: _settle_space(inputs["stack"], params),
     device=True,
     expects={"stack": Expect("views", 1, SELECT_ONE_VIEW)},
+    facts_from_params=MODEL_SPACE,
 )
 def ptm_fit(ctx, stack, *, variant, space, basis, rcond, ridge):
     """Fit a polynomial texture map to a single-view stack by least squares, on OpenCL.
@@ -119,6 +123,7 @@ def _capture_precheck(params, paths):
             *FIT_PARAMS],
     precheck=_capture_precheck,
     device=True,
+    facts_from_params=MODEL_SPACE,
 )
 def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond, ridge):
     """Fit a PTM to a capture while its images decode, never holding the capture or a file of it.
@@ -141,6 +146,7 @@ def ptm_fit_capture(ctx, *, path, transfer, variant, space, basis, rcond, ridge)
 
 
 @declare_stage("ptm.basis", inputs={"model": "PTMModel"}, outputs={"model": "PTMModel"},
+               keeps_facts={"model": "model"},  # the same functions in other coordinates: the same space
                params=[Param("basis", "choice", "orthonormal", "the basis to express the coefficients in",
                              choices=("raw", "orthonormal"))])
 def ptm_basis(ctx, model, *, basis):
@@ -201,19 +207,20 @@ def ptm_read(ctx, *, path):
 
 @declare_stage("ptm.write", inputs={"model": "PTMModel"},
                params=[Param("path", "outpath", REQUIRED, "the .ptm file to write (relative paths land under --out)")],
-               side_effects=True)
+               side_effects=True, expects={"model": Expect("space", "srgb", PTM_FILE_SPACE)})
 def ptm_write(ctx, model, *, path):
     """Write a PTM as an HP ``.ptm`` file (raw PTM_FORMAT_LRGB or PTM_FORMAT_RGB, 8 bits per coefficient).
 
     Each coefficient gets the scale and bias that make its whole range representable, and values are rounded,
     so a write/read round trip changes no relit pixel by more than one 8-bit step.  Only ``srgb``-space models
-    can be written: the file format has no colour space and viewers show the values as display values.
+    can be written: the file format has no colour space and viewers show the values as display values.  A
+    ``ptm.fit`` left at ``space: auto`` that feeds this stage fits ``srgb`` (the graph check narrows its choice and
+    the run report says so); one given ``space: linear`` is refused by the check, before anything runs.
     """
     from .ptmfile import write_ptm
     if model.space != "srgb":
-        raise BtforgeInputError("ptm.write 'model'", "expected a PTM of sRGB display values (space: srgb), found a linear one",
-                                "fit with `space: srgb` to write .ptm files (`auto` fits linear radiance where that predicts held-out "
-                                "lights better), or save any model with models.write")
+        raise BtforgeInputError("ptm.write 'model'", "expected a PTM of sRGB display values (space: srgb), found a "
+                                "linear one", PTM_FILE_SPACE)
     if len(model.channel_names) != 3:
         raise BtforgeInputError("ptm.write 'model'", f"expected 3 colour channels, found {len(model.channel_names)}")
     target = ctx.paths.output(path)

@@ -18,8 +18,9 @@ from btforge.backend import get_backend
 from btforge.buffers import (SRGB8_TO_LINEAR, ReflectanceModel, SampleStack, check_array, frozen,
                              linear_to_srgb, scattered_lookup, srgb_to_linear, unit_directions)
 from btforge.errors import BtforgeInputError
-from btforge.fitspace import (AUTO_MIN_LIGHTS, auto_grid_step, held_out_grid, resolve_space,
-                              ridge_by_leave_one_out, ridge_solve, space_from_grid)
+from btforge.fitspace import (AUTO_MIN_LIGHTS, auto_grid_step, best_of, best_ridge, held_out_folds, held_out_grid,
+                              leave_one_out_errors_of_gram, resolve_space, ridge_by_leave_one_out, ridge_solve,
+                              scored)
 from btforge.numerics import texel_chunks
 
 from .legendre import to_orthonormal, to_raw
@@ -439,12 +440,67 @@ def _fit_texels(samples, variant, solver, lut, byte_scale, convert, engine, coef
             projection.finish()
 
 
-def ptm_space(stack: SampleStack, variant: str, space: str, *, engine: str = "opencl",
-              rcond: float = DEFAULT_RCOND) -> str:
+def ptm_space(stack: SampleStack, variant: str, space: str, *, rcond: float = DEFAULT_RCOND) -> str:
     """The space ``fit_ptm`` fits in: ``space``, or for ``auto`` the one whose fit predicts held-out lights of a
-    grid of texels better (``btforge.fitspace``)."""
-    return resolve_space(stack, space, lambda fit, sp, lights, views: fit_ptm(
-        fit, variant, sp, engine=engine, rcond=rcond)[0].evaluate(lights))
+    grid of texels better (``btforge.fitspace.held_out_space``, scored by :func:`ptm_held_out_errors`)."""
+    if space != "auto":
+        return space
+    if stack.encoding != "srgb8" or stack.n_light < AUTO_MIN_LIGHTS:
+        return resolve_space(stack, "auto")  # linear capture, or too few lights to hold any out
+    return ptm_held_out_errors(held_out_grid(stack), stack, variant, rcond)[0]
+
+
+def ptm_held_out_errors(grid: np.ndarray, like: SampleStack, variant: str,
+                        rcond: float = DEFAULT_RCOND) -> tuple[str, dict]:
+    """``auto``'s choice of space on 8-bit samples ``grid [1, L, h, w, C]`` of a texel grid (``like``'s lights and
+    channels), and each space's mean squared error of held-out display values: the scores of
+    :func:`btforge.fitspace.best_held_out` for ``fit_ptm`` of each fold in each space (with its own ``ridge:
+    auto``) evaluated at the lights it holds out, computed in float64 on the host without building models.
+
+    An rgb fit is linear in its samples, so every fold's predictions of the lights it holds out are rows of one
+    ``L x L`` matrix applied to the samples of all lights (a fold's row is zero at the lights it holds out), and
+    each fold's ridge is scored on the fold's block of one Gram matrix of all lights
+    (:func:`btforge.fitspace.leave_one_out_errors_of_gram`): a few products per space, not a fit per fold.
+    """
+    from btforge.backend import single_threaded_blas
+    raw = np.asarray(grid[0])
+    squared = {}
+    with single_threaded_blas():  # small products: BLAS threads only spin against busy cores
+        for space in ("srgb", "linear"):
+            predicted = _held_out_predictions(_grid_values(grid, like.encoding, space), like.lights, variant, rcond)
+            squared[space] = 0.0
+            for start in range(0, len(raw), 8):  # a few lights at a time: small temporaries
+                lights = slice(start, start + 8)
+                display = np.clip(predicted[lights], 0.0, 1.0) if space == "srgb" else linear_to_srgb(predicted[lights])
+                target = scored(raw[lights], like.encoding).reshape(len(display), -1)
+                squared[space] += float(np.sum((display - target) ** 2))
+    return best_of(squared, raw.size)
+
+
+def _held_out_predictions(values: np.ndarray, lights: np.ndarray, variant: str, rcond: float) -> np.ndarray:
+    """``[L, h * w * C]``: each light's samples as predicted by ``fit_ptm`` of its fold (the other lights, with
+    ``ridge: auto``) from ``values [L, h, w, C]`` (float64, in the space fitted), before clipping."""
+    n_light = len(values)
+    flat = values.reshape(n_light, -1)
+    step = auto_grid_step(*values.shape[1:3])  # the grid a fold's ridge is judged on (held_out_grid of the fold)
+    ridge_values = flat if step == 1 else values[:, ::step, ::step].reshape(n_light, -1)
+    gram = ridge_values @ ridge_values.T
+    weights = np.zeros((n_light, n_light))    # rgb: prediction = weights @ samples
+    predicted = None if variant == "rgb" else np.empty_like(flat)
+    for held in held_out_folds(n_light):
+        keep, out = np.flatnonzero(~held), np.flatnonzero(held)
+        errors = leave_one_out_errors_of_gram(ptm_terms(lights[keep]), gram[np.ix_(keep, keep)],
+                                              ridge_values.shape[1], rcond=rcond)
+        solver = ptm_solver(lights[keep], rcond, best_ridge(errors)[0])
+        held_terms = ptm_terms(lights[out])
+        if variant == "rgb":
+            weights[np.ix_(out, keep)] = held_terms @ solver.solve.astype(np.float64)
+            continue
+        samples = values[keep].reshape(len(keep), -1, values.shape[-1])
+        coeffs, albedo = fit_ptm_numpy(samples, None, solver, variant)    # lrgb: colour x luminance polynomial
+        poly = held_terms @ coeffs[:, 0, :].T.astype(np.float64)           # [L', N]
+        predicted[out] = (poly[:, :, None] * albedo.astype(np.float64)[None]).reshape(len(out), -1)
+    return weights @ flat if variant == "rgb" else predicted
 
 
 def ptm_ridge(grid: np.ndarray, like: SampleStack, space: str, rcond: float = DEFAULT_RCOND) -> float:
@@ -465,10 +521,10 @@ def _grid_values(grid: np.ndarray, encoding: str, space: str) -> np.ndarray:
     return raw.astype(np.float64) if space == "linear" else linear_to_srgb(raw).astype(np.float64)
 
 
-def ptm_settings(stack: SampleStack, variant: str, space: str, ridge, *, engine: str = "opencl",
+def ptm_settings(stack: SampleStack, variant: str, space: str, ridge, *,
                  rcond: float = DEFAULT_RCOND) -> tuple[str, float]:
     """The space and ridge weight ``fit_ptm`` uses: the given ones, or ``auto``'s choices on a grid of texels."""
-    space = ptm_space(stack, variant, space, engine=engine, rcond=rcond)
+    space = ptm_space(stack, variant, space, rcond=rcond)
     if ridge == "auto":
         ridge = ptm_ridge(held_out_grid(stack), stack, space, rcond)
     return space, float(ridge)
@@ -501,7 +557,7 @@ def fit_ptm(stack: SampleStack, variant: str = "rgb", space: str = "auto", *, en
     if stack.n_channel > MAX_CHANNELS:
         raise BtforgeInputError("ptm.fit 'stack'", f"expected at most {MAX_CHANNELS} channels, found {stack.n_channel}")
     check_ridge(ridge)
-    space, ridge = ptm_settings(stack, variant, space, ridge, engine=engine, rcond=rcond)
+    space, ridge = ptm_settings(stack, variant, space, ridge, rcond=rcond)
     solver = ptm_solver(stack.lights, rcond, ridge)
     h, w, c = stack.height, stack.width, stack.n_channel
     k = 1 if variant == "lrgb" else c
@@ -546,8 +602,7 @@ def _capture_settings(reader, probe: SampleStack, variant: str, space: str, ridg
         if reader.encoding != "srgb8" or reader.n_light < AUTO_MIN_LIGHTS:
             space = resolve_space(probe, "auto")  # linear capture, or too few lights to hold any out
         else:
-            space = space_from_grid(grid, probe, lambda fit, sp, lights, views: fit_ptm(
-                fit, variant, sp, rcond=rcond)[0].evaluate(lights))
+            space = ptm_held_out_errors(grid, probe, variant, rcond)[0]
     if ridge == "auto":
         ridge = ptm_ridge(grid, probe, space, rcond)
     return space, float(ridge)

@@ -32,7 +32,8 @@ def export_web(ctx, model, *, dir, format, quality):
     three to a PNG or JPEG, as OpenLIME and ``btforge view`` read them; ``rbf`` and ``bilinear`` add their light
     table (``basis``, 8 bits) and its lights or grid resolution.  Every plane's scale and bias cover its
     whole range, so with PNG the export is exact up to 8-bit rounding (relight's exporter clips at a quantile).
-    Models of linear radiance (SH fits, linear PTMs) are marked ``"btforge": {"transfer": "linear"}``.
+    Models of linear radiance (fitted in ``space: linear``, or ``auto`` choosing it) are marked ``"btforge":
+    {"transfer": "linear"}``; models of display values are written as they are, as relight writes them.
 
     A ``neural.fit`` model is written as OpenLIME's neural layer reads it (``"type": "neural"``): its latent
     codes as 8-bit images ``plane_1 ..`` (three codes each, ``min`` / ``max`` per image covering the whole range)

@@ -19,7 +19,7 @@ OpenLIME's order:
   the model class writes and checks it itself (``write_web_layout``, ``web_info_problems``).
 
 Each plane's scale and bias cover its whole range (relight's exporter clips at a quantile), so the export is
-exact up to the 8-bit rounding.  A model of linear radiance (every SH fit, a PTM fitted in ``space: linear``)
+exact up to the 8-bit rounding.  A model of linear radiance (a fit in ``space: linear``, or ``auto`` choosing it)
 gets ``"btforge": {"transfer": "linear"}``: our reader and viewer encode it to sRGB for display; viewers that
 ignore the key show it as if it were display values (darker).
 """
@@ -84,7 +84,7 @@ def _model_planes(model) -> tuple[dict, np.ndarray]:
         ours[..., :model.k_l] = model.dequantized()[:, :, :, 0, :] / math.sqrt(4 * math.pi)   # f(l) = sum c Y(l)
         web = ours @ np.linalg.inv(_sh_to_web_matrix()).T
         planes = web.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)
-        info, linear = {"type": "sh", "colorspace": "rgb"}, True
+        info, linear = {"type": "sh", "colorspace": "rgb"}, model.space == "linear"
     elif kind == "HSHModel":
         planes = model.coeffs.transpose(3, 2, 0, 1).reshape(-1, model.height, model.width)
         info, linear = {"type": "hsh", "colorspace": "rgb"}, model.space == "linear"
@@ -299,11 +299,8 @@ def read_web(path):
     from btforge.plugins.sh.model import SHModel
     _expect_planes(info, 27)
     ours = coeffs @ _sh_to_web_matrix().T * math.sqrt(4 * math.pi)
-    if not linear:
-        raise BtforgeInputError(str(path), "expected an sh layout of linear radiance (exported by btforge)",
-                                "sh layouts of display values are not read yet; relight's hsh or ptm are")
     return SHModel(ours[:, :, :, None, :].astype(np.float32), np.ones((1, 9), np.float32),
-                   np.zeros((1, 9), np.float32), light_order=3, view_order=1)
+                   np.zeros((1, 9), np.float32), light_order=3, view_order=1, space=space)
 
 
 def _expect_planes(info, n):
