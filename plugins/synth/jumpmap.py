@@ -21,6 +21,8 @@ from btforge.errors import BtforgeInputError
 from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
+from .recut import recut_straight_seams
+from .refine import window_index
 from .search import ContentCache, content_key, similar_texels
 from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
@@ -33,6 +35,13 @@ COVERAGE = 1.0            #: default in-degree balance exponent of the jump choi
 BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
 BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
 OVERUSE = 4               #: balance: a cell holding more than this x its fair share (+ one cell) is over-used
+#: Default refinement windows: 12 x 12, so the coarsest of the two coarse scales matches 48-texel pieces (a
+#: quarter of a 192-texel exemplar) whole; with 8 x 8 windows long fibres and large areas came out in short pieces.
+REFINE_WINDOW = 12
+#: Further re-cut passes over the straight seams the refinement leaves (its own re-cut stops after two; 12 x 12
+#: windows leave more window sides in straight runs of 12, and each pass finds the runs a cut has just shortened
+#: or joined).
+RECUT_PASSES = 6
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
@@ -301,7 +310,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="11",  # 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="12",  # 12: 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -318,11 +327,11 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
-        *refine_params(),
+        *refine_params(window=REFINE_WINDOW),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance, refine, occurrence, scales):
+            coverage, balance, refine, occurrence, scales, window):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -387,7 +396,18 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ctx.note("seconds_analysis", round(analysed - start, 3))
     ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
-    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed)}
+    coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
+                     window=window)
+    return {"coords": recut_again(features, coords, window) if refine > 0 else coords}
+
+
+def recut_again(features: np.ndarray, coords: CoordMap, window: int) -> CoordMap:
+    """``coords`` (a refined walk: no blends) after :data:`RECUT_PASSES` more re-cut passes of its straight seams
+    (:func:`.recut.recut_straight_seams`; stops early once a pass changes nothing)."""
+    ew = coords.source_size[1]
+    src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
+    src = recut_straight_seams(window_index(features, window).texels, src, coords.wrap, passes=RECUT_PASSES)
+    return CoordMap(np.stack(np.divmod(src, ew), axis=-1).astype(np.int32), coords.source_size, wrap=coords.wrap)
 
 
 STAGES = [jumpmap]
