@@ -63,8 +63,9 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
               "the coarse scales", low=4, high=32)]
     side = WINDOW if window is None else window
+    shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
-                  f"overlapping {side} x {side} windows matched to the exemplar (with the occurrence term), whole windows kept "
+                  f"overlapping {shown} windows matched to the exemplar (with the occurrence term), whole windows kept "
                   "where they match best and cut where the appearance agrees, then corrections; seams follow the "
                   "content and every exemplar region gets used (0: off)",
                   low=0, high=20),
@@ -73,7 +74,7 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
                   "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows "
-                  f"({4 * side} texels) across there: structures larger than a window (colour areas, the sides of copied blocks) are "
+                  f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger than a window (colour areas, the sides of copied blocks) are "
                   "matched and cut as a whole (0: the full resolution only)", low=0, high=6), *extra]
 
 
