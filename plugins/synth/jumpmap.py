@@ -42,9 +42,10 @@ REFINE_WINDOW = 12
 #: and keeps fibres longer, at about the time two rounds of 8 x 8 windows took.
 REFINE_ROUNDS = 3
 #: Re-cut passes over the straight seams the refinement leaves, after its own two: 12 x 12 windows leave more window
-#: sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or joined (on the
-#: procedural bumps one to three more passes take the straight share from 2.0 % to 1.7-1.9 %; six change nothing more).
-RECUT_PASSES = 3
+#: sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or joined (one more pass
+#: takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to 1.3 % on the icon crop;
+#: three or six change little more and cost about 0.2 s each there).
+RECUT_PASSES = 1
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
