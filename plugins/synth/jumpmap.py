@@ -38,8 +38,8 @@ OVERUSE = 4               #: balance: a cell holding more than this x its fair s
 #: Default refinement windows: 12 x 12, so the coarsest of the two coarse scales matches 48-texel pieces (a
 #: quarter of a 192-texel exemplar) whole; with 8 x 8 windows long fibres and large areas came out in short pieces.
 REFINE_WINDOW = 12
-#: Default refinement rounds: three (the other synthesizers two): with 12 x 12 windows a third round lowers seams
-#: and keeps fibres longer, at about the time two rounds of 8 x 8 windows took.
+#: Default refinement rounds: three (the other synthesizers two): with 12 x 12 windows three rounds give lower seams
+#: and longer fibres than two, at about the CPU time two rounds of 8 x 8 windows take.
 REFINE_ROUNDS = 3
 #: Re-cut passes over the straight seams the refinement leaves, after its own two: 12 x 12 windows leave more window
 #: sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or joined (one more pass
