@@ -74,8 +74,9 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
                   "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows "
-                  f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger than a window (colour areas, the sides of copied blocks) are "
-                  "matched and cut as a whole (0: the full resolution only)", low=0, high=6), *extra]
+                  f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger "
+                  "than a window (colour areas, the sides of copied blocks) are matched and cut as a whole (0: the "
+                  "full resolution only)", low=0, high=6), *extra]
 
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
