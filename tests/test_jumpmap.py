@@ -221,3 +221,45 @@ def test_tiny_exemplar_is_rejected():
     tiny = SampleStack(np.ones((1, 4, 2, 5, 3), np.float32), LIGHTS, [[0, 0, 1]])
     with pytest.raises(BtforgeInputError, match="exemplar"):
         jumpmap(exemplar=tiny, size=[8, 8], neighborhood=3)
+
+
+def test_refinement_window_is_the_stage_param(material):
+    """The jump map refines with its own window size; 0 refinement rounds leave the walk as it is."""
+    default = jumpmap(exemplar=material, size=[48, 48], seed=2)["coords"]
+    eight = jumpmap(exemplar=material, size=[48, 48], seed=2, window=8)["coords"]
+    assert (default.coords != eight.coords).any()
+    walked = jumpmap(exemplar=material, size=[48, 48], seed=2, refine=0)["coords"]
+    coords, _ = walk(jm_module.cached_jump_map(texel_features(material), jumps=3,
+                                               jump_probability=jm_module.JUMP_PROBABILITY, neighborhood=5,
+                                               textons=textons.DEFAULT_TEXTONS, search="fast",
+                                               coverage=jm_module.COVERAGE), (48, 48), seed=2)
+    np.testing.assert_array_equal(walked.coords, coords)
+    for bad in (3, 33):
+        with pytest.raises(BtforgeInputError, match="window"):
+            jumpmap(exemplar=material, size=[16, 16], window=bad)
+
+
+def _total_seam_cost(texels, coords):
+    """Sum of the re-cut's seam costs over all horizontal and vertical neighbour pairs of a map."""
+    from btforge.plugins.synth.features import edge_padded
+    from btforge.plugins.synth.recut import seam_cost
+    eh, ew, d = texels.shape
+    src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
+    flat, padded = texels.reshape(-1, d), edge_padded(texels)
+    return float(seam_cost(flat, padded, (eh, ew), src[:, :-1], src[:, 1:], 0, 1).sum()
+                 + seam_cost(flat, padded, (eh, ew), src[:-1], src[1:], 1, 0).sum())
+
+
+def test_further_recut_keeps_a_valid_map_and_never_raises_the_seam_cost(material):
+    """The extra re-cut passes keep every source inside the exemplar and only take cuts that lower the seam cost;
+    a map without seams stays as it is."""
+    from btforge.plugins.synth.refine import window_index
+    features = texel_features(material)
+    texels = window_index(features, 12).texels
+    refined = jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1, window=8)["coords"]
+    again = jm_module.recut_again(features, refined, 12)
+    assert again.coords.shape == refined.coords.shape and again.source_size == refined.source_size
+    assert again.coords.min() >= 0 and again.coords.max() < 32 and again.wrap == refined.wrap
+    assert _total_seam_cost(texels, again) <= _total_seam_cost(texels, refined) + 1e-6
+    copy = CoordMap(np.stack(np.mgrid[0:20, 0:24], axis=-1).astype(np.int32), (32, 32))
+    np.testing.assert_array_equal(jm_module.recut_again(features, copy, 12).coords, copy.coords)

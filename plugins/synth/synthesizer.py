@@ -49,13 +49,23 @@ OCCURRENCE = 1.0
 #: areas and copied blocks larger than a fine window are matched and cut as a whole (square patchworks of colour
 #: areas are gone; seams drop on every exemplar measured).
 SCALES = 2
+#: Default side in texels of the refinement's windows (a synthesizer may declare its own ``window`` param).
+WINDOW = 8
 
 
-def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES) -> list[Param]:
+def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
+                  window: int | None = None) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
-    coarser ``scales`` refined first."""
+    coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
+    :data:`WINDOW` without the param)."""
+    extra = [] if window is None else [
+        Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
+              "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
+              "the coarse scales", low=4, high=32)]
+    side = WINDOW if window is None else window
+    shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
-                  "overlapping 8 x 8 windows matched to the exemplar (with the occurrence term), whole windows kept "
+                  f"overlapping {shown} windows matched to the exemplar (with the occurrence term), whole windows kept "
                   "where they match best and cut where the appearance agrees, then corrections; seams follow the "
                   "content and every exemplar region gets used (0: off)",
                   low=0, high=20),
@@ -63,18 +73,22 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
                   "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
-                  "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows (32 "
-                  "texels) across there: structures larger than a window (colour areas, the sides of copied blocks) are "
-                  "matched and cut as a whole (0: the full resolution only)", low=0, high=6)]
+                  "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows "
+                  f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger "
+                  "than a window (colour areas, the sides of copied blocks) are matched and cut as a whole (0: the "
+                  "full resolution only)", low=0, high=6), *extra]
 
 
-def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int):
-    """``coords`` through the shared refinement (:func:`.refine.refine_map`), with its time noted."""
+def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
+            window: int = WINDOW):
+    """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows), with
+    its time noted."""
     import time
 
     from .refine import refine_map
     start = time.perf_counter()
-    out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales)
+    out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
+                     patch=window)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 
