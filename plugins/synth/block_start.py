@@ -17,7 +17,7 @@ import numpy as np
 from .features import edge_padded
 
 #: Origins compared per piece by default (drawn from the open strata, several per stratum).
-CANDIDATES = 384
+CANDIDATES = 64
 
 
 @dataclasses.dataclass(frozen=True)
