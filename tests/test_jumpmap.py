@@ -239,27 +239,19 @@ def test_refinement_window_is_the_stage_param(material):
             jumpmap(exemplar=material, size=[16, 16], window=bad)
 
 
-def _total_seam_cost(texels, coords):
-    """Sum of the re-cut's seam costs over all horizontal and vertical neighbour pairs of a map."""
-    from btforge.plugins.synth.features import edge_padded
-    from btforge.plugins.synth.recut import seam_cost
-    eh, ew, d = texels.shape
-    src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
-    flat, padded = texels.reshape(-1, d), edge_padded(texels)
-    return float(seam_cost(flat, padded, (eh, ew), src[:, :-1], src[:, 1:], 0, 1).sum()
-                 + seam_cost(flat, padded, (eh, ew), src[:-1], src[1:], 1, 0).sum())
-
-
-def test_further_recut_keeps_a_valid_map_and_never_raises_the_seam_cost(material):
-    """The extra re-cut passes keep every source inside the exemplar and only take cuts that lower the seam cost;
-    a map without seams stays as it is."""
-    from btforge.plugins.synth.refine import window_index
+def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
+    """The stage asks the shared refinement for :data:`RECUT_PASSES` re-cut passes, and a third pass of the
+    refinement's own re-cut is the same as the shared two followed by one more on their result."""
+    from btforge.plugins.synth import recut, refine
     features = texel_features(material)
-    texels = window_index(features, 12).texels
-    refined = jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1, window=8)["coords"]
-    again = jm_module.recut_again(features, refined, 12)
-    assert again.coords.shape == refined.coords.shape and again.source_size == refined.source_size
-    assert again.coords.min() >= 0 and again.coords.max() < 32 and again.wrap == refined.wrap
-    assert _total_seam_cost(texels, again) <= _total_seam_cost(texels, refined) + 1e-6
-    copy = CoordMap(np.stack(np.mgrid[0:20, 0:24], axis=-1).astype(np.int32), (32, 32))
-    np.testing.assert_array_equal(jm_module.recut_again(features, copy, 12).coords, copy.coords)
+    base = jumpmap(exemplar=material, size=[64, 64], seed=3, refine=0)["coords"]
+    once = refine.refine_map(features, base, iterations=1, occurrence=1.0, seed=3, patch=8, recut_passes=2)
+    src = once.coords[..., 0].astype(np.int64) * 32 + once.coords[..., 1]
+    then = recut.recut_straight_seams(refine.window_index(features, 8).texels, src, once.wrap, passes=1)
+    three = refine.refine_map(features, base, iterations=1, occurrence=1.0, seed=3, patch=8, recut_passes=3)
+    np.testing.assert_array_equal(three.coords[..., 0].astype(np.int64) * 32 + three.coords[..., 1], then)
+    asked = []
+    real = recut.recut_straight_seams
+    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[-1]) or real(*a))
+    jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1)
+    assert asked == [jm_module.RECUT_PASSES] and jm_module.RECUT_PASSES > recut.PASSES

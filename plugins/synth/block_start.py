@@ -56,6 +56,7 @@ def matched_blocks(rng: np.random.Generator, features: np.ndarray, size: tuple[i
     strata = Strata.of((eh, ew), b)
     used = np.zeros(strata.count, np.int64)
     padded = edge_padded(features)
+    squares = np.einsum("nd,nd->n", padded, padded)
     src = np.full((ho, wo), -1, np.int64)
     for y0 in range(0, ho, b):
         for x0 in range(0, wo, b):
@@ -66,24 +67,23 @@ def matched_blocks(rng: np.random.Generator, features: np.ndarray, size: tuple[i
             hh, ww = min(b, ho - y0), min(b, wo - x0)
             best = 0
             if candidates > 1:
-                best = int(np.argmin(edge_costs(features, padded, src, (y0, x0, hh, ww), oy, ox, wrap)))
+                best = int(np.argmin(edge_costs(ew, padded, squares, src, (y0, x0, hh, ww), oy, ox, wrap)))
             used[drawn[best]] += 1
             rows, cols = np.mgrid[0:hh, 0:ww]
             src[y0:y0 + hh, x0:x0 + ww] = (oy[best] + rows) * ew + ox[best] + cols
     return src.ravel().astype(np.int32)
 
 
-def edge_costs(features: np.ndarray, padded: np.ndarray, src: np.ndarray, region: tuple[int, int, int, int],
-               oy: np.ndarray, ox: np.ndarray, wrap: bool) -> np.ndarray:
+def edge_costs(ew: int, padded: np.ndarray, squares: np.ndarray, src: np.ndarray,
+               region: tuple[int, int, int, int], oy: np.ndarray, ox: np.ndarray, wrap: bool) -> np.ndarray:
     """Seam cost, per candidate origin ``(oy, ox)``, of copying the block there into ``region`` (y0, x0, h, w)
     of ``src`` beside the texels already laid (``src >= 0``) on its four sides; ``padded`` is
-    :func:`~.features.edge_padded` of ``features``.
+    :func:`~.features.edge_padded` of an exemplar ``ew`` texels wide, ``squares`` its rows' squared norms.
 
     The cost of a seam edge between a laid texel (source a) and a block texel (source c), ``(dy, dx)`` from it,
     is how far each differs from the exemplar texel the other's source has in its place:
     ``|F(a + (dy, dx)) - F(c)|^2 + |F(a) - F(c - (dy, dx))|^2`` (zero where c continues a).
     """
-    ew = features.shape[1]
     ho, wo = src.shape
     y0, x0, hh, ww = region
     cost = np.zeros(len(oy), np.float64)
@@ -96,7 +96,6 @@ def edge_costs(features: np.ndarray, padded: np.ndarray, src: np.ndarray, region
     )
     # Texels are read from the padded exemplar by flat index: a source's neighbour is at most one texel outside.
     stride = ew + 2
-    squares = np.einsum("nd,nd->n", padded, padded)
     origin = (oy + 1) * stride + ox + 1
     for (out_rows, out_cols), (in_rows, in_cols), (dy, dx) in sides:
         inside = (out_rows >= 0) & (out_rows < ho) & (out_cols >= 0) & (out_cols < wo)

@@ -21,8 +21,6 @@ from btforge.errors import BtforgeInputError
 from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
-from .recut import recut_straight_seams
-from .refine import window_index
 from .search import ContentCache, content_key, similar_texels
 from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
@@ -41,11 +39,11 @@ REFINE_WINDOW = 12
 #: Default refinement rounds: three (the other synthesizers two): with 12 x 12 windows three rounds give lower seams
 #: and longer fibres than two, at about the CPU time two rounds of 8 x 8 windows take.
 REFINE_ROUNDS = 3
-#: Re-cut passes over the straight seams the refinement leaves, after its own two: 12 x 12 windows leave more window
-#: sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or joined (one more pass
-#: takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to 1.3 % on the icon crop;
-#: three or six change little more and cost about 0.2 s each there).
-RECUT_PASSES = 1
+#: Passes of the refinement's re-cut of straight seams, one more than the other synthesizers' two: 12 x 12 windows
+#: leave more window sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or
+#: joined (the third pass takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to
+#: 1.3 % on the icon crop; more change little and cost about 0.2 s each there).
+RECUT_PASSES = 3
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
@@ -372,7 +370,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     larger windows span 48 texels at the coarsest scale, so long fibres and large areas are kept whole instead of
     cut into 32-texel pieces (on the procedural fibres the sliced Wasserstein distance is 1.36 x the shuffled-block
     baseline instead of 1.97 x with two rounds of 8 x 8 windows).  Their sides leave more straight seams of 12
-    texels, so the re-cut of straight seams runs :data:`RECUT_PASSES` pass more.  ``refine: 0`` gives Zelinka &
+    texels, so the re-cut of straight seams runs :data:`RECUT_PASSES` passes instead of two.  ``refine: 0`` gives Zelinka &
     Garland's walk alone.
 
     Outputs
@@ -405,18 +403,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ctx.note("seconds_analysis", round(analysed - start, 3))
     ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
-    coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                     window=window)
-    return {"coords": recut_again(features, coords, window) if refine > 0 else coords}
-
-
-def recut_again(features: np.ndarray, coords: CoordMap, window: int) -> CoordMap:
-    """``coords`` (a refined walk: no blends) after :data:`RECUT_PASSES` more re-cut passes of its straight seams
-    (:func:`.recut.recut_straight_seams`; stops early once a pass changes nothing)."""
-    ew = coords.source_size[1]
-    src = coords.coords[..., 0].astype(np.int64) * ew + coords.coords[..., 1]
-    src = recut_straight_seams(window_index(features, window).texels, src, coords.wrap, passes=RECUT_PASSES)
-    return CoordMap(np.stack(np.divmod(src, ew), axis=-1).astype(np.int32), coords.source_size, wrap=coords.wrap)
+    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
+                              window=window, recut_passes=RECUT_PASSES)}
 
 
 STAGES = [jumpmap]

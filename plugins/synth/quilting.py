@@ -153,7 +153,7 @@ def quilt_features(feats: np.ndarray, size, block: int = 32, overlap: int = 6, *
                 hints = tuple(searcher.candidate(placed[(a, b)][0] + y - lay_y.starts[a],
                                                  placed[(a, b)][1] + x - lay_x.starts[b])
                               for a, b in ((i, j - 1), (i - 1, j), (i - 1, j - 1)) if (a, b) in placed)
-                usage = quilt.block_usage()
+                usage = quilt.block_usage() if spread or budget > 0 else None
                 pick = searcher.pick(searcher.shape(key, projections[key]), quilt.canvas[region], rng, hints,
                                      usage if spread else None, quilt.within_budget(usage, budget))
             placed[(i, j)] = divmod(pick, searcher.cols)
