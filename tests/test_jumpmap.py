@@ -252,6 +252,6 @@ def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
     np.testing.assert_array_equal(three.coords[..., 0].astype(np.int64) * 32 + three.coords[..., 1], then)
     asked = []
     real = recut.recut_straight_seams
-    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[-1]) or real(*a))
+    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
     jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1)
-    assert asked == [jm_module.RECUT_PASSES] and jm_module.RECUT_PASSES > recut.PASSES
+    assert asked == [(jm_module.RECUT_PASSES, False)] and jm_module.RECUT_PASSES > recut.PASSES

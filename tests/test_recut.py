@@ -129,3 +129,62 @@ def _submodular(texels, labels, proposal, free, wrap) -> bool:
         if np.any(cost[0] + cost[1] > cost[2] + cost[3] + 1e-6 * np.abs(cost).max()):
             return False
     return True
+
+
+def two_colour_exemplar(size: int = 64, seed: int = 0) -> np.ndarray:
+    """A ``size x size`` exemplar, one flat colour left of the middle column and another right of it, with a
+    faint grain (1 % of the colours' difference)."""
+    rng = np.random.default_rng(seed)
+    texels = np.where(np.arange(size)[None, :, None] < size // 2, [0.2, 0.5, 0.1], [0.6, 0.3, 0.4])
+    texels = texels + 0.004 * rng.standard_normal((size, size, 3))
+    return np.ascontiguousarray(np.broadcast_to(texels, (size, size, 3)), dtype=np.float32)
+
+
+def test_a_straight_seam_between_flat_colours_is_bridged_by_the_exemplars_own_transition():
+    """Left block inside the first colour, right block inside the second, both more than a band from the
+    exemplar's own transition: every cut between their continuations is as costly as the straight one, so only a
+    bridging piece (the exemplar around its middle column) removes the seam."""
+    texels = two_colour_exemplar()
+    src = two_blocks(64, 40, 40, (4, 0), (8, 44))
+    plain = recut.recut_straight_seams(texels, src, wrap=False)
+    bridged = recut.recut_straight_seams(texels, src, wrap=False, bridges=True)
+    straight = [seam_edges(CoordMap(np.stack(np.divmod(m, 64), -1).astype(np.int32), (64, 64))).straight_count
+                for m in (src, plain)]
+    assert straight[1] >= 0.9 * straight[0] > 0        # the continuations alone cannot move it
+    energy = [seam_energy(texels, m, False) for m in (src, plain, bridged)]
+    assert energy[1] >= 0.9 * energy[0]
+    assert energy[2] < 0.01 * energy[0]                # what seams are left run through one colour's grain
+    assert bridged.min() >= 0 and bridged.max() < 64 * 64
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(4, 20), st.integers(4, 20), st.integers(0, 10_000), st.sampled_from([1e-6, 1.0, 1e4]))
+def test_region_distances_equal_the_direct_sums(rh, rw, seed, scale):
+    """The FFT correlation gives every placement's masked sum of squared differences; single-precision
+    transforms keep the error within 1e-4 of the sums' scale (``scale^2`` x the values summed: float32's 6e-8
+    relative rounding grown by the transforms' log2(size) stages and the cancellation of three terms)."""
+    from btforge.plugins.synth.bridging import ExemplarSpectrum, diamond
+    rng = np.random.default_rng(seed)
+    texels = (rng.standard_normal((24, 28, 3)) * scale).astype(np.float32)
+    region = (rng.standard_normal((rh, rw, 3)) * scale).astype(np.float32)
+    mask = rng.random((rh, rw)) < 0.7 if seed % 2 else diamond(rh // 2, rw // 2, 0)[0][:rh, :rw]
+    got = ExemplarSpectrum(texels).distances(region, mask)
+    exact, patch = texels.astype(np.float64), region.astype(np.float64)
+    want = np.array([[(((exact[y:y + rh, x:x + rw] - patch) ** 2).sum(-1) * mask).sum()
+                      for x in range(28 - rw + 1)] for y in range(24 - rh + 1)])
+    assert got.shape == want.shape and np.all(np.isfinite(got))
+    assert np.abs(got - want).max() <= 1e-4 * scale ** 2 * rh * rw * 3
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 10_000), st.sampled_from([1e-6, 1.0, 1e4]), st.booleans())
+def test_bridging_never_raises_the_seam_cost(seed, scale, wrap):
+    """Random block maps of a random or constant exemplar, at tiny and large scales: the re-cut with bridging
+    pieces stays inside the exemplar and never raises the seam energy."""
+    rng = np.random.default_rng(seed)
+    texels = (rng.random((40, 40, 3)) * scale if seed % 3 else np.full((40, 40, 3), scale)).astype(np.float32)
+    src = two_blocks(40, 32, 32, tuple(rng.integers(0, 8, 2)), tuple(rng.integers(0, 8, 2) + (0, 16)))
+    out = recut.recut_straight_seams(texels, src, wrap=wrap, bridges=True)
+    assert out.min() >= 0 and out.max() < 40 * 40
+    before, after = seam_energy(texels, src, wrap), seam_energy(texels, out, wrap)
+    assert np.isfinite(after) and after <= before * (1 + 1e-6) + 1e-12

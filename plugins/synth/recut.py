@@ -11,14 +11,16 @@ the seam (the exemplar texels that lie, in the exemplar, where the band texel li
 moves follow (the first side's continuations, then the second's).  Each is a binary labelling, keep or take, of
 least seam cost (zero between texels whose sources continue each other, else the squared appearance difference of
 each texel and the other's exemplar neighbour), solved exactly by a minimum s-t cut (scipy's Dinic maximum flow).
-The cut runs where the two sides agree: the mortar between stones, the soft edge of a colour area.  A move is kept
-only when it lowers the seam cost of the edges it touches.  Pinned texels keep their sources, and a band stops at
+The cut runs where the two sides agree: the mortar between stones, the soft edge of a colour area.  With
+``bridges``, the runs left then get a third kind of proposal: other pieces of the exemplar that join both sides
+(:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.  Pinned texels keep their sources, and a band stops at
 them (its continuations do not reach across a pinned ring into another tile of a mosaic).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from .bridging import ExemplarSpectrum, bridging_proposals
 from .features import beside, edge_padded
 from .visibility import STRAIGHT_RUN, in_long_runs, seam_masks
 
@@ -33,20 +35,25 @@ CAPACITY_STEPS = 1e6
 
 
 def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned: np.ndarray | None = None,
-                         passes: int = PASSES) -> np.ndarray:
+                         passes: int = PASSES, bridges: bool = False) -> np.ndarray:
     """``src [H, W]`` (flat exemplar indices into ``texels [eh, ew, d]``) with its straight seams re-cut (module
-    docstring); ``pinned [H, W]`` (optional) texels keep their sources."""
+    docstring; ``bridges``: also offered bridging patches); ``pinned [H, W]`` (optional) texels keep their
+    sources."""
     eh, ew = texels.shape[:2]
     h, w = src.shape
     if min(h, w) < 2:
         return src
     pinned = np.zeros((h, w), bool) if pinned is None else pinned
     padded = edge_padded(texels)
+    spectrum = ExemplarSpectrum(texels) if bridges else None
     for _ in range(passes):
         before = src
         for run_mask, axis in straight_runs(src, ew, wrap, pinned):
             for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
                 src = expansion_move(texels, src, proposal, wrap, pinned, padded)
+        for proposal in bridging_proposals(spectrum, src, wrap, straight_runs(src, ew, wrap, pinned), pinned) \
+                if bridges else ():
+            src = expansion_move(texels, src, proposal, wrap, pinned, padded)
         if np.array_equal(before, src):
             break
     return src

@@ -142,7 +142,7 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
-               recut_passes: int = RECUT_PASSES) -> CoordMap:
+               recut_passes: int = RECUT_PASSES, bridges: bool = False) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -151,7 +151,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     still serve as context for their neighbours' windows, seams and corrections.  ``scales`` coarser scales (each
     at half the resolution of the next) are refined first, while their exemplar and output stay
     :data:`COARSE_FIT` windows across (:func:`_coarse_first`).  With ``recut`` the straight seams left are then
-    re-cut by minimum cuts (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes)."""
+    re-cut by minimum cuts (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with bridging
+    patches where ``bridges``)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -165,7 +166,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     rng = np.random.default_rng([seed, 7])
     src = _refine_sources(features, src, coords.wrap, iterations, occurrence, patch, rng, pinned, scales)
     if recut:
-        src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes)
+        src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
+                                   bridges)
     return _with_kept_blends(coords, src)
 
 
