@@ -66,9 +66,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("colors", "ints", (2, 2), "edge colours [horizontal, vertical]", length=2, low=1, high=8),
         Param("variants", "int", 1, "tiles (interiors) per colour combination", low=1, high=16),
         Param("seed", "int", 0, "random seed"),
-        Param("usage", "float", 4.0, "how strongly placements avoid exemplar texels earlier patches used, so the "
-              "tiles spread over the whole exemplar (0: off; per known texel, in squared median neighbour "
-              "distances per earlier use)", low=0.0, high=100.0),
+        Param("usage", "float", 1.0, "how strongly placements avoid exemplar texels earlier patches used, so the "
+              "tiles spread over the whole exemplar (0: off; per known texel and earlier use, in the filling's match "
+              "level: the median best placement error per known texel so far, so the weight means the same on smooth "
+              "and on grainy exemplars)", low=0.0, high=100.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
         Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
@@ -81,7 +82,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
               low=1, high=256),
     ],
-    version="4",  # 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="5",  # 5: the usage term weighed in the filling's match level; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax, refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
