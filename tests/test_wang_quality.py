@@ -131,8 +131,8 @@ def _filler_with_usage(feats, weight):
 
 
 def test_the_usage_term_is_weighed_in_the_fillings_own_match_level():
-    """The usage cost of a placement: weight x the median best match error per known texel of the searches so
-    far x known texels x the mean earlier use under it, zero over texels not used before."""
+    """The usage cost of a placement: weight x the median 4th-best match error per known texel of the searches so
+    far (the placements a draw chooses among) x known texels x the mean earlier use under it, zero over texels not used before."""
     rng = np.random.default_rng(3)
     feats = rng.random((24, 24, 3)).astype(np.float32)
     filler = _filler_with_usage(feats, 2.0)
@@ -141,18 +141,20 @@ def test_the_usage_term_is_weighed_in_the_fillings_own_match_level():
     filler.usage[4:12, 4:12] = 3.0
     second = errors + 1.0
     cost = filler._usage_cost(second, 20, (8, 8), 1)
-    level = np.median([errors.min() / 10, second.min() / 20])
+    level = np.median([np.sort(errors.ravel())[3] / 10, np.sort(second.ravel())[3] / 20])
     np.testing.assert_allclose(cost, 2.0 * level * 20 * usage_means(filler.usage, (8, 8)), rtol=1e-6)
     assert cost[0, 0] > 0 and cost[-1, -1] == 0.0                  # over the used texels only
 
 
 def test_a_grainy_and_a_smooth_exemplar_spread_alike():
-    """The same usage weight spreads a strip's fillings over a grainy (white noise) and a smooth (blurred
-    noise) exemplar about alike: the term is weighed in each exemplar's own match level.  Filled twice, the second
-    strip must reuse few of the first one's exemplar texels in both."""
+    """The same usage weight spreads a strip's fillings over a grainy (white noise) and a smooth (blurred noise)
+    exemplar alike: the term is weighed in each exemplar's own match level.  Filled twice from the same start,
+    the second strip must reuse at most half as many of the first one's exemplar texels as without the term, in
+    both.  (With the best placement's error as the level, exact continuations of the known texels made it zero
+    and the term vanished here.)"""
     from scipy.ndimage import gaussian_filter
     rng = np.random.default_rng(5)
-    noise = rng.random((40, 40, 3)).astype(np.float32)
+    noise = rng.random((96, 96, 3)).astype(np.float32)
     smooth = gaussian_filter(noise, (3, 3, 0)).astype(np.float32)
     smooth = (smooth - smooth.mean()) / smooth.std() * noise.std()
     for feats in (noise, smooth):
@@ -161,11 +163,11 @@ def test_a_grainy_and_a_smooth_exemplar_spread_alike():
             filler = _filler_with_usage(feats, weight)
             laid = []
             for _ in range(2):
-                coords = -np.ones((8, 40, 2), np.int32)
-                coords[:, :8] = np.stack(np.mgrid[10:18, 10:18], -1)   # the same known start each time
+                coords = -np.ones((8, 48, 2), np.int32)
+                coords[:, :8] = np.stack(np.mgrid[40:48, 40:48], -1)   # the same known start each time
                 region = coords[..., 0] < 0
                 filler.fill(coords, region, (8, 8))
                 filler.record(np.where(region[..., None], coords, -1))
                 laid.append({(int(y), int(x)) for y, x in coords[region]})
             reuse[weight] = len(laid[0] & laid[1]) / len(laid[1])
-        assert reuse[2.0] < 0.5 * reuse[0.0], reuse
+        assert reuse[2.0] <= 0.5 * reuse[0.0], reuse

@@ -72,7 +72,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "and on grainy exemplars)", low=0.0, high=100.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
-        Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
+        Param("refine", "int", 8, "rounds of texture optimisation over the finished tiles' interiors (the shared "
               "refinement of synth: 8 x 8 windows matched to the exemplar, kept whole where they match best and cut "
               "where the appearance agrees), their border rings held so the tiles stay valid (0: off)",
               low=0, high=20),
@@ -82,7 +82,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
               low=1, high=256),
     ],
-    version="5",  # 5: the usage term weighed in the filling's match level; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="5",  # 5: the usage term weighed in the filling's match level, 8 refinement rounds; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax, refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.

@@ -30,7 +30,7 @@ elsewhere, the mean distance between each side and the other side's own continua
 pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
 the patch budget runs out.  A placement's error also counts how often earlier patches already laid the exemplar
 texels under it (``usage_weight``, :func:`usage_means`), in units of the filling's own match level (the median
-best match error per known texel, after Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the
+error per known texel of the placements drawn among, after Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the
 whole exemplar by the same measure on smooth and on grainy exemplars; each
 finished strip and interior is then relaxed texel by texel (:mod:`relax`).
 """
@@ -192,13 +192,15 @@ class Filler:
     def _usage_cost(self, errors: np.ndarray, known: int, window, stride: int):
         """The usage term of every placement in ``errors`` (their match errors over ``known`` texels): weight x
         match level x ``known`` x the mean earlier use of the exemplar texels under the placement.  The match level
-        is the median, over every search so far, of the best placement's error per known texel: the exemplar's own
-        scale of patch distances.  A fixed unit such as the distance between neighbouring texels would weigh the
+        is the median, over every search so far, of the ``PICK_BEST``-th best placement's error per known texel
+        (the best alone is zero wherever the known texels continue one exemplar patch): the exemplar's own scale of
+        patch distances.  A fixed unit such as the distance between neighbouring texels would weigh the
         term against matching differently per exemplar: weakly where texels vary smoothly but whole patches differ
         (a painting), strongly on fine grain whose patches all match about as badly (plaster)."""
         if known == 0:
             return 0.0
-        self.match_levels.append(float(errors.min()) / known)
+        drawn = min(PICK_BEST, errors.size)   # the placements a draw chooses among (the best alone is often an
+        self.match_levels.append(float(np.partition(errors.ravel(), drawn - 1)[drawn - 1]) / known)  # exact 0)
         if self.usage_weight <= 0 or not self.usage.any():
             return 0.0
         level = float(np.median(self.match_levels))
