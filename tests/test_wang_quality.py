@@ -127,10 +127,10 @@ def test_the_usage_term_spreads_a_tile_set_over_the_exemplar():
 def _filler_with_usage(feats, weight):
     from btforge.plugins.wang.placement import PlacementSearch
     from btforge.plugins.wang.synthesis import Filler
-    return Filler(feats, PlacementSearch(feats, "numpy"), np.random.default_rng(0), "graph", 1.0, weight)
+    return Filler(feats, PlacementSearch(feats, "numpy"), np.random.default_rng(0), "graph", 1.0, weight, "match")
 
 
-def test_the_usage_term_is_weighed_in_the_fillings_own_match_level():
+def test_the_usage_term_in_match_units_is_weighed_in_the_fillings_own_match_level():
     """The usage cost of a placement: weight x the median 4th-best match error per known texel of the searches so
     far (the placements a draw chooses among) x known texels x the mean earlier use under it, zero over texels not used before."""
     rng = np.random.default_rng(3)
@@ -146,8 +146,8 @@ def test_the_usage_term_is_weighed_in_the_fillings_own_match_level():
     assert cost[0, 0] > 0 and cost[-1, -1] == 0.0                  # over the used texels only
 
 
-def test_a_grainy_and_a_smooth_exemplar_spread_alike():
-    """The same usage weight spreads a strip's fillings over a grainy (white noise) and a smooth (blurred noise)
+def test_a_grainy_and_a_smooth_exemplar_spread_alike_in_match_units():
+    """The same usage weight (``usage_unit`` match) spreads a strip's fillings over a grainy (white noise) and a smooth (blurred noise)
     exemplar alike: the term is weighed in each exemplar's own match level.  Filled twice from the same start,
     the second strip must reuse at most half as many of the first one's exemplar texels as without the term, in
     both.  (With the best placement's error as the level, exact continuations of the known texels made it zero

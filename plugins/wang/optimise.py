@@ -16,7 +16,7 @@ import numpy as np
 
 from btforge.buffers import CoordMap
 
-ITERATIONS = 8     # texture-optimisation rounds
+ITERATIONS = 4     # texture-optimisation rounds
 OCCURRENCE = 0.1   # weight of the refinement's occurrence term
 PIN = 2            # texels along each tile border that keep their source
 
