@@ -122,3 +122,52 @@ def test_the_usage_term_spreads_a_tile_set_over_the_exemplar():
         spread[usage] = (evenness(flat), tiles.statistics()["referenced_share"])
     # measured: evenness 0.72 -> 0.86 and referenced share 0.83 -> 0.92 (seeds 0 and 1 alike)
     assert spread[2.0][0] > spread[0.0][0] + 0.05 and spread[2.0][1] > spread[0.0][1]
+
+
+def _filler_with_usage(feats, weight):
+    from btforge.plugins.wang.placement import PlacementSearch
+    from btforge.plugins.wang.synthesis import Filler
+    return Filler(feats, PlacementSearch(feats, "numpy"), np.random.default_rng(0), "graph", 1.0, weight, "match")
+
+
+def test_the_usage_term_in_match_units_is_weighed_in_the_fillings_own_match_level():
+    """The usage cost of a placement: weight x the median 4th-best match error per known texel of the searches so
+    far (the placements a draw chooses among) x known texels x the mean earlier use under it, zero over texels not used before."""
+    rng = np.random.default_rng(3)
+    feats = rng.random((24, 24, 3)).astype(np.float32)
+    filler = _filler_with_usage(feats, 2.0)
+    errors = rng.random((17, 17)) * 5.0
+    assert filler._usage_cost(errors, 10, (8, 8), 1) == 0.0        # nothing used yet: no cost, but the level counts
+    filler.usage[4:12, 4:12] = 3.0
+    second = errors + 1.0
+    cost = filler._usage_cost(second, 20, (8, 8), 1)
+    level = np.median([np.sort(errors.ravel())[3] / 10, np.sort(second.ravel())[3] / 20])
+    np.testing.assert_allclose(cost, 2.0 * level * 20 * usage_means(filler.usage, (8, 8)), rtol=1e-6)
+    assert cost[0, 0] > 0 and cost[-1, -1] == 0.0                  # over the used texels only
+
+
+def test_a_grainy_and_a_smooth_exemplar_spread_alike_in_match_units():
+    """The same usage weight (``usage_unit`` match) spreads a strip's fillings over a grainy (white noise) and a smooth (blurred noise)
+    exemplar alike: the term is weighed in each exemplar's own match level.  Filled twice from the same start,
+    the second strip must reuse at most half as many of the first one's exemplar texels as without the term, in
+    both.  (With the best placement's error as the level, exact continuations of the known texels made it zero
+    and the term vanished here.)"""
+    from scipy.ndimage import gaussian_filter
+    rng = np.random.default_rng(5)
+    noise = rng.random((96, 96, 3)).astype(np.float32)
+    smooth = gaussian_filter(noise, (3, 3, 0)).astype(np.float32)
+    smooth = (smooth - smooth.mean()) / smooth.std() * noise.std()
+    for feats in (noise, smooth):
+        reuse = {}
+        for weight in (0.0, 2.0):
+            filler = _filler_with_usage(feats, weight)
+            laid = []
+            for _ in range(2):
+                coords = -np.ones((8, 48, 2), np.int32)
+                coords[:, :8] = np.stack(np.mgrid[40:48, 40:48], -1)   # the same known start each time
+                region = coords[..., 0] < 0
+                filler.fill(coords, region, (8, 8))
+                filler.record(np.where(region[..., None], coords, -1))
+                laid.append({(int(y), int(x)) for y, x in coords[region]})
+            reuse[weight] = len(laid[0] & laid[1]) / len(laid[1])
+        assert reuse[2.0] <= 0.5 * reuse[0.0], reuse

@@ -67,8 +67,12 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("variants", "int", 1, "tiles (interiors) per colour combination", low=1, high=16),
         Param("seed", "int", 0, "random seed"),
         Param("usage", "float", 4.0, "how strongly placements avoid exemplar texels earlier patches used, so the "
-              "tiles spread over the whole exemplar (0: off; per known texel, in squared median neighbour "
-              "distances per earlier use)", low=0.0, high=100.0),
+              "tiles spread over the whole exemplar (0: off; per known texel and earlier use, in usage_unit)",
+              low=0.0, high=100.0),
+        Param("usage_unit", "choice", "neighbour", "the usage term's unit: neighbour (the squared median distance "
+              "between neighbouring texels) or match (the filling's match level: the median error per known texel "
+              "of the placements a draw chooses among, so a weight means the same against matching on smooth and "
+              "on grainy exemplars; try usage 1, refine 8)", choices=("neighbour", "match")),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
         Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
@@ -83,7 +87,8 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     ],
     version="4",  # 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
-def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, relax, refine, occurrence, pin):
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, relax, refine, occurrence,
+               pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -106,7 +111,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, rela
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed, usage_weight=usage, relax=relax,
+                                              seed=seed, usage_weight=usage, usage_unit=usage_unit, relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)

@@ -46,6 +46,8 @@ def bench_wang(args: list[str]) -> int:
     parser.add_argument("--repeat", type=int, default=1, help="runs (median reported), default 1")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--usage", type=float, default=None, help="the usage term's weight (default: wang.tiles')")
+    parser.add_argument("--usage-unit", choices=("neighbour", "match"), default=None, help="the usage term's unit "
+                        "(default: wang.tiles')")
     parser.add_argument("--refine", type=int, default=None, help="texture-optimisation rounds of the interiors "
                         "(default: wang.tiles')")
     parser.add_argument("--pattern", default="bumps", choices=("bumps", "stones", "plaster", "fibres"),
@@ -60,6 +62,8 @@ def bench_wang(args: list[str]) -> int:
                 else procedural_exemplar(opts.exemplar, seed=1 if opts.pattern == "bumps" else 3, pattern=opts.pattern))
     prepare = time.perf_counter() - start
     options = {} if opts.usage is None else {"usage_weight": opts.usage}
+    if opts.usage_unit is not None:
+        options["usage_unit"] = opts.usage_unit
     if opts.refine is not None:
         options["optimise"] = {"iterations": opts.refine}
     runs = []

@@ -29,7 +29,9 @@ the summed per-pixel error of the region.  A pixel's error is its worst seam: fo
 elsewhere, the mean distance between each side and the other side's own continuation.  Filling stops when every
 pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
 the patch budget runs out.  A placement's error also counts how often earlier patches already laid the exemplar
-texels under it (``usage_weight``, :func:`usage_means`), so the tile set spreads over the whole exemplar; each
+texels under it (``usage_weight``, :func:`usage_means`), in squared median neighbour distances or (``usage_unit``
+"match") in the filling's own match level (the median error per known texel of the placements drawn among, after
+Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; each
 finished strip and interior is then relaxed texel by texel (:mod:`relax`).
 """
 from __future__ import annotations
@@ -52,8 +54,9 @@ SEARCH_STRIDE = 2      # placements are searched on every second texel, then ref
 STRIDE_FROM = 96       # ... in exemplars at least this large
 REFINE_SHARE = 0.5     # refinement patches allowed after the region is covered, times the patches that covered it ...
 REFINE_MIN = 2         # ... and at least this many
-USAGE_WEIGHT = 4.0     # per known texel, a placement over texels already used once costs this many squared median
-# neighbour distances more: spreads the tiles over the whole exemplar instead of its few best-matching places
+USAGE_WEIGHT = 4.0     # per known texel, a placement over texels already used once costs this many usage units
+# more (Filler._usage_cost): spreads the tiles over the whole exemplar instead of its few best-matching places
+USAGE_UNITS = ("neighbour", "match")  # the usage term's unit: squared median neighbour distance, or match level
 CORNER_CANDIDATES = 32  # diverse corner patches considered per tile set
 DESCRIPTOR_CELLS = 4   # a corner patch is described by DESCRIPTOR_CELLS^2 cell means for the candidate search
 CORNER_TRIALS = 8      # corner samplings drawn; the one whose vertex squares have the least seam is kept
@@ -141,12 +144,14 @@ class Filler:
     """Graph-cut patch filling of canvases over one exemplar (see the module docstring)."""
 
     def __init__(self, feats: np.ndarray, search: PlacementSearch, rng: np.random.Generator, cut: str,
-                 threshold: float, usage_weight: float = USAGE_WEIGHT):
+                 threshold: float, usage_weight: float = USAGE_WEIGHT, usage_unit: str = USAGE_UNITS[0]):
         self.feats, self.search, self.rng, self.cut, self.threshold = feats, search, rng, cut, threshold
         self.placed = self.kept = 0
         self.usage = np.zeros(feats.shape[:2], np.float64)   # how often each exemplar texel has been laid so far
+        self.usage_weight, self.usage_unit = usage_weight, usage_unit
         reference = float(np.median(neighbour_distances(feats)))
-        self.usage_cost = usage_weight * reference * reference
+        self.neighbour_cost = usage_weight * reference * reference
+        self.match_levels: list[float] = []   # error per known texel of the drawn placements, every search so far
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
 
     def _target(self, coords, region, err):
@@ -177,8 +182,7 @@ class Filler:
         target = self.feats[part[known][:, 0], part[known][:, 1]]
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
-        if self.usage_cost > 0 and self.usage.any():
-            errors = errors + self.usage_cost * len(offsets) * usage_means(self.usage, window, stride)
+        errors = errors + self._usage_cost(errors, len(offsets), window, stride)
         flat = errors.ravel()
         k = min(count, flat.size)
         best = np.argpartition(flat, k - 1)[:k]
@@ -187,6 +191,28 @@ class Filler:
         if stride == 1:
             return found, lambda placement: placement
         return found, lambda placement: self.search.refine(offsets, target, window, *placement, stride - 1)
+
+    def _usage_cost(self, errors: np.ndarray, known: int, window, stride: int):
+        """The usage term of every placement in ``errors`` (their match errors over ``known`` texels): weight x
+        unit x ``known`` x the mean earlier use of the exemplar texels under the placement.  The unit is the
+        squared median neighbour distance (``usage_unit`` "neighbour") or the match level ("match"), which
+        is the median, over every search so far, of the ``PICK_BEST``-th best placement's error per known texel
+        (the best alone is zero wherever the known texels continue one exemplar patch): the exemplar's own scale of
+        patch distances.  A fixed unit such as the distance between neighbouring texels would weigh the
+        term against matching differently per exemplar: weakly where texels vary smoothly but whole patches differ
+        (a painting), strongly on fine grain whose patches all match about as badly (plaster)."""
+        if self.usage_unit == "neighbour":
+            if self.usage_weight <= 0 or not self.usage.any():
+                return 0.0
+            return self.neighbour_cost * known * usage_means(self.usage, window, stride)
+        if known == 0:
+            return 0.0
+        drawn = min(PICK_BEST, errors.size)   # the placements a draw chooses among (the best alone is often an
+        self.match_levels.append(float(np.partition(errors.ravel(), drawn - 1)[drawn - 1]) / known)  # exact 0)
+        if self.usage_weight <= 0 or not self.usage.any():
+            return 0.0
+        level = float(np.median(self.match_levels))
+        return self.usage_weight * level * known * usage_means(self.usage, window, stride)
 
     def record(self, coords: np.ndarray) -> None:
         """Count the exemplar texels a finished canvas lays (they cost more in later placements)."""
@@ -544,7 +570,7 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
                      seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
-                     relax: int = SWEEPS) -> Synthesis:
+                     relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0]) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
@@ -556,7 +582,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     feats = np.ascontiguousarray(feats, np.float32)
     threshold = THRESHOLD * float(np.median(neighbour_distances(feats)))
     search = PlacementSearch(feats, engine)
-    filler = Filler(feats, search, rng, cut, threshold, usage_weight)
+    filler = Filler(feats, search, rng, cut, threshold, usage_weight, usage_unit)
     timings, counts = {}, {}
 
     start = time.perf_counter()
