@@ -6,7 +6,8 @@ straight one.  What removes it is a third piece of the exemplar that joins both 
 exemplar itself passes from the one colour to the other.  Graphcut Textures (Kwatra et al. 2003) places new
 patches over its costliest seams for the same reason.
 
-Per straight run, a diamond-shaped region centred on the run (the run's half length plus :data:`MARGIN` along it,
+Only runs whose mean appearance step across the seam is at least the exemplar's mean step between neighbours
+are bridged: the others already look like the exemplar's own edges.  Per such run, a diamond-shaped region centred on the run (the run's half length plus :data:`MARGIN` along it,
 :data:`ACROSS` texels across) is matched against every placement in the exemplar: the sum of squared appearance
 differences over the region, computed for all placements at once by FFT correlation.  The placements that just
 continue a source already in the region (the re-cut's own proposals) are left out; the best :data:`TRIES`
@@ -40,6 +41,8 @@ class ExemplarSpectrum:
         values = texels.astype(np.float32)  # single precision: distances rank placements, several units apart
         self.values = fft.rfft2(values, axes=(0, 1))
         self.norms = fft.rfft2((values ** 2).sum(axis=-1))
+        steps = [np.diff(values, axis=axis) for axis in (0, 1)]
+        self.neighbour_step = float(np.mean([(step ** 2).sum(axis=-1).mean() for step in steps]))
 
     def distances(self, region: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Sum of squared differences between ``region [rh, rw, d]`` (where ``mask``) and the exemplar at every
@@ -63,10 +66,12 @@ def diamond(half_along: float, half_across: float, axis: int) -> tuple[np.ndarra
     return np.abs(dy) / half_y + np.abs(dx) / half_x <= 1.0, dy, dx
 
 
-def straight_run_centres(run_mask: np.ndarray, axis: int) -> list[tuple[int, int, int]]:
+def straight_run_centres(run_mask: np.ndarray, axis: int, step: np.ndarray | None = None,
+                         least: float = 0.0) -> list[tuple[int, int, int]]:
     """``(row, col, length)`` per straight run of seam edges in ``run_mask`` (``axis`` 0: vertical runs of edges
-    between a texel and its right neighbour; 1: horizontal runs between a texel and the one below); the centre is
-    the texel on the first side of the run's middle edge."""
+    between a texel and its right neighbour; 1: horizontal runs between a texel and the one below) whose mean
+    ``step`` (per edge, optional) is at least ``least``; the centre is the texel on the first side of the run's
+    middle edge."""
     from scipy import ndimage
     line = np.zeros((3, 3), int)
     if axis == 0:
@@ -75,9 +80,10 @@ def straight_run_centres(run_mask: np.ndarray, axis: int) -> list[tuple[int, int
         line[1, :] = 1
     labels, _ = ndimage.label(run_mask, line)
     runs = []
-    for rows, cols in ndimage.find_objects(labels):
+    for label, (rows, cols) in enumerate(ndimage.find_objects(labels), start=1):
         length = (rows.stop - rows.start) if axis == 0 else (cols.stop - cols.start)
-        if length >= STRAIGHT_RUN:
+        visible = step is None or step[rows, cols][labels[rows, cols] == label].mean() >= least
+        if length >= STRAIGHT_RUN and visible:
             runs.append(((rows.start + rows.stop - 1) // 2, (cols.start + cols.stop - 1) // 2, length))
     return runs
 
@@ -91,8 +97,11 @@ def bridging_proposals(spectrum: ExemplarSpectrum, src: np.ndarray, wrap: bool,
     eh, ew = spectrum.shape
     flat = spectrum.texels.reshape(eh * ew, -1)
     proposals = [np.full((h, w), -1, np.int64) for _ in range(TRIES)]
+    appearance = flat[src]
+    steps = [((np.roll(appearance, -1, axis=1 - axis) - appearance) ** 2).sum(axis=-1) for axis in (0, 1)]
     for row, col, length, axis in ((*centre, axis) for run_mask, axis in runs
-                                   for centre in straight_run_centres(run_mask, axis)):
+                                   for centre in straight_run_centres(run_mask, axis, steps[axis],
+                                                                      spectrum.neighbour_step)):
         mask, dy, dx = diamond(length / 2 + MARGIN, ACROSS, axis)
         if mask.shape[0] > eh or mask.shape[1] > ew:
             continue
