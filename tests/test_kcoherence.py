@@ -363,3 +363,16 @@ def test_search_param_switches_the_engine():
     assert coords.shape == (24, 24, 2)
     with pytest.raises(BtforgeInputError, match="search"):
         kcoherence(exemplar=exemplar, size=[24, 24], search="fastest")
+
+
+def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monkeypatch):
+    """k-coherence asks the shared refinement for :data:`RECUT_PASSES` re-cut passes (one more than quilting's) with
+    bridging pieces; with ``refine: 0`` there is no re-cut at all."""
+    from btforge.plugins.synth import recut, refine
+    asked = []
+    real = recut.recut_straight_seams
+    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
+    kcoherence(exemplar=material, size=[48, 48], seed=2, refine=0)
+    assert asked == []
+    kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1)
+    assert asked == [(kc.RECUT_PASSES, True)] and kc.RECUT_PASSES == recut.PASSES + 1
