@@ -7,9 +7,10 @@ exemplar itself passes from the one colour to the other.  Graphcut Textures (Kwa
 patches over its costliest seams for the same reason.
 
 Only runs whose mean appearance step across the seam is at least the exemplar's mean step between neighbours
-are bridged: the others already look like the exemplar's own edges.  Per such run, a diamond-shaped region centred on the run (the run's half length plus :data:`MARGIN` along it,
-:data:`ACROSS` texels across) is matched against every placement in the exemplar: the sum of squared appearance
-differences over the region, computed for all placements at once by FFT correlation.  The placements that just
+are bridged: the others already look like the exemplar's own edges.  Per such run, a diamond-shaped region
+centred on the run (the run's half length plus :data:`MARGIN` along it, :data:`ACROSS` texels across) is matched
+against every placement in the exemplar: the sum of squared appearance differences over the region, computed for
+all placements at once by FFT correlation.  The placements that just
 continue a source already in the region (the re-cut's own proposals) are left out; the best :data:`TRIES`
 placements at least :data:`APART` texels apart are offered, one expansion move each (all runs at once).  The
 region is a diamond because the cut may take all of it: its sides are staircases, never straight runs.

@@ -17,6 +17,7 @@ from typing import Callable, Sequence
 from btforge import Param, declare_stage
 from btforge.errors import BtforgeInputError
 
+from .recut import PASSES as RECUT_PASSES
 from .scan_order import level_sizes
 
 MAX_K = 16
@@ -80,17 +81,16 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
 
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
-            window: int = WINDOW, recut_passes: int | None = None, bridges: bool = True):
+            window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: bool = True):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows, its
-    re-cut of straight seams ``recut_passes`` passes, by default the re-cut's own, with bridging patches unless
-    ``bridges`` is off), with its time noted."""
+    re-cut of straight seams ``recut_passes`` passes, with bridging patches unless ``bridges`` is off), with its
+    time noted."""
     import time
 
     from .refine import refine_map
     start = time.perf_counter()
-    passes = {} if recut_passes is None else {"recut_passes": recut_passes}
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
-                     patch=window, bridges=bridges, **passes)
+                     patch=window, recut_passes=recut_passes, bridges=bridges)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 

@@ -201,18 +201,14 @@ class Filler:
         patch distances.  A fixed unit such as the distance between neighbouring texels would weigh the
         term against matching differently per exemplar: weakly where texels vary smoothly but whole patches differ
         (a painting), strongly on fine grain whose patches all match about as badly (plaster)."""
-        if self.usage_unit == "neighbour":
-            if self.usage_weight <= 0 or not self.usage.any():
-                return 0.0
-            return self.neighbour_cost * known * usage_means(self.usage, window, stride)
-        if known == 0:
+        if self.usage_unit == "match" and known:
+            drawn = min(PICK_BEST, errors.size)  # the placements a draw chooses among
+            self.match_levels.append(float(np.partition(errors.ravel(), drawn - 1)[drawn - 1]) / known)
+        if self.usage_weight <= 0 or not known or not self.usage.any():
             return 0.0
-        drawn = min(PICK_BEST, errors.size)   # the placements a draw chooses among (the best alone is often an
-        self.match_levels.append(float(np.partition(errors.ravel(), drawn - 1)[drawn - 1]) / known)  # exact 0)
-        if self.usage_weight <= 0 or not self.usage.any():
-            return 0.0
-        level = float(np.median(self.match_levels))
-        return self.usage_weight * level * known * usage_means(self.usage, window, stride)
+        weighted_unit = (self.neighbour_cost if self.usage_unit == "neighbour"
+                         else self.usage_weight * float(np.median(self.match_levels)))
+        return weighted_unit * known * usage_means(self.usage, window, stride)
 
     def record(self, coords: np.ndarray) -> None:
         """Count the exemplar texels a finished canvas lays (they cost more in later placements)."""
