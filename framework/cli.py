@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -322,7 +323,18 @@ def _unmap_large_blocks() -> None:
         pass
 
 
+def _short_blas_spin() -> None:
+    """Let NumPy's OpenBLAS threads sleep soon after their work.  They busy-wait for 2^28 processor cycles (about
+    0.1 s) after starting and after each product before they sleep, so NumPy's import alone took 0.05 s of CPU:
+    a core of a 2-core machine, while the process imports and decodes.  2^20 cycles (under a millisecond) still
+    spans back-to-back products.  OpenBLAS reads the setting once, when NumPy loads it (so before that); a
+    setting of the user's own wins."""
+    os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the command line's own process
+        _short_blas_spin()
     code = _main(argv)
     if argv is None:  # the command line's process ends here
         # Objects stay as they are until the process exits: the interpreter's collections at exit would only

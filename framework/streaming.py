@@ -144,11 +144,15 @@ class _BandReader:
     def _read(self, index: int) -> SampleStack:
         rows = self.bands[index]
         buffer = self.buffers[index % 2]
-        if buffer.size != self.stack.samples[:, :, rows].size:
-            buffer = None  # a shorter last band: a view of part of the buffer would be copied when frozen
-        else:  # the band stack read into it two bands before froze it; that band was joined before this read began
-            buffer.flags.writeable = True
-        return band_stack(self.stack, rows, buffer)
+        # the band stack read into it two bands before froze it; that band was joined before this read began
+        buffer.flags.writeable = True
+        samples = read_block(self.stack.samples, 2, rows, buffer)
+        # Read-only as a whole, so that a shorter last band's samples, a part of the buffer, are frozen in place
+        # like a full band's: a new array for them would cost a page fault per page (0.05 s of system time for
+        # the last band of a 1024^2 x 49 capture).
+        buffer.flags.writeable = False
+        stack = self.stack
+        return SampleStack(samples, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
     def band(self, index: int) -> SampleStack:
         if self.pool is None:
