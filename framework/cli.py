@@ -98,7 +98,10 @@ def written_lines(output_paths: list[Path], out_dir: Path, since: float) -> list
 def cmd_run(args) -> int:
     import time
 
-    from .runner import DEFAULT_OUT, run
+    from .profile import record_phase
+    importing = time.perf_counter()
+    from .runner import DEFAULT_OUT, run  # NumPy and the engine load here (`import btforge` loads neither)
+    record_phase("interpreter_and_imports_s", time.perf_counter() - importing)
     started = time.time()
     result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
                  use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)

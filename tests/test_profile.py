@@ -1,5 +1,6 @@
 """Cold start: `btforge run --profile` and the report's startup; kernel binaries reused by the next process."""
 import json
+import os
 import subprocess
 import sys
 
@@ -41,3 +42,24 @@ def test_rendering_code_does_not_load_the_plotting_stack():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+def test_public_names_and_submodules_load_on_first_use():
+    code = ("import sys, btforge; before = [m for m in ('numpy', 'btforge.runner') if m in sys.modules]; "
+            "from btforge import SampleStack, run; "
+            "print(before, run.__module__, SampleStack.__module__, btforge.streaming.__name__, hasattr(btforge, 'nope'))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["[]", "btforge.runner", "btforge.buffers", "btforge.streaming", "False"]
+
+
+def test_the_command_line_shortens_blas_spin_before_numpy_loads_and_a_users_setting_wins():
+    code = ("import os, sys, btforge.cli as cli; before = 'numpy' in sys.modules; "
+            "sys.argv = ['btforge', 'stages', 'ptm.fit']; cli.main(); import numpy; "
+            "print(before, os.environ.get('OPENBLAS_THREAD_TIMEOUT'))")
+    env = {key: value for key, value in os.environ.items() if key != "OPENBLAS_THREAD_TIMEOUT"}
+    for given, expected in ((None, "20"), ("26", "26")):
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              env=env if given is None else {**env, "OPENBLAS_THREAD_TIMEOUT": given})
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.split()[-2:] == ["False", expected]

@@ -78,6 +78,8 @@ def test_bands_read_ahead_are_the_bands_of_the_capture(tmp_path):
             band = reader.band(index)
             np.testing.assert_array_equal(band.samples, whole.samples[:, :, rows])
             assert not band.samples.flags.writeable
+            # read into one of the two buffers, the short last band too (a new array costs page faults)
+            assert np.shares_memory(band.samples, reader.buffers[index % 2])
 
 
 def test_a_decode_error_on_a_thread_names_the_earliest_bad_image_and_exits_2(tmp_path, capsys):
