@@ -17,12 +17,12 @@ def light_file_precheck(params, paths):
     from btforge.store import is_store, open_store
 
     from .images import group_views
-    from .lightfile import image_path, is_btf_zip, read_capture_index
-    from .ubo2014 import is_dfmf_path, read_dfmf
+    from .lightfile import image_path, is_btf_zip, is_dfmf_path, read_capture_index
     path = paths.input(params["path"])
     if is_store(path):  # the cache keys the folder by its contents
         return [path, Fact("stack", "views", open_store(path)[0].shape[0], str(path))]
     if is_dfmf_path(path):
+        from .ubo2014 import read_dfmf
         # header, directions and matrix sizes checked before anything runs
         return [path, Fact("stack", "views", read_dfmf(path).n_view, str(path))]
     entries = read_capture_index(path, require_images=True)
@@ -62,12 +62,12 @@ def stack_read(ctx, *, path, transfer):
     from btforge.store import is_store, open_stored_stack
 
     from .images import load_stack
-    from .importer import load_dfmf_stack
-    from .ubo2014 import is_dfmf_path
+    from .lightfile import is_dfmf_path
     source = ctx.paths.input(path)
     if is_store(source):
         stack = open_stored_stack(source)
     elif is_dfmf_path(source):
+        from .importer import load_dfmf_stack
         stack = load_dfmf_stack(source)
     elif "stack" in ctx.streamed:  # every reader runs per texel: decoded into a file, fitted band by band
         from .images import load_stack_spilled

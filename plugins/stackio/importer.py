@@ -28,7 +28,7 @@ def import_capture(path: str | os.PathLike, store: str | os.PathLike, *, transfe
                    block: tuple[int, int] = (32, 32), threads: int = 2):
     """Write the capture at ``path`` (a .lp/.lvp light file, a UBO folder or UBO2003 zip, a UBO2014 .btf) into a
     store at ``store``; return the store's zarr array."""
-    from .ubo2014 import is_dfmf_path
+    from .lightfile import is_dfmf_path
     if is_dfmf_path(path):
         return import_dfmf(path, store, block=block)
     reader = CaptureReader(path, transfer=transfer)

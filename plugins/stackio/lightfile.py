@@ -124,6 +124,12 @@ def btf_entries(names: Iterable[str], where: str) -> list[LightFileEntry]:
     return [LightFileEntry(i, name, light, view) for i, (_, name, light, view) in enumerate(found, 1)]
 
 
+def is_dfmf_path(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a Bonn ``.btf`` file (by its suffix; the signature is checked on reading).  It lives
+    here, not beside its reader (``ubo2014``), so that telling a light file apart does not import that reader."""
+    return Path(path).suffix.lower() == ".btf" and Path(path).is_file()
+
+
 def is_btf_zip(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a zip archive (the Bonn UBO2003 download layout) rather than a light file."""
     return Path(path).suffix.lower() == ".zip"

@@ -37,6 +37,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from .lightfile import is_dfmf_path  # noqa: F401  (its former home)
+
 from btforge.errors import BtforgeInputError
 
 DFMF_SIGNATURE = b"!DFMF08FC"
@@ -346,8 +348,3 @@ def undecorrelate(values: np.ndarray, model: int, mean: np.ndarray, transform: n
             chroma = values[..., 1:]
             values[..., 1:] = np.sign(chroma) * np.exp(np.abs(chroma) + np.float32(np.log(LOG_EPSILON)))
     return (values @ YUV_TO_RGB.T.astype(np.float32)).astype(np.float32)
-
-
-def is_dfmf_path(path: str | os.PathLike) -> bool:
-    """Whether ``path`` names a Bonn ``.btf`` file (by its suffix; the signature is checked on reading)."""
-    return Path(path).suffix.lower() == ".btf" and Path(path).is_file()
