@@ -294,7 +294,9 @@ def _execute(st, ctx: StageContext, inputs: Mapping[str, Any], params: Mapping[s
         if reason:
             ctx.warn(f"runs in this process, not on {scheduler}: {reason}")
     if banded:
-        outputs, bands = run_banded(st, ctx, port, inputs[port], _settled(st, ctx, inputs, params), registry.types)
+        # settled while the reader takes in the first band
+        outputs, bands = run_banded(st, ctx, port, inputs[port], lambda: _settled(st, ctx, inputs, params),
+                                    registry.types)
         report.placement = {"where": "local", "bands": bands}
         return outputs
     report.placement = {"where": "local"}

@@ -17,7 +17,7 @@ whole-stack fit's.  A distributed run (``framework/scheduler.py``) uses the same
 from __future__ import annotations
 
 import warnings
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -87,12 +87,13 @@ def band_stack(stack: SampleStack, rows: slice, out: np.ndarray | None = None) -
     return SampleStack(samples, stack.lights, stack.views, stack.channels, stack.encoding, stack.names)
 
 
-def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, Any],
+def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, Any] | Callable[[], Mapping[str, Any]],
                types: Mapping[str, type[Buffer]]) -> tuple[dict[str, Buffer], int]:
-    """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled);
-    return its outputs joined along the texel grid, and the number of bands.  Each band's pages are handed back
-    after it ran.  Bands paged in from a file are read into two buffers in turn (:class:`_BandReader`), and a
-    band's outputs are written to their files while the next band runs (:class:`Joiner`)."""
+    """Run a per-texel stage on ``stack`` band by band of rows in this process (``params`` already settled, or a
+    function settling them, called while the first band is read); return its outputs joined along the texel
+    grid, and the number of bands.  Each band's pages are handed back after it ran.  Bands paged in from a file
+    are read into two buffers in turn (:class:`_BandReader`), and a band's outputs are written to their files
+    while the next band runs (:class:`Joiner`)."""
     from .context import StageContext
     # a spilled stack's bands are read ahead into two buffers (_BandReader): half a band each, the memory of one
     bands = list(stack.row_bands(BAND_BYTES // 2 if isinstance(stack.samples, np.ndarray) else BAND_BYTES))
@@ -100,6 +101,7 @@ def run_banded(stage, ctx, port: str, stack: SampleStack, params: Mapping[str, A
     notes = []
     band_arrays: dict[str, np.ndarray] = {}  # what StageContext.output_array lends every band
     with _BandReader(stack, bands) as reader:
+        params = params() if callable(params) else params
         for index, rows in enumerate(bands):
             band_ctx = StageContext(node=ctx.node, paths=ctx.paths, quiet=True, band_arrays=band_arrays,
                                     band_index=index)
