@@ -171,3 +171,24 @@ def test_a_grainy_and_a_smooth_exemplar_spread_alike_in_match_units():
                 laid.append({(int(y), int(x)) for y, x in coords[region]})
             reuse[weight] = len(laid[0] & laid[1]) / len(laid[1])
         assert reuse[2.0] <= 0.5 * reuse[0.0], reuse
+
+
+def test_interior_window_defaults_to_one_and_a_half_edges_within_the_interior():
+    from btforge.plugins.wang.synthesis import interior_window
+    assert interior_window(64, 16) == 24 and interior_window(64, 16, 40) == 40
+    assert interior_window(64, 16, 200) == 48     # never wider than the interior's span, tile - edge
+
+
+def test_larger_interior_windows_fill_the_tiles_with_fewer_larger_pieces():
+    from btforge.plugins.synth.visibility import seam_masks
+    from btforge.plugins.wang import build_tile_set
+    from btforge.plugins.wang.bench import procedural_exemplar
+    stack = procedural_exemplar(64, lights=16)
+    seam_edges = {}
+    for interior in (0, 22):
+        tiles, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, interior=interior, optimise={"iterations": 0})
+        coords = tiles.tile_coords[:, 4:-4, 4:-4]          # inside the frames the edge strips lay
+        seam_edges[interior] = sum(int(sum(m.sum() for m in seam_masks(c[..., 0], c[..., 1], False)))
+                                   for c in coords)
+    # windows of 22 instead of 12 texels: fewer cuts inside the frames
+    assert seam_edges[22] < 0.8 * seam_edges[0], seam_edges

@@ -73,6 +73,9 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "between neighbouring texels) or match (the filling's match level: the median error per known texel "
               "of the placements a draw chooses among, so a weight means the same against matching on smooth and "
               "on grainy exemplars; try usage 1, refine 8)", choices=("neighbour", "match")),
+        Param("interior", "int", 0, "side in texels of the windows that fill the tiles' interiors (0: 1.5 x edge, "
+              "24 for tiles of 64); larger windows copy larger exemplar pieces, nearer the exemplar's patch "
+              "statistics, but leave longer straight cuts (at most tile - edge)", low=0, high=1024),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
         Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
@@ -87,8 +90,8 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     ],
     version="4",  # 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
-def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, relax, refine, occurrence,
-               pin):
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, relax, refine,
+               occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -111,8 +114,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed, usage_weight=usage, usage_unit=usage_unit, relax=relax,
-                                              optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
+                                              seed=seed, usage_weight=usage, usage_unit=usage_unit, interior=interior,
+                                              relax=relax, optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())

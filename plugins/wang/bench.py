@@ -48,6 +48,8 @@ def bench_wang(args: list[str]) -> int:
     parser.add_argument("--usage", type=float, default=None, help="the usage term's weight (default: wang.tiles')")
     parser.add_argument("--usage-unit", choices=("neighbour", "match"), default=None, help="the usage term's unit "
                         "(default: wang.tiles')")
+    parser.add_argument("--interior", type=int, default=0, help="side of the windows that fill the interiors "
+                        "(0: wang.tiles' default, 1.5 x edge)")
     parser.add_argument("--refine", type=int, default=None, help="texture-optimisation rounds of the interiors "
                         "(default: wang.tiles')")
     parser.add_argument("--pattern", default="bumps", choices=("bumps", "stones", "plaster", "fibres"),
@@ -61,7 +63,9 @@ def bench_wang(args: list[str]) -> int:
     exemplar = (capture_exemplar(opts.capture, opts.exemplar) if opts.capture
                 else procedural_exemplar(opts.exemplar, seed=1 if opts.pattern == "bumps" else 3, pattern=opts.pattern))
     prepare = time.perf_counter() - start
-    options = {} if opts.usage is None else {"usage_weight": opts.usage}
+    options = {"interior": opts.interior}
+    if opts.usage is not None:
+        options["usage_weight"] = opts.usage
     if opts.usage_unit is not None:
         options["usage_unit"] = opts.usage_unit
     if opts.refine is not None:

@@ -548,6 +548,13 @@ def _frame(corners: Corners, strips_h, strips_v, n, e, s, west, w: int) -> np.nd
     return tile
 
 
+def interior_window(w: int, h: int, interior: int = 0) -> int:
+    """The side of the windows that fill a tile's interior: ``interior`` where given, else one and a half edge
+    strips (``h + h / 2``), at most the interior's span ``w - h``.  Larger windows copy larger exemplar pieces
+    (patch statistics nearer the exemplar's) but leave longer straight cuts for the refinement to hide."""
+    return min(w - h, interior if interior > 0 else h + h // 2)
+
+
 def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
     problems = []
     if h < 2 or h % 2:
@@ -566,8 +573,9 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
                      seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
-                     relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0]) -> Synthesis:
-    """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring).
+                     relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0], interior: int = 0) -> Synthesis:
+    """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
+    the side of the windows that fill the interiors (0: :func:`interior_window`'s default).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
@@ -616,10 +624,10 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     timings["frames"] = time.perf_counter() - start
 
     q = h // 2
+    window = (interior_window(w, h, interior),) * 2
     ring = max(1, q // 2)  # the frame's outer half stays; its inner half is overlap the interior's cuts may take
     interior = np.zeros((w, w), bool)
     interior[ring:w - ring, ring:w - ring] = True
-    window = (min(w - h, h + q),) * 2
     tiles = np.zeros((len(combos) * variants, w, w, 2), np.int32)
     colors_out = np.zeros((len(combos) * variants, 4), np.int32)
 
