@@ -4,7 +4,8 @@ Graph-cut filling leaves cuts where patches only roughly agree, most of them alo
 was filled against.  The finished tiles then go through the shared refinement
 (:func:`btforge.plugins.synth.refine.refine_map`: overlapping windows matched to the exemplar with an occurrence
 term, whole windows kept where they match best and cut where the appearance agrees, then corrections), laid side
-by side in one map so that the occurrence term spreads the whole set over the exemplar.  A ring of ``pin`` texels
+by side in one map so that the occurrence term spreads the whole set over the exemplar; the straight seams left are
+re-cut with bridging pieces (:mod:`btforge.plugins.synth.bridging`) as quilting's are.  A ring of ``pin`` texels
 along every tile border is held: those texels are the halves of the edge strips that every tile of the same edge
 colour shares, so the tiles stay valid Wang tiles whatever happens inside.
 """
@@ -59,7 +60,8 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
     pinned = mosaic(np.broadcast_to(ring, (t, w, w)), columns)
     pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of the last row
     laid = CoordMap(mosaic(tile_coords, columns), features.shape[:2])
-    src = refine_map(features, laid, iterations=iterations, occurrence=occurrence, seed=seed, pinned=pinned).coords
+    src = refine_map(features, laid, iterations=iterations, occurrence=occurrence, seed=seed, pinned=pinned,
+                     bridges=True).coords
     out = unmosaic(src, t, w)
     return out.astype(tile_coords.dtype)
 
