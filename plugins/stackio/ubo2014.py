@@ -37,8 +37,6 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from .lightfile import is_dfmf_path  # noqa: F401  (its former home)
-
 from btforge.errors import BtforgeInputError
 
 DFMF_SIGNATURE = b"!DFMF08FC"

@@ -52,9 +52,9 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
         for run_mask, axis in straight_runs(src, ew, wrap, pinned):
             for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
                 src = expansion_move(texels, src, proposal, wrap, pinned, padded)
-        for proposal in bridging_proposals(spectrum, src, wrap, straight_runs(src, ew, wrap, pinned), pinned) \
-                if bridges else ():
-            src = expansion_move(texels, src, proposal, wrap, pinned, padded)
+        if bridges:
+            for proposal in bridging_proposals(spectrum, src, wrap, straight_runs(src, ew, wrap, pinned), pinned):
+                src = expansion_move(texels, src, proposal, wrap, pinned, padded)
         if np.array_equal(before, src):
             break
     return src

@@ -626,19 +626,19 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     q = h // 2
     window = (interior_window(w, h, interior),) * 2
     ring = max(1, q // 2)  # the frame's outer half stays; its inner half is overlap the interior's cuts may take
-    interior = np.zeros((w, w), bool)
-    interior[ring:w - ring, ring:w - ring] = True
+    inside_frame = np.zeros((w, w), bool)   # what the interior filling may change
+    inside_frame[ring:w - ring, ring:w - ring] = True
     tiles = np.zeros((len(combos) * variants, w, w, 2), np.int32)
     colors_out = np.zeros((len(combos) * variants, 4), np.int32)
 
     def interior_job(combo, variant):
         def job():
             tile = frames[combo].copy()
-            err = filler.fill(tile, interior, window)
+            err = filler.fill(tile, inside_frame, window)
             if relax:
-                tile = relax_seams(tile, feats, interior, relax)
+                tile = relax_seams(tile, feats, inside_frame, relax)
                 err = pixel_errors(tile, feats)
-            filler.record(np.where(interior[..., None], tile, -1))
+            filler.record(np.where(inside_frame[..., None], tile, -1))
             index = tile_index(*combo, variant, n_h, n_v, variants)
             tiles[index], colors_out[index] = tile, combo
             return int(((err > threshold) & np.isfinite(err)).sum())
