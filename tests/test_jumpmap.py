@@ -240,8 +240,9 @@ def test_refinement_window_is_the_stage_param(material):
 
 
 def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
-    """The stage asks the shared refinement for :data:`RECUT_PASSES` re-cut passes, and a third pass of the
-    refinement's own re-cut is the same as the shared two followed by one more on their result."""
+    """The stage asks the shared refinement for :data:`RECUT_PASSES` re-cut passes with bridging pieces, and a
+    third pass of the refinement's own re-cut is the same as the shared two followed by one more on their
+    result."""
     from btforge.plugins.synth import recut, refine
     features = texel_features(material)
     base = jumpmap(exemplar=material, size=[64, 64], seed=3, refine=0)["coords"]
@@ -254,4 +255,4 @@ def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
     real = recut.recut_straight_seams
     monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
     jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1)
-    assert asked == [(jm_module.RECUT_PASSES, False)] and jm_module.RECUT_PASSES > recut.PASSES
+    assert asked == [(jm_module.RECUT_PASSES, True)] and jm_module.RECUT_PASSES > recut.PASSES
