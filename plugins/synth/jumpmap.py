@@ -41,7 +41,7 @@ REFINE_WINDOW = 12
 #: cuneiform tablet three rounds left smeared areas (seams 1.31, SWD 1.73 x the shuffled blocks), five do not.
 REFINE_ROUNDS = 5
 #: Default weight of the refinement's occurrence term, twice the others': the walk copies its favourite exemplar
-#: areas over and over, and at weight 1 the refinement kept much of that (evenness 0.65 on the tablet, 0.74 here).
+#: areas over and over, and at weight 1 the refinement kept much of that (evenness 0.65 on the tablet, 0.74 on the icon crop).
 REFINE_OCCURRENCE = 2.0
 #: Passes of the refinement's re-cut of straight seams, one more than the other synthesizers' two: 12 x 12 windows
 #: leave more window sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or

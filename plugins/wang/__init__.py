@@ -114,8 +114,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed, usage_weight=usage, usage_unit=usage_unit, interior=interior,
-                                              relax=relax,
+                                              seed=seed, usage_weight=usage, usage_unit=usage_unit,
+                                              interior=interior, relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
