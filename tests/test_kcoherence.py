@@ -366,8 +366,8 @@ def test_search_param_switches_the_engine():
 
 
 def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monkeypatch):
-    """k-coherence asks the shared refinement for :data:`RECUT_PASSES` re-cut passes (one more than quilting's) with
-    bridging pieces; with ``refine: 0`` there is no re-cut at all."""
+    """k-coherence asks the shared refinement for :data:`RECUT_PASSES` re-cut passes (one more than the shared
+    default) with three bridging pieces per run; with ``refine: 0`` there is no re-cut at all."""
     from btforge.plugins.synth import recut, refine
     asked = []
     real = recut.recut_straight_seams
@@ -375,4 +375,4 @@ def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monk
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=0)
     assert asked == []
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1)
-    assert asked == [(kc.RECUT_PASSES, True)] and kc.RECUT_PASSES == recut.PASSES + 1
+    assert asked == [(kc.RECUT_PASSES, 3)] and kc.RECUT_PASSES == recut.PASSES + 1

@@ -56,6 +56,20 @@ def test_a_straight_seam_between_two_blocks_is_re_cut_at_less_cost(stones):
     assert after.straight_count < 0.5 * before.straight_count
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_later_passes_re_cut_near_the_last_changes_and_never_cost_more(stones, seed):
+    """Shuffled 12-texel blocks leave many straight runs.  A pass after the first looks only at the runs near the
+    texels the pass before changed, so a third pass may change a map only there, and more passes never raise the
+    seam energy."""
+    from btforge.plugins.synth.visibility import shuffled_blocks
+    start = shuffled_blocks((64, 64), (48, 48), block=12, seed=seed)
+    src = start.coords[..., 0].astype(np.int64) * 64 + start.coords[..., 1]
+    one, two, three = (recut.recut_straight_seams(stones, src, wrap=False, passes=n, bridges=2) for n in (1, 2, 3))
+    energy = [seam_energy(stones, m, False) for m in (src, one, two, three)]
+    assert energy[3] <= energy[2] <= energy[1] < energy[0]
+    assert not (three != two)[~recut._near(two != one, False)].any()
+
+
 def test_pinned_texels_keep_their_sources_and_bands_stop_at_them(stones):
     src = two_blocks(64, 40, 40, (2, 3), (20, 30))
     pinned = np.zeros(src.shape, bool)
@@ -147,7 +161,7 @@ def test_a_straight_seam_between_flat_colours_is_bridged_by_the_exemplars_own_tr
     texels = two_colour_exemplar()
     src = two_blocks(64, 40, 40, (4, 0), (8, 44))
     plain = recut.recut_straight_seams(texels, src, wrap=False)
-    bridged = recut.recut_straight_seams(texels, src, wrap=False, bridges=True)
+    bridged = recut.recut_straight_seams(texels, src, wrap=False, bridges=3)
     straight = [seam_edges(CoordMap(np.stack(np.divmod(m, 64), -1).astype(np.int32), (64, 64))).straight_count
                 for m in (src, plain)]
     assert straight[1] >= 0.9 * straight[0] > 0        # the continuations alone cannot move it
@@ -184,7 +198,7 @@ def test_bridging_never_raises_the_seam_cost(seed, scale, wrap):
     rng = np.random.default_rng(seed)
     texels = (rng.random((40, 40, 3)) * scale if seed % 3 else np.full((40, 40, 3), scale)).astype(np.float32)
     src = two_blocks(40, 32, 32, tuple(rng.integers(0, 8, 2)), tuple(rng.integers(0, 8, 2) + (0, 16)))
-    out = recut.recut_straight_seams(texels, src, wrap=wrap, bridges=True)
+    out = recut.recut_straight_seams(texels, src, wrap=wrap, bridges=3)
     assert out.min() >= 0 and out.max() < 40 * 40
     before, after = seam_energy(texels, src, wrap), seam_energy(texels, out, wrap)
     assert np.isfinite(after) and after <= before * (1 + 1e-6) + 1e-12

@@ -125,3 +125,21 @@ def test_a_verbatim_copy_stays_as_it_is(stones):
     verbatim = CoordMap(np.stack([rows + 3, cols + 5], -1).astype(np.int32), (SIZE, SIZE))
     refined = refine_map(stones, verbatim, iterations=2, occurrence=0.0, seed=0)
     assert np.array_equal(refined.coords, verbatim.coords)
+
+
+def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
+    from btforge.plugins.synth import refine
+    rounds_at = []
+    real_step = refine.optimise_step
+
+    def counted(index, *args, **kwargs):
+        rounds_at.append(index.texels.shape[0])
+        return real_step(index, *args, **kwargs)
+
+    monkeypatch.setattr(refine, "optimise_step", counted)
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
+    refine_map(stones, start, iterations=1, occurrence=0.3, seed=0, patch=4, scales=1, coarse_iterations=3)
+    assert rounds_at == [SIZE // 2] * 3 + [SIZE]
+    rounds_at.clear()
+    refine_map(stones, start, iterations=2, occurrence=0.3, seed=0, patch=4, scales=1)
+    assert rounds_at == [SIZE // 2] * 2 + [SIZE] * 2

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .visibility import STRAIGHT_RUN
+from .visibility import STRAIGHT_RUN, run_labels
 
 #: Half width in texels of a bridging region across its seam.
 ACROSS = 8
@@ -53,10 +53,18 @@ class ExemplarSpectrum:
         rh, rw = mask.shape
         weight = mask.astype(np.float32)
         flipped = (region * weight[..., None])[::-1, ::-1]
-        spectrum = self.norms * fft.rfft2(weight[::-1, ::-1], s=self.shape)
-        spectrum -= 2.0 * (self.values * fft.rfft2(flipped, s=self.shape, axes=(0, 1))).sum(axis=-1)
+        spectrum = self.norms * _padded_rfft2(weight[::-1, ::-1], self.shape)
+        spectrum -= 2.0 * (self.values * _padded_rfft2(flipped, self.shape)).sum(axis=-1)
         full = fft.irfft2(spectrum, s=self.shape)
         return full[rh - 1:, rw - 1:] + float((flipped ** 2).sum())
+
+
+def _padded_rfft2(region: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``rfft2`` over the first two axes of ``region`` zero-padded to ``shape``: the rows first, so that only the
+    region's own rows are transformed (the padding rows are zero), then the columns (about 1.7 x faster for a
+    region a tenth of the exemplar's height)."""
+    from scipy import fft
+    return fft.fft(fft.rfft(region, n=shape[1], axis=1), n=shape[0], axis=0)
 
 
 def diamond(half_along: float, half_across: float, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,12 +82,7 @@ def straight_run_centres(run_mask: np.ndarray, axis: int, step: np.ndarray | Non
     ``step`` (per edge, optional) is at least ``least``; the centre is the texel on the first side of the run's
     middle edge."""
     from scipy import ndimage
-    line = np.zeros((3, 3), int)
-    if axis == 0:
-        line[:, 1] = 1
-    else:
-        line[1, :] = 1
-    labels, _ = ndimage.label(run_mask, line)
+    labels, _ = run_labels(run_mask, axis)
     runs = []
     for label, (rows, cols) in enumerate(ndimage.find_objects(labels), start=1):
         length = (rows.stop - rows.start) if axis == 0 else (cols.stop - cols.start)
@@ -90,14 +93,14 @@ def straight_run_centres(run_mask: np.ndarray, axis: int, step: np.ndarray | Non
 
 
 def bridging_proposals(spectrum: ExemplarSpectrum, src: np.ndarray, wrap: bool,
-                       runs: list[tuple[np.ndarray, int]], pinned: np.ndarray) -> list[np.ndarray]:
-    """:data:`TRIES` proposal maps (flat exemplar indices, -1: none): in the k-th, the region of every straight
+                       runs: list[tuple[np.ndarray, int]], pinned: np.ndarray, tries: int = TRIES) -> list[np.ndarray]:
+    """``tries`` proposal maps (flat exemplar indices, -1: none): in the k-th, the region of every straight
     run of ``runs`` (``(run_mask, axis)`` pairs, as :func:`.recut.straight_runs` gives them) offers its k-th best
     placement (module docstring)."""
     h, w = src.shape
     eh, ew = spectrum.shape
     flat = spectrum.texels.reshape(eh * ew, -1)
-    proposals = [np.full((h, w), -1, np.int64) for _ in range(TRIES)]
+    proposals = [np.full((h, w), -1, np.int64) for _ in range(tries)]
     appearance = flat[src]
     steps = [((np.roll(appearance, -1, axis=1 - axis) - appearance) ** 2).sum(axis=-1) for axis in (0, 1)]
     for row, col, length, axis in ((*centre, axis) for run_mask, axis in runs

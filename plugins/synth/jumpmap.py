@@ -36,18 +36,26 @@ OVERUSE = 4               #: balance: a cell holding more than this x its fair s
 #: Default refinement windows: 12 x 12, so the coarsest of the two coarse scales matches 48-texel pieces (a
 #: quarter of a 192-texel exemplar) whole; with 8 x 8 windows long fibres and large areas came out in short pieces.
 REFINE_WINDOW = 12
-#: Default refinement rounds: five (the other synthesizers two).  The walk's map starts further from the exemplar's
-#: statistics than the others' blocks, and with the stronger occurrence term below each round moves it on: on the
-#: cuneiform tablet three rounds left smeared areas (seams 1.31, SWD 1.73 x the shuffled blocks), five do not.
-REFINE_ROUNDS = 5
+#: Default refinement rounds at the finest scale: three, and :data:`COARSE_ROUNDS` at each coarser one.
+REFINE_ROUNDS = 3
+#: Default refinement rounds at each coarser scale: five (the other synthesizers two at every scale).  The walk's map
+#: starts further from the exemplar's statistics than the others' blocks, and with the stronger occurrence term
+#: below each coarse round moves it on: on the cuneiform tablet three rounds left smeared areas (seams 1.31, SWD
+#: 1.73 x the shuffled blocks), five do not.  Five rounds at the finest scale as well (version 13) lowered seam
+#: visibility by 0.04 at most and SWD by 0.11 at most (the procedural fibres), but cost a quarter of the output's time.
+COARSE_ROUNDS = 5
 #: Default weight of the refinement's occurrence term, twice the others': the walk copies its favourite exemplar
-#: areas over and over, and at weight 1 the refinement kept much of that (evenness 0.65 on the tablet, 0.74 on the icon crop).
+#: areas over and over, and at weight 1 the refinement kept much of that (evenness 0.65 on the tablet, 0.74 on the
+#: icon crop).
 REFINE_OCCURRENCE = 2.0
-#: Passes of the refinement's re-cut of straight seams, one more than the other synthesizers' two: 12 x 12 windows
+#: Passes of the refinement's re-cut of straight seams, one more than the shared default of two: 12 x 12 windows
 #: leave more window sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or
 #: joined (the third pass takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to
 #: 1.3 % on the icon crop; more change little and cost about 0.2 s each there).
 RECUT_PASSES = 3
+#: Bridging pieces offered per straight run and re-cut pass, one fewer than the others' three: the measures stay
+#: within 0.03 (the held-out procedural exemplar, the icon crop) and the jump map's re-cut takes less time.
+BRIDGE_TRIES = 2
 
 # The four directions a candidate can come from: the neighbour's offset from the pixel, and the step that
 # continues the neighbour's source to the pixel (a coherent copy).  Ties go to the earlier direction.
@@ -316,7 +324,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="13",  # 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="14",  # 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -333,11 +341,12 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
-        *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW),
+        *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
+                       coarse_refine=COARSE_ROUNDS),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance, refine, occurrence, scales, window):
+            coverage, balance, refine, occurrence, scales, window, coarse_refine):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -366,18 +375,17 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coherent copies than the interior (the closing row more visibly than the closing column); use
     ``synth.kcoherence`` when seams matter most.
 
-    **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``, ``window``; :mod:`.refine`): the walk's
-    map finally goes through the shared texture optimisation, five rounds at two coarser scales first, with
-    12 x 12 windows and an occurrence weight of 2 (the other synthesizers: two rounds of 8 x 8, weight 1).  The
-    walk copies short diagonal runs, which the eye reads as streaks, and favours some exemplar areas; the coarse
-    scales replace the runs with whole areas of the exemplar, the fine one cuts the seams along the content
-    (seam visibility 1.05 instead of 2.74 on the held-out procedural exemplar), and the occurrence term spreads
-    the copies over the exemplar.  The
+    **Refinement** (``refine`` and ``coarse_refine`` rounds, ``occurrence`` weight, ``scales``, ``window``;
+    :mod:`.refine`): the walk's map finally goes through the shared texture optimisation: five rounds at each of
+    two coarser scales, then three at the finest, with 12 x 12 windows and an occurrence weight of 2 (the other
+    synthesizers: two rounds of 8 x 8 windows at every scale, weight 1).  The walk copies short diagonal runs,
+    which the eye reads as streaks, and favours some exemplar areas.  The coarse rounds replace the runs with
+    whole areas of the exemplar and, with the occurrence term, spread the copies over it; the fine rounds cut
+    the seams along the content (seam visibility 1.12 instead of 2.74 on the held-out procedural exemplar).  The
     larger windows span 48 texels at the coarsest scale, so long fibres and large areas are kept whole instead of
-    cut into 32-texel pieces (on the procedural fibres the sliced Wasserstein distance is 1.36 x the shuffled-block
-    baseline instead of 1.97 x with two rounds of 8 x 8 windows).  Their sides leave more straight seams of 12
-    texels, so the re-cut of straight seams runs :data:`RECUT_PASSES` passes instead of two, with bridging
-    pieces as for the others.  ``refine: 0`` gives Zelinka & Garland's walk alone.
+    cut into 32-texel pieces.  Their sides leave more straight seams of 12 texels, so the re-cut of straight
+    seams runs :data:`RECUT_PASSES` passes instead of two, with bridging pieces as for the others.  ``refine: 0``
+    gives Zelinka & Garland's walk alone.
 
     Outputs
     -------
@@ -410,7 +418,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              window=window, recut_passes=RECUT_PASSES)}
+                              window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine,
+                              bridges=BRIDGE_TRIES)}
 
 
 STAGES = [jumpmap]

@@ -48,9 +48,10 @@ MIN_AUTO_BLOCK = 16          #: auto: a sixth of the exemplar's shorter side, at
 AUTO_BLOCK_SHARE = 6
 MAX_BLOCKS = 1024
 MAX_MATCHING = 4096
-#: Passes of the refinement's re-cut of straight seams, one more than quilting's two: the sides of the start's
-#: pieces leave more straight runs, and a pass finds the runs the previous cuts have shortened or joined (over seeds
-#: 0-3 the third pass takes the straight share from 2.0 % to 1.5 % on the icon crop, 3.0 % to 2.7 % on the bumps)
+#: Passes of the refinement's re-cut of straight seams, one more than the shared default of two: the sides of the
+#: start's pieces leave more straight runs, and a pass finds the runs the previous cuts have shortened or joined (over
+#: seeds 0-3 the third pass takes the straight share from 2.0 % to 1.5 % on the icon crop, 3.0 % to 2.7 % on the
+#: bumps)
 RECUT_PASSES = 3
 KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)

@@ -12,8 +12,8 @@ moves follow (the first side's continuations, then the second's).  Each is a bin
 least seam cost (zero between texels whose sources continue each other, else the squared appearance difference of
 each texel and the other's exemplar neighbour), solved exactly by a minimum s-t cut (scipy's Dinic maximum flow).
 The cut runs where the two sides agree: the mortar between stones, the soft edge of a colour area.  With
-``bridges``, the runs left then get a third kind of proposal: other pieces of the exemplar that join both sides
-(:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.  Pinned texels keep
+``bridges`` (tries per run), the runs left then get a third kind of proposal: other pieces of the exemplar that
+join both sides (:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.  Pinned texels keep
 their sources, and a band stops at them (its continuations do not reach across a pinned ring into another tile of
 a mosaic).
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 from .bridging import ExemplarSpectrum, bridging_proposals
 from .features import beside, edge_padded
-from .visibility import STRAIGHT_RUN, in_long_runs, seam_masks
+from .visibility import STRAIGHT_RUN, in_long_runs, run_labels, seam_masks
 
 #: Texels on either side of a straight seam that may take a continuation of either side.
 BAND = 8
@@ -36,10 +36,11 @@ CAPACITY_STEPS = 1e6
 
 
 def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned: np.ndarray | None = None,
-                         passes: int = PASSES, bridges: bool = False) -> np.ndarray:
+                         passes: int = PASSES, bridges: int = 0) -> np.ndarray:
     """``src [H, W]`` (flat exemplar indices into ``texels [eh, ew, d]``) with its straight seams re-cut (module
-    docstring; ``bridges``: also offered bridging patches); ``pinned [H, W]`` (optional) texels keep their
-    sources."""
+    docstring; ``bridges``: bridging patches also offered per run and pass, 0: none); ``pinned [H, W]``
+    (optional) texels keep their sources.  A pass after the first re-cuts only the runs near the texels the pass
+    before changed."""
     eh, ew = texels.shape[:2]
     h, w = src.shape
     if min(h, w) < 2:
@@ -47,27 +48,49 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
     pinned = np.zeros((h, w), bool) if pinned is None else pinned
     padded = edge_padded(texels)
     spectrum = ExemplarSpectrum(texels) if bridges else None
+    active = np.ones((h, w), bool)
     for _ in range(passes):
         before = src
-        for run_mask, axis in straight_runs(src, ew, wrap, pinned):
+        for run_mask, axis in straight_runs(src, ew, wrap, pinned, active):
             for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
                 src = expansion_move(texels, src, proposal, wrap, pinned, padded)
         if bridges:
-            for proposal in bridging_proposals(spectrum, src, wrap, straight_runs(src, ew, wrap, pinned), pinned):
+            runs = straight_runs(src, ew, wrap, pinned, active)
+            for proposal in bridging_proposals(spectrum, src, wrap, runs, pinned, bridges):
                 src = expansion_move(texels, src, proposal, wrap, pinned, padded)
         if np.array_equal(before, src):
             break
+        active = _near(before != src, wrap)
     return src
 
 
-def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray) -> list[tuple[np.ndarray, int]]:
+def _near(changed: np.ndarray, wrap: bool) -> np.ndarray:
+    """The texels within reach of a changed one: a run further away meets the same sources and the same
+    proposals as in the pass before, and the same cut would come out of it again."""
+    from scipy.ndimage import maximum_filter
+    return maximum_filter(changed, size=2 * (BAND + 2) + 1, mode="wrap" if wrap else "constant")
+
+
+def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray,
+                  active: np.ndarray | None = None) -> list[tuple[np.ndarray, int]]:
     """``(mask, axis)`` per direction: the seam edges in straight runs (``axis`` 0: ``across_columns`` edges in
-    vertical runs; 1: ``across_rows`` edges in horizontal runs), leaving out edges between two pinned texels."""
+    vertical runs; 1: ``across_rows`` edges in horizontal runs), leaving out edges between two pinned texels and,
+    with ``active``, the runs that touch no active texel."""
     rows, cols = np.divmod(src, ew)
     across_columns, across_rows = seam_masks(rows, cols, wrap)
     across_columns &= ~(pinned & np.roll(pinned, -1, axis=1))
     across_rows &= ~(pinned & np.roll(pinned, -1, axis=0))
-    return [(in_long_runs(across_columns, 0, STRAIGHT_RUN), 0), (in_long_runs(across_rows, 1, STRAIGHT_RUN), 1)]
+    runs = [(in_long_runs(across_columns, 0, STRAIGHT_RUN), 0), (in_long_runs(across_rows, 1, STRAIGHT_RUN), 1)]
+    return runs if active is None else [(_touching(mask, axis, active), axis) for mask, axis in runs]
+
+
+def _touching(run_mask: np.ndarray, axis: int, active: np.ndarray) -> np.ndarray:
+    """The whole runs of ``run_mask`` (along ``axis``) with at least one edge on an ``active`` texel."""
+    labels, n = run_labels(run_mask, axis)
+    hit = np.zeros(n + 1, bool)
+    hit[labels[run_mask & active]] = True
+    hit[0] = False
+    return hit[labels]
 
 
 def continuations(src: np.ndarray, source_size: tuple[int, int], wrap: bool, run_mask: np.ndarray, axis: int,
@@ -107,13 +130,22 @@ def seam_cost(flat: np.ndarray, padded: np.ndarray, source_size: tuple[int, int]
     """Seam cost of source ``a`` at an output texel and ``b`` at its neighbour ``(dy, dx)`` away: zero where ``b``
     continues ``a``, else half the squared appearance differences of each texel and the other's exemplar
     neighbour on that side (edge-clamped at the exemplar's border; ``padded``: :func:`.features.edge_padded`)."""
-    ew = source_size[1]
-    ar, ac = np.divmod(a, ew)
-    br, bc = np.divmod(b, ew)
-    beside_a = beside(padded, source_size, ar, ac, dy, dx)
-    beside_b = beside(padded, source_size, br, bc, -dy, -dx)
-    cost = 0.5 * (((beside_a - flat[b]) ** 2).sum(axis=-1) + ((beside_b - flat[a]) ** 2).sum(axis=-1))
-    return np.where((br == ar + dy) & (bc == ac + dx), 0.0, cost)
+    return _pair_cost(_side(flat, padded, source_size, a, dy, dx), _side(flat, padded, source_size, b, -dy, -dx),
+                      source_size[1], dy, dx)
+
+
+def _side(flat, padded, source_size, labels, dy, dx):
+    """``labels`` with their appearance and their exemplar neighbours ``(dy, dx)`` away: one side of a seam."""
+    rows, cols = np.divmod(labels, source_size[1])
+    return labels, flat[labels], beside(padded, source_size, rows, cols, dy, dx)
+
+
+def _pair_cost(first, second, ew: int, dy: int, dx: int) -> np.ndarray:
+    """:func:`seam_cost` from the two sides :func:`_side` gathered."""
+    (a, a_self, a_beside), (b, b_self, b_beside) = first, second
+    cost = 0.5 * (((a_beside - b_self) ** 2).sum(axis=-1) + ((b_beside - a_self) ** 2).sum(axis=-1))
+    continues = (b - a == dy * ew + dx) & (b % ew - a % ew == dx)
+    return np.where(continues, 0.0, cost)
 
 
 def expansion_move(texels: np.ndarray, labels: np.ndarray, proposal: np.ndarray, wrap: bool,
@@ -153,12 +185,13 @@ def _edges(h: int, w: int, wrap: bool):
 
 
 def _edge_terms(flat, padded, source_size, current, taken, free, s, t, dy, dx):
-    """The edges touching a free texel, with their four seam costs (keep/take at ``s``, keep/take at ``t``)."""
+    """The edges touching a free texel, with their four seam costs (keep/take at ``s``, keep/take at ``t``); each
+    side is gathered once per label and shared by the two costs that use it."""
     touched = free[s] | free[t]
     s, t = s[touched], t[touched]
-    costs = [seam_cost(flat, padded, source_size, first[s], second[t], dy, dx)
-             for first, second in ((current, current), (current, taken), (taken, current), (taken, taken))]
-    return (s, t, *costs)
+    first = [_side(flat, padded, source_size, labels[s], dy, dx) for labels in (current, taken)]
+    second = [_side(flat, padded, source_size, labels[t], -dy, -dx) for labels in (current, taken)]
+    return (s, t, *(_pair_cost(a, b, source_size[1], dy, dx) for a in first for b in second))
 
 
 def _min_cut(n: int, free: np.ndarray, s, t, keep_keep, keep_take, take_keep, take_take) -> np.ndarray:
@@ -170,10 +203,9 @@ def _min_cut(n: int, free: np.ndarray, s, t, keep_keep, keep_take, take_keep, ta
     take_take = np.minimum(take_take, keep_take + take_keep - keep_keep)
     both, only_s, only_t = free[s] & free[t], free[s] & ~free[t], ~free[s] & free[t]
     # E(x_s, x_t) = kk + (tk - kk) x_s + (tt - tk) x_t + (kt + tk - kk - tt) (1 - x_s) x_t, with x = 1: take
-    unary = np.zeros(n)
-    np.add.at(unary, s[both | only_s], (take_keep - keep_keep)[both | only_s])
-    np.add.at(unary, t[both], (take_take - take_keep)[both])
-    np.add.at(unary, t[only_t], (keep_take - keep_keep)[only_t])
+    unary = (np.bincount(s[both | only_s], (take_keep - keep_keep)[both | only_s], n)
+             + np.bincount(t[both], (take_take - take_keep)[both], n)
+             + np.bincount(t[only_t], (keep_take - keep_keep)[only_t], n))
     nodes = np.flatnonzero(free)
     local = np.full(n, -1)
     local[nodes] = np.arange(len(nodes))

@@ -142,17 +142,19 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
-               recut_passes: int = RECUT_PASSES, bridges: bool = False) -> CoordMap:
+               recut_passes: int = RECUT_PASSES, bridges: int = 0,
+               coarse_iterations: int | None = None) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
     result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is.
     ``pinned`` (boolean ``[H, W]``, optional) marks output texels that keep their sources (and blends): they
     still serve as context for their neighbours' windows, seams and corrections.  ``scales`` coarser scales (each
-    at half the resolution of the next) are refined first, while their exemplar and output stay
-    :data:`COARSE_FIT` windows across (:func:`_coarse_first`).  With ``recut`` the straight seams left are then
-    re-cut by minimum cuts (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with bridging
-    patches where ``bridges``)."""
+    at half the resolution of the next) are refined first, ``coarse_iterations`` rounds each (by default
+    ``iterations``), while their exemplar and output stay :data:`COARSE_FIT` windows across
+    (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
+    (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
+    and pass)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -164,18 +166,21 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         partner = coords.blend_coords[..., 0].astype(np.int64) * ew + coords.blend_coords[..., 1]
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
-    src = _refine_sources(features, src, coords.wrap, iterations, occurrence, patch, rng, pinned, scales)
+    rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
+    src = _refine_sources(features, src, coords.wrap, rounds, occurrence, patch, rng, pinned, scales)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
                                    bridges)
     return _with_kept_blends(coords, src)
 
 
-def _refine_sources(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales):
+def _refine_sources(features, src, wrap, rounds, occurrence, patch, rng, pinned, scales):
     """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0 and a half-size exemplar and
-    output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here."""
+    output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here;
+    ``rounds``: (rounds here, rounds at each coarser scale)."""
+    iterations, coarse_iterations = rounds
     if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
-        src = _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales - 1)
+        src = _coarse_first(features, src, wrap, coarse_iterations, occurrence, patch, rng, pinned, scales - 1)
     index = window_index(features, patch)
     keep = (lambda new: new) if pinned is None else (lambda new, start=src: np.where(pinned, start, new))
     for _ in range(iterations):
@@ -198,7 +203,7 @@ def _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinne
     before = np.minimum(sy // 2, ch - 1) * cw + np.minimum(sx // 2, cw - 1)
     coarse_pinned = None if pinned is None else pinned[::2, ::2]
     after = _refine_sources(coarse_features, before, wrap and src.shape[0] % 2 == 0 and src.shape[1] % 2 == 0,
-                            iterations, occurrence, patch, rng, coarse_pinned, scales)
+                            (iterations, iterations), occurrence, patch, rng, coarse_pinned, scales)
     h, w = src.shape
     rows, cols = np.arange(h) // 2, np.arange(w) // 2
     changed = (after != before)[np.ix_(rows, cols)]

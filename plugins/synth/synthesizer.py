@@ -17,6 +17,7 @@ from typing import Callable, Sequence
 from btforge import Param, declare_stage
 from btforge.errors import BtforgeInputError
 
+from .bridging import TRIES as BRIDGE_TRIES
 from .recut import PASSES as RECUT_PASSES
 from .scan_order import level_sizes
 
@@ -55,14 +56,20 @@ WINDOW = 8
 
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
-                  window: int | None = None) -> list[Param]:
+                  window: int | None = None, coarse_refine: int | None = None) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
-    :data:`WINDOW` without the param)."""
+    :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
+    coarser scale, by default as many as ``refine`` without the param)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
               "the coarse scales", low=4, high=32)]
+    if coarse_refine is not None:
+        extra.append(Param("coarse_refine", "int", coarse_refine, "rounds of the refinement at each coarser scale "
+                           "(the finest runs 'refine' rounds): the coarse rounds set which exemplar areas are used "
+                           "and how often, the fine ones cut the seams; cheap, since a coarse scale has a quarter "
+                           "of the texels of the next", low=0, high=20))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
@@ -81,16 +88,17 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
 
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
-            window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: bool = True):
-    """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows, its
-    re-cut of straight seams ``recut_passes`` passes, with bridging patches unless ``bridges`` is off), with its
-    time noted."""
+            window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
+            coarse_refine: int | None = None):
+    """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
+    ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
+    ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass), with its time noted."""
     import time
 
     from .refine import refine_map
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
-                     patch=window, recut_passes=recut_passes, bridges=bridges)
+                     patch=window, recut_passes=recut_passes, bridges=bridges, coarse_iterations=coarse_refine)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 

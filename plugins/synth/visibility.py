@@ -85,15 +85,20 @@ def seam_masks(rows: np.ndarray, cols: np.ndarray, wrap: bool) -> tuple[np.ndarr
     return across_columns, across_rows
 
 
-def in_long_runs(mask: np.ndarray, axis: int, run: int) -> np.ndarray:
-    """Elements of ``mask`` in runs of at least ``run`` consecutive True values along ``axis``."""
+def run_labels(mask: np.ndarray, axis: int) -> tuple[np.ndarray, int]:
+    """``scipy.ndimage.label`` of ``mask`` with runs along ``axis`` as the components: labels and their count."""
     from scipy.ndimage import label
     structure = np.zeros((3, 3), bool)
     if axis == 0:
         structure[:, 1] = True
     else:
         structure[1, :] = True
-    labels, n = label(mask, structure=structure)
+    return label(mask, structure=structure)
+
+
+def in_long_runs(mask: np.ndarray, axis: int, run: int) -> np.ndarray:
+    """Elements of ``mask`` in runs of at least ``run`` consecutive True values along ``axis``."""
+    labels, n = run_labels(mask, axis)
     if n == 0:
         return np.zeros_like(mask)
     sizes = np.bincount(labels.ravel())

@@ -51,6 +51,7 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
                    occurrence: float = OCCURRENCE, pin: int = PIN, seed: int = 0) -> np.ndarray:
     """``tile_coords [T, w, w, 2]`` after ``iterations`` rounds of the shared refinement over appearance vectors
     ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module docstring)."""
+    from btforge.plugins.synth.bridging import TRIES as BRIDGE_TRIES
     from btforge.plugins.synth.refine import refine_map
     if iterations <= 0:
         return tile_coords
@@ -61,7 +62,7 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
     pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of the last row
     laid = CoordMap(mosaic(tile_coords, columns), features.shape[:2])
     src = refine_map(features, laid, iterations=iterations, occurrence=occurrence, seed=seed, pinned=pinned,
-                     bridges=True).coords
+                     bridges=BRIDGE_TRIES).coords
     out = unmosaic(src, t, w)
     return out.astype(tile_coords.dtype)
 
