@@ -13,9 +13,9 @@ least seam cost (zero between texels whose sources continue each other, else the
 each texel and the other's exemplar neighbour), solved exactly by a minimum s-t cut (scipy's Dinic maximum flow).
 The cut runs where the two sides agree: the mortar between stones, the soft edge of a colour area.  With
 ``bridges`` (tries per run), the runs left then get a third kind of proposal: other pieces of the exemplar that
-join both sides (:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.  Pinned texels keep
-their sources, and a band stops at them (its continuations do not reach across a pinned ring into another tile of
-a mosaic).
+join both sides (:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.
+Pinned texels keep their sources, and a band stops at them (its continuations do not reach across a pinned ring
+into another tile of a mosaic).
 """
 from __future__ import annotations
 
