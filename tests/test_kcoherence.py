@@ -376,3 +376,15 @@ def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monk
     assert asked == []
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1)
     assert asked == [(kc.RECUT_PASSES, 3)] and kc.RECUT_PASSES == recut.PASSES + 1
+
+
+def test_the_coarse_scale_runs_its_own_rounds(material, monkeypatch):
+    """k-coherence asks the shared refinement for :data:`COARSE_ROUNDS` rounds at its coarse scale and ``refine``
+    rounds at the full resolution; ``coarse_refine`` overrides the first."""
+    from btforge.plugins.synth import refine
+    asked = []
+    real = refine._refine_sources
+    monkeypatch.setattr(refine, "_refine_sources", lambda *a: asked.append(a[3]) or real(*a))
+    kcoherence(exemplar=material, size=[48, 48], seed=2)
+    kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1, coarse_refine=6)
+    assert asked == [(2, kc.COARSE_ROUNDS), (1, 6)] and kc.COARSE_ROUNDS > 2
