@@ -31,11 +31,11 @@ from .textons import normalise_features
 
 SIZES = (64, 128, 192, 256)
 SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio",
-              "seam_visibility", "straight_seam_visibility", "straight_seam_share", "evenness",
-              "swd_vs_shuffled_blocks")
-#: The four measures of what the eye sees, with the column titles of the sheets.
-EYE_KEYS = {"seam_visibility": "seams", "straight_seam_visibility": "straight", "evenness": "even",
-            "swd_vs_shuffled_blocks": "swd/shuffled"}
+              "seam_visibility", "straight_seam_visibility", "straight_seam_share", "straight_step_visibility",
+              "evenness", "swd_vs_shuffled_blocks")
+#: The measures of what the eye sees, with the column titles of the sheets.
+EYE_KEYS = {"seam_visibility": "seams", "straight_seam_visibility": "straight", "straight_step_visibility": "steps",
+            "evenness": "even", "swd_vs_shuffled_blocks": "swd/shuffled"}
 RECALL_QUERIES = 2000   # queries whose exact neighbours are computed for the recall
 PROCEDURAL = "procedural"
 #: Lights of the sheets: from the upper left and from the right, both fairly low (relief shows).
@@ -272,7 +272,7 @@ def write_sheet(path: Path, model, outputs: dict, rows: dict, header: str) -> No
             tile[:im.shape[1], :im.shape[2]] = linear_to_srgb8(_rgb(im[li] / whites[li]))
             tiles.append(tile)
             labels.append(_sheet_label(name, rows.get(name), light_label(light), im.shape[1:3]))
-    sheet = labelled_grid(tiles, labels, columns=len(images), header=header, strip=24)
+    sheet = labelled_grid(tiles, labels, columns=len(images), header=header, strip=40)
     buffer = io.BytesIO()
     sheet.save(buffer, format="PNG", optimize=True)
     atomic_write_bytes(path, buffer.getvalue())
@@ -286,7 +286,9 @@ def _sheet_label(name: str, row: dict | None, light: str, size) -> str:
     first = f"{name} {size[0]}x{size[1]}, {light}"
     if row is None:
         return first
-    return first + "\n" + "  ".join(f"{title} {_short(row.get(key))}" for key, title in EYE_KEYS.items())
+    measures = [f"{title} {_short(row.get(key))}" for key, title in EYE_KEYS.items()]
+    # three a line: a 256-texel tile holds about 45 characters of the default font
+    return "\n".join([first] + ["  ".join(measures[i:i + 3]) for i in range(0, len(measures), 3)])
 
 
 def median_scores(runs: list[dict]) -> dict:

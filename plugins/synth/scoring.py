@@ -22,6 +22,7 @@ from btforge.buffers import (SRGB8_TO_LINEAR, CoordMap, PerTexel, ReflectanceMod
 from btforge.errors import BtforgeInputError
 
 from . import visibility
+from .coarse_steps import straight_step_visibility
 from .features import downsample
 
 #: Patches per image that enter one sliced-Wasserstein comparison (all of them when there are fewer).
@@ -658,6 +659,17 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
             The same over the seam edges lying in straight runs of 12 or more texels (the edges of copied
             blocks, which the eye picks out first), and their share of the seam edges.  A tiling's tile
             borders (the map's ``tile``) are straight by design and left out.  Empty when no seam is straight.
+        ``straight_step_visibility``
+            With ``coords``: brightness steps along the straight edges between copied pieces, at a coarser scale
+            than seams (a refinement that breaks a piece's edge into many small seams hides a step there from
+            the per-edge figures, not from the eye).  Pieces of 64 texels or more copied as one; every other
+            texel joins its nearest such piece.  Lines are axis-aligned segments of 32 texels with a band 4
+            texels wide on each side, 2 texels away; a line counts where 3/4 of it crosses an edge between those
+            pieces within 2 texels.  A line's step is the difference of the band means (colour) that holds along
+            all four quarters of the segment, over the bands' own spread (+ 0.02), averaged over lights.  The
+            figure is the mean step over the counted lines over the mean step the exemplar has at their texels'
+            sources: 1 = the steps along the pieces' straight edges are those of the copied content; above
+            about 1.3 straight edges between pieces show.  Empty when no line counts.
         ``evenness``
             With ``coords``: ``exp(entropy) / n`` of the output's use of the exemplar's ``n`` cells of about
             8 x 8 texels (blended texels count for both sources, by weight).  1 = every cell used equally; an
@@ -822,13 +834,14 @@ def _verbatim(relit: _Relit, coords, found: "PatchMatches", min_island: float, t
 
 
 def _eye_measures(relit: _Relit, coords: CoordMap | None) -> dict:
-    """Seam and straight-seam visibility and evenness, read from the map (None without one)."""
+    """Seam, straight-seam and straight-step visibility and evenness, read from the map (None without one)."""
     if coords is None:
         return {"seam_visibility": None, "straight_seam_visibility": None, "straight_seam_share": None,
-                "seam_edge_share": None, "evenness": None}
+                "seam_edge_share": None, "straight_step_visibility": None, "evenness": None}
     seen = visibility.seam_visibility(relit.out_enc, relit.ex_enc, coords)
     return {"seam_visibility": seen.seam_visibility, "straight_seam_visibility": seen.straight_seam_visibility,
             "straight_seam_share": seen.straight_seam_share, "seam_edge_share": seen.seam_edge_share,
+            "straight_step_visibility": straight_step_visibility(relit.out_enc, relit.ex_enc, coords),
             "evenness": visibility.evenness(coords)}
 
 
