@@ -18,7 +18,8 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
     inputs={"model": "ReflectanceModel"},
     params=[
         Param("dir", "outpath", REQUIRED, "folder for info.json and the plane images (relative to --out)"),
-        Param("format", "choice", "png", "png: exact up to 8 bits; jpg: smaller, lossy (as relight's default)",
+        Param("format", "choice", "png", "png: exact up to 8 bits; jpg: smaller, lossy (as relight's default; "
+              "OpenLIME loads only jpg)",
               choices=("png", "jpg")),
         Param("quality", "int", 95, "JPEG quality", low=1, high=100),
     ],
@@ -29,9 +30,11 @@ def export_web(ctx, model, *, dir, format, quality):
     ``bilinear.fit`` model or a ``neural.fit`` model in relight's web layout.
 
     ``info.json`` with the basis, colour space and a scale and bias per coefficient plane, and the planes packed
-    three to a PNG or JPEG, as OpenLIME and ``btforge view`` read them; ``rbf`` and ``bilinear`` add their light
-    table (``basis``, 8 bits) and its lights or grid resolution.  Every plane's scale and bias cover its
-    whole range, so with PNG the export is exact up to 8-bit rounding (relight's exporter clips at a quantile).
+    three to a PNG or JPEG, as ``btforge view`` reads them (OpenLIME's ``image`` layout loads only JPEG planes:
+    use ``format: jpg`` for it, and an rgb PTM, since its lrgb shader darkens the colour); ``rbf`` and
+    ``bilinear`` add their light table (``basis``, 8 bits) and its lights or grid resolution.  Every plane's
+    scale and bias cover its whole range, so with PNG the export is exact up to 8-bit rounding (relight's
+    exporter clips at a quantile).
     Models of linear radiance (fitted in ``space: linear``, or ``auto`` choosing it) are marked ``"btforge":
     {"transfer": "linear"}``; models of display values are written as they are, as relight writes them.
 
