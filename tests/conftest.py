@@ -47,3 +47,19 @@ def browser():
         b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
         yield b
         b.close()
+
+
+@pytest.fixture(scope="session")
+def tileable_stack():
+    """A maker of tileable procedural materials (bumps and colour waves wrap around) under 8 lights from above:
+    ``tileable_stack(side, bumps)`` is a one-view SampleStack of a side x side material with that many bumps."""
+    import numpy as np
+
+    from btforge.buffers import SampleStack
+    from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+
+    def make(side: int, bumps: int) -> SampleStack:
+        lights = hemisphere_lights(8)
+        material = make_material(side, side, bumps=bumps, seed=5)
+        return SampleStack(render_lights(material, lights)[None], lights, np.array([[0.0, 0.0, 1.0]]))
+    return make

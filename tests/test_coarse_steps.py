@@ -8,22 +8,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from btforge.buffers import CoordMap, SampleStack
-from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
+from btforge.buffers import CoordMap
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.coarse_steps import coarse_offsets, straight_step_visibility
 from btforge.plugins.synth.scoring import score
 from btforge.plugins.synth.visibility import shuffled_blocks
 
 SIZE, OUT = 64, 192
-TOP = np.array([[0.0, 0.0, 1.0]])
 
 
 @pytest.fixture(scope="module")
-def tileable():
-    """A tileable procedural material (bumps and colour waves wrap around) under 8 lights."""
-    lights = hemisphere_lights(8)
-    return SampleStack(render_lights(make_material(SIZE, SIZE, bumps=14, seed=5), lights)[None], lights, TOP)
+def tileable(tileable_stack):
+    return tileable_stack(SIZE, 14)
 
 
 def measured(exemplar, coords) -> float | None:

@@ -5,22 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from btforge.buffers import CoordMap, SampleStack
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.scoring import score
 from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
 
 SIZE, OUT = 48, 144
-TOP = np.array([[0.0, 0.0, 1.0]])
 
 
 @pytest.fixture(scope="module")
-def tileable():
-    """A tileable procedural material (bumps and colour waves wrap around) under 8 lights."""
-    lights = hemisphere_lights(8)
-    return SampleStack(render_lights(make_material(SIZE, SIZE, bumps=10, seed=5), lights)[None], lights, TOP)
+def tileable(tileable_stack):
+    return tileable_stack(SIZE, 10)
 
 
 def measured(exemplar, coords) -> dict:
