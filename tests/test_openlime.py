@@ -133,6 +133,16 @@ def openlime_view(browser, url, name, layer_type, light, size):
     return after, errors
 
 
+def layer_type(name: str) -> str:
+    """OpenLIME's layer type of an export: its neural layer, or the RTI layer for every other basis."""
+    return "neural" if name == "neural" else "rti"
+
+
+def direction(x: float, y: float) -> list[float]:
+    """The unit light direction of the upper hemisphere with components ``x, y``."""
+    return [x, y, float(np.sqrt(max(0.0, 1 - x * x - y * y)))]
+
+
 def through_framebuffer(display: np.ndarray) -> np.ndarray:
     """Display values as OpenLIME's canvas shows them: it composes the layers in an 8-bit framebuffer of linear
     values (its shaders' simplified gamma 2.2), which costs the darkest values most of their precision."""
@@ -144,17 +154,15 @@ def measure(browser, url, fitted, exported, size):
     OpenLIME's framebuffer, and with y mirrored)."""
     rows = []
     for name in fitted:
-        layer_type = "neural" if name == "neural" else "rti"
         for x, y in LIGHTS:
-            shown, errors = openlime_view(browser, url, name, layer_type, (x, y), size)
+            shown, errors = openlime_view(browser, url, name, layer_type(name), (x, y), size)
             if shown is None:
                 rows.append((name, (x, y), None, None, None, None, "; ".join(errors)))
                 continue
-            z = float(np.sqrt(max(0.0, 1 - x * x - y * y)))
-            read = relit_display(exported[name], [x, y, z])
-            rows.append((name, (x, y), psnr(shown, relit_display(fitted[name], [x, y, z])), psnr(shown, read),
+            read = relit_display(exported[name], direction(x, y))
+            rows.append((name, (x, y), psnr(shown, relit_display(fitted[name], direction(x, y))), psnr(shown, read),
                          psnr(shown, through_framebuffer(read)),
-                         psnr(shown, relit_display(exported[name], [x, -y, z])), "; ".join(errors)))
+                         psnr(shown, relit_display(exported[name], direction(x, -y))), "; ".join(errors)))
     return rows
 
 
@@ -193,11 +201,9 @@ def openlime_site(tmp_path_factory):
 def test_openlime_relights_the_export_as_btforge_does(openlime_site, browser, name):
     url, exported = openlime_site
     for x, y in LIGHTS:
-        layer_type = "neural" if name == "neural" else "rti"
-        shown, errors = openlime_view(browser, url, name, layer_type, (x, y), CROP["size"])
+        shown, errors = openlime_view(browser, url, name, layer_type(name), (x, y), CROP["size"])
         assert shown is not None and not errors, errors
-        z = float(np.sqrt(max(0.0, 1 - x * x - y * y)))
-        expected = through_framebuffer(relit_display(exported[name], [x, y, z]))
+        expected = through_framebuffer(relit_display(exported[name], direction(x, y)))
         assert psnr(shown, expected) >= FLOOR.get(name, 55), (x, y)
 
 
