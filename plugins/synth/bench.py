@@ -90,12 +90,13 @@ class WangTiling:
         self.tile = tile
         self._sets: dict = {}
 
-    def __call__(self, *, exemplar, size, seed, ctx=None):
+    def __call__(self, *, exemplar, size, seed, ctx=None, **params):
+        """The map of a tiling of ``size``; ``params`` go to ``wang.tiles``."""
         from btforge import stage
         from btforge.buffers import CoordMap
-        key = (id(exemplar), seed)
+        key = (id(exemplar), seed, tuple(sorted(params.items())))
         if key not in self._sets:
-            tiles = stage("wang.tiles")(exemplar=exemplar, seed=seed, tile=self.tile,
+            tiles = stage("wang.tiles")(exemplar=exemplar, seed=seed, tile=self.tile, **params,
                                         **({"ctx": ctx} if ctx else {}))["tiles"]
             self._sets[key] = (exemplar, tiles)   # the exemplar is kept so that its id is not reused
         tiles = self._sets[key][1]
