@@ -91,3 +91,14 @@ def test_the_bench_lays_wang_tiles_as_a_synthesizer(held_out):
     np.testing.assert_array_equal(again.coords[:40, :40], first.coords)
     other = wang(exemplar=held_out, size=[40, 40], seed=4)["coords"]
     assert len(wang._sets) == 2 and not np.array_equal(other.coords, first.coords)
+
+
+def test_the_bench_skips_a_synthesizer_that_refuses_the_exemplar(tmp_path, capsys):
+    """A 24 x 24 crop is too small for tiles of 64: the bench says so and scores the others."""
+    import csv
+    from btforge.cli import main
+    assert main(["bench", "synthesis", "--exemplar", "procedural", "--out", str(tmp_path), "--sizes", "24",
+                 "--size", "32", "--only", "wang.tiles", "--only", "synth.jumpmap", "--lights", "3", "--no-search"]) == 0
+    rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
+    assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "synth.jumpmap"]
+    assert "24x24 wang.tiles: skipped" in capsys.readouterr().err

@@ -21,6 +21,7 @@ import numpy as np
 
 from btforge.backend import get_backend
 from btforge.buffers import PerTexel, central_crop
+from btforge.errors import BtforgeInputError
 
 from . import visibility
 from .features import texel_features
@@ -222,7 +223,11 @@ def bench_synthesis(args: list[str]) -> int:
                      **{k: _round(v) for k, v in baseline.items()}})
         outputs = {}
         for name, st in chosen.items():
-            row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+            try:
+                row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+            except BtforgeInputError as refused:   # e.g. an exemplar smaller than Wang tiles need
+                print(f"{label} {name}: skipped, {refused}", file=sys.stderr)
+                continue
             rows.append(row)
         write_sheet(target / f"sheet_{_slug(opts.exemplar)}_{label}.png", model, outputs,
                     {r["synthesizer"]: r for r in rows if r["exemplar"] == label},
