@@ -76,3 +76,29 @@ def test_synthesizers_reach_the_swd_and_seam_targets(held_out_192, name):
     assert swd <= SWD_TARGET, (name, swd)
     if name != "synth.kcoherence":
         assert seams <= SEAM_TARGET, (name, seams)
+
+
+def test_the_bench_lays_wang_tiles_as_a_synthesizer(held_out):
+    """The bench runs Wang tiles beside the synthesizers: one tile set per seed, laid over the output and cropped
+    to its size, its tile borders named so that the straight-seam measures leave them out."""
+    assert isinstance(bench.bench_synthesizers(set())["wang.tiles"], bench.WangTiling)
+    assert list(bench.bench_synthesizers({"synth.quilt"})) == ["synth.quilt"]
+    wang = bench.WangTiling(tile=16)
+    first = wang(exemplar=held_out, size=[40, 40], seed=3)["coords"]
+    assert first.coords.shape == (40, 40, 2) and first.tile == 16 and first.source_size == (64, 64)
+    again = wang(exemplar=held_out, size=[48, 48], seed=3)["coords"]
+    assert len(wang._sets) == 1   # the seed's tile set is built once
+    np.testing.assert_array_equal(again.coords[:40, :40], first.coords)
+    other = wang(exemplar=held_out, size=[40, 40], seed=4)["coords"]
+    assert len(wang._sets) == 2 and not np.array_equal(other.coords, first.coords)
+
+
+def test_the_bench_skips_a_synthesizer_that_refuses_the_exemplar(tmp_path, capsys):
+    """A 24 x 24 crop is too small for tiles of 64: the bench says so and scores the others."""
+    import csv
+    from btforge.cli import main
+    assert main(["bench", "synthesis", "--exemplar", "procedural", "--out", str(tmp_path), "--sizes", "24",
+                 "--size", "32", "--only", "wang.tiles", "--only", "synth.jumpmap", "--lights", "3", "--no-search"]) == 0
+    rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
+    assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "synth.jumpmap"]
+    assert "24x24 wang.tiles: skipped" in capsys.readouterr().err

@@ -117,11 +117,45 @@ def test_the_usage_term_spreads_a_tile_set_over_the_exemplar():
     stack = procedural_exemplar(64, lights=16)
     spread = {}
     for usage in (0.0, 2.0):
-        tiles, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, usage_weight=usage)
+        tiles, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, usage_weight=usage, centre=0.0)
         flat = CoordMap(np.ascontiguousarray(tiles.tile_coords.reshape(-1, 32, 2)), (64, 64))
         spread[usage] = (evenness(flat), tiles.statistics()["referenced_share"])
     # measured: evenness 0.72 -> 0.86 and referenced share 0.83 -> 0.92 (seeds 0 and 1 alike)
     assert spread[2.0][0] > spread[0.0][0] + 0.05 and spread[2.0][1] > spread[0.0][1]
+
+
+def test_each_tile_starts_from_a_least_used_piece_at_its_centre():
+    from btforge.plugins.wang.synthesis import centre_piece_side
+    rng = np.random.default_rng(3)
+    feats = rng.random((40, 48, 3)).astype(np.float32)
+    filler = _filler_with_usage(feats, 1.0)
+    used = np.full((40, 48, 2), -1, np.int32)
+    used[:, :30] = np.stack(np.mgrid[0:40, 0:30], -1)
+    filler.record(used)   # the left 30 columns are used: a 16-texel piece fits only from column 30 on
+    canvas = np.full((32, 32, 2), -1, np.int32)
+    filler.seed_centre(canvas, 16)
+    piece = canvas[8:24, 8:24]
+    assert (canvas[..., 0] >= 0).sum() == 16 * 16
+    y, x = piece[0, 0]
+    assert x >= 30 and x + 16 <= 48
+    np.testing.assert_array_equal(piece, np.stack(np.mgrid[y:y + 16, x:x + 16], -1))   # laid whole
+    assert centre_piece_side(64, 16, 0.5) == 32 and centre_piece_side(64, 16, 1.0) == 48
+    assert centre_piece_side(64, 16, 0.0) == 0
+
+
+def test_the_centre_pieces_spread_a_tile_set_over_the_exemplar():
+    """With a least-used piece at each tile's centre the set uses more of the exemplar, even without the usage
+    term (measured: evenness 0.73 -> 0.85 at seed 0, 0.74 -> 0.82 at seed 1)."""
+    from btforge.buffers import CoordMap
+    from btforge.plugins.synth.visibility import evenness
+    from btforge.plugins.wang import build_tile_set
+    from btforge.plugins.wang.bench import procedural_exemplar
+    stack = procedural_exemplar(64, lights=16)
+    spread = {}
+    for centre in (0.0, 0.5):
+        tiles, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, usage_weight=0.0, centre=centre)
+        spread[centre] = evenness(CoordMap(np.ascontiguousarray(tiles.tile_coords.reshape(-1, 32, 2)), (64, 64)))
+    assert spread[0.5] > spread[0.0] + 0.05, spread
 
 
 def _filler_with_usage(feats, weight):

@@ -21,6 +21,7 @@ import numpy as np
 
 from btforge.backend import get_backend
 from btforge.buffers import PerTexel, central_crop
+from btforge.errors import BtforgeInputError
 
 from . import visibility
 from .features import texel_features
@@ -76,6 +77,47 @@ def synthesizers() -> dict:
             if getattr(st, "role", "") == "synthesizer"}
 
 
+class WangTiling:
+    """Wang tiles as one synthesizer of the bench: ``wang.tiles`` at its defaults (64 x 64 tiles, 2 + 2 colours)
+    with the seed as tile-set seed, then ``wang.tiling`` of enough tiles to cover the output, cropped from its
+    upper-left corner, with the same seed.  Both stages are looked up by name, so the synth family does not import
+    the wang family (which imports synth).  A tile set is kept per exemplar and seed, so scoring a seed that was
+    timed reuses it; every new seed builds a new set, so a re-synthesis is timed as a whole tile set."""
+
+    name = "wang.tiles"
+    warm_up = False   # building a set to compile its kernels would cost as much as the timed run
+
+    def __init__(self, tile: int = 64):
+        self.tile = tile
+        self._sets: dict = {}
+
+    def __call__(self, *, exemplar, size, seed, ctx=None, **params):
+        """The map of a tiling of ``size``; ``params`` go to ``wang.tiles``."""
+        from btforge import stage
+        from btforge.buffers import CoordMap
+        key = (id(exemplar), seed, tuple(sorted(params.items())))
+        if key not in self._sets:
+            tiles = stage("wang.tiles")(exemplar=exemplar, seed=seed, tile=self.tile, **params,
+                                        **({"ctx": ctx} if ctx else {}))["tiles"]
+            self._sets[key] = (exemplar, tiles)   # the exemplar is kept so that its id is not reused
+        tiles = self._sets[key][1]
+        rows, cols = (-(-int(side) // tiles.tile) for side in size)
+        laid = stage("wang.tiling")(tiles=tiles, rows=rows, cols=cols, seed=seed)["coords"]
+        h, w = (int(side) for side in size)
+        return {"coords": CoordMap(np.ascontiguousarray(laid.coords[:h, :w]), laid.source_size, wrap=False,
+                                   tile=laid.tile)}
+
+
+def bench_synthesizers(only: set[str]) -> dict:
+    """The synthesizers the bench runs, by name: every registered synthesizer and, where the wang family is
+    registered, :class:`WangTiling`; with ``only``, those named there."""
+    from btforge.registry import default_registry
+    chosen = dict(synthesizers())
+    if WangTiling.name in default_registry().stages:
+        chosen[WangTiling.name] = WangTiling()
+    return {name: st for name, st in chosen.items() if not only or name in only}
+
+
 def score_map(model, coords, lights) -> dict:
     from btforge import stage
     output = stage("synth.materialize")(coords=coords, source=model)["output"]
@@ -86,7 +128,8 @@ def score_map(model, coords, lights) -> dict:
 def time_synthesizer(st, model, size: int, repeat: int) -> dict:
     """First run (analysis + synthesis), then ``repeat`` runs with other seeds (cached analysis): seconds."""
     from btforge.context import StageContext
-    st(exemplar=model, size=[32, 32], seed=99)  # kernel builds outside the timing (the analysis is per exemplar)
+    if getattr(st, "warm_up", True):  # kernel builds outside the timing (the analysis is per exemplar)
+        st(exemplar=model, size=[32, 32], seed=99)
     from .search import clear_caches
     clear_caches()
     ctx = StageContext(node="bench", quiet=True)
@@ -166,7 +209,7 @@ def bench_synthesis(args: list[str]) -> int:
     lights = [list(map(float, light)) for light in probe_lights(opts.lights)]
     from btforge.registry import default_registry
     only = {default_registry().aliases.get(n, n) for n in opts.only or ()}  # old stage names still select
-    chosen = {n: st for n, st in synthesizers().items() if not only or n in only}
+    chosen = bench_synthesizers(only)
     target = Path(opts.out)
     rows, search_rows = [], []
     for crop in opts.sizes:
@@ -180,7 +223,11 @@ def bench_synthesis(args: list[str]) -> int:
                      **{k: _round(v) for k, v in baseline.items()}})
         outputs = {}
         for name, st in chosen.items():
-            row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+            try:
+                row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+            except BtforgeInputError as refused:   # e.g. an exemplar smaller than Wang tiles need
+                print(f"{label} {name}: skipped, {refused}", file=sys.stderr)
+                continue
             rows.append(row)
         write_sheet(target / f"sheet_{_slug(opts.exemplar)}_{label}.png", model, outputs,
                     {r["synthesizer"]: r for r in rows if r["exemplar"] == label},

@@ -76,6 +76,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("interior", "int", 0, "side in texels of the windows that fill the tiles' interiors (0: 1.5 x edge, "
               "24 for tiles of 64); larger windows copy larger exemplar pieces, nearer the exemplar's patch "
               "statistics, but leave longer straight cuts (at most tile - edge)", low=0, high=1024),
+        Param("centre", "float", 0.5, "side, as a share of the tile's, of an exemplar piece laid whole at each "
+              "tile's centre before its interior is filled, from the place the tile set has used least so far, so "
+              "the tiles spread over the exemplar and keep its larger structures (0: off; at most 1 - edge / tile)",
+              low=0.0, high=1.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
         Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
@@ -88,15 +92,18 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
               low=1, high=256),
     ],
-    version="5",  # 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="6",  # 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
-def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, relax, refine,
-               occurrence, pin):
+def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre, relax,
+               refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
     filled between their corners by graph-cut patch filling with per-pixel error bookkeeping (Kwatra et al.
-    2003), frames from the strips' halves, interiors filled with the frame held.  A usage term (``usage``) spreads the
+    2003), frames from the strips' halves, interiors filled with the frame held.  Each interior starts from an
+    exemplar piece laid whole at the tile's centre (``centre``), from the place the set has used least so far, as
+    Cohen et al. 2003 give each tile a sample of its own: grown from its frame alone, every interior would continue
+    the few exemplar areas the corner samples came from.  A usage term (``usage``) spreads the
     patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``pin``) hides
     the cuts the filling left.  Distances are Euclidean in the
@@ -115,7 +122,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
                                               seed=seed, usage_weight=usage, usage_unit=usage_unit,
-                                              interior=interior, relax=relax,
+                                              interior=interior, centre=centre, relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
