@@ -603,7 +603,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
     the side of the windows that fill the interiors (0: :func:`interior_window`'s default); ``centre``: the side,
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
-    :func:`centre_side`).
+    :func:`centre_piece_side`).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
