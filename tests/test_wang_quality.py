@@ -4,6 +4,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 from hypothesis import given, settings, strategies as st
 
 from btforge.plugins.wang.cuts import grid_edges, min_cut
@@ -141,6 +142,29 @@ def test_each_tile_starts_from_a_least_used_piece_at_its_centre():
     np.testing.assert_array_equal(piece, np.stack(np.mgrid[y:y + 16, x:x + 16], -1))   # laid whole
     assert centre_piece_side(64, 16, 0.5) == 32 and centre_piece_side(64, 16, 1.0) == 48
     assert centre_piece_side(64, 16, 0.0) == 0
+
+
+def test_centre_pieces_can_be_kept_to_the_typical_places():
+    """A small bright patch on a noisy ground, the ground already used: every place of the patch is least used, so a
+    centre piece comes from it; with centre_typical 0.8 it comes from the ground, as the typical places are."""
+    rng = np.random.default_rng(5)
+    feats = (0.4 + 0.1 * rng.random((48, 48, 3))).astype(np.float32)
+    feats[36:, 36:] = 1.0                                  # the rare part: 12 x 12 texels in a corner
+    filler = _filler_with_usage(feats, 1.0)
+    used = np.full((48, 48, 2), -1, np.int32)
+    used[:36] = np.stack(np.mgrid[0:36, 0:48], -1)
+    used[:, :36] = np.stack(np.mgrid[0:48, 0:36], -1)
+    filler.record(used)                                    # everything but the patch has been laid once
+    in_patch = {}
+    for share in (1.0, 0.8):
+        canvas = np.full((24, 24, 2), -1, np.int32)
+        filler.seed_centre(canvas, 8, share)
+        piece = canvas[8:16, 8:16]
+        in_patch[share] = int(((piece[..., 0] >= 36) & (piece[..., 1] >= 36)).sum())
+    assert in_patch == {1.0: 64, 0.8: 0}                   # least used: the patch; among the typical: the ground
+    typical = filler.typical((8, 8), 0.8).reshape(41, 41)
+    assert typical.mean() == pytest.approx(0.8, abs=0.01) and not typical[36:, 36:].any()
+    assert filler.typical((8, 8), 1.0).all()
 
 
 def test_the_centre_pieces_spread_a_tile_set_over_the_exemplar():

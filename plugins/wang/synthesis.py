@@ -70,6 +70,9 @@ NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
 #: 0.625 (40 texels) raised plaster's SWD to 1.63 and the held-out exemplar's seams to 1.33, and choosing the place by
 #: its fit to the frame among the least-used tenth or quarter kept less of the gain (Benchmarks).
 CENTRE_SHARE = 0.5
+#: Default share of the exemplar's places a centre piece may come from, the most typical first (1: every place; see
+#: ``Filler.typical_places``).
+CENTRE_TYPICAL = 1.0
 
 
 @dataclasses.dataclass
@@ -159,6 +162,19 @@ class Filler:
         self.neighbour_cost = usage_weight * reference * reference
         self.match_levels: list[float] = []   # error per known texel of the drawn placements, every search so far
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
+        self.typical_places: dict[tuple, np.ndarray] = {}   # (window, share) -> mask, see typical
+
+    def typical(self, window: tuple[int, int], share: float) -> np.ndarray:
+        """Flat mask of the piece places (top-left corners) whose mean appearance is among the ``share`` nearest the
+        median place's.  A rare part of the exemplar (a patch of gold on a brown ground) laid at a tile's centre
+        repeats wherever that tile is laid and catches the eye; ``share`` < 1 keeps such parts out of the centres."""
+        key = (window, share)
+        if key not in self.typical_places:
+            means = np.stack([usage_means(self.feats[..., d], window) for d in range(self.feats.shape[2])], -1)
+            means = means.reshape(-1, self.feats.shape[2])
+            distance = np.linalg.norm(means - np.median(means, axis=0), axis=1)
+            self.typical_places[key] = distance <= np.quantile(distance, share)
+        return self.typical_places[key]
 
     def _target(self, coords, region, err):
         unfilled = region & (coords[..., 0] < 0)
@@ -271,14 +287,16 @@ class Filler:
                 self.kept += 1
         return err
 
-    def seed_centre(self, coords: np.ndarray, side: int) -> None:
+    def seed_centre(self, coords: np.ndarray, side: int, typical: float = CENTRE_TYPICAL) -> None:
         """Lay a ``side x side`` exemplar piece at the canvas's centre from a place the pieces laid so far have used
-        least (ties drawn at random), before the filling joins it to the frame around it.  Without it an interior
+        least (ties drawn at random) among the ``typical`` share of places (:meth:`typical`), before the filling
+        joins it to the frame around it.  Without it an interior
         grows inwards from its frame, matching it at every step, so every tile continues the few exemplar areas the
         corner samples came from (on paintings, their flat parts)."""
         ph, pw = min(side, self.feats.shape[0]), min(side, self.feats.shape[1])
         means = usage_means(self.usage, (ph, pw)).ravel()
-        lowest = np.flatnonzero(means <= means.min() + 1e-6)
+        allowed = np.flatnonzero(self.typical((ph, pw), typical))
+        lowest = allowed[means[allowed] <= means[allowed].min() + 1e-6]
         py, px = divmod(int(lowest[self.rng.integers(len(lowest))]), self.feats.shape[1] - pw + 1)
         y0, x0 = (coords.shape[0] - ph) // 2, (coords.shape[1] - pw) // 2
         dy, dx = np.mgrid[0:ph, 0:pw]
@@ -599,11 +617,12 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
                      seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
                      relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0], interior: int = 0,
-                     centre: float = CENTRE_SHARE) -> Synthesis:
+                     centre: float = CENTRE_SHARE, centre_typical: float = CENTRE_TYPICAL) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
     the side of the windows that fill the interiors (0: :func:`interior_window`'s default); ``centre``: the side,
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
-    :func:`centre_piece_side`).
+    :func:`centre_piece_side`); ``centre_typical``: the share of the exemplar's places, the most typical first, those
+    pieces come from (:meth:`Filler.typical`).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
@@ -664,7 +683,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
         def job():
             tile = frames[combo].copy()
             if centre_side:
-                filler.seed_centre(tile, centre_side)
+                filler.seed_centre(tile, centre_side, centre_typical)
             err = filler.fill(tile, inside_frame, window)
             if relax:
                 tile = relax_seams(tile, feats, inside_frame, relax)
