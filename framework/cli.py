@@ -16,7 +16,8 @@ import yaml
 from .errors import BtforgeError, BtforgeInputError, BtforgeWarning
 
 
-def _parse_sets(items: list[str]) -> dict:
+def parse_sets(items: list[str]) -> dict:
+    """``--set NAME.PARAM=VALUE`` arguments as ``{'NAME.PARAM': value}``, each value read as YAML."""
     out = {}
     for item in items or []:
         key, sep, value = item.partition("=")
@@ -103,7 +104,7 @@ def cmd_run(args) -> int:
     from .runner import DEFAULT_OUT, run  # NumPy and the engine load here (`import btforge` loads neither)
     record_phase("interpreter_and_imports_s", time.perf_counter() - importing)
     started = time.time()
-    result = run(args.graph, only=args.only, set=_parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
+    result = run(args.graph, only=args.only, set=parse_sets(args.set), out_dir=args.out, cache_dir=args.cache,
                  use_cache=not args.no_cache, quiet=False, report_path=args.report, scheduler=args.scheduler)
     _print_report(result, sys.stderr)
     for line in written_lines(result.output_paths, Path(args.out) if args.out else DEFAULT_OUT, started):
@@ -117,7 +118,7 @@ def cmd_run(args) -> int:
 def cmd_validate(args) -> int:
     from .graph import check_graph, load_graph
     from .registry import default_registry
-    checked = check_graph(load_graph(args.graph, _parse_sets(args.set)), default_registry(),
+    checked = check_graph(load_graph(args.graph, parse_sets(args.set)), default_registry(),
                           Path(args.out) if args.out else None)
     print(f"{args.graph}: ok ({len(checked.stages)} nodes, {checked.dag.number_of_edges()} edges)")
     for node, notes in checked.notes.items():  # 'auto' params the check narrowed for a consumer

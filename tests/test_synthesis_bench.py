@@ -102,3 +102,22 @@ def test_the_bench_skips_a_synthesizer_that_refuses_the_exemplar(tmp_path, capsy
     rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
     assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "synth.jumpmap"]
     assert "24x24 wang.tiles: skipped" in capsys.readouterr().err
+
+
+def test_the_bench_runs_a_synthesizer_at_the_params_set(tmp_path, capsys):
+    """`--set STAGE.PARAM=VALUE` reaches the stage; an unknown stage or param stops the bench with both named."""
+    import csv
+    from btforge.cli import main
+    common = ["bench", "synthesis", "--exemplar", "procedural", "--sizes", "24", "--size", "32",
+              "--only", "synth.jumpmap", "--lights", "3", "--no-search"]
+    rows = {}
+    for name, sets in (("default", []), ("walk", ["--set", "synth.jumpmap.refine=0"])):
+        assert main(common + ["--out", str(tmp_path / name)] + sets) == 0
+        rows[name] = list(csv.DictReader((tmp_path / name / "synthesis.csv").open()))[-1]
+    assert rows["default"]["coherence"] != rows["walk"]["coherence"]
+    capsys.readouterr()
+    assert main(common + ["--out", str(tmp_path / "bad"), "--set", "synth.jumpmap.nope=1",
+                          "--set", "synth.quilt.block=16"]) == 2
+    err = capsys.readouterr().err
+    assert "synth.jumpmap has no param 'nope'" in err and "'synth.quilt' is not a synthesizer this bench runs" in err
+    assert "Traceback" not in err

@@ -125,21 +125,23 @@ def score_map(model, coords, lights) -> dict:
     return {k: values.get(k) for k in SCORE_KEYS}
 
 
-def time_synthesizer(st, model, size: int, repeat: int) -> dict:
-    """First run (analysis + synthesis), then ``repeat`` runs with other seeds (cached analysis): seconds."""
+def time_synthesizer(st, model, size: int, repeat: int, params: dict | None = None) -> dict:
+    """First run (analysis + synthesis), then ``repeat`` runs with other seeds (cached analysis): seconds.
+    ``params``: the synthesizer's params other than its defaults."""
+    params = params or {}
     from btforge.context import StageContext
     if getattr(st, "warm_up", True):  # kernel builds outside the timing (the analysis is per exemplar)
-        st(exemplar=model, size=[32, 32], seed=99)
+        st(exemplar=model, size=[32, 32], seed=99, **params)
     from .search import clear_caches
     clear_caches()
     ctx = StageContext(node="bench", quiet=True)
     start = time.perf_counter()
-    coords = st(ctx=ctx, exemplar=model, size=[size, size], seed=0)["coords"]
+    coords = st(ctx=ctx, exemplar=model, size=[size, size], seed=0, **params)["coords"]
     first = time.perf_counter() - start
     again = []
     for seed in range(1, repeat + 1):
         start = time.perf_counter()
-        st(exemplar=model, size=[size, size], seed=seed)
+        st(exemplar=model, size=[size, size], seed=seed, **params)
         again.append(time.perf_counter() - start)
     synthesis = statistics.median(again)
     return {"coords": coords, "first_s": first, "analysis_s": max(0.0, first - synthesis), "synthesis_s": synthesis,
@@ -199,7 +201,31 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-search", action="store_true", help="leave out the shared search's figures (search.csv)")
     p.add_argument("--seeds", type=int, default=1, help="score seeds 0 .. N-1 (and N baselines) and report "
                    "each score's median: one seed's sliced-Wasserstein distance varies by up to 2x (default 1)")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                   help="run a synthesizer with a param other than its default, e.g. --set synth.quilt.block=24 or "
+                   "--set wang.tiles.centre_typical=0.95 (repeatable)")
     return p
+
+
+def synthesizer_params(sets: dict, chosen: dict) -> dict[str, dict]:
+    """``{'STAGE.PARAM': value}`` as params per chosen synthesizer; every unknown stage or param named at once."""
+    from btforge.registry import default_registry
+    params: dict[str, dict] = {name: {} for name in chosen}
+    problems = []
+    for key, value in sets.items():
+        name, _, param = key.rpartition(".")
+        if name not in chosen:
+            problems.append(f"--set {key}: '{name}' is not a synthesizer this bench runs ({', '.join(chosen)})")
+            continue
+        declared = [p.name for p in default_registry().stage(name).params]
+        if param not in declared:
+            problems.append(f"--set {key}: {name} has no param '{param}' (its params: {', '.join(declared)})")
+            continue
+        params[name][param] = value
+    if problems:
+        raise BtforgeInputError("btforge bench synthesis", "; ".join(problems),
+                                "name a synthesizer of --only (or of the bench's list) and one of its params")
+    return params
 
 
 def bench_synthesis(args: list[str]) -> int:
@@ -210,6 +236,8 @@ def bench_synthesis(args: list[str]) -> int:
     from btforge.registry import default_registry
     only = {default_registry().aliases.get(n, n) for n in opts.only or ()}  # old stage names still select
     chosen = bench_synthesizers(only)
+    from btforge.cli import parse_sets
+    params = synthesizer_params(parse_sets(opts.set), chosen)
     target = Path(opts.out)
     rows, search_rows = [], []
     for crop in opts.sizes:
@@ -224,7 +252,7 @@ def bench_synthesis(args: list[str]) -> int:
         outputs = {}
         for name, st in chosen.items():
             try:
-                row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights)
+                row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights, params[name])
             except BtforgeInputError as refused:   # e.g. an exemplar smaller than Wang tiles need
                 print(f"{label} {name}: skipped, {refused}", file=sys.stderr)
                 continue
@@ -257,11 +285,11 @@ def _search_figures(model) -> dict:
     return {k: _round(v) for k, v in found.items()}
 
 
-def _synthesizer_row(st, name: str, model, label: str, opts, lights) -> tuple[dict, object]:
-    """One synthesizer's timings and median scores on one exemplar, and its first map."""
-    timed = time_synthesizer(st, model, opts.size, opts.repeat)
+def _synthesizer_row(st, name: str, model, label: str, opts, lights, params: dict) -> tuple[dict, object]:
+    """One synthesizer's timings and median scores on one exemplar (at ``params``), and its first map."""
+    timed = time_synthesizer(st, model, opts.size, opts.repeat, params)
     scores = median_scores([score_map(model, timed["coords"], lights)] + [
-        score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed)["coords"], lights)
+        score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed, **params)["coords"], lights)
         for seed in range(1, opts.seeds)])
     row = {"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
            "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}}
