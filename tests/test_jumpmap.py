@@ -62,12 +62,12 @@ def test_jump_map_analysis_on_opencl_matches_numpy(material, case):
     (False, 0.1, (37, 41), "material"), (True, 0.1, (40, 33), "material"), (True, 1.0, (16, 64), "material"),
     (False, 0.0, (25, 25), "material"), (True, 0.3, (21, 18), "constant"), (False, 0.5, (1, 30), "material"),
 ])
-@pytest.mark.parametrize("balance", [False, True])
-def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, balance):
+@pytest.mark.parametrize("balance,overuse", [(False, 4), (True, 4), (True, 1)])
+def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, balance, overuse):
     features = texel_features(material) if case == "material" else np.ones((9, 10, 2), np.float32)
     jm = build_jump_map(features, jumps=3, jump_probability=probability, neighborhood=5 if case == "material" else 3)
-    a, counts_a = walk(jm, size, wrap=wrap, seed=11, balance=balance)
-    b, counts_b = walk(jm, size, wrap=wrap, seed=11, balance=balance, engine="numpy")
+    a, counts_a = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse)
+    b, counts_b = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse, engine="numpy")
     np.testing.assert_array_equal(a, b)
     assert counts_a == counts_b
 
@@ -86,6 +86,22 @@ def test_balance_evens_out_the_use_of_the_exemplar():
             use.append(np.abs(share - 1).mean())
         spread[balance] = float(np.median(use))
     assert spread[True] < 0.85 * spread[False], spread
+
+
+@pytest.mark.parametrize("engine", ["numpy", "opencl"])
+def test_overuse_brings_in_an_exemplar_region_no_neighbourhood_leads_to(engine):
+    """Two unlike halves (a smooth ramp, fine noise): jumps land only on similar neighbourhoods, so a walk that
+    started in one half crosses into the other only when it leaves an over-used cell.  At ``overuse`` 1 (a cell left
+    at its fair share plus one cell's worth: at most 3 / 4 of this output in one half) the other half comes in; at
+    the default 4 it stays out."""
+    rng = np.random.default_rng(3)
+    ramp = np.linspace(0.2, 0.4, 48, dtype=np.float32)[None, :, None] + np.zeros((48, 1, 3), np.float32)
+    noise = 0.6 + 0.3 * rng.random((48, 48, 3), dtype=np.float32)
+    jm = build_jump_map(np.concatenate([ramp, noise], axis=1), jumps=3, jump_probability=0.02)
+    right = {overuse: float(np.median([(walk(jm, (96, 96), seed=s, overuse=overuse, engine=engine)[0][..., 1] >= 48)
+                                       .mean() for s in range(3)])) for overuse in (1, 4)}
+    assert 0.2 <= right[1] <= 0.8, right
+    assert min(right[4], 1 - right[4]) < 0.05, right
 
 
 def test_jump_targets_are_away_from_the_texel_and_inside_the_border(material):

@@ -32,7 +32,7 @@ JUMP_PROBABILITY = 0.02   #: default mean jump rate (measured with BALANCE: 0.01
 COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
 BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
 BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
-OVERUSE = 4               #: balance: a cell holding more than this x its fair share (+ one cell) is over-used
+OVERUSE = 4               #: default 'overuse': a cell holding more than this x its fair share (+ one cell) is over-used
 #: Default refinement windows: 12 x 12, so the coarsest of the two coarse scales matches 48-texel pieces (a
 #: quarter of a 192-texel exemplar) whole; with 8 x 8 windows long fibres and large areas came out in short pieces.
 REFINE_WINDOW = 12
@@ -149,7 +149,7 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
 
 
 def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | None = None,
-          escape: np.ndarray | None = None, done: int = 0) -> np.ndarray:
+          escape: np.ndarray | None = None, done: int = 0, overuse: int = OVERUSE) -> np.ndarray:
     """The jump target of each ``texel`` chosen by uniform ``u`` (-1 where the texel has none); with ``usage``
     (per exemplar cell) the first least-used of its targets from the drawn one on, cyclically (``pick_target``)."""
     n_jump = jm.targets.shape[1]
@@ -164,14 +164,14 @@ def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | Non
     pick = np.argmin(use, axis=1)
     rows = np.arange(len(texel))
     best = cand[rows, pick]
-    over = _over_share(use[rows, pick], jm, done)
+    over = _over_share(use[rows, pick], jm, done, overuse)
     return np.where(drawn >= 0, np.where(over, escape, best), drawn)
 
 
-def _over_share(use: np.ndarray, jm: JumpMap, done: int) -> np.ndarray:
-    """Twin of ``over_share``: uses beyond OVERUSE x the fair share of ``done`` pixels plus one cell's worth."""
+def _over_share(use: np.ndarray, jm: JumpMap, done: int, overuse: int = OVERUSE) -> np.ndarray:
+    """Twin of ``over_share``: uses beyond ``overuse`` x the fair share of ``done`` pixels plus one cell's worth."""
     area = BALANCE_CELL * BALANCE_CELL
-    return (use - area) * (jm.height * jm.width) > OVERUSE * done * area
+    return (use - area) * (jm.height * jm.width) > overuse * done * area
 
 
 def _cell_of(texel: np.ndarray, width: int) -> np.ndarray:
@@ -179,7 +179,7 @@ def _cell_of(texel: np.ndarray, width: int) -> np.ndarray:
 
 
 def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0, balance: bool = BALANCE,
-         engine: str = "opencl") -> tuple[np.ndarray, dict]:
+         overuse: int = OVERUSE, engine: str = "opencl") -> tuple[np.ndarray, dict]:
     """Synthesize ``[H, W, 2]`` int32 coordinates with the jump-map walk; returns them and counts.
 
     Order: anti-diagonal wavefronts ``x + 2 y = t``.  Every pixel of a wavefront only needs pixels of earlier
@@ -198,19 +198,19 @@ def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 
     escape = ((rng.integers(1, max(2, jm.height - 1), ho * wo)) * jm.width
               + rng.integers(1, max(2, jm.width - 1), ho * wo)).astype(np.int32)
     if engine == "numpy":
-        src, flags = walk_numpy(jm, ho, wo, wrap, uniform, fallback, balance, escape)
+        src, flags = walk_numpy(jm, ho, wo, wrap, uniform, fallback, balance, escape, overuse)
     else:
-        src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback, balance, escape)
+        src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback, balance, escape, overuse)
     coords = np.stack(np.divmod(src.reshape(ho, wo), jm.width), axis=-1).astype(np.int32)
     return coords, {"jumps_taken": int((flags & 1).sum()), "forced_jumps": int((flags >> 1 & 1).sum())}
 
 
 def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
-                balance: bool, escape: np.ndarray):
+                balance: bool, escape: np.ndarray, overuse: int = OVERUSE):
     """The walk on OpenCL (``jm_walk``, one launch per wavefront): flat sources and per-pixel jump flags."""
     backend = get_backend()
     jumps = jm.targets.shape[1]
-    options = (f"-DJUMPS={jumps}", f"-DOVERUSE={OVERUSE}")
+    options = (f"-DJUMPS={jumps}", f"-DOVERUSE={int(overuse)}")
     kernel = backend.kernel(KERNELS, "jm_walk", options)
     count = backend.kernel(KERNELS, "jm_count", options)
     escape_dev = backend.to_device(escape)
@@ -256,7 +256,7 @@ def _output_neighbour(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bo
 
 
 def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
-               balance: bool, escape: np.ndarray):
+               balance: bool, escape: np.ndarray, overuse: int = OVERUSE):
     """Twin of ``jm_walk``, vectorised over each wavefront: flat sources and per-pixel jump flags."""
     he, we = jm.height, jm.width
     tex = jm.textons.labels.ravel()
@@ -287,10 +287,10 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
             c = np.clip(sy, 0, he - 1) * we + np.clip(sx, 0, we - 1)
             jump = ~out & has_jump[c] & (u[:, 0] < jm.probability[c])
             if balance:  # an over-used cell is left by a jump whatever the draw
-                jump |= ~out & has_jump[c] & _over_share(usage[_cell_of(c, we)], jm, n_done)
-            c = np.where(jump, _pick(jm, c, u[:, 1], usage, escape[p], n_done), c)
+                jump |= ~out & has_jump[c] & _over_share(usage[_cell_of(c, we)], jm, n_done, overuse)
+            c = np.where(jump, _pick(jm, c, u[:, 1], usage, escape[p], n_done, overuse), c)
             # forced: the copy leaves the exemplar, so jump from the source and step from the target
-            f_target = _pick(jm, s, u[:, 1], usage, escape[p], n_done)
+            f_target = _pick(jm, s, u[:, 1], usage, escape[p], n_done, overuse)
             f_ok = f_target >= 0
             fy = np.where(f_ok, f_target // we + STEP[d, 0], np.clip(sy, 0, he - 1))
             fx = np.where(f_ok, f_target % we + STEP[d, 1], np.clip(sx, 0, we - 1))
@@ -338,15 +338,19 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
         Param("coverage", "float", COVERAGE, "exponent of the in-degree balance of jump choices: a target's choice "
               "weight is divided by (how many texels jump to it) ** coverage (0: off)", low=0.0, high=2.0),
         Param("balance", "bool", BALANCE, "usage-aware walk: a copy from an exemplar cell (8 x 8 texels) the "
-              "output already holds more than 4 x its fair share of (plus one cell's worth) jumps whatever the "
+              "output already holds more than overuse x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
+        Param("overuse", "int", OVERUSE, "with balance, the share (x the fair share) of an exemplar cell the output "
+              "may hold before the walk leaves it; 1 spreads the walk over exemplar areas no neighbourhood leads to "
+              "(RealRTI item2's grass at 192 x 192: SWD 3.02 -> 1.27 x the shuffled blocks) but breaks up stones on "
+              "128 x 128 exemplars (0.92 -> 2.17)", low=1, high=64),
         *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
                        coarse_refine=COARSE_ROUNDS),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance, refine, occurrence, scales, window, coarse_refine):
+            coverage, balance, overuse, refine, occurrence, scales, window, coarse_refine):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -365,8 +369,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     **Balance** (``balance``, on by default): the plain walk drifts right and down and gets caught in pockets
     whose forced jumps land in the pocket again (on a 64 x 64 crop, one 8 x 8 cell held 27 x its fair share).
     With balance the walk counts the output's use of every 8 x 8 exemplar cell after each wavefront; a copy
-    from an over-used cell (more than 4 x its fair share of the pixels so far, plus one cell's worth) jumps
-    whatever the draw, a jump goes to the least-used of the texel's targets, and where even that cell is
+    from an over-used cell (more than ``overuse`` x its fair share of the pixels so far, plus one cell's worth)
+    jumps whatever the draw, a jump goes to the least-used of the texel's targets, and where even that cell is
     over-used to a random texel.  The defaults (rate 0.02, coverage 1, balance) scored best of those measured
     (README, Benchmarks).
 
@@ -408,7 +412,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     jm = cached_jump_map(features, jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
-    coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance)
+    coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance, overuse=overuse)
     ctx.note("textons", jm.textons.count)
     ctx.note("jump_targets", int((jm.targets[:, 0] >= 0).sum()))
     ctx.note("jumps_taken", counts["jumps_taken"])
