@@ -9,7 +9,7 @@ from hypothesis import given, settings, strategies as st
 
 from btforge.plugins.wang.cuts import grid_edges, min_cut
 from btforge.plugins.wang.relax import pair_cost, relax_seams
-from btforge.plugins.wang.synthesis import pixel_errors, usage_means
+from btforge.plugins.wang.synthesis import pixel_errors, window_means
 
 
 def _seam_energy(coords, feats):
@@ -61,15 +61,18 @@ def test_relaxation_removes_an_island_and_leaves_continuous_content_alone():
     np.testing.assert_array_equal(relax_seams(spotted, feats, movable), coords)
 
 
-def test_usage_means_match_a_brute_force_window_mean():
+def test_window_means_match_a_brute_force_window_mean():
     rng = np.random.default_rng(2)
     usage = rng.random((13, 17))
     for window, stride in (((4, 5), 1), ((3, 3), 2), ((13, 17), 1)):
-        got = usage_means(usage, window, stride)
+        got = window_means(usage, window, stride)
         want = np.array([[usage[y:y + window[0], x:x + window[1]].mean()
                           for x in range(0, 17 - window[1] + 1, stride)]
                          for y in range(0, 13 - window[0] + 1, stride)])
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    channels = rng.random((13, 17, 3))
+    want = np.stack([window_means(channels[..., d], (4, 5)) for d in range(3)], -1)
+    np.testing.assert_allclose(window_means(channels, (4, 5)), want, rtol=1e-6)
 
 
 def test_min_cut_is_the_cheapest_split_on_small_grids():
@@ -200,7 +203,7 @@ def test_the_usage_term_in_match_units_is_weighed_in_the_fillings_own_match_leve
     second = errors + 1.0
     cost = filler._usage_cost(second, 20, (8, 8), 1)
     level = np.median([np.sort(errors.ravel())[3] / 10, np.sort(second.ravel())[3] / 20])
-    np.testing.assert_allclose(cost, 2.0 * level * 20 * usage_means(filler.usage, (8, 8)), rtol=1e-6)
+    np.testing.assert_allclose(cost, 2.0 * level * 20 * window_means(filler.usage, (8, 8)), rtol=1e-6)
     assert cost[0, 0] > 0 and cost[-1, -1] == 0.0                  # over the used texels only
 
 

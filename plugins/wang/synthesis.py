@@ -29,7 +29,7 @@ the summed per-pixel error of the region.  A pixel's error is its worst seam: fo
 elsewhere, the mean distance between each side and the other side's own continuation.  Filling stops when every
 pixel is filled and under the threshold (``THRESHOLD`` x the exemplar's median neighbouring-texel distance) or
 the patch budget runs out.  A placement's error also counts how often earlier patches already laid the exemplar
-texels under it (``usage_weight``, :func:`usage_means`), in squared median neighbour distances or (``usage_unit``
+texels under it (``usage_weight``, :func:`window_means`), in squared median neighbour distances or (``usage_unit``
 "match") in the filling's own match level (the median error per known texel of the placements drawn among, after
 Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; each
 finished strip and interior is then relaxed texel by texel (:mod:`relax`).
@@ -139,12 +139,12 @@ def _region_cost(err: np.ndarray, region: np.ndarray) -> tuple[int, float]:
     return int((~finite).sum()), float(values[finite].sum())
 
 
-def usage_means(usage: np.ndarray, window: tuple[int, int], stride: int = 1) -> np.ndarray:
-    """Mean of ``usage [H, W]`` over the ``window`` at every placement on the grid of ``stride`` (the layout of
-    :func:`placement.placement_errors_numpy`)."""
+def window_means(values: np.ndarray, window: tuple[int, int], stride: int = 1) -> np.ndarray:
+    """Mean of ``values [H, W, ...]`` over the ``window`` at every placement on the grid of ``stride`` (the layout
+    of :func:`placement.placement_errors_numpy`), per trailing channel."""
     ph, pw = window
-    sat = np.zeros((usage.shape[0] + 1, usage.shape[1] + 1))
-    sat[1:, 1:] = usage.cumsum(0).cumsum(1)
+    sat = np.zeros((values.shape[0] + 1, values.shape[1] + 1) + values.shape[2:])
+    sat[1:, 1:] = values.cumsum(0).cumsum(1)
     box = sat[ph:, pw:] - sat[:-ph, pw:] - sat[ph:, :-pw] + sat[:-ph, :-pw]
     return (box[::stride, ::stride] / (ph * pw)).astype(np.float32)
 
@@ -168,10 +168,12 @@ class Filler:
         """Flat mask of the piece places (top-left corners) whose mean appearance is among the ``share`` nearest the
         median place's.  A rare part of the exemplar (a patch of gold on a brown ground) laid at a tile's centre
         repeats wherever that tile is laid and catches the eye; ``share`` < 1 keeps such parts out of the centres."""
+        places = (self.feats.shape[0] - window[0] + 1) * (self.feats.shape[1] - window[1] + 1)
+        if share >= 1:
+            return np.ones(places, bool)
         key = (window, share)
         if key not in self.typical_places:
-            means = np.stack([usage_means(self.feats[..., d], window) for d in range(self.feats.shape[2])], -1)
-            means = means.reshape(-1, self.feats.shape[2])
+            means = window_means(self.feats, window).reshape(places, self.feats.shape[2])
             distance = np.linalg.norm(means - np.median(means, axis=0), axis=1)
             self.typical_places[key] = distance <= np.quantile(distance, share)
         return self.typical_places[key]
@@ -230,7 +232,7 @@ class Filler:
             return 0.0
         weighted_unit = (self.neighbour_cost if self.usage_unit == "neighbour"
                          else self.usage_weight * float(np.median(self.match_levels)))
-        return weighted_unit * known * usage_means(self.usage, window, stride)
+        return weighted_unit * known * window_means(self.usage, window, stride)
 
     def record(self, coords: np.ndarray) -> None:
         """Count the exemplar texels a finished canvas lays (they cost more in later placements)."""
@@ -287,15 +289,15 @@ class Filler:
                 self.kept += 1
         return err
 
-    def seed_centre(self, coords: np.ndarray, side: int, typical: float = CENTRE_TYPICAL) -> None:
+    def seed_centre(self, coords: np.ndarray, side: int, share: float = CENTRE_TYPICAL) -> None:
         """Lay a ``side x side`` exemplar piece at the canvas's centre from a place the pieces laid so far have used
-        least (ties drawn at random) among the ``typical`` share of places (:meth:`typical`), before the filling
+        least (ties drawn at random) among the ``share`` of places most typical (:meth:`typical`), before the filling
         joins it to the frame around it.  Without it an interior
         grows inwards from its frame, matching it at every step, so every tile continues the few exemplar areas the
         corner samples came from (on paintings, their flat parts)."""
         ph, pw = min(side, self.feats.shape[0]), min(side, self.feats.shape[1])
-        means = usage_means(self.usage, (ph, pw)).ravel()
-        allowed = np.flatnonzero(self.typical((ph, pw), typical))
+        means = window_means(self.usage, (ph, pw)).ravel()
+        allowed = np.flatnonzero(self.typical((ph, pw), share))
         lowest = allowed[means[allowed] <= means[allowed].min() + 1e-6]
         py, px = divmod(int(lowest[self.rng.integers(len(lowest))]), self.feats.shape[1] - pw + 1)
         y0, x0 = (coords.shape[0] - ph) // 2, (coords.shape[1] - pw) // 2
