@@ -121,3 +121,14 @@ def test_the_bench_runs_a_synthesizer_at_the_params_set(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "synth.jumpmap has no param 'nope'" in err and "'synth.quilt' is not a synthesizer this bench runs" in err
     assert "Traceback" not in err
+
+
+def test_the_bench_warms_a_synthesizer_up_at_a_size_its_block_fits(tmp_path):
+    """The kernel warm-up synthesizes at least one block: a quilt block over 32 texels runs instead of being skipped."""
+    import csv
+    from btforge.cli import main
+    assert main(["bench", "synthesis", "--exemplar", "procedural", "--sizes", "48", "--size", "48", "--only",
+                 "synth.quilt", "--lights", "3", "--no-search", "--out", str(tmp_path),
+                 "--set", "synth.quilt.block=40"]) == 0
+    rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
+    assert [row["synthesizer"] for row in rows if row["synthesizer"] == "synth.quilt"] == ["synth.quilt"]

@@ -131,7 +131,8 @@ def time_synthesizer(st, model, size: int, repeat: int, params: dict | None = No
     params = params or {}
     from btforge.context import StageContext
     if getattr(st, "warm_up", True):  # kernel builds outside the timing (the analysis is per exemplar)
-        st(exemplar=model, size=[32, 32], seed=99, **params)
+        warm = max([32] + [v for k, v in params.items() if k == "block" and isinstance(v, int)])
+        st(exemplar=model, size=[warm, warm], seed=99, **params)
     from .search import clear_caches
     clear_caches()
     ctx = StageContext(node="bench", quiet=True)
@@ -203,7 +204,7 @@ def _parser() -> argparse.ArgumentParser:
                    "each score's median: one seed's sliced-Wasserstein distance varies by up to 2x (default 1)")
     p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                    help="run a synthesizer with a param other than its default, e.g. --set synth.quilt.block=24 or "
-                   "--set wang.tiles.centre_typical=0.95 (repeatable)")
+                   "--set wang.tiles.typical=0.85 (repeatable)")
     return p
 
 
