@@ -135,6 +135,24 @@ def test_the_usage_term_spreads_a_tile_set_over_the_exemplar():
     assert spread[0] > plain[0] + 0.05 and spread[1] > plain[1], (plain, spread)
 
 
+def test_the_filling_stops_once_the_region_is_covered():
+    """A covered canvas takes no more patches, however bad its seams: with every pixel filled nothing ties a minimum
+    cut to a new patch, so the cheapest cut keeps the old canvas and such a patch only costs its search."""
+    rng = np.random.default_rng(5)
+    feats = rng.random((40, 40, 3)).astype(np.float32)
+    filler = _filler_with_usage(feats, 0.0)
+    canvas = np.stack(np.mgrid[5:21, 5:21], -1).astype(np.int32)
+    canvas[7:10, 7:10] = np.stack(np.mgrid[28:31, 28:31], -1)      # an island with seams all round
+    region = np.ones((16, 16), bool)
+    covered = canvas.copy()
+    filler.fill(canvas, region, (8, 8))
+    assert filler.placed == 0
+    np.testing.assert_array_equal(canvas, covered)
+    canvas[:4, :4] = -1
+    filler.fill(canvas, region, (8, 8))
+    assert filler.placed >= 1 and (canvas[..., 0] >= 0).all()
+
+
 def test_each_tile_starts_from_a_least_used_piece_at_its_centre():
     from btforge.plugins.wang.synthesis import centre_piece_side
     rng = np.random.default_rng(3)
@@ -161,6 +179,7 @@ def test_pieces_can_be_kept_to_the_typical_places():
     feats = (0.4 + 0.1 * rng.random((48, 48, 3))).astype(np.float32)
     feats[36:, 36:] = 1.0                                  # the rare part: 12 x 12 texels in a corner
     filler = _filler_with_usage(feats, 1.0)
+    filler.rare = 0.0                                      # the share alone (the patch is rare too)
     used = np.full((48, 48, 2), -1, np.int32)
     used[:36] = np.stack(np.mgrid[0:36, 0:48], -1)
     used[:, :36] = np.stack(np.mgrid[0:48, 0:36], -1)
@@ -173,27 +192,46 @@ def test_pieces_can_be_kept_to_the_typical_places():
         piece = canvas[8:16, 8:16]
         in_patch[share] = int(((piece[..., 0] >= 36) & (piece[..., 1] >= 36)).sum())
     assert in_patch == {1.0: 64, 0.75: 0}                   # least used: the patch; among the typical: the ground
-    typical = filler.typical((8, 8), 0.75).reshape(41, 41)
+    typical = filler.typical((8, 8)).reshape(41, 41)
     assert typical.mean() == pytest.approx(0.75, abs=0.01) and not typical[36:, 36:].any()
-    assert filler.typical((8, 8), 1.0).all()
+    filler.typical_share = 1.0
+    assert filler.typical((8, 8)).all()
 
 
-def test_the_filling_keeps_to_the_typical_places_too():
-    """The filling's patches obey the typical share as the centre pieces do: with the ground used and the bright
-    patch not, a strip filled at share 1 lays patch texels (the usage term pulls it there); at 0.75 none."""
+def _patch_taken(typical_share: float, rare: float) -> tuple[int, int]:
+    """Texels of a bright 12 x 12 corner patch on a used noisy ground (the patch itself unused) that a centre piece
+    and a filled strip take, with the filler's typical share and rare fence set as given."""
     rng = np.random.default_rng(5)
     feats = (0.4 + 0.1 * rng.random((48, 48, 3))).astype(np.float32)
     feats[36:, 36:] = 1.0
-    laid = {}
-    for share in (1.0, 0.75):
-        filler = _filler_with_usage(feats, 50.0)
-        filler.usage[:36] = filler.usage[:, :36] = 1.0
-        filler.typical_share = share
-        canvas = np.full((8, 40, 2), -1, np.int32)
-        canvas[:, :4] = np.stack(np.mgrid[0:8, 0:4], -1)
-        filler.fill(canvas, canvas[..., 0] < 0, (8, 8))
-        laid[share] = int(((canvas[..., 0] >= 36) & (canvas[..., 1] >= 36)).sum())
-    assert laid[1.0] > 0 and laid[0.75] == 0, laid
+    filler = _filler_with_usage(feats, 50.0)
+    filler.usage[:36] = filler.usage[:, :36] = 1.0
+    filler.typical_share, filler.rare = typical_share, rare
+    centre = np.full((24, 24, 2), -1, np.int32)
+    filler.seed_centre(centre, 8)
+    strip = np.full((8, 40, 2), -1, np.int32)
+    strip[:, :4] = np.stack(np.mgrid[0:8, 0:4], -1)
+    filler.fill(strip, strip[..., 0] < 0, (8, 8))
+    return tuple(int(((c[..., 0] >= 36) & (c[..., 1] >= 36)).sum()) for c in (centre, strip))
+
+
+def test_the_filling_keeps_to_the_typical_places_too():
+    """The filling's patches obey the typical share as the centre pieces do: at share 1 a strip lays patch texels
+    (the usage term pulls it there); at 0.75 none."""
+    assert _patch_taken(1.0, 0.0)[1] > 0 and _patch_taken(0.75, 0.0)[1] == 0
+
+
+def test_pieces_holding_a_rare_texel_stay_out_of_the_tiles():
+    """At the default fence the bright patch's texels are rare, so neither a centre piece nor the filling takes any
+    of them though they are the least used; with the fence off both do.  Where rare texels are strewn over the
+    whole exemplar (every window holds one) they are its texture and no place is left out."""
+    from btforge.plugins.wang.synthesis import RARE_FENCE
+    assert _patch_taken(1.0, RARE_FENCE) == (0, 0)
+    assert min(_patch_taken(1.0, 0.0)) > 0
+    rng = np.random.default_rng(6)
+    speckled = (0.4 + 0.1 * rng.random((48, 48, 3))).astype(np.float32)
+    speckled[::6, ::6] = 1.0                               # one bright texel in every 6 x 6
+    assert _filler_with_usage(speckled, 1.0).typical((8, 8)).all()
 
 
 def test_the_centre_pieces_spread_a_tile_set_over_the_exemplar():

@@ -85,6 +85,9 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "place); below 1 a rare, conspicuous part (a patch of gold on a brown ground) stays out of the tiles, "
               "where it would repeat wherever its tile is laid, at some cost to a stationary exemplar's patch "
               "statistics (try 0.85)", low=0.01, high=1.0),
+        Param("rare", "float", 5.0, "a texel is rare where its unusualness (its appearance's distance from the median "
+              "texel's) exceeds the upper quartile by this many interquartile ranges; pieces holding a rare texel stay "
+              "out of the tiles, unless that would leave out half the places or more (0: off)", low=0.0, high=1000.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
         Param("refine", "int", 4, "rounds of texture optimisation over the finished tiles' interiors (the shared "
@@ -97,10 +100,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
               low=1, high=256),
     ],
-    version="7",  # 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="7",  # 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               typical, relax, refine, occurrence, pin):
+               typical, rare, relax, refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -127,7 +130,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
                                               seed=seed, usage_weight=usage, usage_unit=usage_unit,
-                                              interior=interior, centre=centre, typical=typical,
+                                              interior=interior, centre=centre, typical=typical, rare=rare,
                                               relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})

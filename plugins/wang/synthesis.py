@@ -32,8 +32,8 @@ nothing, since no pixel tied the cut to the new side; tied to the worst pixel's 
 beyond the seeds' spread.)  A placement's error also counts how often earlier patches already laid the exemplar
 texels under it (``usage_weight``, :func:`window_means`), in squared median neighbour distances or (``usage_unit``
 "match") in the filling's own match level (the median error per known texel of the placements drawn among, after
-Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; it draws only from the
-``typical`` share of places (:meth:`Filler.typical`).  Each finished strip and interior is then relaxed texel by
+Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; it draws only from places without rare
+texels and in the ``typical`` share (:meth:`Filler.typical`).  Each finished strip and interior is then relaxed texel by
 texel (:mod:`relax`).
 """
 from __future__ import annotations
@@ -75,6 +75,13 @@ CENTRE_SHARE = 0.5
 #: the paintings of the synthesis bench (icon crop 1.38 -> 1.19), but on a stationary exemplar it leaves out places
 #: at random and costs patch statistics (stones at 192: SWD 1.06 -> 1.41, medians of 8 seeds; Benchmarks).
 TYPICAL_SHARE = 1.0
+#: A texel is rare where its unusualness exceeds the upper quartile of all texels' by this many interquartile ranges;
+#: pieces holding a rare texel stay out of the tiles (``Filler.typical``).  At 5, the gold corner of the demo's icon
+#: patch is rare (5.6 % of its texels, every window touching the gold left out) and no texel of the stationary
+#: exemplars of the synthesis bench is (procedural, stones, plaster, fibres, the tablet, item2, item5 at 192).
+RARE_FENCE = 5.0
+#: ... unless the windows holding rare texels are at least this share of all: then the rare texels are the texture's.
+RARE_PLACES_MAX = 0.5
 
 
 @dataclasses.dataclass
@@ -156,7 +163,7 @@ class Filler:
 
     def __init__(self, feats: np.ndarray, search: PlacementSearch, rng: np.random.Generator, cut: str,
                  usage_weight: float = USAGE_WEIGHT, usage_unit: str = USAGE_UNITS[0],
-                 typical_share: float = TYPICAL_SHARE):
+                 typical_share: float = TYPICAL_SHARE, rare: float = RARE_FENCE):
         self.feats, self.search, self.rng, self.cut = feats, search, rng, cut
         self.placed = self.kept = 0
         self.usage = np.zeros(feats.shape[:2], np.float64)   # how often each exemplar texel has been laid so far
@@ -165,24 +172,34 @@ class Filler:
         self.neighbour_cost = usage_weight * reference * reference
         self.match_levels: list[float] = []   # error per known texel of the drawn placements, every search so far
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
-        self.typical_places: dict[tuple, np.ndarray] = {}   # (window, share) -> mask, see typical
+        self.typical_places: dict[tuple, np.ndarray] = {}   # (window, share, rare) -> mask, see typical
         self.typical_share = typical_share   # the share of the exemplar's places (most typical first) pieces come from
+        self.rare = rare                     # the fence, in interquartile ranges, beyond which a texel is rare
 
-    def typical(self, window: tuple[int, int], share: float) -> np.ndarray:
-        """Flat mask of the piece places (top-left corners) whose most unusual texel is among the ``share`` least
-        unusual, a texel's unusualness being its appearance's distance from the median texel's.  A rare part of the
-        exemplar (a patch of gold on a brown ground) repeats wherever a tile holding it is laid and catches the eye;
-        ``share`` < 1 keeps pieces that hold any of it out of the tiles.  (A piece's mean appearance would not: a
-        piece with a little gold in a corner is typical on average.)"""
-        places = (self.feats.shape[0] - window[0] + 1) * (self.feats.shape[1] - window[1] + 1)
-        if share >= 1:
-            return np.ones(places, bool)
-        key = (window, share)
+    def typical(self, window: tuple[int, int]) -> np.ndarray:
+        """Flat mask of the piece places (top-left corners) pieces may come from.  A texel's unusualness is its
+        appearance's distance from the median texel's.  A place is left out where it holds a rare texel (beyond
+        the ``rare`` fence; unless such places are ``RARE_PLACES_MAX`` of all or more) or where its most unusual
+        texel is not among the ``typical_share`` least unusual.  A rare part of the exemplar (a patch of gold on a
+        brown ground) repeats wherever a tile holding it is laid and catches the eye.  (Ranking pieces by their
+        mean appearance would keep a piece with a little gold in a corner: it is typical on average.)"""
+        key = (window, self.typical_share, self.rare)
         if key not in self.typical_places:
-            flat = self.feats.reshape(-1, self.feats.shape[2])
-            unusual = np.linalg.norm(self.feats - np.median(flat, axis=0), axis=2)
-            worst = np.lib.stride_tricks.sliding_window_view(unusual, window).max(axis=(2, 3)).ravel()
-            self.typical_places[key] = worst <= np.quantile(worst, share)
+            shape = (self.feats.shape[0] - window[0] + 1, self.feats.shape[1] - window[1] + 1)
+            allowed = np.ones(shape, bool)
+            if self.rare > 0 or self.typical_share < 1:
+                flat = self.feats.reshape(-1, self.feats.shape[2])
+                unusual = np.linalg.norm(self.feats - np.median(flat, axis=0), axis=2)
+            if self.rare > 0:
+                q1, q3 = np.percentile(unusual, [25, 75])
+                rare = (unusual > q3 + self.rare * (q3 - q1)).astype(np.float64)
+                holding = window_means(rare, window) > 0
+                if holding.mean() < RARE_PLACES_MAX:
+                    allowed &= ~holding
+            if self.typical_share < 1:
+                worst = np.lib.stride_tricks.sliding_window_view(unusual, window).max(axis=(2, 3))
+                allowed &= worst <= np.quantile(worst, self.typical_share)
+            self.typical_places[key] = allowed.ravel()
         return self.typical_places[key]
 
     def _target(self, coords, region):
@@ -211,8 +228,9 @@ class Filler:
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
         errors = errors + self._usage_cost(errors, len(offsets), window, stride)
-        if self.typical_share < 1:
-            places = self.typical(window, self.typical_share).reshape(self.feats.shape[0] - ph + 1, -1)
+        allowed = self.typical(window)
+        if not allowed.all():
+            places = allowed.reshape(self.feats.shape[0] - ph + 1, -1)
             errors = np.where(places[::stride, ::stride], errors, np.inf)
         flat = errors.ravel()
         k = min(count, flat.size)
@@ -293,13 +311,13 @@ class Filler:
 
     def seed_centre(self, coords: np.ndarray, side: int) -> None:
         """Lay a ``side x side`` exemplar piece at the canvas's centre from a place the pieces laid so far have used
-        least (ties drawn at random) among the ``typical_share`` of places most typical (:meth:`typical`), before
-        the filling joins it to the frame around it.  Without it an interior grows inwards from its frame,
+        least (ties drawn at random) among the places pieces may come from (:meth:`typical`), before the filling
+        joins it to the frame around it.  Without it an interior grows inwards from its frame,
         matching it at every step, so every tile continues the few exemplar areas the corner samples came from (on
         paintings, their flat parts)."""
         ph, pw = min(side, self.feats.shape[0]), min(side, self.feats.shape[1])
         means = window_means(self.usage, (ph, pw)).ravel()
-        allowed = np.flatnonzero(self.typical((ph, pw), self.typical_share))
+        allowed = np.flatnonzero(self.typical((ph, pw)))
         lowest = allowed[means[allowed] <= means[allowed].min() + 1e-6]
         py, px = divmod(int(lowest[self.rng.integers(len(lowest))]), self.feats.shape[1] - pw + 1)
         y0, x0 = (coords.shape[0] - ph) // 2, (coords.shape[1] - pw) // 2
@@ -621,12 +639,14 @@ def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
 def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, colors=(2, 2), variants: int = 1,
                      seed: int = 0, *, cut: str = "graph", engine: str = "opencl", usage_weight: float = USAGE_WEIGHT,
                      relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0], interior: int = 0,
-                     centre: float = CENTRE_SHARE, typical: float = TYPICAL_SHARE) -> Synthesis:
+                     centre: float = CENTRE_SHARE, typical: float = TYPICAL_SHARE,
+                     rare: float = RARE_FENCE) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
     the side of the windows that fill the interiors (0: :func:`interior_window`'s default); ``centre``: the side,
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
     :func:`centre_piece_side`); ``typical``: the share of the exemplar's places, the most typical first, the centre
-    pieces and the filling's patches come from (:meth:`Filler.typical`).
+    pieces and the filling's patches come from; ``rare``: the fence beyond which a texel is rare and kept out of
+    them (:meth:`Filler.typical`).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
@@ -637,7 +657,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     feats = np.ascontiguousarray(feats, np.float32)
     threshold = THRESHOLD * float(np.median(neighbour_distances(feats)))
     search = PlacementSearch(feats, engine)
-    filler = Filler(feats, search, rng, cut, usage_weight, usage_unit, typical)
+    filler = Filler(feats, search, rng, cut, usage_weight, usage_unit, typical, rare)
     timings, counts = {}, {}
 
     start = time.perf_counter()
