@@ -192,10 +192,10 @@ def test_pieces_can_be_kept_to_the_typical_places():
         piece = canvas[8:16, 8:16]
         in_patch[share] = int(((piece[..., 0] >= 36) & (piece[..., 1] >= 36)).sum())
     assert in_patch == {1.0: 64, 0.75: 0}                   # least used: the patch; among the typical: the ground
-    typical = filler.typical((8, 8)).reshape(41, 41)
+    typical = filler.allowed_places((8, 8)).reshape(41, 41)
     assert typical.mean() == pytest.approx(0.75, abs=0.01) and not typical[36:, 36:].any()
     filler.typical_share = 1.0
-    assert filler.typical((8, 8)).all()
+    assert filler.allowed_places((8, 8)).all()
 
 
 def _patch_taken(typical_share: float, rare: float) -> tuple[int, int]:
@@ -231,7 +231,7 @@ def test_pieces_holding_a_rare_texel_stay_out_of_the_tiles():
     rng = np.random.default_rng(6)
     speckled = (0.4 + 0.1 * rng.random((48, 48, 3))).astype(np.float32)
     speckled[::6, ::6] = 1.0                               # one bright texel in every 6 x 6
-    assert _filler_with_usage(speckled, 1.0).typical((8, 8)).all()
+    assert _filler_with_usage(speckled, 1.0).allowed_places((8, 8)).all()
 
 
 def test_the_centre_pieces_spread_a_tile_set_over_the_exemplar():

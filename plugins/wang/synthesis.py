@@ -32,9 +32,9 @@ nothing, since no pixel tied the cut to the new side; tied to the worst pixel's 
 beyond the seeds' spread.)  A placement's error also counts how often earlier patches already laid the exemplar
 texels under it (``usage_weight``, :func:`window_means`), in squared median neighbour distances or (``usage_unit``
 "match") in the filling's own match level (the median error per known texel of the placements drawn among, after
-Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; it draws only from places without rare
-texels and in the ``typical`` share (:meth:`Filler.typical`).  Each finished strip and interior is then relaxed texel by
-texel (:mod:`relax`).
+Kaspar et al. 2015's self-tuning weights), so the tile set spreads over the whole exemplar; it draws only from
+places without rare texels and in the ``typical`` share (:meth:`Filler.allowed_places`).  Each finished strip and
+interior is then relaxed texel by texel (:mod:`relax`).
 """
 from __future__ import annotations
 
@@ -71,12 +71,12 @@ NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
 #: its fit to the frame among the least-used tenth or quarter kept less of the gain (Benchmarks).
 CENTRE_SHARE = 0.5
 #: Default share of the exemplar's places the tiles' pieces may come from, the most typical first (see
-#: ``Filler.typical``): every place.  0.85 keeps a rare part (the demo's gold) out of the tiles and lowered seams on
+#: ``Filler.allowed_places``): every place.  0.85 keeps a rare part (the demo's gold) out of the tiles and lowered seams on
 #: the paintings of the synthesis bench (icon crop 1.38 -> 1.19), but on a stationary exemplar it leaves out places
 #: at random and costs patch statistics (stones at 192: SWD 1.06 -> 1.41, medians of 8 seeds; Benchmarks).
 TYPICAL_SHARE = 1.0
 #: A texel is rare where its unusualness exceeds the upper quartile of all texels' by this many interquartile ranges;
-#: pieces holding a rare texel stay out of the tiles (``Filler.typical``).  At 5, the gold corner of the demo's icon
+#: pieces holding a rare texel stay out of the tiles (``Filler.allowed_places``).  At 5, the gold corner of the demo's icon
 #: patch is rare (5.6 % of its texels, every window touching the gold left out) and no texel of the stationary
 #: exemplars of the synthesis bench is (procedural, stones, plaster, fibres, the tablet, item2, item5 at 192).
 RARE_FENCE = 5.0
@@ -172,11 +172,19 @@ class Filler:
         self.neighbour_cost = usage_weight * reference * reference
         self.match_levels: list[float] = []   # error per known texel of the drawn placements, every search so far
         self.seconds = {"search": 0.0, "cut": 0.0, "bookkeeping": 0.0}  # where the filling's time goes
-        self.typical_places: dict[tuple, np.ndarray] = {}   # (window, share, rare) -> mask, see typical
+        self.allowed: dict[tuple, np.ndarray] = {}   # (window, share, rare) -> mask, see allowed_places
         self.typical_share = typical_share   # the share of the exemplar's places (most typical first) pieces come from
         self.rare = rare                     # the fence, in interquartile ranges, beyond which a texel is rare
+        self._unusual: np.ndarray | None = None
 
-    def typical(self, window: tuple[int, int]) -> np.ndarray:
+    def unusualness(self) -> np.ndarray:
+        """``[H, W]``: each texel's appearance distance from the median texel's (computed once)."""
+        if self._unusual is None:
+            flat = self.feats.reshape(-1, self.feats.shape[2])
+            self._unusual = np.linalg.norm(self.feats - np.median(flat, axis=0), axis=2)
+        return self._unusual
+
+    def allowed_places(self, window: tuple[int, int]) -> np.ndarray:
         """Flat mask of the piece places (top-left corners) pieces may come from.  A texel's unusualness is its
         appearance's distance from the median texel's.  A place is left out where it holds a rare texel (beyond
         the ``rare`` fence; unless such places are ``RARE_PLACES_MAX`` of all or more) or where its most unusual
@@ -184,12 +192,10 @@ class Filler:
         brown ground) repeats wherever a tile holding it is laid and catches the eye.  (Ranking pieces by their
         mean appearance would keep a piece with a little gold in a corner: it is typical on average.)"""
         key = (window, self.typical_share, self.rare)
-        if key not in self.typical_places:
+        if key not in self.allowed:
             shape = (self.feats.shape[0] - window[0] + 1, self.feats.shape[1] - window[1] + 1)
             allowed = np.ones(shape, bool)
-            if self.rare > 0 or self.typical_share < 1:
-                flat = self.feats.reshape(-1, self.feats.shape[2])
-                unusual = np.linalg.norm(self.feats - np.median(flat, axis=0), axis=2)
+            unusual = self.unusualness() if self.rare > 0 or self.typical_share < 1 else None
             if self.rare > 0:
                 q1, q3 = np.percentile(unusual, [25, 75])
                 rare = (unusual > q3 + self.rare * (q3 - q1)).astype(np.float64)
@@ -199,8 +205,8 @@ class Filler:
             if self.typical_share < 1:
                 worst = np.lib.stride_tricks.sliding_window_view(unusual, window).max(axis=(2, 3))
                 allowed &= worst <= np.quantile(worst, self.typical_share)
-            self.typical_places[key] = allowed.ravel()
-        return self.typical_places[key]
+            self.allowed[key] = allowed.ravel()
+        return self.allowed[key]
 
     def _target(self, coords, region):
         """An unfilled pixel of ``region`` next to a filled one (any unfilled pixel where none is), at random."""
@@ -228,7 +234,7 @@ class Filler:
         stride = SEARCH_STRIDE if min(self.feats.shape[:2]) >= STRIDE_FROM else 1
         errors = self.search.errors(offsets, target, window, stride)
         errors = errors + self._usage_cost(errors, len(offsets), window, stride)
-        allowed = self.typical(window)
+        allowed = self.allowed_places(window)
         if not allowed.all():
             places = allowed.reshape(self.feats.shape[0] - ph + 1, -1)
             errors = np.where(places[::stride, ::stride], errors, np.inf)
@@ -311,13 +317,13 @@ class Filler:
 
     def seed_centre(self, coords: np.ndarray, side: int) -> None:
         """Lay a ``side x side`` exemplar piece at the canvas's centre from a place the pieces laid so far have used
-        least (ties drawn at random) among the places pieces may come from (:meth:`typical`), before the filling
+        least (ties drawn at random) among the places pieces may come from (:meth:`allowed_places`), before the filling
         joins it to the frame around it.  Without it an interior grows inwards from its frame,
         matching it at every step, so every tile continues the few exemplar areas the corner samples came from (on
         paintings, their flat parts)."""
         ph, pw = min(side, self.feats.shape[0]), min(side, self.feats.shape[1])
         means = window_means(self.usage, (ph, pw)).ravel()
-        allowed = np.flatnonzero(self.typical((ph, pw)))
+        allowed = np.flatnonzero(self.allowed_places((ph, pw)))
         lowest = allowed[means[allowed] <= means[allowed].min() + 1e-6]
         py, px = divmod(int(lowest[self.rng.integers(len(lowest))]), self.feats.shape[1] - pw + 1)
         y0, x0 = (coords.shape[0] - ph) // 2, (coords.shape[1] - pw) // 2
@@ -646,7 +652,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
     :func:`centre_piece_side`); ``typical``: the share of the exemplar's places, the most typical first, the centre
     pieces and the filling's patches come from; ``rare``: the fence beyond which a texel is rare and kept out of
-    them (:meth:`Filler.typical`).
+    them (:meth:`Filler.allowed_places`).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
