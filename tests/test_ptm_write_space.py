@@ -163,3 +163,10 @@ def test_consumers_that_disagree_are_refused_with_the_narrowing_named():
     text = refused.value.render()
     assert "toyfacts.in_cm expects unit: cm, found m in 'measure.numbers'" in text
     assert "auto narrowed to m, as node 'use0' (toyfacts.in_metres)" in text
+
+
+def test_the_documented_capture_maker_creates_its_folder(tmp_path):
+    """docs/benchmarks.md makes the 1024^2 capture with ``make_synthetic_capture(Path('/tmp/cap'), ...)`` on a
+    machine where that folder does not exist yet."""
+    lp = make_synthetic_capture(tmp_path / "new" / "cap", 8, 3)
+    assert lp.is_file() and len(list(lp.parent.glob("light_*.jpg"))) == 3

@@ -26,6 +26,7 @@ def make_synthetic_capture(folder: Path, size: int, n_lights: int, quality: int 
     from btforge.plugins.demo.procedural import hemisphere_lights, make_material, render_lights
     from btforge.plugins.stackio.lightfile import write_light_file
 
+    folder.mkdir(parents=True, exist_ok=True)
     material = make_material(size, size, bumps=max(8, size * size // 400), seed=1)
     lights = hemisphere_lights(n_lights, min_elevation_deg=15.0)
     names = []
