@@ -178,6 +178,15 @@ def test_rejection_keeps_exactness_within_the_copy_budget(budget):
         np.testing.assert_array_equal(rejection.coords.coords, brute.coords.coords)
 
 
+@pytest.mark.parametrize("budget", [0.01, 0.5, 0.99])
+def test_a_budget_below_one_still_lets_the_least_used_blocks_through(budget):
+    """Below a budget of 1 every block's area can be copied more than the budget allows; the least-used blocks stay
+    eligible instead of none (a ValueError from an empty choice, as `--set synth.budget=0.5` once gave)."""
+    from btforge.plugins.synth.visibility import evenness
+    result = quilt_features(sparse_features(), (64, 64), search="brute", seed=0, spread=True, budget=budget, **SMALL)
+    assert result.coords.coords.shape == (64, 64, 2) and evenness(result.coords) > 0.3
+
+
 def sparse_features(size=48, seed=0):
     """A plain ground (faint noise) with a few bright marks."""
     rng = np.random.default_rng(seed)
@@ -198,6 +207,28 @@ def test_copy_budget_uses_all_of_an_object_on_a_plain_ground():
                                             spread=True, budget=budget).coords)
             for budget in (0.0, 2.0)}
     assert even[0.0] < 0.3 and even[2.0] >= 0.5, even
+
+
+def test_a_tight_budget_gives_an_object_its_share_of_a_large_output():
+    """The quilting demo's 96 x 96 patch of the icon (a dark object on a light ground, about half of it dark by a
+    mid-luminance threshold) grown to 256 x 256, seven times its area.  The ground's blocks match each other best,
+    so the budget decides how much of the object comes through: at 2 (version 10's default) about a seventh of the
+    output is dark, at the default 1.5 more, at 1 (the demo graph's setting) about the patch's own share."""
+    from btforge import stage
+    from btforge.plugins.stackio.images import load_stack
+    capture = load_stack(Path(__file__).parents[1] / "graphs/data/icon_san_michele/dirs.lp")
+    patch = stage("synth.crop")(input=capture, origin=[240, 60], size=[96, 96])["output"]
+    model = stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
+    luminance = texel_features(model)[..., 0]
+    dark = luminance < (luminance.min() + luminance.max()) / 2
+
+    def dark_share(seed, **budget):
+        coords = stage("synth.quilt")(exemplar=model, size=[256, 256], seed=seed, **budget)["coords"].coords
+        return float(dark[coords[..., 0], coords[..., 1]].mean())
+    for seed in (0, 1):
+        shares = {"2": dark_share(seed, budget=2.0), "default": dark_share(seed), "1": dark_share(seed, budget=1.0)}
+        assert shares["2"] < 0.2 < shares["default"] < shares["1"], shares
+        assert abs(shares["1"] - dark.mean()) < 0.1, (shares, float(dark.mean()))
 
 
 def tiled(period=6, reps=4, dims=3, seed=0):
