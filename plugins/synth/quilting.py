@@ -33,8 +33,8 @@ from .synthesizer import declare_synthesizer, refine_params, refined
 
 SEAMS = ("cut", "blend")
 #: Default copy budget: no exemplar area copied beyond 1.5 x its fair share (plus one copy).  At 2 the 192 x 192
-#: crop of the painted icon came out mostly ground (SWD 1.84 x the shuffled blocks, seeds 0-1; 0.93 at 1.5); on the
-#: stationary exemplars 1.5 does not bind either.  At 1 the held-out procedural exemplar's straight seams pass 2 %
+#: crop of the painted icon came out mostly ground (SWD 1.84 x the shuffled blocks, seeds 0-1; 0.93 at 1.5); the
+#: 192 x 192 stones, plaster and fibres come out the same at 1.5.  At 1 the held-out procedural exemplar's straight seams pass 2 %
 #: of its seams (1.43 over seeds 0-3).
 BUDGET = 1.5
 #: Passes of the refinement's re-cut of straight seams, as k-coherence and the jump map: the third pass finds the
@@ -302,8 +302,8 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
         Param("budget", "float", BUDGET, "a block is eligible only while its exemplar area is copied at most "
               "budget x its fair share (the texels copied so far spread evenly over the exemplar) plus one copy, "
               "so a plain ground that matches itself everywhere cannot crowd out the exemplar's sparse features "
-              "(0: no limit; lower it, e.g. to 1, for an output many times the exemplar's area where one region "
-              "covers most of the exemplar)", low=0.0),
+              "(0: no limit; lower it, e.g. to 1, for an output many times the exemplar's area where a plain ground "
+              "matches itself better than the rest does)", low=0.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
         *refine_params(),
@@ -330,8 +330,8 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     a ground, a relief with a few thin lines), only ground blocks are ever within it, and the output is ground.
     Within the budget the ground gets its share and the rest of the exemplar is used too (the occurrence idea of
     Kaspar et al. 2015, as a hard limit).  On stationary exemplars it rarely binds.  The one copy it always allows
-    weighs most where the output is only a few times the exemplar's area; for an output many times larger, where
-    a ground covers most of the exemplar, a budget of 1 keeps the ground to about its share.
+    weighs most where the output is only a few times the exemplar's area; for an output many times larger, a
+    budget of 1.5 lets a plain ground take up to one and a half times its share, and 1 keeps it to about its share.
 
     ``search: rejection`` (Hel-Or & Hel-Or 2002) projects every candidate's overlap, once per overlap shape, onto up
     to 1024 orthonormal Haar functions of the overlap (one feature dimension each, most energetic first); for each
