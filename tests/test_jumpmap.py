@@ -11,7 +11,7 @@ from btforge.plugins.synth import jumpmap as jm_module
 from btforge.plugins.synth import search, textons
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.jumpmap import build_jump_map, jumpmap, walk
+from btforge.plugins.synth.jumpmap import automatic_overuse, build_jump_map, jumpmap, walk
 
 LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1]]
 
@@ -102,6 +102,24 @@ def test_overuse_brings_in_an_exemplar_region_no_neighbourhood_leads_to(engine):
                                        .mean() for s in range(3)])) for overuse in (1, 4)}
     assert 0.2 <= right[1] <= 0.8, right
     assert min(right[4], 1 - right[4]) < 0.05, right
+
+
+def test_the_automatic_overuse_grows_with_the_copies_of_each_exemplar_texel():
+    """Half the output's copies of each exemplar texel, at least 1: a walk from 192 x 192 to 256 x 256 leaves
+    cells at their fair share; from 128 x 128 (four copies) it leaves them at twice it."""
+    assert automatic_overuse((192, 192), (256, 256)) == 1
+    assert automatic_overuse((128, 128), (256, 256)) == 2
+    assert automatic_overuse((256, 256), (256, 256)) == 1
+    assert automatic_overuse((64, 64), (256, 256)) == 8
+    assert automatic_overuse((1, 1), (4096, 4096)) >= 1
+
+
+def test_the_stage_uses_the_automatic_overuse_unless_given(material):
+    """The 32 x 32 material grown to 64 x 64 (four copies per texel) walks at 2, the share given where one is."""
+    auto, given = StageContext(node="jm", quiet=True), StageContext(node="jm", quiet=True)
+    jumpmap(ctx=auto, exemplar=material, size=[64, 64], seed=0, refine=0)
+    jumpmap(ctx=given, exemplar=material, size=[64, 64], seed=0, refine=0, overuse=5)
+    assert (auto.notes["overuse"], given.notes["overuse"]) == (2, 5)
 
 
 def test_jump_targets_are_away_from_the_texel_and_inside_the_border(material):
@@ -248,7 +266,8 @@ def test_refinement_window_is_the_stage_param(material):
     coords, _ = walk(jm_module.cached_jump_map(texel_features(material), jumps=3,
                                                jump_probability=jm_module.JUMP_PROBABILITY, neighborhood=5,
                                                textons=textons.DEFAULT_TEXTONS, search="fast",
-                                               coverage=jm_module.COVERAGE), (48, 48), seed=2)
+                                               coverage=jm_module.COVERAGE), (48, 48), seed=2,
+                     overuse=automatic_overuse((material.height, material.width), (48, 48)))
     np.testing.assert_array_equal(walked.coords, coords)
     for bad in (3, 33):
         with pytest.raises(BtforgeInputError, match="window"):

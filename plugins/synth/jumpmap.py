@@ -32,7 +32,12 @@ JUMP_PROBABILITY = 0.02   #: default mean jump rate (measured with BALANCE: 0.01
 COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
 BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
 BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
-OVERUSE = 4               #: default 'overuse': a cell holding more than this x its fair share (+ one cell) is over-used
+OVERUSE = 4               #: walk()'s 'overuse': a cell holding more than this x its fair share (+ one cell) is over-used
+#: The stage's default 'overuse', automatic (:func:`automatic_overuse`): half the copies the output makes of each
+#: exemplar texel, at least 1.  Leaving cells at their fair share (1) brings RealRTI item2's grass in at 192 x 192
+#: (SWD 3.02 -> 1.27 x the shuffled blocks), but where a 256 x 256 output copies a 128 x 128 exemplar four times it
+#: breaks stones apart (0.92 -> 2.17); 2 keeps them (1.48, seeds 0-3) and still brings the grass in (2.60 -> 1.28).
+AUTOMATIC_OVERUSE = 0
 #: Default refinement windows: 12 x 12, so the coarsest of the two coarse scales matches 48-texel pieces (a
 #: quarter of a 192-texel exemplar) whole; with 8 x 8 windows long fibres and large areas came out in short pieces.
 REFINE_WINDOW = 12
@@ -176,6 +181,14 @@ def _over_share(use: np.ndarray, jm: JumpMap, done: int, overuse: int = OVERUSE)
 
 def _cell_of(texel: np.ndarray, width: int) -> np.ndarray:
     return (texel // width) // BALANCE_CELL * -(-width // BALANCE_CELL) + (texel % width) // BALANCE_CELL
+
+
+def automatic_overuse(exemplar_size: tuple[int, int], size: tuple[int, int]) -> int:
+    """The ``overuse`` of :data:`AUTOMATIC_OVERUSE`: half the output's copies of each exemplar texel (its area
+    over the exemplar's), rounded, at least 1.  The more often the walk must pass through every cell, the more
+    room a cell needs before the walk is sent away from it, or the walk's pieces break into short runs."""
+    copies = (size[0] * size[1]) / max(1, exemplar_size[0] * exemplar_size[1])
+    return max(1, int(round(copies / 2)))
 
 
 def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0, balance: bool = BALANCE,
@@ -324,7 +337,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="14",  # 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="15",  # 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -341,10 +354,12 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "output already holds more than overuse x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
               "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
-        Param("overuse", "int", OVERUSE, "with balance, the share (x the fair share) of an exemplar cell the output "
-              "may hold before the walk leaves it; 1 spreads the walk over exemplar areas no neighbourhood leads to "
-              "(RealRTI item2's grass at 192 x 192: SWD 3.02 -> 1.27 x the shuffled blocks) but breaks up stones on "
-              "128 x 128 exemplars (0.92 -> 2.17)", low=1, high=64),
+        Param("overuse", "int", AUTOMATIC_OVERUSE, "with balance, the share (x the fair share) of an exemplar cell the "
+              "output may hold before the walk leaves it (0: half the output's copies of each exemplar texel, at "
+              "least 1: 1 for a 256 x 256 output from 192 x 192, 2 from 128 x 128); 1 spreads the walk over "
+              "exemplar areas no neighbourhood leads to (RealRTI item2's grass at 192 x 192: SWD 3.02 -> 1.27 x "
+              "the shuffled blocks) but breaks up stones where each texel is copied four times (128 x 128: 0.92 -> "
+              "2.17; at 2: 1.48)", low=0, high=64),
         *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
                        coarse_refine=COARSE_ROUNDS),
     ],
@@ -371,7 +386,9 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     With balance the walk counts the output's use of every 8 x 8 exemplar cell after each wavefront; a copy
     from an over-used cell (more than ``overuse`` x its fair share of the pixels so far, plus one cell's worth)
     jumps whatever the draw, a jump goes to the least-used of the texel's targets, and where even that cell is
-    over-used to a random texel.  The defaults (rate 0.02, coverage 1, balance) scored best of those measured
+    over-used to a random texel.  By default ``overuse`` is half the output's copies of each exemplar texel, at
+    least 1 (:func:`automatic_overuse`): a walk that must pass through every cell several times needs room in
+    each before it is sent on, or its pieces break into short runs.  The defaults (rate 0.02, coverage 1, balance) scored best of those measured
     (README, Benchmarks).
 
     With ``wrap`` the output's last column and row continue into its first ones, so the result tiles.  There is
@@ -398,7 +415,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
 
     Notes
     -----
-    textons, jump_targets (texels with at least one target), jumps_taken, forced_jumps, coherent_fraction,
+    textons, overuse (the share used), jump_targets (texels with at least one target), jumps_taken, forced_jumps, coherent_fraction,
     seconds_analysis, seconds_synthesis.
     """
     size = tuple(int(v) for v in size)
@@ -412,6 +429,9 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     jm = cached_jump_map(features, jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
+    if overuse == AUTOMATIC_OVERUSE:
+        overuse = automatic_overuse((exemplar.height, exemplar.width), size)
+    ctx.note("overuse", overuse)
     coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance, overuse=overuse)
     ctx.note("textons", jm.textons.count)
     ctx.note("jump_targets", int((jm.targets[:, 0] >= 0).sum()))
