@@ -93,7 +93,7 @@ def test_overuse_brings_in_an_exemplar_region_no_neighbourhood_leads_to(engine):
     """Two unlike halves (a smooth ramp, fine noise): jumps land only on similar neighbourhoods, so a walk that
     started in one half crosses into the other only when it leaves an over-used cell.  At ``overuse`` 1 (a cell left
     at its fair share plus one cell's worth: at most 3 / 4 of this output in one half) the other half comes in; at
-    the default 4 it stays out."""
+    4 (the share for larger outputs) it stays out."""
     rng = np.random.default_rng(3)
     ramp = np.linspace(0.2, 0.4, 48, dtype=np.float32)[None, :, None] + np.zeros((48, 1, 3), np.float32)
     noise = 0.6 + 0.3 * rng.random((48, 48, 3), dtype=np.float32)
@@ -266,8 +266,7 @@ def test_refinement_window_is_the_stage_param(material):
     coords, _ = walk(jm_module.cached_jump_map(texel_features(material), jumps=3,
                                                jump_probability=jm_module.JUMP_PROBABILITY, neighborhood=5,
                                                textons=textons.DEFAULT_TEXTONS, search="fast",
-                                               coverage=jm_module.COVERAGE), (48, 48), seed=2,
-                     overuse=automatic_overuse((material.height, material.width), (48, 48)))
+                                               coverage=jm_module.COVERAGE), (48, 48), seed=2)
     np.testing.assert_array_equal(walked.coords, coords)
     for bad in (3, 33):
         with pytest.raises(BtforgeInputError, match="window"):

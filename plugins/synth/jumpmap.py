@@ -32,8 +32,7 @@ JUMP_PROBABILITY = 0.02   #: default mean jump rate (measured with BALANCE: 0.01
 COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
 BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
 BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
-OVERUSE = 4               #: walk()'s 'overuse': a cell holding more than this x its fair share (+ one cell) is over-used
-#: The stage's default 'overuse', automatic (:func:`automatic_overuse`): half the copies the output makes of each
+#: The default 'overuse' (a cell holding more than that x its fair share, plus one cell, is over-used), automatic (:func:`automatic_overuse`): half the copies the output makes of each
 #: exemplar texel, at least 1.  Leaving cells at their fair share (1) brings RealRTI item2's grass in at 192 x 192
 #: (SWD 3.02 -> 1.27 x the shuffled blocks), but where a 256 x 256 output copies a 128 x 128 exemplar four times it
 #: breaks stones apart (0.92 -> 2.17); 2 keeps them (1.48, seeds 0-3) and still brings the grass in (2.60 -> 1.28).
@@ -153,8 +152,8 @@ def build_jump_map(features: np.ndarray, *, jumps: int = 3, jump_probability: fl
                    probability.astype(np.float32))
 
 
-def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | None = None,
-          escape: np.ndarray | None = None, done: int = 0, overuse: int = OVERUSE) -> np.ndarray:
+def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | None, escape: np.ndarray | None,
+          done: int, overuse: int) -> np.ndarray:
     """The jump target of each ``texel`` chosen by uniform ``u`` (-1 where the texel has none); with ``usage``
     (per exemplar cell) the first least-used of its targets from the drawn one on, cyclically (``pick_target``)."""
     n_jump = jm.targets.shape[1]
@@ -173,7 +172,7 @@ def _pick(jm: JumpMap, texel: np.ndarray, u: np.ndarray, usage: np.ndarray | Non
     return np.where(drawn >= 0, np.where(over, escape, best), drawn)
 
 
-def _over_share(use: np.ndarray, jm: JumpMap, done: int, overuse: int = OVERUSE) -> np.ndarray:
+def _over_share(use: np.ndarray, jm: JumpMap, done: int, overuse: int) -> np.ndarray:
     """Twin of ``over_share``: uses beyond ``overuse`` x the fair share of ``done`` pixels plus one cell's worth."""
     area = BALANCE_CELL * BALANCE_CELL
     return (use - area) * (jm.height * jm.width) > overuse * done * area
@@ -192,8 +191,9 @@ def automatic_overuse(exemplar_size: tuple[int, int], size: tuple[int, int]) -> 
 
 
 def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 0, balance: bool = BALANCE,
-         overuse: int = OVERUSE, engine: str = "opencl") -> tuple[np.ndarray, dict]:
-    """Synthesize ``[H, W, 2]`` int32 coordinates with the jump-map walk; returns them and counts.
+         overuse: int = AUTOMATIC_OVERUSE, engine: str = "opencl") -> tuple[np.ndarray, dict]:
+    """Synthesize ``[H, W, 2]`` int32 coordinates with the jump-map walk; returns them and counts (with the
+    ``overuse`` used: :func:`automatic_overuse` where it is :data:`AUTOMATIC_OVERUSE`).
 
     Order: anti-diagonal wavefronts ``x + 2 y = t``.  Every pixel of a wavefront only needs pixels of earlier
     wavefronts (left, upper-left, upper, upper-right; with ``wrap`` also whatever is already done across the
@@ -204,6 +204,8 @@ def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 
     done neighbours (texton distances) wins.
     """
     ho, wo = int(size[0]), int(size[1])
+    if overuse == AUTOMATIC_OVERUSE:
+        overuse = automatic_overuse((jm.height, jm.width), (ho, wo))
     rng = np.random.default_rng(seed)
     uniform = rng.random((ho * wo, 4, 2), dtype=np.float32)
     fallback = rng.integers(0, jm.height * jm.width, ho * wo).astype(np.int32)
@@ -215,11 +217,12 @@ def walk(jm: JumpMap, size: tuple[int, int], *, wrap: bool = False, seed: int = 
     else:
         src, flags = walk_opencl(jm, ho, wo, wrap, uniform, fallback, balance, escape, overuse)
     coords = np.stack(np.divmod(src.reshape(ho, wo), jm.width), axis=-1).astype(np.int32)
-    return coords, {"jumps_taken": int((flags & 1).sum()), "forced_jumps": int((flags >> 1 & 1).sum())}
+    return coords, {"jumps_taken": int((flags & 1).sum()), "forced_jumps": int((flags >> 1 & 1).sum()),
+                    "overuse": int(overuse)}
 
 
 def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
-                balance: bool, escape: np.ndarray, overuse: int = OVERUSE):
+                balance: bool, escape: np.ndarray, overuse: int):
     """The walk on OpenCL (``jm_walk``, one launch per wavefront): flat sources and per-pixel jump flags."""
     backend = get_backend()
     jumps = jm.targets.shape[1]
@@ -269,7 +272,7 @@ def _output_neighbour(qy: np.ndarray, qx: np.ndarray, ho: int, wo: int, wrap: bo
 
 
 def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, fallback: np.ndarray,
-               balance: bool, escape: np.ndarray, overuse: int = OVERUSE):
+               balance: bool, escape: np.ndarray, overuse: int):
     """Twin of ``jm_walk``, vectorised over each wavefront: flat sources and per-pixel jump flags."""
     he, we = jm.height, jm.width
     tex = jm.textons.labels.ravel()
@@ -388,8 +391,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     jumps whatever the draw, a jump goes to the least-used of the texel's targets, and where even that cell is
     over-used to a random texel.  By default ``overuse`` is half the output's copies of each exemplar texel, at
     least 1 (:func:`automatic_overuse`): a walk that must pass through every cell several times needs room in
-    each before it is sent on, or its pieces break into short runs.  The defaults (rate 0.02, coverage 1, balance) scored best of those measured
-    (README, Benchmarks).
+    each before it is sent on, or its pieces break into short runs.  The defaults (rate 0.02, coverage 1,
+    balance) scored best of those measured (README, Benchmarks).
 
     With ``wrap`` the output's last column and row continue into its first ones, so the result tiles.  There is
     no correction pass: the closing row and column must agree with both sides, so the seam has fewer exact
@@ -415,8 +418,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
 
     Notes
     -----
-    textons, overuse (the share used), jump_targets (texels with at least one target), jumps_taken, forced_jumps, coherent_fraction,
-    seconds_analysis, seconds_synthesis.
+    textons, overuse (the share used), jump_targets (texels with at least one target), jumps_taken, forced_jumps,
+    coherent_fraction, seconds_analysis, seconds_synthesis.
     """
     size = tuple(int(v) for v in size)
     check_params("synth.jumpmap", (exemplar.height, exemplar.width), size=size, neighborhood=neighborhood)
@@ -429,10 +432,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     jm = cached_jump_map(features, jumps=jumps, jump_probability=jump_probability,
                         neighborhood=neighborhood, textons=textons, search=search, coverage=coverage)
     analysed = time.perf_counter()
-    if overuse == AUTOMATIC_OVERUSE:
-        overuse = automatic_overuse((exemplar.height, exemplar.width), size)
-    ctx.note("overuse", overuse)
     coords, counts = walk(jm, size, wrap=wrap, seed=seed, balance=balance, overuse=overuse)
+    ctx.note("overuse", counts["overuse"])
     ctx.note("textons", jm.textons.count)
     ctx.note("jump_targets", int((jm.targets[:, 0] >= 0).sum()))
     ctx.note("jumps_taken", counts["jumps_taken"])
