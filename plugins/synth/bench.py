@@ -328,16 +328,15 @@ def _write_tables(target: Path, opts, rows: list[dict], search_rows: list[dict])
 
 def write_sheet(path: Path, model, outputs: dict, rows: dict, header: str) -> None:
     """One labelled PNG: the exemplar and each synthesizer's output at the same scale (one texel, one pixel),
-    each under the two :data:`SHEET_LIGHTS` (rows), exposed alike (the exemplar's 99.5th percentile is white)."""
+    each under the two :data:`SHEET_LIGHTS` (rows), shown alike (:func:`display_levels` of the exemplar)."""
     from btforge.atomic import atomic_write_bytes
-    from btforge.buffers import linear_to_srgb8
     from btforge.plot import labelled_grid, light_label
 
-    from .scoring import _relight, _white_points
+    from .scoring import _relight
     lights = np.array(SHEET_LIGHTS, np.float64)
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)
     exemplar = _relight(model, lights, "exemplar")
-    whites = _white_points(exemplar)[:, None, None, None]
+    levels = [display_levels(frame) for frame in exemplar]
     images = {"exemplar": exemplar}
     for name, coords in outputs.items():
         images[name] = _relight(coords.apply(model), lights, "output")
@@ -347,13 +346,43 @@ def write_sheet(path: Path, model, outputs: dict, rows: dict, header: str) -> No
     for li, light in enumerate(lights):
         for name, im in images.items():
             tile = np.zeros((h, w, 3), np.uint8)
-            tile[:im.shape[1], :im.shape[2]] = linear_to_srgb8(_rgb(im[li] / whites[li]))
+            tile[:im.shape[1], :im.shape[2]] = shown(_rgb(im[li]), levels[li])
             tiles.append(tile)
             labels.append(_sheet_label(name, rows.get(name), light_label(light), im.shape[1:3]))
     sheet = labelled_grid(tiles, labels, columns=len(images), header=header, strip=40)
     buffer = io.BytesIO()
     sheet.save(buffer, format="PNG", optimize=True)
     atomic_write_bytes(path, buffer.getvalue())
+
+
+#: Percentile of the exemplar's display values (its radiance over the white point, sRGB-encoded) a sheet shows as
+#: black; white is the scores' white point (the 99.5th percentile of radiance).
+BLACK_PERCENTILE = 0.5
+#: Highest black level, a stretch of at most 50: an exemplar of (near) constant radiance is not divided by zero.
+BLACK_CAP = 0.98
+
+
+def display_levels(exemplar: np.ndarray) -> tuple[float, float]:
+    """``(white, black)`` for one light's exemplar radiance ``[H, W, C]``: ``white`` the linear radiance shown as
+    white (the scores' white point), ``black`` the display value (0..1, after ``/ white`` and the sRGB curve)
+    shown as black (:data:`BLACK_PERCENTILE`).  Levels, as an image editor sets them: a relief of low contrast on
+    a grey ground (radiance within a few per cent of its white) would otherwise fill its tile with one near-white
+    grey in which no shape shows.  Where the darkest texels are black already, the picture is as exposed by its
+    white alone."""
+    from btforge.buffers import linear_to_srgb
+
+    from .scoring import _white_points
+    white = float(_white_points(exemplar[None])[0])
+    black = float(np.percentile(linear_to_srgb(_rgb(exemplar) / white), BLACK_PERCENTILE))
+    return white, min(black, BLACK_CAP)
+
+
+def shown(image: np.ndarray, levels: tuple[float, float]) -> np.ndarray:
+    """8-bit sRGB of linear radiance ``image [H, W, 3]`` at :func:`display_levels` ``levels``."""
+    from btforge.buffers import linear_to_srgb
+    white, black = levels
+    encoded = (linear_to_srgb(image / white) - black) / (1.0 - black)
+    return np.round(np.clip(encoded, 0.0, 1.0) * 255).astype(np.uint8)
 
 
 def _rgb(image: np.ndarray) -> np.ndarray:
