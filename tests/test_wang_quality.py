@@ -172,6 +172,50 @@ def test_each_tile_starts_from_a_least_used_piece_at_its_centre():
     assert centre_piece_side(64, 16, 0.0) == 0
 
 
+def test_each_edge_strip_starts_from_a_least_used_piece_at_its_middle():
+    """A horizontal strip's piece is edge x length, laid whole between its corner halves, from where the set has
+    used least; a vertical strip's is length x edge."""
+    from btforge.plugins.wang.synthesis import edge_piece_length
+    rng = np.random.default_rng(4)
+    feats = rng.random((40, 48, 3)).astype(np.float32)
+    filler = _filler_with_usage(feats, 1.0)
+    used = np.full((40, 48, 2), -1, np.int32)
+    used[:, :30] = np.stack(np.mgrid[0:40, 0:30], -1)
+    filler.record(used)
+    strip = np.full((8, 32, 2), -1, np.int32)
+    strip[:, :4] = strip[:, 28:] = 0          # the two corner halves, laid already
+    filler.seed_centre(strip, (8, 16))
+    piece = strip[:, 8:24]
+    y, x = piece[0, 0]
+    assert x >= 30 and x + 16 <= 48
+    np.testing.assert_array_equal(piece, np.stack(np.mgrid[y:y + 8, x:x + 16], -1))
+    assert (strip[:, 4:8, 0] < 0).all() and (strip[:, 24:28, 0] < 0).all()   # left for the filling to join
+    column = np.full((32, 8, 2), -1, np.int32)
+    filler.seed_centre(column, (16, 8))
+    assert (column[8:24, :, 0] >= 0).all() and (column[:8, :, 0] < 0).all()
+    assert edge_piece_length(64, 16, 0.5) == 32 and edge_piece_length(64, 16, 1.0) == 48
+    assert edge_piece_length(64, 16, 0.0) == 0
+
+
+def test_the_tile_set_lays_the_edge_pieces_and_leaves_them_out_at_zero(monkeypatch):
+    """``edge_centre`` reaches every strip: one piece per strip colour, edge x length across a horizontal strip and
+    length x edge down a vertical one, besides the interiors' square centre pieces; none at 0."""
+    from btforge.plugins.wang import synthesis
+    laid = []
+    plain = synthesis.Filler.seed_centre
+    monkeypatch.setattr(synthesis.Filler, "seed_centre",
+                        lambda self, coords, side: (laid.append(side), plain(self, coords, side))[1])
+    rng = np.random.default_rng(2)
+    feats = rng.random((48, 48, 3)).astype(np.float32)
+    synthesis.synthesize_tiles(feats, 32, 8, (2, 2), engine="numpy", relax=0, edge_centre=0.5)
+    strips = [side for side in laid if not np.isscalar(side)]
+    assert sorted(strips) == [(8, 16), (8, 16), (16, 8), (16, 8)]
+    assert sum(np.isscalar(side) for side in laid) == 16
+    laid.clear()
+    synthesis.synthesize_tiles(feats, 32, 8, (2, 2), engine="numpy", relax=0, edge_centre=0.0)
+    assert all(np.isscalar(side) for side in laid)
+
+
 def test_pieces_can_be_kept_to_the_typical_places():
     """A small bright patch on a noisy ground, the ground already used: every place of the patch is least used, so a
     centre piece comes from it; with a typical share of 0.75 it comes from the ground, as the typical places are."""

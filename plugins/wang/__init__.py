@@ -80,6 +80,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "tile's centre before its interior is filled, from the place the tile set has used least so far, so "
               "the tiles spread over the exemplar and keep its larger structures (0: off; at most 1 - edge / tile)",
               low=0.0, high=1.0),
+        Param("edge_centre", "float", 0.5, "length, as a share of the tile's side, of an exemplar piece laid whole at "
+              "the middle of each edge strip before the strip is filled, from the place the tile set has used least "
+              "so far, so the tile borders do not all continue the corner samples' few, similar areas (0: off; at "
+              "most 1 - edge / tile)", low=0.0, high=1.0),
         Param("typical", "float", 1.0, "share of the exemplar's places the tiles' pieces (the centre pieces and the "
               "filling's patches) may come from, those whose most unusual texel is least unusual first (1: every "
               "place); below 1 a rare, conspicuous part (a patch of gold on a brown ground) stays out of the tiles, "
@@ -100,10 +104,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
               low=1, high=256),
     ],
-    version="7",  # 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="8",  # 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               typical, rare, relax, refine, occurrence, pin):
+               edge_centre, typical, rare, relax, refine, occurrence, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -111,7 +115,9 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     2003), frames from the strips' halves, interiors filled with the frame held.  Each interior starts from an
     exemplar piece laid whole at the tile's centre (``centre``), from the place the set has used least so far, as
     Cohen et al. 2003 give each tile a sample of its own: grown from its frame alone, every interior would continue
-    the few exemplar areas the corner samples came from.  A usage term (``usage``) spreads the
+    the few exemplar areas the corner samples came from.  Each edge strip, likewise, starts from a least-used piece
+    at its middle (``edge_centre``): grown from its two corner samples alone, every strip would continue their few,
+    similar areas, and lanes of them would run along every tile border.  A usage term (``usage``) spreads the
     patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``pin``) hides
     the cuts the filling left.  Distances are Euclidean in the
@@ -130,7 +136,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
                                               seed=seed, usage_weight=usage, usage_unit=usage_unit,
-                                              interior=interior, centre=centre, typical=typical, rare=rare,
+                                              interior=interior, centre=centre, edge_centre=edge_centre,
+                                              typical=typical, rare=rare,
                                               relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
