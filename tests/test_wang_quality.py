@@ -175,7 +175,7 @@ def test_each_tile_starts_from_a_least_used_piece_at_its_centre():
 def test_each_edge_strip_starts_from_a_least_used_piece_at_its_middle():
     """A horizontal strip's piece is edge x length, laid whole between its corner halves, from where the set has
     used least; a vertical strip's is length x edge."""
-    from btforge.plugins.wang.synthesis import edge_piece_length
+    from btforge.plugins.wang.synthesis import centre_piece_side
     rng = np.random.default_rng(4)
     feats = rng.random((40, 48, 3)).astype(np.float32)
     filler = _filler_with_usage(feats, 1.0)
@@ -193,8 +193,7 @@ def test_each_edge_strip_starts_from_a_least_used_piece_at_its_middle():
     column = np.full((32, 8, 2), -1, np.int32)
     filler.seed_centre(column, (16, 8))
     assert (column[8:24, :, 0] >= 0).all() and (column[:8, :, 0] < 0).all()
-    assert edge_piece_length(64, 16, 0.5) == 32 and edge_piece_length(64, 16, 1.0) == 48
-    assert edge_piece_length(64, 16, 0.0) == 0
+    assert centre_piece_side(64, 16, 0.5) == 32   # a strip of 64 with edges of 16: 16 x 32
 
 
 def test_the_tile_set_lays_the_edge_pieces_and_leaves_them_out_at_zero(monkeypatch):

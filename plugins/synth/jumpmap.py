@@ -32,8 +32,8 @@ JUMP_PROBABILITY = 0.02   #: default mean jump rate (measured with BALANCE: 0.01
 COVERAGE = 1.0            #: default in-degree balance exponent of the jump choices
 BALANCE = True            #: default: the walk leaves over-used exemplar cells (see the stage's 'balance')
 BALANCE_CELL = 8          #: exemplar texels per side of a cell whose use the balanced jumps count
-#: The default 'overuse' (a cell holding more than that x its fair share, plus one cell, is over-used), automatic (:func:`automatic_overuse`): half the copies the output makes of each
-#: exemplar texel, at least 1.  Leaving cells at their fair share (1) brings RealRTI item2's grass in at 192 x 192
+#: The default 'overuse' (a cell holding more than that x its fair share, plus one cell, is over-used): automatic
+#: (:func:`automatic_overuse`), half the copies the output makes of each exemplar texel, at least 1.  Leaving cells at their fair share (1) brings RealRTI item2's grass in at 192 x 192
 #: (SWD 3.02 -> 1.27 x the shuffled blocks), but where a 256 x 256 output copies a 128 x 128 exemplar four times it
 #: breaks stones apart (0.92 -> 2.17); 2 keeps them (1.48, seeds 0-3) and still brings the grass in (2.60 -> 1.28).
 AUTOMATIC_OVERUSE = 0

@@ -73,9 +73,9 @@ CENTRE_SHARE = 0.5
 #: Length of the least-used exemplar piece laid at the middle of each edge strip, as a share of the tile side: half
 #: (32 of a strip of 64).  Grown from its two corner samples alone, every strip continued the few, mutually similar
 #: exemplar areas the corners came from, and the tiling showed their lanes along every tile border (the held-out
-#: procedural exemplar: brown lanes between coloured tile centres).  On 192 x 192 crops (seeds 0-1) it lowers SWD over
-#: the shuffled blocks on every stationary exemplar of the bench (stones 1.74 -> 1.10, fibres 1.61 -> 1.16, the
-#: held-out procedural exemplar 1.70 -> 1.37) at seams 0.01-0.18 higher (Benchmarks).
+#: procedural exemplar: brown lanes between coloured tile centres).  On eleven 192 x 192 crops (seeds 0-1) it lowers SWD
+#: over the shuffled blocks on ten (stones 1.74 -> 1.10, fibres 1.61 -> 1.16, the held-out procedural exemplar 1.70
+#: -> 1.37) at seams 0.01-0.18 higher; pieces of 24, 40 or 48 texels missed more targets (Benchmarks).
 EDGE_CENTRE_SHARE = 0.5
 #: Default share of the exemplar's places the tiles' pieces may come from, the most typical first (see
 #: ``Filler.allowed_places``): every place.  0.85 keeps a rare part (the demo's gold) out of the tiles and lowered seams on
@@ -629,15 +629,10 @@ def interior_window(w: int, h: int, interior: int = 0) -> int:
 
 
 def centre_piece_side(w: int, h: int, centre: float) -> int:
-    """The side of the piece laid at a tile's centre: ``centre`` x the tile side, at most the span inside the
-    frame's outer halves (``w - h``), so the filling always has frame texels to join it to."""
+    """The side of the piece laid at a tile's centre (or the length of the one at an edge strip's middle):
+    ``centre`` x the tile side, at most the span inside the frame's outer halves, or between a strip's two corner
+    halves (``w - h``), so the filling always has laid texels to join it to."""
     return min(w - h, int(round(centre * w)))
-
-
-def edge_piece_length(w: int, h: int, edge_centre: float) -> int:
-    """The length of the piece laid at an edge strip's middle: ``edge_centre`` x the tile side, at most the strip's
-    span between its two corner halves (``w - h``)."""
-    return min(w - h, int(round(edge_centre * w)))
 
 
 def check_sizes(exemplar_size, w: int, h: int, colors) -> None:
@@ -665,9 +660,9 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
     the side of the windows that fill the interiors (0: :func:`interior_window`'s default); ``centre``: the side,
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
-    :func:`centre_piece_side`); ``edge_centre``: the length, as a share of the tile side, of the least-used piece laid
-    at each edge strip's middle first (0: none; :func:`edge_piece_length`); ``typical``: the share of the exemplar's places, the most typical first, the centre
-    pieces and the filling's patches come from; ``rare``: the fence beyond which a texel is rare and kept out of
+    :func:`centre_piece_side`); ``edge_centre``: the length, as a share of the tile side, of the least-used piece
+    laid at each edge strip's middle first (0: none; :func:`centre_piece_side` too); ``typical``: the share of the
+    exemplar's places, the most typical first, the centre pieces and the filling's patches come from; ``rare``: the fence beyond which a texel is rare and kept out of
     them (:meth:`Filler.allowed_places`).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
@@ -695,7 +690,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
         counts[step] = {"placed": filler.placed - placed, "kept": filler.kept - kept}
         return out
 
-    edge_length = edge_piece_length(w, h, edge_centre)
+    edge_length = centre_piece_side(w, h, edge_centre)
 
     def strip(kind, colour):
         def job():
