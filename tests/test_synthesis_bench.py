@@ -8,6 +8,7 @@ from btforge import stage
 from btforge.plugins.synth import bench
 from btforge.plugins.synth.features import probe_lights
 from btforge.plugins.synth.scoring import texture_statistics_ratio
+from btforge.plugins.synth.visibility import missed_targets
 
 LIGHTS = [list(map(float, light)) for light in probe_lights(6)]
 
@@ -57,9 +58,6 @@ def held_out_192():
 
 
 SWD_SIZE, SWD_SEEDS = (256, 256), (0, 1)
-#: The targets at default params: sliced Wasserstein distance at most 1.5 x that of the bench's shuffled blocks
-#: (32 texels), seam visibility at most 1.3 (k-coherence, at 1.32 on this exemplar, is held to the SWD target only).
-SWD_TARGET, SEAM_TARGET = 1.5, 1.3
 
 
 @pytest.mark.parametrize("name", ["synth.quilt", "synth.kcoherence", "synth.jumpmap"])
@@ -67,15 +65,14 @@ def test_synthesizers_reach_the_swd_and_seam_targets(held_out_192, name):
     """Default params, the bench's output size; medians of 2 seeds (one seed's distance can vary by up to 2x).
     The refined outputs cut the exemplar into more pieces than shuffled 16-texel blocks do, so their distance can
     pass that of those blocks while the seams are far less visible (the jump map: 1.11 against 2.74 unrefined),
-    which is what the eye judges; the bound is the bench's target."""
+    which is what the eye judges; the bounds are the bench's targets (:func:`.visibility.missed_targets`).  The
+    straight-seam target is left out here: on this exemplar the three measured 1.19-1.40 at 1.5-2.2 % of the seam
+    edges, at the edge of the share from which it applies (seeds 0-1)."""
     m = held_out_192
     scores = [bench.score_map(m, stage(name)(exemplar=m, size=list(SWD_SIZE), seed=s)["coords"], LIGHTS)
               for s in SWD_SEEDS]
-    swd = np.median([s["swd_vs_shuffled_blocks"] for s in scores])
-    seams = np.median([s["seam_visibility"] for s in scores])
-    assert swd <= SWD_TARGET, (name, swd)
-    if name != "synth.kcoherence":
-        assert seams <= SEAM_TARGET, (name, seams)
+    median = {k: float(np.median([s[k] for s in scores])) for k in ("seam_visibility", "swd_vs_shuffled_blocks")}
+    assert missed_targets(median) == [], (name, median)
 
 
 def test_the_bench_lays_wang_tiles_as_a_synthesizer(held_out):
@@ -102,6 +99,19 @@ def test_the_bench_skips_a_synthesizer_that_refuses_the_exemplar(tmp_path, capsy
     rows = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
     assert [r["synthesizer"] for r in rows] == ["shuffled blocks", "synth.jumpmap"]
     assert "24x24 wang.tiles: skipped" in capsys.readouterr().err
+    for row in rows:   # the column names the targets the row's own measures miss
+        values = {k: None if v in ("", "None") else float(v) for k, v in row.items()
+                  if k in bench.TARGET_KEYS.values() or k == "straight_seam_share"}
+        assert row["targets_missed"] == (" ".join(missed_targets(values)) or "none"), row
+    assert "seams" in rows[0]["targets_missed"]   # shuffled blocks: seams everywhere
+
+
+def test_a_sheet_label_marks_the_measures_whose_targets_are_missed():
+    row = {"seam_visibility": 1.41, "straight_seam_visibility": 1.1, "straight_step_visibility": 0.9,
+           "evenness": 0.8, "swd_vs_shuffled_blocks": 2.0, "targets_missed": "seams swd"}
+    label = bench._sheet_label("synth.quilt", row, "el 45 az 135", (256, 256))
+    assert "seams 1.41!" in label and "swd/shuffled 2.00!" in label
+    assert "straight 1.10 " in label and "even 0.80" in label and "0.80!" not in label
 
 
 def test_the_bench_runs_a_synthesizer_at_the_params_set(tmp_path, capsys):
@@ -178,6 +188,4 @@ def test_synthesizers_meet_the_four_targets_on_a_held_out_relief(relief_192, nam
     median = {k: float(np.median([r[k] for r in runs])) for k in
               ("seam_visibility", "straight_seam_visibility", "straight_seam_share", "evenness",
                "swd_vs_shuffled_blocks")}
-    assert median["seam_visibility"] <= 1.3, median
-    assert median["straight_seam_share"] < 0.02 or median["straight_seam_visibility"] <= 1.2, median
-    assert median["evenness"] >= 0.5 and median["swd_vs_shuffled_blocks"] <= 1.5, median
+    assert missed_targets(median) == [], median

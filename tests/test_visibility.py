@@ -9,7 +9,7 @@ from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.scoring import score
-from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
+from btforge.plugins.synth.visibility import evenness, missed_targets, seam_edges, shuffled_blocks
 
 SIZE, OUT = 48, 144
 
@@ -95,3 +95,20 @@ def test_wrapping_map_counts_its_wrap_around_pairs(tileable):
 def test_bad_tile_is_a_clear_error():
     with pytest.raises(BtforgeInputError, match="tile"):
         CoordMap(np.zeros((4, 4, 2), np.int32), (4, 4), tile=-2)
+
+
+def test_missed_targets_names_each_target_missed_and_leaves_straight_seams_under_two_per_cent_alone():
+    """Each target on its own side of its bound, the straight target only from 2 % straight seam edges, and a
+    measure without a value (no seam at all) missing nothing."""
+    good = {"seam_visibility": 1.3, "straight_seam_visibility": 1.2, "straight_seam_share": 0.5, "evenness": 0.5,
+            "swd_vs_shuffled_blocks": 1.5}
+    assert missed_targets(good) == []
+    worse = {"seam_visibility": 1.31, "straight_seam_visibility": 1.21, "evenness": 0.49,
+             "swd_vs_shuffled_blocks": 1.51}
+    assert missed_targets({**good, **worse}) == ["seams", "straight", "evenness", "swd"]
+    for key, name in (("seam_visibility", "seams"), ("evenness", "evenness"), ("swd_vs_shuffled_blocks", "swd")):
+        assert missed_targets({**good, key: worse[key]}) == [name]
+    few = {**good, "straight_seam_visibility": 3.0, "straight_seam_share": 0.019}
+    assert missed_targets(few) == []
+    assert missed_targets({**few, "straight_seam_share": 0.02}) == ["straight"]
+    assert missed_targets({**good, "seam_visibility": None, "straight_seam_visibility": None}) == []

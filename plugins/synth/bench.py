@@ -251,7 +251,7 @@ def bench_synthesis(args: list[str]) -> int:
         baseline = median_scores([score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size),
                                                                    seed=seed), lights) for seed in range(opts.seeds)])
         rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
-                     **{k: _round(v) for k, v in baseline.items()}})
+                     **{k: _round(v) for k, v in baseline.items()}, "targets_missed": _missed(baseline)})
         outputs = {}
         for name, st in chosen.items():
             try:
@@ -262,7 +262,7 @@ def bench_synthesis(args: list[str]) -> int:
             rows.append(row)
         write_sheet(target / f"sheet_{_slug(opts.exemplar)}_{label}.png", model, outputs,
                     {r["synthesizer"]: r for r in rows if r["exemplar"] == label},
-                    f"{opts.size}x{opts.size} from {label} of {_slug(opts.exemplar)}")
+                    f"{opts.size}x{opts.size} from {label} of {_slug(opts.exemplar)}  (!: a target missed)")
     _write_tables(target, opts, rows, search_rows)
     print(_table(rows))
     if search_rows:
@@ -295,15 +295,26 @@ def _synthesizer_row(st, name: str, model, label: str, opts, lights, params: dic
         score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed, **params)["coords"], lights)
         for seed in range(1, opts.seeds)])
     row = {"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
-           "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()}}
+           "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()},
+           "targets_missed": _missed(scores)}
     eye = "  ".join(f"{title} {_short(scores[key])}" for key, title in EYE_KEYS.items())
     print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
-          f"{eye}", file=sys.stderr)
+          f"{eye}  missed: {row['targets_missed']}", file=sys.stderr)
     return row, timed["coords"]
 
 
 def _short(value) -> str:
     return "-" if value is None else f"{value:.2f}"
+
+
+#: The measure behind each target of :func:`.visibility.missed_targets`.
+TARGET_KEYS = {"seams": "seam_visibility", "straight": "straight_seam_visibility", "evenness": "evenness",
+               "swd": "swd_vs_shuffled_blocks"}
+
+
+def _missed(scores: dict) -> str:
+    """The targets ``scores`` miss, space-separated, or ``none``: the ``targets_missed`` column."""
+    return " ".join(visibility.missed_targets(scores)) or "none"
 
 
 def _write_tables(target: Path, opts, rows: list[dict], search_rows: list[dict]) -> None:
@@ -393,7 +404,8 @@ def _sheet_label(name: str, row: dict | None, light: str, size) -> str:
     first = f"{name} {size[0]}x{size[1]}, {light}"
     if row is None:
         return first
-    measures = [f"{title} {_short(row.get(key))}" for key, title in EYE_KEYS.items()]
+    missed = {TARGET_KEYS[target] for target in row.get("targets_missed", "").split() if target in TARGET_KEYS}
+    measures = [f"{title} {_short(row.get(key))}{'!' if key in missed else ''}" for key, title in EYE_KEYS.items()]
     # three a line: a 256-texel tile holds about 45 characters of the default font
     return "\n".join([first] + ["  ".join(measures[i:i + 3]) for i in range(0, len(measures), 3)])
 

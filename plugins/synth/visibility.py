@@ -28,6 +28,13 @@ EVENNESS_CELL = 8
 #: Side of the blocks of the shuffled-block baseline (capped at half the exemplar's shorter side).
 BASELINE_BLOCK = 32
 
+#: The targets a synthesizer's output should meet at its defaults, by measure: seams no more visible than 1.3 x
+#: the exemplar's own neighbour steps; straight seams at most 1.2, where they are :data:`STRAIGHT_SHARE_FROM` of
+#: the seam edges or more (a few short straight stretches are not the edges of copied blocks); evenness at least
+#: 0.5; patch statistics at most 1.5 x as far from the exemplar's as shuffled blocks'.
+SEAM_TARGET, STRAIGHT_TARGET, EVENNESS_TARGET, SWD_TARGET = 1.3, 1.2, 0.5, 1.5
+STRAIGHT_SHARE_FROM = 0.02
+
 
 def dominant_source(coords: CoordMap) -> np.ndarray:
     """``[H, W, 2]`` exemplar texel each output texel mostly copies (the blend partner where its weight > 0.5)."""
@@ -152,6 +159,22 @@ def seam_visibility(out_enc: np.ndarray, ex_enc: np.ndarray, coords: CoordMap) -
                       ratio(edges.columns_straight, edges.rows_straight),
                       edges.straight_count / edges.count if edges.count else 0.0,
                       edges.count / max(1, pairs))
+
+
+def missed_targets(scores) -> list[str]:
+    """The targets ``scores`` (``synth.score``'s values, or medians of them) miss, of ``seams``, ``straight``,
+    ``evenness`` and ``swd``, in that order; a measure without a value (no seam, no map) misses nothing."""
+    def value(key):
+        found = scores.get(key)
+        return None if found is None else float(found)
+
+    seams, straight = value("seam_visibility"), value("straight_seam_visibility")
+    share, even, swd = value("straight_seam_share") or 0.0, value("evenness"), value("swd_vs_shuffled_blocks")
+    misses = {"seams": seams is not None and seams > SEAM_TARGET,
+              "straight": straight is not None and share >= STRAIGHT_SHARE_FROM and straight > STRAIGHT_TARGET,
+              "evenness": even is not None and even < EVENNESS_TARGET,
+              "swd": swd is not None and swd > SWD_TARGET}
+    return [name for name, missed in misses.items() if missed]
 
 
 def cell_bounds(length: int, cell: int = EVENNESS_CELL) -> np.ndarray:
