@@ -112,6 +112,8 @@ def test_a_sheet_label_marks_the_measures_whose_targets_are_missed():
     label = bench._sheet_label("synth.quilt", row, "el 45 az 135", (256, 256))
     assert "seams 1.41!" in label and "swd/shuffled 2.00!" in label
     assert "straight 1.10 " in label and "even 0.80" in label and "0.80!" not in label
+    close = bench._sheet_label("synth.quilt", {**row, "seam_visibility": 1.3003, "targets_missed": "seams"}, "", (8, 8))
+    assert "seams 1.3003!" in close   # not "1.30!", which would read as meeting the bound
 
 
 def test_the_bench_runs_a_synthesizer_at_the_params_set(tmp_path, capsys):

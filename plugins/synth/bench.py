@@ -310,6 +310,9 @@ def _short(value) -> str:
 #: The measure behind each target of :func:`.visibility.missed_targets`.
 TARGET_KEYS = {"seams": "seam_visibility", "straight": "straight_seam_visibility", "evenness": "evenness",
                "swd": "swd_vs_shuffled_blocks"}
+#: Each measure's bound, to show a missed value that rounds to its bound with the digits that tell them apart.
+TARGET_BOUNDS = {"seam_visibility": visibility.SEAM_TARGET, "straight_seam_visibility": visibility.STRAIGHT_TARGET,
+                 "evenness": visibility.EVENNESS_TARGET, "swd_vs_shuffled_blocks": visibility.SWD_TARGET}
 
 
 def _missed(scores: dict) -> str:
@@ -405,9 +408,19 @@ def _sheet_label(name: str, row: dict | None, light: str, size) -> str:
     if row is None:
         return first
     missed = {TARGET_KEYS[target] for target in row.get("targets_missed", "").split() if target in TARGET_KEYS}
-    measures = [f"{title} {_short(row.get(key))}{'!' if key in missed else ''}" for key, title in EYE_KEYS.items()]
+    measures = [f"{title} {_marked(row.get(key), key in missed, TARGET_BOUNDS.get(key))}"
+                for key, title in EYE_KEYS.items()]
     # three a line: a 256-texel tile holds about 45 characters of the default font
     return "\n".join([first] + ["  ".join(measures[i:i + 3]) for i in range(0, len(measures), 3)])
+
+
+def _marked(value, missed: bool, bound: float | None) -> str:
+    """A measure as a sheet shows it: two decimals, four where a missed value would show as its bound (1.3003
+    against 1.3), and "!" when its target is missed."""
+    if not missed:
+        return _short(value)
+    exact = value is not None and bound is not None and f"{value:.2f}" == f"{bound:.2f}"
+    return (f"{value:.4f}" if exact else _short(value)) + "!"
 
 
 def median_scores(runs: list[dict]) -> dict:
