@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth import refine
 from btforge.plugins.synth.refine import (_correct_numpy, _correct_opencl, _rank_numpy, _rank_opencl,
-                                          _sweeps_numpy, _sweeps_opencl, refine_map, window_index)
+                                          _sweeps_numpy, _sweeps_opencl, candidate_costs, exemplar_window_energy,
+                                          refine_map, window_energy, window_index)
 from btforge.plugins.synth.visibility import shuffled_blocks
 
 D = 6
@@ -26,9 +27,10 @@ def random_texels(rng, eh, ew, kind):
 
 # ------------------------------------------------------------------------------------------------ rf_rank
 
+@pytest.mark.parametrize("contrast", [0.0, 16.0])
 @pytest.mark.parametrize("kind", ["random", "constant", "levels"])
 @pytest.mark.parametrize("patch", [4, 8])
-def test_rank_kernel_matches_numpy(kind, patch):
+def test_rank_kernel_matches_numpy(kind, patch, contrast):
     rng = np.random.default_rng(patch)
     index = window_index(random_texels(rng, 21, 26, kind), patch)
     gy, gx = index.grid
@@ -40,20 +42,53 @@ def test_rank_kernel_matches_numpy(kind, patch):
     if kind != "random":                            # queries copied from windows: exact zeros and ties
         query = window_pixels(index, rng.integers(0, gy * gx, n))
     penalty = np.where(rng.random(gy * gx) < 0.5, 0.0, rng.random(gy * gx) * 10)
-    a_origin, a_dist = _rank_opencl(index, query, cand, penalty)
-    b_origin, b_dist = _rank_numpy(index, query, cand, penalty)
+    extra = candidate_costs(index, query, cand, penalty, contrast)
+    a_origin, a_dist = _rank_opencl(index, query, cand, extra)
+    b_origin, b_dist = _rank_numpy(index, query, cand, extra)
     # the same float32 sums in the same order, and the first of equal costs: the same windows and distances
     assert np.array_equal(a_origin, b_origin) and np.array_equal(a_dist, b_dist)
     # and the chosen window is the cheapest up to float32 rounding of 384 squares (relative 384 x 2^-24 < 3e-5)
-    costs = np.stack([window_distances(index, query, cand[:, c]) + penalty[cand[:, c]]
-                      for c in range(width)], axis=1)
+    costs = np.stack([window_distances(index, query, cand[:, c]) + extra[:, c] for c in range(width)], axis=1)
     chosen = costs[np.arange(n), np.argmax(cand == a_origin[:, None], axis=1)]
     np.testing.assert_allclose(chosen, costs.min(axis=1), rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(a_dist, window_distances(index, query, a_origin), rtol=1e-4, atol=1e-4)
     if kind == "constant":                          # every cost ties without a penalty: the first candidate wins
         for rank in (_rank_opencl, _rank_numpy):
-            origin, dist = rank(index, query, cand, np.zeros(gy * gx))
+            origin, dist = rank(index, query, cand, np.zeros(cand.shape, np.float32))
             assert np.array_equal(origin, cand[:, 0]) and np.all(dist == 0)
+
+
+@pytest.mark.parametrize("kind", ["random", "constant", "levels"])
+def test_window_energy_by_box_sums_matches_each_window_and_is_zero_on_flat_windows(kind):
+    """The exemplar's window energies (box sums) against :func:`window_energy` of each window gathered; a constant
+    exemplar has none."""
+    rng = np.random.default_rng(3)
+    index = window_index(random_texels(rng, 17, 19, kind), 4)
+    gy, gx = index.grid
+    origins = np.arange(gy * gx)
+    gathered = window_energy(window_pixels(index, origins), D)
+    np.testing.assert_array_equal(index.energy, exemplar_window_energy(index.texels, 4))
+    np.testing.assert_allclose(index.energy, gathered, rtol=1e-4, atol=1e-3)
+    assert np.all(np.isfinite(index.energy)) and np.all(index.energy >= 0)
+    if kind == "constant":
+        assert np.all(index.energy == 0)
+
+
+def test_contrast_charges_only_candidates_flatter_than_the_query():
+    """Without contrast the extra cost is the penalty alone; with it, a candidate with less variation than the
+    query costs contrast x the shortfall more, and one with as much or more costs nothing more."""
+    rng = np.random.default_rng(5)
+    index = window_index(random_texels(rng, 20, 20, "random"), 4)
+    gy, gx = index.grid
+    cand = rng.integers(0, gy * gx, (50, 6))
+    query = window_pixels(index, rng.integers(0, gy * gx, 50))
+    penalty = rng.random(gy * gx)
+    plain = candidate_costs(index, query, cand, penalty, 0.0)
+    np.testing.assert_array_equal(plain, penalty[cand].astype(np.float32))
+    charged = candidate_costs(index, query, cand, penalty, 4.0)
+    shortfall = np.maximum(window_energy(query, D)[:, None] - index.energy[cand], 0)
+    np.testing.assert_allclose(charged - plain, 4.0 * shortfall, rtol=1e-5, atol=1e-4)
+    assert np.all(charged >= plain) and np.any(charged > plain) and np.any(charged == plain)
 
 
 def window_pixels(index, origins):

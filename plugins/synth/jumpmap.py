@@ -368,7 +368,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance, overuse, refine, occurrence, scales, window, coarse_refine):
+            coverage, balance, overuse, refine, occurrence, contrast, scales, window, coarse_refine):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -444,7 +444,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                               window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine,
-                              bridges=BRIDGE_TRIES)}
+                              bridges=BRIDGE_TRIES, contrast=contrast)}
 
 
 STAGES = [jumpmap]

@@ -477,7 +477,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, matching, keep, refine, occurrence, scales, coarse_refine):
+               coverage, blocks, matching, keep, refine, occurrence, contrast, scales, coarse_refine):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -567,7 +567,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     ctx.note("seconds_synthesis", round(result.seconds_synthesis, 3))
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              recut_passes=RECUT_PASSES, coarse_refine=coarse_refine)}
+                              recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast)}
 
 
 STAGES = [kcoherence]

@@ -310,7 +310,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
     ],
 )
 def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,
-          occurrence, scales):
+          occurrence, contrast, scales):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
@@ -362,7 +362,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     for key, value in result.stats.items():
         ctx.note(key, value)
     return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              recut_passes=RECUT_PASSES)}
+                              recut_passes=RECUT_PASSES, contrast=contrast)}
 
 
 STAGES = [quilt]

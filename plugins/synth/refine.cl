@@ -51,10 +51,11 @@ inline float texel_distance(__global const float *texels, const int a, const int
 
 // Candidate re-ranking, one work-item per searched query window q: of its CAND candidate exemplar windows
 // (origins flat in the gy x gx window grid, `cand [nq * CAND]`), the one of least squared distance to the query
-// (`query [nq * PATCH * PATCH * D]`, texel by texel, row-major) plus its `penalty` (per origin: the occurrence
-// term); writes its origin and its squared distance (without the penalty).  The first of equal costs wins.
+// (`query [nq * PATCH * PATCH * D]`, texel by texel, row-major) plus its `extra_cost` (per query and candidate,
+// `[nq * CAND]`: the occurrence and contrast terms); writes its origin and its squared distance (without the extra
+// cost).  The first of equal costs wins.
 __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
-                      __global const float *query, __global const int *cand, __global const float *penalty,
+                      __global const float *query, __global const int *cand, __global const float *extra_cost,
                       const int nq, __global int *best_origin, __global float *best_distance)
 {
     const int q = get_global_id(0);
@@ -65,7 +66,7 @@ __kernel void rf_rank(__global const float *texels, const int ew, const int gx,
     for (int c = 0; c < CAND; ++c) {
         const int origin = cand[q * CAND + c];
         const int top = origin / gx, left = origin % gx;
-        const float extra = penalty[origin];
+        const float extra = extra_cost[q * CAND + c];
         float dist = 0.0f;
         // squares are >= 0 and float sums of them never decrease: once the partial cost reaches the best, the
         // candidate cannot win

@@ -108,6 +108,7 @@ class WindowIndex:
     reduced: np.ndarray     # [gh * gw, WINDOW_DIMS]
     tree: object            # scipy.spatial.cKDTree over ``reduced``
     spread: float           # mean squared distance between two random windows (the occurrence term's unit)
+    energy: np.ndarray      # [gh * gw] float32, each window's variation (:func:`window_energy`)
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -137,13 +138,38 @@ def _index(features: np.ndarray, patch: int) -> WindowIndex:
         rows = windows[top:top + 8].reshape(-1, basis.shape[0])
         reduced[top * gx:top * gx + len(rows)] = (rows - mean.astype(np.float32)) @ basis
     spread = 2.0 * float(reduced.var(axis=0).sum())
-    return WindowIndex(texels, patch, mean.astype(np.float32), basis, reduced, cKDTree(reduced), max(spread, 1e-12))
+    return WindowIndex(texels, patch, mean.astype(np.float32), basis, reduced, cKDTree(reduced), max(spread, 1e-12),
+                       exemplar_window_energy(texels, patch))
+
+
+def window_energy(windows: np.ndarray, d: int) -> np.ndarray:
+    """Per window (``[n, p * p * d]``, texel-major), its variation: the summed squared deviation of its texels from
+    their mean, over every dimension (float32)."""
+    values = windows.reshape(len(windows), -1, d).astype(np.float64)
+    return ((values - values.mean(axis=1, keepdims=True)) ** 2).sum(axis=(1, 2)).astype(np.float32)
+
+
+def exemplar_window_energy(texels: np.ndarray, patch: int) -> np.ndarray:
+    """:func:`window_energy` of every ``patch x patch`` window of ``texels [eh, ew, d]``, flat in the window grid
+    (by box sums: sum of squares minus square of sums over the count, of values centred on their mean first, so
+    that a flat exemplar's windows come out exactly 0 rather than as the difference of two large sums)."""
+    values = texels.astype(np.float64)
+    values -= values.mean(axis=(0, 1))
+    n = patch * patch
+
+    def box(plane):
+        table = np.zeros((plane.shape[0] + 1, plane.shape[1] + 1))
+        table[1:, 1:] = plane.cumsum(0).cumsum(1)
+        return table[patch:, patch:] - table[:-patch, patch:] - table[patch:, :-patch] + table[:-patch, :-patch]
+
+    energy = sum(box(values[..., j] ** 2) - box(values[..., j]) ** 2 / n for j in range(values.shape[2]))
+    return np.maximum(energy, 0.0).ravel().astype(np.float32)
 
 
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
-               coarse_iterations: int | None = None) -> CoordMap:
+               coarse_iterations: int | None = None, contrast: float = 0.0) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -154,7 +180,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     ``iterations``), while their exemplar and output stay :data:`COARSE_FIT` windows across
     (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
     (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
-    and pass)."""
+    and pass).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would
+    replace cost ``contrast`` x the shortfall (:func:`_best_windows`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -167,30 +194,30 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
-    src = _refine_sources(features, src, coords.wrap, rounds, occurrence, patch, rng, pinned, scales)
+    src = _refine_sources(features, src, coords.wrap, rounds, (occurrence, contrast), patch, rng, pinned, scales)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
                                    bridges)
     return _with_kept_blends(coords, src)
 
 
-def _refine_sources(features, src, wrap, rounds, occurrence, patch, rng, pinned, scales):
+def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, scales):
     """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0 and a half-size exemplar and
     output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here;
-    ``rounds``: (rounds here, rounds at each coarser scale)."""
+    ``rounds``: (rounds here, rounds at each coarser scale); ``weights``: (occurrence, contrast)."""
     iterations, coarse_iterations = rounds
     if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
-        src = _coarse_first(features, src, wrap, coarse_iterations, occurrence, patch, rng, pinned, scales - 1)
+        src = _coarse_first(features, src, wrap, coarse_iterations, weights, patch, rng, pinned, scales - 1)
     index = window_index(features, patch)
     keep = (lambda new: new) if pinned is None else (lambda new, start=src: np.where(pinned, start, new))
     for _ in range(iterations):
-        src = keep(optimise_step(index, src, wrap, occurrence, rng, keep))
+        src = keep(optimise_step(index, src, wrap, weights, rng, keep))
         for _ in range(CORRECTIONS):
             src = keep(correction_pass(index.texels, src, wrap, rng))
     return src
 
 
-def _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinned, scales):
+def _coarse_first(features, src, wrap, iterations, weights, patch, rng, pinned, scales):
     """``src`` after the refinement of its half-resolution version (2 x 2 averaged exemplar, every other output
     texel's source halved): where a coarse texel changed source, its 2 x 2 output texels take the new source's
     2 x 2 exemplar texels; elsewhere (and where pinned) the fine sources stay.  Windows of the same size cover
@@ -203,7 +230,7 @@ def _coarse_first(features, src, wrap, iterations, occurrence, patch, rng, pinne
     before = np.minimum(sy // 2, ch - 1) * cw + np.minimum(sx // 2, cw - 1)
     coarse_pinned = None if pinned is None else pinned[::2, ::2]
     after = _refine_sources(coarse_features, before, wrap and src.shape[0] % 2 == 0 and src.shape[1] % 2 == 0,
-                            (iterations, iterations), occurrence, patch, rng, coarse_pinned, scales)
+                            (iterations, iterations), weights, patch, rng, coarse_pinned, scales)
     h, w = src.shape
     rows, cols = np.arange(h) // 2, np.arange(w) // 2
     changed = (after != before)[np.ix_(rows, cols)]
@@ -252,9 +279,10 @@ def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool)
     return np.unique(np.clip(starts, 0, max(0, length - patch)))
 
 
-def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: float,
-                  rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
-    """One texture-optimisation round: every window matched (with the occurrence term), then the coherent vote."""
+def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights, rng: np.random.Generator,
+                  keep=lambda labels: labels) -> np.ndarray:
+    """One texture-optimisation round: every window matched (with the occurrence and contrast terms, ``weights``:
+    their weights, or the occurrence weight alone), then the coherent vote."""
     p = index.patch
     h, w = src.shape
     eh, ew = index.texels.shape[:2]
@@ -263,7 +291,8 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, occurrence: f
     ny, nx = rows.shape[:2]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(ny * nx, -1)
-    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence)
+    occurrence, contrast = weights if isinstance(weights, tuple) else (weights, 0.0)
+    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence, contrast)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
@@ -292,12 +321,15 @@ def jittered_windows(h: int, w: int, patch: int, wrap: bool, rng: np.random.Gene
 
 
 def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray, src: np.ndarray,
-                  occurrence: float) -> tuple[np.ndarray, np.ndarray]:
+                  occurrence: float, contrast: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per query window (``[n, p * p * d]``, copied from ``window_src [n, p, p]``), the exemplar window origin
     (flat in the window grid) of least cost and its squared distance: the full squared distance plus
     ``occurrence`` x (the mean squared distance of two random windows) x how far its texels are used beyond
-    their fair share.  Candidates: the window copied now and, unless that is a whole exemplar window used no more
-    than its share (it matches exactly and nothing can cost less), the approximately nearest windows in the
+    their fair share, plus ``contrast`` x how much less variation it has than the query (:func:`window_energy`):
+    nearest windows under a squared distance favour flat ones, which differ from a textured query by its own
+    variation where another textured window differs by both, so texture optimisation alone drifts towards an
+    exemplar's flat areas.  Candidates: the window copied now and, unless that is a whole exemplar window used no
+    more than its share (it matches exactly and nothing can cost less), the approximately nearest windows in the
     reduced space."""
     ew = index.texels.shape[1]
     gy, gx = index.grid
@@ -317,14 +349,27 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
     _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS)
     cand[rows, :k] = found.reshape(len(rows), k)
     rank = _rank_numpy if engine() == "numpy" else _rank_opencl
-    current[rows], distance[rows] = rank(index, query[rows], cand[rows], occurrence * index.spread * overuse)
+    extra = candidate_costs(index, query[rows], cand[rows], occurrence * index.spread * overuse, contrast)
+    current[rows], distance[rows] = rank(index, query[rows], cand[rows], extra)
     return current, distance
 
 
-def _rank_numpy(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
+def candidate_costs(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray,
+                    contrast: float) -> np.ndarray:
+    """``[n, c]`` float32 cost of each candidate besides its distance: its window's ``penalty`` (per origin) plus
+    ``contrast`` x its shortfall in variation against the query (none where it varies as much or more)."""
+    extra = penalty[cand].astype(np.float32)
+    if contrast > 0:
+        shortfall = np.maximum(window_energy(query, index.texels.shape[2])[:, None] - index.energy[cand], 0)
+        extra = extra + np.float32(contrast) * shortfall.astype(np.float32)
+    return extra
+
+
+def _rank_numpy(index: WindowIndex, query: np.ndarray, cand: np.ndarray, extra: np.ndarray):
     """Per query window (``[n, p * p * d]``), of its candidate exemplar windows (``cand [n, c]``, origins flat in
-    the window grid) the first of least squared distance plus ``penalty`` (per window origin): its origin and its
-    squared distance (twin of ``rf_rank``: float32 sums over the window's values in row-major order)."""
+    the window grid) the first of least squared distance plus ``extra`` (``[n, c]``, :func:`candidate_costs`): its
+    origin and its squared distance (twin of ``rf_rank``: float32 sums over the window's values in row-major
+    order)."""
     p = index.patch
     wy, wx = np.divmod(cand, index.grid[1])
     windows = index.texels[wy[..., None, None] + np.arange(p)[:, None], wx[..., None, None] + np.arange(p)[None, :]]
@@ -333,12 +378,12 @@ def _rank_numpy(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty
     for value in range(windows.shape[2]):  # one value at a time: the kernel's order of the sum
         diff = windows[:, :, value] - query[:, None, value]
         dist += diff * diff
-    best = np.argmin(dist + penalty[cand].astype(np.float32), axis=1)
+    best = np.argmin(dist + np.asarray(extra, np.float32), axis=1)
     pick = np.arange(len(cand))
     return cand[pick, best], dist[pick, best].astype(np.float64)
 
 
-def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalty: np.ndarray):
+def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, extra: np.ndarray):
     """:func:`_rank_numpy` by the kernel ``rf_rank`` (the same float32 sums in the same order)."""
     from .device import launch
     backend = _backend()
@@ -347,7 +392,7 @@ def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, penalt
     kernel = backend.kernel(KERNELS, "rf_rank", (f"-DD={d}", f"-DPATCH={index.patch}", f"-DCAND={width}"))
     origin, distance = np.empty(n, np.int32), np.empty(n, np.float32)
     buffers = [backend.to_device(index.texels), backend.to_device(np.ascontiguousarray(query, np.float32)),
-               backend.to_device(cand.astype(np.int32)), backend.to_device(penalty.astype(np.float32)),
+               backend.to_device(cand.astype(np.int32)), backend.to_device(np.ascontiguousarray(extra, np.float32)),
                backend.host_output(origin), backend.host_output(distance)]
     texels, queries, candidates, penalties, origin_out, distance_out = buffers
     launch(backend, kernel, (n,), texels, np.int32(index.texels.shape[1]), np.int32(index.grid[1]), queries,
