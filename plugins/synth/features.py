@@ -59,6 +59,18 @@ def downsample(image: np.ndarray, mode: str = "mirror") -> np.ndarray:
     return np.ascontiguousarray(blurred[::2, ::2], dtype=np.float32)
 
 
+def window_sums(values: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+    """Sum of ``values [H, W, ...]`` over every placement of a ``window = (rows, cols)`` inside it,
+    ``[H - rows + 1, W - cols + 1, ...]``, from one summed-area table (float64 for float values, int64 for integer
+    or boolean ones; the running sums in the values' own type)."""
+    ph, pw = window
+    running = values.cumsum(0).cumsum(1)
+    table = np.zeros((values.shape[0] + 1, values.shape[1] + 1) + values.shape[2:],
+                     np.float64 if running.dtype.kind == "f" else np.int64)
+    table[1:, 1:] = running
+    return table[ph:, pw:] - table[:-ph, pw:] - table[ph:, :-pw] + table[:-ph, :-pw]
+
+
 def edge_padded(texels: np.ndarray) -> np.ndarray:
     """``texels [eh, ew, d]`` padded by one texel of its own edge on every side, flat ``[(eh + 2) * (ew + 2), d]``
     (read through :func:`beside`)."""

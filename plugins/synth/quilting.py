@@ -25,7 +25,7 @@ from btforge import Param
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
-from .features import texel_features
+from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
 from .synthesizer import declare_synthesizer, refine_params, refined
@@ -203,10 +203,7 @@ class _Canvas:
 
     def block_usage(self) -> np.ndarray:
         """Per candidate block (flat, row-major over origins): texels of its exemplar area copied so far."""
-        b = self.block
-        table = np.zeros((self.copied.shape[0] + 1, self.copied.shape[1] + 1), np.int64)
-        table[1:, 1:] = self.copied.cumsum(0).cumsum(1)
-        return (table[b:, b:] - table[:-b, b:] - table[b:, :-b] + table[:-b, :-b]).ravel()
+        return window_sums(self.copied, (self.block, self.block)).ravel()
 
     def within_budget(self, usage: np.ndarray, budget: float) -> np.ndarray | None:
         """Per candidate block, whether its exemplar area is copied at most ``budget`` x its fair share (the

@@ -44,7 +44,7 @@ import numpy as np
 
 from btforge.buffers import CoordMap
 
-from .features import beside, edge_padded, pca_reduce
+from .features import beside, edge_padded, pca_reduce, window_sums
 from .recut import PASSES as RECUT_PASSES
 from .recut import recut_straight_seams
 from .search import ContentCache, content_key
@@ -155,14 +155,8 @@ def exemplar_window_energy(texels: np.ndarray, patch: int) -> np.ndarray:
     that a flat exemplar's windows come out exactly 0 rather than as the difference of two large sums)."""
     values = texels.astype(np.float64)
     values -= values.mean(axis=(0, 1))
-    n = patch * patch
-
-    def box(plane):
-        table = np.zeros((plane.shape[0] + 1, plane.shape[1] + 1))
-        table[1:, 1:] = plane.cumsum(0).cumsum(1)
-        return table[patch:, patch:] - table[:-patch, patch:] - table[patch:, :-patch] + table[:-patch, :-patch]
-
-    energy = sum(box(values[..., j] ** 2) - box(values[..., j]) ** 2 / n for j in range(values.shape[2]))
+    window = (patch, patch)
+    energy = (window_sums(values ** 2, window) - window_sums(values, window) ** 2 / (patch * patch)).sum(axis=2)
     return np.maximum(energy, 0.0).ravel().astype(np.float32)
 
 
@@ -279,10 +273,10 @@ def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool)
     return np.unique(np.clip(starts, 0, max(0, length - patch)))
 
 
-def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights, rng: np.random.Generator,
-                  keep=lambda labels: labels) -> np.ndarray:
+def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights: tuple[float, float],
+                  rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
     """One texture-optimisation round: every window matched (with the occurrence and contrast terms, ``weights``:
-    their weights, or the occurrence weight alone), then the coherent vote."""
+    their weights), then the coherent vote."""
     p = index.patch
     h, w = src.shape
     eh, ew = index.texels.shape[:2]
@@ -291,8 +285,7 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights, rng:
     ny, nx = rows.shape[:2]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(ny * nx, -1)
-    occurrence, contrast = weights if isinstance(weights, tuple) else (weights, 0.0)
-    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence, contrast)
+    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, *weights)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
@@ -408,10 +401,7 @@ def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
     p = index.patch
     use = np.bincount(src.ravel(), minlength=eh * ew).reshape(eh, ew).astype(np.float64)
     fair = src.size / (eh * ew)
-    table = np.zeros((eh + 1, ew + 1))
-    table[1:, 1:] = use.cumsum(0).cumsum(1)
-    sums = table[p:, p:] - table[:-p, p:] - table[p:, :-p] + table[:-p, :-p]
-    return np.maximum(sums / (p * p * fair) - 1.0, 0.0).ravel()
+    return np.maximum(window_sums(use, (p, p)) / (p * p * fair) - 1.0, 0.0).ravel()
 
 
 def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.ndarray, cols: np.ndarray,

@@ -44,6 +44,7 @@ import time
 import numpy as np
 
 from btforge.errors import BtforgeInputError
+from btforge.plugins.synth.features import window_sums
 from btforge.plugins.synth.search import knn
 
 from .cuts import grid_edges, min_cut, min_cut_edges
@@ -159,10 +160,7 @@ def window_means(values: np.ndarray, window: tuple[int, int], stride: int = 1) -
     """Mean of ``values [H, W, ...]`` over the ``window`` at every placement on the grid of ``stride`` (the layout
     of :func:`placement.placement_errors_numpy`), per trailing channel."""
     ph, pw = window
-    sat = np.zeros((values.shape[0] + 1, values.shape[1] + 1) + values.shape[2:])
-    sat[1:, 1:] = values.cumsum(0).cumsum(1)
-    box = sat[ph:, pw:] - sat[:-ph, pw:] - sat[ph:, :-pw] + sat[:-ph, :-pw]
-    return (box[::stride, ::stride] / (ph * pw)).astype(np.float32)
+    return (window_sums(values, window)[::stride, ::stride] / (ph * pw)).astype(np.float32)
 
 
 class Filler:
@@ -400,9 +398,7 @@ def _typical_windows(feats: np.ndarray, size: int) -> np.ndarray:
     grad = np.zeros(f.shape[:2])
     grad[:, :-1] += np.linalg.norm(f[:, 1:] - f[:, :-1], axis=-1)
     grad[:-1, :] += np.linalg.norm(f[1:] - f[:-1], axis=-1)
-    sat = np.zeros((grad.shape[0] + 1, grad.shape[1] + 1))
-    sat[1:, 1:] = grad.cumsum(0).cumsum(1)
-    box = sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
+    box = window_sums(grad, (size, size))
     low, high = np.percentile(box, TYPICAL)
     return ((box >= low) & (box <= high)).ravel()
 
