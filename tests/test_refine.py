@@ -143,3 +143,27 @@ def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
     rounds_at.clear()
     refine_map(stones, start, iterations=2, occurrence=0.3, seed=0, patch=4, scales=1)
     assert rounds_at == [SIZE // 2] * 2 + [SIZE] * 2
+
+
+def test_contrast_by_default_is_on_only_where_the_exemplar_is_about_as_large_as_the_output():
+    """A negative (default) ``contrast`` becomes the synthesizer's weight (AUTO_CONTRAST, quilting's own) up to
+    AUTO_AREA x the exemplar's texels and 0 beyond; a given weight is kept; the stage notes the weight it used."""
+    from btforge.context import StageContext
+    from btforge.plugins.synth.quilting import AUTO_CONTRAST as QUILT_CONTRAST
+    from btforge.plugins.synth.quilting import quilt
+    from btforge.plugins.synth.synthesizer import AUTO, AUTO_AREA, AUTO_CONTRAST, auto_contrast
+    assert auto_contrast(AUTO, (256, 256), (256, 256)) == AUTO_CONTRAST
+    assert auto_contrast(AUTO, (256, 256), (320, 320)) == AUTO_CONTRAST
+    assert auto_contrast(AUTO, (int(100 * AUTO_AREA), 100), (100, 100)) == AUTO_CONTRAST
+    assert auto_contrast(AUTO, (int(100 * AUTO_AREA) + 1, 100), (100, 100)) == 0.0
+    assert auto_contrast(AUTO, (256, 256), (192, 192)) == 0.0
+    assert auto_contrast(0.0, (256, 256), (256, 256)) == 0.0
+    assert auto_contrast(4.0, (256, 256), (64, 64)) == 4.0
+    assert auto_contrast(AUTO, (64, 64), (64, 64), auto_weight=3.0) == 3.0
+    lights = hemisphere_lights(8)
+    stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
+                        np.array([[0.0, 0.0, 1.0]]))
+    for size, expected in ((SIZE, QUILT_CONTRAST), (OUT, 0.0)):
+        ctx = StageContext(node="quilt")
+        quilt(ctx=ctx, exemplar=stack, size=[size, size], seed=0, block=12, overlap=4, refine=1, scales=0)
+        assert ctx.notes["contrast"] == expected

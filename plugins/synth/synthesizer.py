@@ -51,16 +51,30 @@ OCCURRENCE = 1.0
 #: areas and copied blocks larger than a fine window are matched and cut as a whole (square patchworks of colour
 #: areas are gone; seams drop on every exemplar measured).
 SCALES = 2
+#: The ``contrast`` param's default: chosen per run by :func:`auto_contrast`.
+AUTO = -1.0
+#: The contrast weight an automatic ``contrast`` takes (k-coherence, the jump map; quilting declares 8) where the
+#: exemplar is about as large as the output ...
+AUTO_CONTRAST = 16.0
+#: ... that is, where the output has at most this many times the exemplar's texels.  There the occurrence term lets
+#: the optimisation leave exemplar areas out, and under a squared distance it leaves out the textured ones: at 256 x
+#: 256 from 256 x 256 and 224 x 224, SWD over the shuffled blocks missed on the procedural exemplar (1.62-2.34) and
+#: stones (1.84-2.62) for k-coherence or the jump map; with the term they pass (0.65-1.31).  Where the output is
+#: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and the term traded one missed target for
+#: another on 21 crops (Benchmarks).
+AUTO_AREA = 1.5
 #: Default side in texels of the refinement's windows (a synthesizer may declare its own ``window`` param).
 WINDOW = 8
 
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
-                  window: int | None = None, coarse_refine: int | None = None) -> list[Param]:
+                  window: int | None = None, coarse_refine: int | None = None,
+                  auto_weight: float = AUTO_CONTRAST) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
-    coarser scale, by default as many as ``refine`` without the param)."""
+    coarser scale, by default as many as ``refine`` without the param); ``auto_weight``: the contrast weight the
+    automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -80,11 +94,11 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
             Param("occurrence", "float", occurrence, "weight of the refinement's occurrence term: an exemplar window "
                   "whose texels are already used k times their fair share costs occurrence x (k - 1) x the mean "
                   "squared distance of two random windows (0: plain texture optimisation)", low=0.0),
-            Param("contrast", "float", 0.0, "weight of the refinement's contrast term: an exemplar window with less "
+            Param("contrast", "float", AUTO, "weight of the refinement's contrast term: an exemplar window with less "
                   "variation than the output window it would replace costs contrast x the shortfall, so the "
-                  "optimisation does not drift towards the exemplar's flat areas (try 16 where the exemplar is as large "
-                  "as the output: SWD falls, seams rise by 0.06-0.22 on the crops measured; 0: off)", low=0.0,
-                  high=1000.0),
+                  "optimisation does not drift towards the exemplar's flat areas; negative (the default): "
+                  f"{auto_weight:g} where the output has at most {AUTO_AREA:g} x the exemplar's texels (an exemplar "
+                  "about as large as the output, where the drift shows), else 0; 0: off", low=-1.0, high=1000.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
                   "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows "
                   f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger "
@@ -92,15 +106,27 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "full resolution only)", low=0, high=6), *extra]
 
 
+def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST) -> float:
+    """``contrast`` where it is >= 0, else ``auto_weight`` where the output has at most :data:`AUTO_AREA` x the
+    exemplar's texels and 0 where it has more."""
+    if contrast >= 0:
+        return contrast
+    ratio = (output_shape[0] * output_shape[1]) / (exemplar_shape[0] * exemplar_shape[1])
+    return auto_weight if ratio <= AUTO_AREA else 0.0
+
+
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
-            coarse_refine: int | None = None, contrast: float = 0.0):
+            coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
-    ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass), with its time noted."""
+    ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
+    :func:`auto_contrast` with ``auto_weight``), with its time and contrast weight noted."""
     import time
 
     from .refine import refine_map
+    contrast = auto_contrast(contrast, coords.coords.shape[:2], features.shape[:2], auto_weight)
+    ctx.note("contrast", contrast)
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
                      patch=window, recut_passes=recut_passes, bridges=bridges, coarse_iterations=coarse_refine,
