@@ -59,7 +59,7 @@ AUTO_CONTRAST = 16.0
 #: ... that is, where the output has at most this many times the exemplar's texels.  There the occurrence term lets
 #: the optimisation leave exemplar areas out, and under a squared distance it leaves out the textured ones: at 256 x
 #: 256 from 256 x 256 and 224 x 224, SWD over the shuffled blocks missed on the procedural exemplar (1.62-2.34) and
-#: stones (1.84-2.62) for k-coherence or the jump map; with the term they pass (0.65-1.31).  Where the output is
+#: stones (1.84-2.62) for k-coherence or the jump map; with the term they pass (0.68-1.31).  Where the output is
 #: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and the term traded one missed target for
 #: another on 21 crops (Benchmarks).
 AUTO_AREA = 1.5
