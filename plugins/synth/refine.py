@@ -387,9 +387,9 @@ def _rank_opencl(index: WindowIndex, query: np.ndarray, cand: np.ndarray, extra:
     buffers = [backend.to_device(index.texels), backend.to_device(np.ascontiguousarray(query, np.float32)),
                backend.to_device(cand.astype(np.int32)), backend.to_device(np.ascontiguousarray(extra, np.float32)),
                backend.host_output(origin), backend.host_output(distance)]
-    texels, queries, candidates, penalties, origin_out, distance_out = buffers
+    texels, queries, candidates, extra_costs, origin_out, distance_out = buffers
     launch(backend, kernel, (n,), texels, np.int32(index.texels.shape[1]), np.int32(index.grid[1]), queries,
-           candidates, penalties, np.int32(n), origin_out, distance_out)
+           candidates, extra_costs, np.int32(n), origin_out, distance_out)
     backend.finish_output(origin_out, origin)
     backend.finish_output(distance_out, distance)
     return origin.astype(np.int64), distance.astype(np.float64)
