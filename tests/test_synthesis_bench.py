@@ -196,10 +196,46 @@ def test_synthesizers_meet_the_four_targets_on_a_held_out_relief(relief_192, nam
     outputs, the bench's probe lights): seams <= 1.3, straight seams <= 1.2 where they are 2 % of the seam edges
     or more, evenness >= 0.5, SWD <= 1.5 x the shuffled blocks'.  On this relief the three measured 1.03-1.10,
     0.63-1.05 (1.8-2.6 %), 0.77-0.82 and 0.88-1.07."""
-    lights = [list(map(float, light)) for light in probe_lights(8)]
-    runs = [bench.score_map(relief_192, stage(name)(exemplar=relief_192, size=[256, 256], seed=s)["coords"], lights)
-            for s in (0, 1)]
-    median = {k: float(np.median([r[k] for r in runs])) for k in
-              ("seam_visibility", "straight_seam_visibility", "straight_seam_share", "evenness",
-               "swd_vs_shuffled_blocks")}
+    median = default_medians(relief_192, name)
     assert missed_targets(median) == [], median
+
+
+EYE_MEASURES = ("seam_visibility", "straight_seam_visibility", "straight_seam_share", "evenness",
+                "swd_vs_shuffled_blocks")
+
+
+def default_medians(model, name: str) -> dict:
+    """The measures of what the eye sees for synthesizer ``name`` at its defaults, 256 x 256 from ``model``, medians
+    of seeds 0 and 1 at the bench's eight probe lights."""
+    lights = [list(map(float, light)) for light in probe_lights(8)]
+    runs = [bench.score_map(model, stage(name)(exemplar=model, size=[256, 256], seed=s)["coords"], lights)
+            for s in (0, 1)]
+    return {k: float(np.median([r[k] for r in runs])) for k in EYE_MEASURES}
+
+
+@pytest.mark.parametrize("name", ["synth.quilt", "synth.kcoherence"])
+def test_synthesizers_meet_the_four_targets_on_a_kind_added_after_their_defaults(name):
+    """The demo's coarse plaster (``stucco``, 192 x 192), a kind no default was chosen on: quilting and k-coherence
+    meet every target (seams 1.15 and 1.19, SWD 0.82 and 0.97); the jump map misses seams there (1.33, see the
+    benchmarks), so it is not held to them here."""
+    model = bench.exemplar_model("procedural:stucco", 192)
+    median = default_medians(model, name)
+    assert missed_targets(median) == [], (name, median)
+
+
+def test_an_exemplar_crop_may_start_at_a_given_texel():
+    """``FILE@ROW,COL`` crops a capture from that texel instead of its centre; a malformed origin is a clear error."""
+    from pathlib import Path
+    from btforge.errors import BtforgeInputError
+    capture = Path(__file__).parents[1] / "graphs/data/icon_san_michele/dirs.lp"
+    assert bench.crop_origin(f"{capture}@10,20") == (str(capture), (10, 20))
+    assert bench.crop_origin(str(capture)) == (str(capture), None)
+    model = bench.exemplar_model(f"{capture}@10,20", 24)
+    stack = stage("stackio.read")(path=str(capture))["stack"]
+    crop = stage("synth.crop")(input=stack, origin=[10, 20], size=[24, 24])["output"]
+    expected = stage("ptm.fit")(stack=crop, variant="lrgb", basis="orthonormal")["model"]
+    assert (model.height, model.width) == (24, 24)
+    np.testing.assert_allclose(model.coeffs, expected.coeffs, rtol=1e-5, atol=1e-6)
+    assert bench._slug(f"{capture}@10,20") == "icon_san_michele_at_10_20"
+    with pytest.raises(BtforgeInputError, match="two whole numbers"):
+        bench.crop_origin(f"{capture}@10")

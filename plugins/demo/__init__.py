@@ -1,4 +1,5 @@
-"""Built-in demo data: procedural materials (bumps, stones, plaster, fibres) rendered under many lights on OpenCL."""
+"""Built-in demo data: procedural materials (bumps, stones, plaster, fibres, cobbles, gravel, strands, stucco)
+rendered under many lights on OpenCL."""
 from __future__ import annotations
 
 import dataclasses
@@ -34,8 +35,10 @@ def pattern_material(pattern: str, size, *, bumps: int = 40, bump_height: float 
         Param("seed", "int", 0, "random seed of the material"),
         Param("pattern", "choice", "bumps", "the kind of material: bumps (cosine-cap bumps with a fine weave on "
               "soft colour regions), stones (raised stones with sharp edges and dark grout), plaster (grainy relief, "
-              "mottled colour) or fibres (strands mostly along one direction); 'bumps' is the only one that reads "
-              "the param 'bumps', 'bump_height' scales every pattern's relief", choices=PATTERNS),
+              "mottled colour), fibres (strands mostly along one direction), cobbles (large flat cells in a few "
+              "colours, narrow grooves), gravel (small pale cells), strands (long, nearly parallel strands) or stucco "
+              "(coarse plaster); 'bumps' is the only one that reads the param 'bumps', 'bump_height' scales every "
+              "pattern's relief", choices=PATTERNS),
     ],
 )
 def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shadows, seed, pattern):

@@ -47,7 +47,8 @@ def exemplar_model(path: str, crop: int):
     """The exemplar as an orthonormal LRGB PTM of the central ``synth.crop`` x ``synth.crop`` texels of a capture
     (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar;
     ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file: that model,
-    cropped)."""
+    cropped; ``FILE@ROW,COL``: the crop of a capture or ``.ptm`` file with its upper-left texel there instead of
+    the central one)."""
     from btforge import stage
     if path == PROCEDURAL:
         stack = benchmark_exemplar(crop, lights=16, seed=7)
@@ -56,11 +57,33 @@ def exemplar_model(path: str, crop: int):
         pattern = str(path).split(":", 1)[1]
         stack = stage("demo.material")(size=[crop, crop], lights=16, pattern=pattern, seed=7)["stack"]
         return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
-    if str(path).endswith(".ptm"):
-        return central_crop(stage("ptm.read")(path=str(path))["model"], crop)
+    path, origin = crop_origin(str(path))
+    if path.endswith(".ptm"):
+        return _cropped(stage("ptm.read")(path=path)["model"], crop, origin)
     from btforge.plugins.stackio.images import load_stack
-    patch = central_crop(load_stack(Path(path)), crop)
+    patch = _cropped(load_stack(Path(path)), crop, origin)
     return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
+
+
+def crop_origin(exemplar: str) -> tuple[str, tuple[int, int] | None]:
+    """``FILE@ROW,COL`` split into the file and the crop's upper-left texel (None without ``@``)."""
+    if "@" not in exemplar:
+        return exemplar, None
+    path, _, origin = exemplar.rpartition("@")
+    parts = origin.split(",")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise BtforgeInputError(f"--exemplar {exemplar}", f"expected FILE@ROW,COL with two whole numbers after '@', "
+                                f"found {origin!r}", "give the crop's upper-left texel, e.g. tablet1.ptm@170,275")
+    return path, (int(parts[0]), int(parts[1]))
+
+
+def _cropped(buffer: PerTexel, crop: int, origin: tuple[int, int] | None) -> PerTexel:
+    """The ``crop`` x ``crop`` texels of ``buffer`` from ``origin`` (None: the central ones; ``synth.crop`` names a
+    crop that does not fit)."""
+    if origin is None:
+        return central_crop(buffer, crop)
+    from btforge import stage
+    return stage("synth.crop")(input=buffer, origin=list(origin), size=[crop, crop])["output"]
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int | None = None,
@@ -191,8 +214,9 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
     p.add_argument("--exemplar", required=True, help="the capture (.lp) or PTM file (.ptm) whose central "
-                   "crops are the exemplars, 'procedural' for the demo material, or 'procedural:PATTERN' for one of "
-                   "its patterns (stones, plaster, fibres)")
+                   "crops are the exemplars (FILE@ROW,COL: the crops with their upper-left texel there), "
+                   "'procedural' for the demo material, or 'procedural:PATTERN' for one of its patterns (stones, "
+                   "plaster, fibres, cobbles, gravel, strands, stucco)")
     p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv, synthesis.png and one sheet per "
                    "exemplar size (sheet_NAME_HxW.png: the exemplar and every output at two lights, with the "
                    "measures of what the eye sees)")
@@ -274,8 +298,10 @@ def _slug(exemplar: str) -> str:
     """A short name of an exemplar argument: the capture's folder, the .ptm file's stem, or the pattern."""
     if exemplar.startswith(PROCEDURAL):
         return exemplar.replace(":", "_")
-    path = Path(exemplar)
-    return path.stem if path.suffix == ".ptm" else path.parent.name or path.stem
+    file, origin = crop_origin(exemplar)
+    path = Path(file)
+    name = path.stem if path.suffix == ".ptm" else path.parent.name or path.stem
+    return name if origin is None else f"{name}_at_{origin[0]}_{origin[1]}"
 
 
 def _search_figures(model) -> dict:
