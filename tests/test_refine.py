@@ -167,3 +167,24 @@ def test_contrast_by_default_is_on_only_where_the_exemplar_is_about_as_large_as_
         ctx = StageContext(node="quilt")
         quilt(ctx=ctx, exemplar=stack, size=[size, size], seed=0, block=12, overlap=4, refine=1, scales=0)
         assert ctx.notes["contrast"] == expected
+
+
+def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkeypatch):
+    """``polish`` adds rounds at the finest scale after the others, with 8 x 8 windows whatever ``patch`` is, and
+    without the occurrence and contrast terms; on a map refined with 12 x 12 windows it lowers the seam cost."""
+    from btforge.plugins.synth import refine
+    calls = []
+    real_step = refine.optimise_step
+
+    def recorded(index, src, wrap, weights, *args, **kwargs):
+        calls.append((index.patch, tuple(weights)))
+        return real_step(index, src, wrap, weights, *args, **kwargs)
+
+    monkeypatch.setattr(refine, "optimise_step", recorded)
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
+    plain = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0)
+    assert calls == [(12, (0.5, 4.0))] * 2
+    calls.clear()
+    polished = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0, polish=1)
+    assert calls == [(12, (0.5, 4.0))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0))]
+    assert seam_cost(stones, polished) < seam_cost(stones, plain)

@@ -67,6 +67,8 @@ SEAM_WEIGHT = 1.0
 COARSE_FIT = 4
 #: Checkerboard sweeps of the vote's labelling.
 SWEEPS = 4
+#: Side of the windows of the final polish rounds (``refine_map(polish=...)``).
+POLISH_WINDOW = 8
 #: Window positions sampled to fit the window PCA.
 PCA_SAMPLE = 4000
 
@@ -163,7 +165,7 @@ def exemplar_window_energy(texels: np.ndarray, patch: int) -> np.ndarray:
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
-               coarse_iterations: int | None = None, contrast: float = 0.0) -> CoordMap:
+               coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -175,7 +177,9 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
     (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
     and pass).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would
-    replace cost ``contrast`` x the shortfall (:func:`_best_windows`)."""
+    replace cost ``contrast`` x the shortfall (:func:`_best_windows`).  ``polish`` rounds at the finest scale
+    follow, before the re-cut, with :data:`POLISH_WINDOW` x :data:`POLISH_WINDOW` windows and neither term
+    (:func:`_polished`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -189,6 +193,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
     src = _refine_sources(features, src, coords.wrap, rounds, (occurrence, contrast), patch, rng, pinned, scales)
+    if polish > 0 and min(coords.source_size) >= POLISH_WINDOW:
+        src = _polished(features, src, coords.wrap, polish, rng, pinned)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
                                    bridges)
@@ -209,6 +215,14 @@ def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, sc
         for _ in range(CORRECTIONS):
             src = keep(correction_pass(index.texels, src, wrap, rng))
     return src
+
+
+def _polished(features, src, wrap, rounds, rng, pinned):
+    """``src`` after ``rounds`` rounds at the finest scale with :data:`POLISH_WINDOW` windows, without the occurrence
+    and contrast terms.  A synthesizer that refines with larger windows (the jump map's 12) keeps its structures
+    whole but leaves its cuts where those windows met; small windows matched for their fit alone move the cuts
+    to where the content agrees, and leave alone which exemplar areas are used, which the terms had settled."""
+    return _refine_sources(features, src, wrap, (rounds, rounds), (0.0, 0.0), POLISH_WINDOW, rng, pinned, 0)
 
 
 def _coarse_first(features, src, wrap, iterations, weights, patch, rng, pinned, scales):

@@ -68,12 +68,13 @@ WINDOW = 8
 
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
-                  window: int | None = None, coarse_refine: int | None = None,
+                  window: int | None = None, coarse_refine: int | None = None, polish: int | None = None,
                   auto_weight: float = AUTO_CONTRAST) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
-    coarser scale, by default as many as ``refine`` without the param); ``auto_weight``: the contrast weight the
+    coarser scale, by default as many as ``refine`` without the param), with ``polish`` also a ``polish`` param (final
+    rounds of 8 x 8 windows without the terms, by default none without the param); ``auto_weight``: the contrast weight the
     automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
@@ -84,6 +85,11 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                            "(the finest runs 'refine' rounds): the coarse rounds set which exemplar areas are used "
                            "and how often, the fine ones cut the seams; cheap, since a coarse scale has a quarter "
                            "of the texels of the next", low=0, high=20))
+    if polish is not None:
+        extra.append(Param("polish", "int", polish, "final rounds of the refinement at full resolution with 8 x 8 "
+                           "windows matched for their fit alone (no occurrence or contrast term): the cuts the "
+                           "larger windows left move to where the content agrees, while the exemplar areas used "
+                           "stay (0: none)", low=0, high=10))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
@@ -117,11 +123,13 @@ def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: fl
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
-            coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST):
+            coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST,
+            polish: int = 0):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
-    :func:`auto_contrast` with ``auto_weight``), with its time and contrast weight noted."""
+    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds of 8 x 8 windows without the terms), with its
+    time and contrast weight noted."""
     import time
 
     from .refine import refine_map
@@ -130,7 +138,7 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
                      patch=window, recut_passes=recut_passes, bridges=bridges, coarse_iterations=coarse_refine,
-                     contrast=contrast)
+                     contrast=contrast, polish=polish)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 
