@@ -188,3 +188,7 @@ def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkey
     polished = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0, polish=1)
     assert calls == [(12, (0.5, 4.0))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0))]
     assert seam_cost(stones, polished) < seam_cost(stones, plain)
+    calls.clear()
+    small = shuffled_blocks((SIZE, SIZE), (6, 6), block=3, seed=1)   # windows of 4 fit, the polish's 8 do not
+    kept = refine_map(stones, small, iterations=1, occurrence=0.5, seed=0, patch=4, polish=1, recut=False)
+    assert [patch for patch, _ in calls] == [4] and kept.coords.shape == (6, 6, 2)

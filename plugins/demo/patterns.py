@@ -163,6 +163,5 @@ def _laid_strands(rng, h: int, w: int, *, area: float, half_length, spread: floa
         higher = top > height
         height = np.where(higher, top, height)
         shade = np.where(higher, rng.uniform(0.35, 0.9), shade)
-    albedo = np.stack([tint[0] * shade, tint[1] * shade, tint[2] * shade], axis=-1)
-    albedo = albedo * (1 + 0.05 * _grain(rng, h, w, 0.7))[..., None]
+    albedo = shade[..., None] * np.asarray(tint) * (1 + 0.05 * _grain(rng, h, w, 0.7))[..., None]
     return 0.6 * height, albedo

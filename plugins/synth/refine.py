@@ -193,7 +193,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
     src = _refine_sources(features, src, coords.wrap, rounds, (occurrence, contrast), patch, rng, pinned, scales)
-    if polish > 0 and min(coords.source_size) >= POLISH_WINDOW:
+    if polish > 0 and min(*coords.source_size, coords.height, coords.width) >= POLISH_WINDOW:
         src = _polished(features, src, coords.wrap, polish, rng, pinned)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,

@@ -73,9 +73,9 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
-    coarser scale, by default as many as ``refine`` without the param), with ``polish`` also a ``polish`` param (final
-    rounds of 8 x 8 windows without the terms, by default none without the param); ``auto_weight``: the contrast weight the
-    automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
+    coarser scale, by default as many as ``refine`` without the param), with ``polish`` also a ``polish`` param
+    (final rounds of 8 x 8 windows without the terms, by default none without the param); ``auto_weight``: the
+    contrast weight the automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
