@@ -12,7 +12,7 @@ Each pattern is a tileable height field with an albedo, returned as a :class:`Pr
 * ``strands``: long strands (60-120 texels) within 8 degrees of one direction, on a dark ground;
 * ``stucco``: a coarse plaster, lumps and undulations larger than the plaster's and stronger mottles.
 
-The last four were added after the synthesizers' defaults were chosen, as kinds those defaults never saw.
+The last four are kinds no synthesizer default was chosen on.
 """
 from __future__ import annotations
 
