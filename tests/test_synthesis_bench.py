@@ -1,6 +1,8 @@
 """The synthesis bench and quality targets (a third-party synthesizer: tests/test_plugin_api.py): the texture
 statistics score, and every synthesizer against a shuffled-block baseline."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -116,6 +118,31 @@ def test_the_bench_skips_a_synthesizer_that_refuses_the_exemplar(tmp_path, capsy
                   if k in bench.TARGET_KEYS.values() or k == "straight_seam_share"}
         assert row["targets_missed"] == (" ".join(missed_targets(values)) or "none"), row
     assert "seams" in rows[0]["targets_missed"]   # shuffled blocks: seams everywhere
+
+
+def test_the_bench_writes_every_seeds_scores_beside_their_medians(tmp_path, capsys):
+    """``seeds.csv`` holds one row per seed (the baseline's too); ``synthesis.csv``'s figures are their medians, and
+    the progress line gives the seeds' range of SWD over the shuffled blocks."""
+    import csv
+    import statistics
+    from btforge.cli import main
+    assert main(["bench", "synthesis", "--exemplar", "procedural", "--out", str(tmp_path), "--sizes", "24",
+                 "--size", "32", "--only", "synth.jumpmap", "--lights", "3", "--no-search", "--seeds", "3"]) == 0
+    medians = list(csv.DictReader((tmp_path / "synthesis.csv").open()))
+    seeds = list(csv.DictReader((tmp_path / "seeds.csv").open()))
+    assert [(r["synthesizer"], r["seed"]) for r in seeds] == [
+        (name, str(seed)) for name in ("shuffled blocks", "synth.jumpmap") for seed in range(3)]
+    for row in medians:
+        mine = [r for r in seeds if r["synthesizer"] == row["synthesizer"]]
+        for key in ("swd_vs_shuffled_blocks", "seam_visibility", "evenness"):
+            values = [float(r[key]) for r in mine]
+            # both sides are rounded to 4 decimals (bench._round), so they agree within one unit of the last
+            assert abs(float(row[key]) - statistics.median(values)) <= 1e-4, (row["synthesizer"], key, values)
+    swd = [float(r["swd_vs_shuffled_blocks"]) for r in seeds if r["synthesizer"] == "synth.jumpmap"]
+    shown = re.search(r"\(seeds ([\d.]+)-([\d.]+)\)", capsys.readouterr().err)
+    assert shown, "the progress line gives no range"
+    # printed with 2 decimals from the unrounded values: within half a unit of the second decimal, plus the CSV's
+    assert abs(float(shown[1]) - min(swd)) <= 0.0051 and abs(float(shown[2]) - max(swd)) <= 0.0051
 
 
 def test_a_sheet_label_marks_the_measures_whose_targets_are_missed():

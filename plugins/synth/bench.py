@@ -217,9 +217,9 @@ def _parser() -> argparse.ArgumentParser:
                    "crops are the exemplars (FILE@ROW,COL: the crops with their upper-left texel there), "
                    "'procedural' for the demo material, or 'procedural:PATTERN' for one of its patterns (stones, "
                    "plaster, fibres, cobbles, gravel, strands, stucco)")
-    p.add_argument("--out", required=True, help="folder for synthesis.csv, search.csv, synthesis.png and one sheet per "
-                   "exemplar size (sheet_NAME_HxW.png: the exemplar and every output at two lights, with the "
-                   "measures of what the eye sees)")
+    p.add_argument("--out", required=True, help="folder for synthesis.csv, seeds.csv, search.csv, synthesis.png and "
+                   "one sheet per exemplar size (sheet_NAME_HxW.png: the exemplar and every output at two lights, "
+                   "with the measures of what the eye sees)")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
     p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")
     p.add_argument("--repeat", type=int, default=1, help="re-syntheses with cached analysis; the median is reported")
@@ -227,7 +227,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", type=int, default=8, help="probe lights of the scores (default 8)")
     p.add_argument("--no-search", action="store_true", help="leave out the shared search's figures (search.csv)")
     p.add_argument("--seeds", type=int, default=1, help="score seeds 0 .. N-1 (and N baselines) and report "
-                   "each score's median: one seed's sliced-Wasserstein distance varies by up to 2x (default 1)")
+                   "each score's median (seeds.csv: every seed's): one seed's sliced-Wasserstein distance varies by "
+                   "up to 2x (default 1)")
     p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                    help="run a synthesizer with a param other than its default, e.g. --set synth.quilt.block=24 or "
                    "--set wang.tiles.typical=0.85 (repeatable)")
@@ -266,28 +267,31 @@ def bench_synthesis(args: list[str]) -> int:
     from btforge.cli import parse_sets
     params = synthesizer_params(parse_sets(opts.set), chosen)
     target = Path(opts.out)
-    rows, search_rows = [], []
+    rows, search_rows, seed_rows = [], [], []
     for crop in opts.sizes:
         model = exemplar_model(opts.exemplar, crop)
         label = f"{model.height}x{model.width}"
         if not opts.no_search:
             search_rows.append({"exemplar": label, **_search_figures(model)})
-        baseline = median_scores([score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size),
-                                                                   seed=seed), lights) for seed in range(opts.seeds)])
+        per_seed = [score_map(model, shuffled_blocks((model.height, model.width), (opts.size, opts.size), seed=seed),
+                              lights) for seed in range(opts.seeds)]
+        baseline = median_scores(per_seed)
         rows.append({"synthesizer": "shuffled blocks", "exemplar": label, "analysis_s": 0.0, "synthesis_s": 0.0,
                      **{k: _round(v) for k, v in baseline.items()}, "targets_missed": _missed(baseline)})
+        seed_rows += seed_table("shuffled blocks", label, per_seed)
         outputs = {}
         for name, st in chosen.items():
             try:
-                row, outputs[name] = _synthesizer_row(st, name, model, label, opts, lights, params[name])
+                row, outputs[name], per_seed = _synthesizer_row(st, name, model, label, opts, lights, params[name])
             except BtforgeInputError as refused:   # e.g. an exemplar smaller than Wang tiles need
                 print(f"{label} {name}: skipped, {refused}", file=sys.stderr)
                 continue
             rows.append(row)
+            seed_rows += seed_table(name, label, per_seed)
         write_sheet(target / f"sheet_{_slug(opts.exemplar)}_{label}.png", model, outputs,
                     {r["synthesizer"]: r for r in rows if r["exemplar"] == label},
                     f"{opts.size}x{opts.size} from {label} of {_slug(opts.exemplar)}  (!: a target missed)")
-    _write_tables(target, opts, rows, search_rows)
+    _write_tables(target, opts, rows, search_rows, seed_rows)
     print(_table(rows))
     if search_rows:
         print(_table(search_rows))
@@ -314,19 +318,34 @@ def _search_figures(model) -> dict:
     return {k: _round(v) for k, v in found.items()}
 
 
-def _synthesizer_row(st, name: str, model, label: str, opts, lights, params: dict) -> tuple[dict, object]:
-    """One synthesizer's timings and median scores on one exemplar (at ``params``), and its first map."""
+def _synthesizer_row(st, name: str, model, label: str, opts, lights, params: dict) -> tuple[dict, object, list]:
+    """One synthesizer's timings and median scores on one exemplar (at ``params``), its first map, and every seed's
+    scores."""
     timed = time_synthesizer(st, model, opts.size, opts.repeat, params)
-    scores = median_scores([score_map(model, timed["coords"], lights)] + [
+    per_seed = [score_map(model, timed["coords"], lights)] + [
         score_map(model, st(exemplar=model, size=[opts.size, opts.size], seed=seed, **params)["coords"], lights)
-        for seed in range(1, opts.seeds)])
+        for seed in range(1, opts.seeds)]
+    scores = median_scores(per_seed)
     row = {"synthesizer": name, "exemplar": label, "analysis_s": _round(timed["analysis_s"]),
            "synthesis_s": _round(timed["synthesis_s"]), **{k: _round(v) for k, v in scores.items()},
            "targets_missed": _missed(scores)}
     eye = "  ".join(f"{title} {_short(scores[key])}" for key, title in EYE_KEYS.items())
     print(f"{label} {name:12s} analysis {timed['analysis_s']:7.3f} s  synthesis {timed['synthesis_s']:7.3f} s  "
-          f"{eye}  missed: {row['targets_missed']}", file=sys.stderr)
-    return row, timed["coords"]
+          f"{eye}{_swd_range(per_seed)}  missed: {row['targets_missed']}", file=sys.stderr)
+    return row, timed["coords"], per_seed
+
+
+def seed_table(name: str, label: str, per_seed: list[dict]) -> list[dict]:
+    """One row per seed of a synthesizer's (or the baseline's) scores on one exemplar: what the medians of
+    ``synthesis.csv`` hide, for ``seeds.csv``."""
+    return [{"synthesizer": name, "exemplar": label, "seed": seed, **{k: _round(v) for k, v in scores.items()},
+             "targets_missed": _missed(scores)} for seed, scores in enumerate(per_seed)]
+
+
+def _swd_range(per_seed: list[dict]) -> str:
+    """`` (seeds a-b)``: the range of SWD over the shuffled blocks over more than one seed, else nothing."""
+    values = [r["swd_vs_shuffled_blocks"] for r in per_seed if r.get("swd_vs_shuffled_blocks") is not None]
+    return f" (seeds {min(values):.2f}-{max(values):.2f})" if len(values) > 1 else ""
 
 
 def _short(value) -> str:
@@ -346,10 +365,10 @@ def _missed(scores: dict) -> str:
     return " ".join(visibility.missed_targets(scores)) or "none"
 
 
-def _write_tables(target: Path, opts, rows: list[dict], search_rows: list[dict]) -> None:
+def _write_tables(target: Path, opts, rows: list[dict], search_rows: list[dict], seed_rows: list[dict]) -> None:
     from btforge.atomic import atomic_write_text
     from btforge.plot import scatter_png
-    for filename, table in (("synthesis.csv", rows), ("search.csv", search_rows)):
+    for filename, table in (("synthesis.csv", rows), ("search.csv", search_rows), ("seeds.csv", seed_rows)):
         if not table:
             continue
         buffer = io.StringIO()
