@@ -19,6 +19,7 @@ from btforge.errors import BtforgeInputError
 
 from .bridging import TRIES as BRIDGE_TRIES
 from .recut import PASSES as RECUT_PASSES
+from .refine import POLISH_WINDOW
 from .scan_order import level_sizes
 
 MAX_K = 16
@@ -74,8 +75,8 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
     coarser scale, by default as many as ``refine`` without the param), with ``polish`` also a ``polish`` param
-    (final rounds of 8 x 8 windows without the terms, by default none without the param); ``auto_weight``: the
-    contrast weight the automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
+    (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms, by default none without the param);
+    ``auto_weight``: the contrast weight the automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -86,10 +87,10 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                            "and how often, the fine ones cut the seams; cheap, since a coarse scale has a quarter "
                            "of the texels of the next", low=0, high=20))
     if polish is not None:
-        extra.append(Param("polish", "int", polish, "final rounds of the refinement at full resolution with 8 x 8 "
-                           "windows matched for their fit alone (no occurrence or contrast term): the cuts the "
-                           "larger windows left move to where the content agrees, while the exemplar areas used "
-                           "stay (0: none)", low=0, high=10))
+        extra.append(Param("polish", "int", polish, "final rounds of the refinement at full resolution with "
+                           f"{POLISH_WINDOW} x {POLISH_WINDOW} windows matched for their fit alone (no occurrence "
+                           "or contrast term): the cuts the larger windows left move to where the content agrees, "
+                           "while the exemplar areas used stay (0: none)", low=0, high=10))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
@@ -128,7 +129,8 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
-    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds of 8 x 8 windows without the terms), with its
+    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds of :data:`.refine.POLISH_WINDOW` windows
+    without the terms), with its
     time and contrast weight noted."""
     import time
 
