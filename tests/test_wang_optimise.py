@@ -55,3 +55,28 @@ def test_optimisation_holds_the_borders_and_hides_the_cuts():
     before, _ = _feature_seam_ratio(plain.tile_coords, feats)
     after, _ = _feature_seam_ratio(refined.tile_coords, feats)
     assert np.isfinite(after) and after < before
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4, 5])
+def test_de_bruijn_pairs_hold_every_ordered_pair_once(k):
+    from btforge.plugins.wang.optimise import de_bruijn_pairs
+    sequence = de_bruijn_pairs(k)
+    pairs = [(sequence[i], sequence[(i + 1) % len(sequence)]) for i in range(len(sequence))]
+    assert len(sequence) == k * k and sorted(pairs) == [(a, b) for a in range(k) for b in range(k)]
+
+
+@pytest.mark.parametrize("n_h, n_v, variants", [(2, 2, 1), (1, 3, 1), (3, 2, 2), (2, 1, 3)])
+def test_packing_lays_a_complete_set_once_as_a_valid_periodic_tiling(n_h, n_v, variants):
+    from btforge.plugins.wang.optimise import packing
+    from btforge.plugins.wang.synthesis import tile_index
+    combos = [(n, e, s, w) for n in range(n_h) for e in range(n_v) for s in range(n_h) for w in range(n_v)]
+    colors = np.zeros((len(combos) * variants, 4), int)
+    for combo in combos:
+        for v in range(variants):
+            colors[tile_index(*combo, v, n_h, n_v, variants)] = combo
+    grid = packing(colors, n_h, n_v)
+    assert sorted(grid.ravel().tolist()) == list(range(len(colors)))
+    laid = colors[grid]                                                   # [rows, cols, 4]
+    assert (laid[..., 2] == np.roll(laid, -1, axis=0)[..., 0]).all()      # south meets the north below, wrapping
+    assert (laid[..., 1] == np.roll(laid, -1, axis=1)[..., 3]).all()      # east meets the west to the right
+    assert packing(colors[1:], n_h, n_v) is None                          # a set with a tile missing: no packing

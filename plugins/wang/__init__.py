@@ -44,7 +44,8 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine, **options)
     from .optimise import optimise_tiles   # texture optimisation of the interiors, borders held
     start = time.perf_counter()
-    synthesis.tile_coords = optimise_tiles(full, synthesis.tile_coords, seed=seed, **(optimise or {}))
+    synthesis.tile_coords = optimise_tiles(full, synthesis.tile_coords, seed=seed, colors=synthesis.tile_colors,
+                                           colour_counts=tuple(colors), **(optimise or {}))
     synthesis.timings["refine"] = time.perf_counter() - start
     measured = seams.tile_set_seams(synthesis.tile_coords, synthesis.tile_colors, full, h)
     reference = seams.exemplar_reference(full)
@@ -101,10 +102,11 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("occurrence", "float", 0.1, "weight of that refinement's occurrence term: exemplar windows already "
               "used beyond their fair share over the whole tile set cost more (0: plain texture optimisation)",
               low=0.0, high=100.0),
-        Param("pin", "int", 2, "texels along each tile border the refinement leaves as the edge strips laid them",
+        Param("pin", "int", 1, "texels along each tile border the refinement leaves as the edge strips laid them "
+              "(the tiles are refined laid as one valid periodic tiling, so the texels beyond see their neighbours)",
               low=1, high=256),
     ],
-    version="8",  # 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="9",  # 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
                edge_centre, typical, rare, relax, refine, occurrence, pin):

@@ -8,6 +8,14 @@ by side in one map so that the occurrence term spreads the whole set over the ex
 re-cut with bridging pieces (:mod:`btforge.plugins.synth.bridging`) as quilting's are.  A ring of ``pin`` texels
 along every tile border is held: those texels are the halves of the edge strips that every tile of the same edge
 colour shares, so the tiles stay valid Wang tiles whatever happens inside.
+
+The set is laid as one periodic tiling in which every tile meets neighbours of its own edge colours
+(:func:`packing`), so a window across a tile border sees what a tiling will show there; laid in index order, a
+tile's neighbours in the map would be unrelated tiles, and the windows along its borders would match a mix of two
+textures.  With that context one held texel is enough: the interiors meet the held ring along a straight cut, and
+a second held texel only moves that cut one texel inwards where it is as visible (against two held texels in index
+order: a 4 x 4 tiling of 2 + 2 colours, seven 192 x 192 crops, seeds 0-1, straight-seam visibility 1.43 -> 1.26 at
+the medians, seams lower on all 14 outputs).
 """
 from __future__ import annotations
 
@@ -19,7 +27,7 @@ from btforge.buffers import CoordMap
 
 ITERATIONS = 4     # texture-optimisation rounds
 OCCURRENCE = 0.1   # weight of the refinement's occurrence term
-PIN = 2            # texels along each tile border that keep their source
+PIN = 1            # texels along each tile border that keep their source
 
 
 def border_ring(w: int, pin: int) -> np.ndarray:
@@ -47,22 +55,70 @@ def unmosaic(image: np.ndarray, t: int, w: int) -> np.ndarray:
     return np.ascontiguousarray(grid.reshape(rows * columns, w, w, *image.shape[2:])[:t])
 
 
+def de_bruijn_pairs(k: int) -> list[int]:
+    """A cyclic sequence over ``0 .. k - 1`` of length ``k * k`` in which every ordered pair of symbols follows
+    each other exactly once (the de Bruijn sequence B(k, 2), by concatenating Lyndon words)."""
+    sequence, word = [], [0] * 3
+
+    def extend(t: int, p: int) -> None:
+        if t > 2:
+            if 2 % p == 0:
+                sequence.extend(word[1:p + 1])
+            return
+        word[t] = word[t - p]
+        extend(t + 1, p)
+        for symbol in range(word[t - p] + 1, k):
+            word[t] = symbol
+            extend(t + 1, t)
+
+    extend(1, 1)
+    return sequence
+
+
+def packing(colors: np.ndarray, n_h: int, n_v: int) -> np.ndarray | None:
+    """``[rows, cols]`` tile indices laying a complete set (tile colours ``colors [T, 4]``: N, E, S, W) as one
+    valid periodic tiling holding every tile once: row ``r`` has north colour ``a[r]`` and south ``a[r + 1]``,
+    column ``c`` west ``b[c]`` and east ``b[c + 1]``, for de Bruijn sequences ``a`` and ``b``, so every (N, S) pair
+    meets every (W, E) pair once; variants stack the pattern downwards.  None where the set is not complete."""
+    by_combo: dict[tuple, list[int]] = {}
+    for index, combo in enumerate(map(tuple, np.asarray(colors).tolist())):
+        by_combo.setdefault(combo, []).append(index)
+    variants = {len(v) for v in by_combo.values()}
+    if len(by_combo) != n_h * n_h * n_v * n_v or len(variants) != 1:
+        return None
+    a, b = de_bruijn_pairs(n_h), de_bruijn_pairs(n_v)
+    rows = [[by_combo[(a[r], b[(c + 1) % len(b)], a[(r + 1) % len(a)], b[c])][v] for c in range(len(b))]
+            for v in range(variants.pop()) for r in range(len(a))]
+    return np.array(rows, np.int64)
+
+
 def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations: int = ITERATIONS,
-                   occurrence: float = OCCURRENCE, pin: int = PIN, seed: int = 0) -> np.ndarray:
+                   occurrence: float = OCCURRENCE, pin: int = PIN, seed: int = 0, colors: np.ndarray | None = None,
+                   colour_counts: tuple[int, int] = (0, 0)) -> np.ndarray:
     """``tile_coords [T, w, w, 2]`` after ``iterations`` rounds of the shared refinement over appearance vectors
-    ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module docstring)."""
+    ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module docstring).  With the tiles'
+    ``colors [T, 4]`` (N, E, S, W) and ``colour_counts`` (horizontal, vertical) of a complete set, the tiles are
+    refined laid as one periodic valid tiling (:func:`packing`); otherwise row by row."""
     from btforge.plugins.synth.bridging import TRIES as BRIDGE_TRIES
     from btforge.plugins.synth.refine import refine_map
     if iterations <= 0:
         return tile_coords
     t, w = tile_coords.shape[:2]
-    columns = math.ceil(math.sqrt(t))
     ring = border_ring(w, max(1, pin))
-    pinned = mosaic(np.broadcast_to(ring, (t, w, w)), columns)
-    pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of the last row
-    laid = CoordMap(mosaic(tile_coords, columns), features.shape[:2])
+    grid = None if colors is None else packing(colors, *colour_counts)
+    if grid is not None:
+        order = grid.ravel()
+        pinned = mosaic(np.broadcast_to(ring, (t, w, w)), grid.shape[1])
+        laid = CoordMap(mosaic(tile_coords[order], grid.shape[1]), features.shape[:2], wrap=True)
+    else:
+        columns = math.ceil(math.sqrt(t))
+        order = np.arange(t)
+        pinned = mosaic(np.broadcast_to(ring, (t, w, w)), columns)
+        pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of the last row
+        laid = CoordMap(mosaic(tile_coords, columns), features.shape[:2])
     src = refine_map(features, laid, iterations=iterations, occurrence=occurrence, seed=seed, pinned=pinned,
                      bridges=BRIDGE_TRIES).coords
-    out = unmosaic(src, t, w)
-    return out.astype(tile_coords.dtype)
+    out = np.empty_like(tile_coords)
+    out[order] = unmosaic(src, t, w)
+    return out
 
