@@ -57,21 +57,13 @@ def unmosaic(image: np.ndarray, t: int, w: int) -> np.ndarray:
 
 def de_bruijn_pairs(k: int) -> list[int]:
     """A cyclic sequence over ``0 .. k - 1`` of length ``k * k`` in which every ordered pair of symbols follows
-    each other exactly once (the de Bruijn sequence B(k, 2), by concatenating Lyndon words)."""
-    sequence, word = [], [0] * 3
-
-    def extend(t: int, p: int) -> None:
-        if t > 2:
-            if 2 % p == 0:
-                sequence.extend(word[1:p + 1])
-            return
-        word[t] = word[t - p]
-        extend(t + 1, p)
-        for symbol in range(word[t - p] + 1, k):
-            word[t] = symbol
-            extend(t + 1, t)
-
-    extend(1, 1)
+    each other exactly once: the de Bruijn sequence B(k, 2), the Lyndon words of length 1 and 2 (``i`` and ``i j``
+    with ``i < j``) concatenated in lexicographic order."""
+    sequence = []
+    for first in range(k):
+        sequence.append(first)
+        for second in range(first + 1, k):
+            sequence += [first, second]
     return sequence
 
 
@@ -106,16 +98,11 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
     t, w = tile_coords.shape[:2]
     ring = border_ring(w, max(1, pin))
     grid = None if colors is None else packing(colors, *colour_counts)
-    if grid is not None:
-        order = grid.ravel()
-        pinned = mosaic(np.broadcast_to(ring, (t, w, w)), grid.shape[1])
-        laid = CoordMap(mosaic(tile_coords[order], grid.shape[1]), features.shape[:2], wrap=True)
-    else:
-        columns = math.ceil(math.sqrt(t))
-        order = np.arange(t)
-        pinned = mosaic(np.broadcast_to(ring, (t, w, w)), columns)
-        pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of the last row
-        laid = CoordMap(mosaic(tile_coords, columns), features.shape[:2])
+    order = np.arange(t) if grid is None else grid.ravel()
+    columns = math.ceil(math.sqrt(t)) if grid is None else grid.shape[1]
+    pinned = mosaic(np.broadcast_to(ring, (t, w, w)), columns)
+    pinned[mosaic(np.ones((t, w, w), bool), columns) == 0] = True   # empty cells of a last row laid row by row
+    laid = CoordMap(mosaic(tile_coords[order], columns), features.shape[:2], wrap=grid is not None)
     src = refine_map(features, laid, iterations=iterations, occurrence=occurrence, seed=seed, pinned=pinned,
                      bridges=BRIDGE_TRIES).coords
     out = np.empty_like(tile_coords)
