@@ -81,6 +81,21 @@ def test_pinned_texels_keep_their_sources_and_bands_stop_at_them(stones):
     assert np.array_equal(out[pinned], src[pinned])
 
 
+def test_a_run_across_a_pinned_ring_counts_its_whole_length():
+    """A Wang tile border pins two rows; a cut of 16 texels across it is split by them into runs of 7 the re-cut
+    would not see alone, while the straight-seam measure counts all 16.  Its free parts are re-cut, the pinned
+    edges stay out of the runs."""
+    src = two_blocks(64, 16, 40, (2, 3), (20, 30))
+    pinned = np.zeros(src.shape, bool)
+    pinned[7:9] = True
+    (vertical, _), (horizontal, _) = recut.straight_runs(src, 64, False, pinned)
+    expected = np.zeros(src.shape, bool)
+    expected[:, 19] = True
+    expected[7:9, 19] = False
+    assert np.array_equal(vertical, expected) and not horizontal.any()
+    assert not recut.straight_runs(src[:11], 64, False, pinned[:11])[0][0].any()   # 11 texels: not straight
+
+
 def test_a_constant_exemplar_leaves_the_map_as_it_is():
     texels = np.ones((32, 32, 3), np.float32)
     src = two_blocks(32, 20, 20, (0, 0), (10, 12))

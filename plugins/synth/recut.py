@@ -75,12 +75,13 @@ def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray,
                   active: np.ndarray | None = None) -> list[tuple[np.ndarray, int]]:
     """``(mask, axis)`` per direction: the seam edges in straight runs (``axis`` 0: ``across_columns`` edges in
     vertical runs; 1: ``across_rows`` edges in horizontal runs), leaving out edges between two pinned texels and,
-    with ``active``, the runs that touch no active texel."""
+    with ``active``, the runs that touch no active texel.  A run's length counts its pinned edges too, as the
+    straight-seam measure does: a run that crosses a pinned ring (a cut across a Wang tile border) is as straight
+    to the eye as one that does not, though only its free parts can be re-cut."""
     rows, cols = np.divmod(src, ew)
     across_columns, across_rows = seam_masks(rows, cols, wrap)
-    across_columns &= ~(pinned & np.roll(pinned, -1, axis=1))
-    across_rows &= ~(pinned & np.roll(pinned, -1, axis=0))
-    runs = [(in_long_runs(across_columns, 0, STRAIGHT_RUN), 0), (in_long_runs(across_rows, 1, STRAIGHT_RUN), 1)]
+    runs = [(in_long_runs(across_columns, 0, STRAIGHT_RUN) & ~(pinned & np.roll(pinned, -1, axis=1)), 0),
+            (in_long_runs(across_rows, 1, STRAIGHT_RUN) & ~(pinned & np.roll(pinned, -1, axis=0)), 1)]
     return runs if active is None else [(_touching(mask, axis, active), axis) for mask, axis in runs]
 
 
