@@ -130,8 +130,7 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
     :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds of :data:`.refine.POLISH_WINDOW` windows
-    without the terms), with its
-    time and contrast weight noted."""
+    without the terms), with its time and contrast weight noted."""
     import time
 
     from .refine import refine_map
