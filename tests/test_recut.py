@@ -59,15 +59,41 @@ def test_a_straight_seam_between_two_blocks_is_re_cut_at_less_cost(stones):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_later_passes_re_cut_near_the_last_changes_and_never_cost_more(stones, seed):
     """Shuffled 12-texel blocks leave many straight runs.  A pass after the first looks only at the runs near the
-    texels the pass before changed, so a third pass may change a map only there, and more passes never raise the
-    seam energy."""
-    from btforge.plugins.synth.visibility import shuffled_blocks
-    start = shuffled_blocks((64, 64), (48, 48), block=12, seed=seed)
-    src = start.coords[..., 0].astype(np.int64) * 64 + start.coords[..., 1]
-    one, two, three = (recut.recut_straight_seams(stones, src, wrap=False, passes=n, bridges=2) for n in (1, 2, 3))
+    texels the pass before changed, so a third pass may change a map only there, and with straight edges weighed
+    as any other more passes never raise the seam energy."""
+    start = shuffled_block_sources(seed)
+    one, two, three = (recut.recut_straight_seams(stones, start, wrap=False, passes=n, bridges=2, straight_weight=1)
+                       for n in (1, 2, 3))
+    src = start
     energy = [seam_energy(stones, m, False) for m in (src, one, two, three)]
     assert energy[3] <= energy[2] <= energy[1] < energy[0]
     assert not (three != two)[~recut._near(two != one, False)].any()
+
+
+def shuffled_block_sources(seed: int) -> np.ndarray:
+    """Flat sources of 12-texel blocks of a 64 x 64 exemplar laid at random on a 48 x 48 map."""
+    from btforge.plugins.synth.visibility import shuffled_blocks
+    start = shuffled_blocks((64, 64), (48, 48), block=12, seed=seed)
+    return start.coords[..., 0].astype(np.int64) * 64 + start.coords[..., 1]
+
+
+def test_straight_edges_weighed_up_leave_fewer_straight_seams(stones):
+    """A straight seam edge that stays costs more than its appearance difference: the cuts leave the block sides
+    where another cut costs a little more per edge, so fewer seam edges stay straight, and the seam energy still
+    falls well below the shuffled blocks'."""
+    def straight_count(src):
+        return sum(int(mask.sum()) for mask in recut.straight_edges(src, 64, False))
+
+    plain, weighed, start_energy, energy = 0, 0, 0.0, 0.0
+    for seed in range(3):
+        start = shuffled_block_sources(seed)
+        plain += straight_count(recut.recut_straight_seams(stones, start, wrap=False, bridges=2, straight_weight=1))
+        out = recut.recut_straight_seams(stones, start, wrap=False, bridges=2)
+        weighed += straight_count(out)
+        start_energy += seam_energy(stones, start, False)
+        energy += seam_energy(stones, out, False)
+    assert weighed < 0.9 * plain
+    assert energy < 0.8 * start_energy
 
 
 def test_pinned_texels_keep_their_sources_and_bands_stop_at_them(stones):
@@ -142,7 +168,43 @@ def test_an_expansion_move_is_never_costlier_and_is_exact_when_submodular(case):
         assert after <= best + 1e-4 * scale + 1e-12
 
 
-def _submodular(texels, labels, proposal, free, wrap) -> bool:
+def weighed_energy(texels, labels, before, straight, weight, wrap) -> float:
+    """The seam cost of ``labels``, an edge of ``straight`` (per direction, at its first texel) counting ``weight``
+    times where both its texels keep their labels of ``before``."""
+    eh, ew, d = texels.shape
+    flat, padded = texels.reshape(-1, d), edge_padded(texels)
+    now, kept = labels.ravel(), (labels == before).ravel()
+    total = 0.0
+    for s, t, dy, dx in recut._edges(*labels.shape, wrap):
+        cost = recut.seam_cost(flat, padded, (eh, ew), now[s], now[t], dy, dx)
+        heavy = straight[0 if dx else 1].ravel()[s] & kept[s] & kept[t]
+        total += float(np.where(heavy, weight * cost, cost).sum())
+    return total
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(small_cases(), st.sampled_from([1.5, 3.0]), st.data())
+def test_a_weighed_expansion_move_lowers_its_own_energy_and_is_exact_when_submodular(case, weight, data):
+    texels, labels, proposal, pinned, wrap = case
+    shape = labels.shape
+    straight = tuple(np.array(data.draw(st.lists(st.booleans(), min_size=labels.size, max_size=labels.size)))
+                     .reshape(shape) for _ in range(2))
+    moved = recut.expansion_move(texels, labels, proposal, wrap, pinned, straight=(straight, weight))
+    free = (proposal >= 0) & (proposal != labels) & ~pinned
+    assert np.array_equal(moved[~free], labels[~free]) and np.all((moved == labels) | (moved == proposal))
+    before = weighed_energy(texels, labels, labels, straight, weight, wrap)
+    after = weighed_energy(texels, moved, labels, straight, weight, wrap)
+    assert np.isfinite(after) and after <= before * (1 + 1e-6) + 1e-12
+    best = before
+    for choice in itertools.product((False, True), repeat=int(free.sum())):
+        trial = labels.copy()
+        trial[free] = np.where(choice, proposal[free], labels[free])
+        best = min(best, weighed_energy(texels, trial, labels, straight, weight, wrap))
+    if _submodular(texels, labels, proposal, free, wrap, straight, weight):
+        assert after <= best + 1e-4 * max(before, 1e-30) + 1e-12
+
+
+def _submodular(texels, labels, proposal, free, wrap, straight=None, weight=1.0) -> bool:
     """Whether every pair of free neighbours has submodular costs (then the minimum cut is exact)."""
     eh, ew, d = texels.shape
     flat = texels.reshape(-1, d)
@@ -155,6 +217,8 @@ def _submodular(texels, labels, proposal, free, wrap) -> bool:
             continue
         cost = [recut.seam_cost(flat, padded, (eh, ew), a[s[both]], b[t[both]], dy, dx)
                 for a, b in ((now, now), (then, then), (now, then), (then, now))]
+        if straight is not None:
+            cost[0] = np.where(straight[0 if dx else 1].ravel()[s[both]], weight * cost[0], cost[0])
         if np.any(cost[0] + cost[1] > cost[2] + cost[3] + 1e-6 * np.abs(cost).max()):
             return False
     return True

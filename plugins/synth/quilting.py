@@ -291,7 +291,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="12",  # 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="13",  # 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
