@@ -61,10 +61,9 @@ def test_later_passes_re_cut_near_the_last_changes_and_never_cost_more(stones, s
     """Shuffled 12-texel blocks leave many straight runs.  A pass after the first looks only at the runs near the
     texels the pass before changed, so a third pass may change a map only there, and with straight edges weighed
     as any other more passes never raise the seam energy."""
-    start = shuffled_block_sources(seed)
-    one, two, three = (recut.recut_straight_seams(stones, start, wrap=False, passes=n, bridges=2, straight_weight=1)
+    src = shuffled_block_sources(seed)
+    one, two, three = (recut.recut_straight_seams(stones, src, wrap=False, passes=n, bridges=2, straight_weight=1)
                        for n in (1, 2, 3))
-    src = start
     energy = [seam_energy(stones, m, False) for m in (src, one, two, three)]
     assert energy[3] <= energy[2] <= energy[1] < energy[0]
     assert not (three != two)[~recut._near(two != one, False)].any()
@@ -189,7 +188,8 @@ def test_a_weighed_expansion_move_lowers_its_own_energy_and_is_exact_when_submod
     shape = labels.shape
     straight = tuple(np.array(data.draw(st.lists(st.booleans(), min_size=labels.size, max_size=labels.size)))
                      .reshape(shape) for _ in range(2))
-    moved = recut.expansion_move(texels, labels, proposal, wrap, pinned, straight=(straight, weight))
+    moved = recut.expansion_move(texels, labels, proposal, wrap, pinned,
+                                 keep_weights=recut.straight_weights(straight, weight))
     free = (proposal >= 0) & (proposal != labels) & ~pinned
     assert np.array_equal(moved[~free], labels[~free]) and np.all((moved == labels) | (moved == proposal))
     before = weighed_energy(texels, labels, labels, straight, weight, wrap)

@@ -63,15 +63,17 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
     active = np.ones((h, w), bool)
     for _ in range(passes):
         before = src
-        straight = (straight_edges(src, ew, wrap), straight_weight)
-        for run_mask, axis in straight_runs(src, ew, wrap, pinned, active):
+        edges = straight_edges(src, ew, wrap)
+        weights = straight_weights(edges, straight_weight)
+        for run_mask, axis in straight_runs(src, ew, wrap, pinned, active, edges):
             for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
-                src = expansion_move(texels, src, proposal, wrap, pinned, padded, straight)
+                src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
         if bridges:
-            straight = (straight_edges(src, ew, wrap), straight_weight)
-            runs = straight_runs(src, ew, wrap, pinned, active)
+            edges = straight_edges(src, ew, wrap)
+            weights = straight_weights(edges, straight_weight)
+            runs = straight_runs(src, ew, wrap, pinned, active, edges)
             for proposal in bridging_proposals(spectrum, src, wrap, runs, pinned, bridges):
-                src = expansion_move(texels, src, proposal, wrap, pinned, padded, straight)
+                src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
         if np.array_equal(before, src):
             break
         active = _near(before != src, wrap)
@@ -85,14 +87,15 @@ def _near(changed: np.ndarray, wrap: bool) -> np.ndarray:
     return maximum_filter(changed, size=2 * (BAND + 2) + 1, mode="wrap" if wrap else "constant")
 
 
-def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray,
-                  active: np.ndarray | None = None) -> list[tuple[np.ndarray, int]]:
+def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray, active: np.ndarray | None = None,
+                  edges: tuple[np.ndarray, np.ndarray] | None = None) -> list[tuple[np.ndarray, int]]:
     """``(mask, axis)`` per direction: the seam edges in straight runs (``axis`` 0: ``across_columns`` edges in
     vertical runs; 1: ``across_rows`` edges in horizontal runs), leaving out edges between two pinned texels and,
     with ``active``, the runs that touch no active texel.  A run's length counts its pinned edges too, as the
     straight-seam measure does: a run that crosses a pinned ring (a cut across a Wang tile border) is as straight
-    to the eye as one that does not, though only its free parts can be re-cut."""
-    vertical, horizontal = straight_edges(src, ew, wrap)
+    to the eye as one that does not, though only its free parts can be re-cut.  ``edges``: :func:`straight_edges`
+    of ``src`` where already found."""
+    vertical, horizontal = straight_edges(src, ew, wrap) if edges is None else edges
     runs = [(vertical & ~(pinned & np.roll(pinned, -1, axis=1)), 0),
             (horizontal & ~(pinned & np.roll(pinned, -1, axis=0)), 1)]
     return runs if active is None else [(_touching(mask, axis, active), axis) for mask, axis in runs]
@@ -104,6 +107,15 @@ def straight_edges(src: np.ndarray, ew: int, wrap: bool) -> tuple[np.ndarray, np
     rows, cols = np.divmod(src, ew)
     across_columns, across_rows = seam_masks(rows, cols, wrap)
     return in_long_runs(across_columns, 0, STRAIGHT_RUN), in_long_runs(across_rows, 1, STRAIGHT_RUN)
+
+
+def straight_weights(edges: tuple[np.ndarray, np.ndarray], weight: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per texel (flat), what the seam edge to its right and the one below it cost, per unit of appearance
+    difference, while they stay: ``weight`` on the ``edges`` of :func:`straight_edges`, 1 elsewhere (None where
+    ``weight`` is 1)."""
+    if weight == 1:
+        return None
+    return tuple(np.where(mask, weight, 1.0).ravel() for mask in edges)
 
 
 def _touching(run_mask: np.ndarray, axis: int, active: np.ndarray) -> np.ndarray:
@@ -172,12 +184,11 @@ def _pair_cost(first, second, ew: int, dy: int, dx: int) -> np.ndarray:
 
 def expansion_move(texels: np.ndarray, labels: np.ndarray, proposal: np.ndarray, wrap: bool,
                    pinned: np.ndarray, padded: np.ndarray | None = None,
-                   straight: tuple[tuple[np.ndarray, np.ndarray], float] | None = None) -> np.ndarray:
+                   keep_weights: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``labels`` after the best binary choice, per texel, between its label and its ``proposal`` (-1: none):
     the minimum cut of the seam costs, kept only if it lowers them (``padded``: the exemplar's
-    :func:`.features.edge_padded`, made here if not given).  ``straight`` (optional): the edges of
-    :func:`straight_edges` and a weight; such an edge costs that weight x its seam cost while both its texels keep
-    their labels."""
+    :func:`.features.edge_padded`, made here if not given).  ``keep_weights`` (optional, :func:`straight_weights`):
+    per texel, the factor on the seam cost of its right and of its lower edge while both texels keep their labels."""
     eh, ew, d = texels.shape
     h, w = labels.shape
     flat = texels.reshape(-1, d)
@@ -187,7 +198,8 @@ def expansion_move(texels: np.ndarray, labels: np.ndarray, proposal: np.ndarray,
     if not free.any():
         return labels
     taken = np.where(free, offered, current)
-    terms = [_edge_terms(flat, padded, (eh, ew), current, taken, free, s, t, dy, dx, _weights(straight, dx))
+    terms = [_edge_terms(flat, padded, (eh, ew), current, taken, free, s, t, dy, dx,
+                         None if keep_weights is None else keep_weights[dy])
              for s, t, dy, dx in _edges(h, w, wrap)]
     s, t, keep_keep, keep_take, take_keep, take_take = (np.concatenate(parts) for parts in zip(*terms))
     choice = _min_cut(h * w, free, s, t, keep_keep, keep_take, take_keep, take_take)
@@ -207,15 +219,6 @@ def _edges(h: int, w: int, wrap: bool):
             yield index.ravel(), np.roll(index, (-dy, -dx), axis=(0, 1)).ravel(), dy, dx
         else:
             yield index[:h - dy, :w - dx].ravel(), index[dy:, dx:].ravel(), dy, dx
-
-
-def _weights(straight, dx: int) -> np.ndarray | None:
-    """Per texel, the weight of the seam edge to its right (``dx`` 1) or lower neighbour while it stays: the
-    straight weight on the edges of ``straight`` (:func:`expansion_move`), 1 elsewhere; None without it."""
-    if straight is None:
-        return None
-    (vertical, horizontal), weight = straight
-    return np.where(vertical if dx else horizontal, weight, 1.0).ravel()
 
 
 def _edge_terms(flat, padded, source_size, current, taken, free, s, t, dy, dx, keep_weight=None):
