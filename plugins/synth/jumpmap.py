@@ -22,7 +22,7 @@ from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
+from .synthesizer import POLISH, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")
@@ -52,13 +52,6 @@ COARSE_ROUNDS = 5
 #: areas over and over, and at weight 1 the refinement kept much of that (evenness 0.65 on the tablet, 0.74 on the
 #: icon crop).
 REFINE_OCCURRENCE = 2.0
-#: Default final rounds of 8 x 8 windows without the occurrence and contrast terms (``polish``): one.  The 12 x 12
-#: windows keep large structures whole but leave cuts where they met; the polish round moves those cuts to where
-#: the content agrees.  On 32 crops (Benchmarks) it lowers seam visibility on every one (a coarse plaster 1.33 ->
-#: 1.20) and moves SWD by 0.07 at most.  Before the re-cut weighed straight seams up, the straight seams it left
-#: passed 2 % of the seam edges on the held-out procedural exemplar at 128 x 128 and the knit, so it was off; with
-#: the weight they stay under 1 % there, and it misses 12 targets of 128 against 15.
-POLISH_ROUNDS = 1
 #: Passes of the refinement's re-cut of straight seams, one more than the shared default of two: 12 x 12 windows
 #: leave more window sides in straight runs of 12, and a pass finds the runs the previous cuts have shortened or
 #: joined (the third pass takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to
@@ -371,7 +364,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "the shuffled blocks) but breaks up stones where each texel is copied four times (128 x 128: 0.92 -> "
               "2.17; at 2: 1.48)", low=0, high=64),
         *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
-                       coarse_refine=COARSE_ROUNDS, polish=POLISH_ROUNDS),
+                       coarse_refine=COARSE_ROUNDS, polish=POLISH),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,

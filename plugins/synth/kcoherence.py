@@ -30,7 +30,7 @@ from .device import LOCAL, launch, round_up
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined,
+from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, POLISH, check_params, declare_synthesizer, refine_params, refined,
                           search_param)
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
@@ -446,7 +446,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="17",  # 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="18",  # 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -473,11 +473,11 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
-        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS),
+        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS, polish=POLISH),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, matching, keep, refine, occurrence, contrast, scales, coarse_refine):
+               coverage, blocks, matching, keep, refine, occurrence, contrast, scales, coarse_refine, polish):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -567,7 +567,8 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     ctx.note("seconds_synthesis", round(result.seconds_synthesis, 3))
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast)}
+                              recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
+                              polish=polish)}
 
 
 STAGES = [kcoherence]

@@ -28,7 +28,7 @@ from btforge.errors import BtforgeInputError
 from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
-from .synthesizer import declare_synthesizer, refine_params, refined
+from .synthesizer import POLISH, declare_synthesizer, refine_params, refined
 
 
 SEAMS = ("cut", "blend")
@@ -291,7 +291,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="13",  # 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="14",  # 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -309,11 +309,11 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
               "matches itself better than the rest does)", low=0.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
-        *refine_params(auto_weight=AUTO_CONTRAST),
+        *refine_params(auto_weight=AUTO_CONTRAST, polish=POLISH),
     ],
 )
 def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,
-          occurrence, contrast, scales):
+          occurrence, contrast, scales, polish):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
@@ -366,7 +366,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
         ctx.note(key, value)
     return {"coords": refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                               recut_passes=RECUT_PASSES, contrast=contrast,
-                              auto_weight=AUTO_CONTRAST)}
+                              auto_weight=AUTO_CONTRAST, polish=polish)}
 
 
 STAGES = [quilt]
