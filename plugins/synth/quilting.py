@@ -345,7 +345,8 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``; :mod:`.refine`): the map finally goes
     through the shared texture optimisation with an occurrence term and corrections, at two coarser scales first,
     so seams follow the content, and structures larger than the fine windows (colour areas, cut stones) are
-    matched as a whole.
+    matched as a whole; ``polish`` final rounds without the occurrence and contrast terms then move the cuts left
+    where windows met to where the content agrees.
 
     Outputs
     -------
