@@ -22,7 +22,8 @@ from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import POLISH, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
+from .synthesizer import (MAX_NEIGHBORHOOD, POLISH, check_params, declare_synthesizer, refine_params, refined,
+                          search_param)
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")

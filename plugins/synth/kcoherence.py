@@ -532,9 +532,10 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     the map finally goes through the shared texture optimisation with an occurrence term and corrections, at half
     resolution first (``scales: 1``, ``coarse_refine`` rounds there, ``refine`` at the full resolution), so seams
     follow the content instead of the block grid, and colour areas larger than a block are no longer cut into
-    squares; a ``polish`` round without the occurrence and contrast terms ends it.  ``scales: 2`` lowers seams further (1.23 instead of 1.32 on the held-out
-    procedural exemplar) but moves the patch statistics of fine textures away from the exemplar's (sliced
-    Wasserstein distance 1.60 x the shuffled-block baseline's on fibres, against 1.21).
+    squares; a ``polish`` round without the occurrence and contrast terms ends it.  ``scales: 2`` lowers seams
+    further (1.23 instead of 1.32 on the held-out procedural exemplar) but moves the patch statistics of fine
+    textures away from the exemplar's (sliced Wasserstein distance 1.60 x the shuffled-block baseline's on
+    fibres, against 1.21).
 
     Outputs
     -------

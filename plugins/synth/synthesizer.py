@@ -132,12 +132,12 @@ def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: fl
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
             coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST,
-            polish: int = 0):
+            polish: int = POLISH):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
-    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds of :data:`.refine.POLISH_WINDOW` windows
-    without the terms), with its time and contrast weight noted."""
+    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
+    :data:`.refine.POLISH_WINDOW` windows without the terms), with its time and contrast weight noted."""
     import time
 
     from .refine import refine_map
