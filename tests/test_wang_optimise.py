@@ -80,3 +80,37 @@ def test_packing_lays_a_complete_set_once_as_a_valid_periodic_tiling(n_h, n_v, v
     assert (laid[..., 2] == np.roll(laid, -1, axis=0)[..., 0]).all()      # south meets the north below, wrapping
     assert (laid[..., 1] == np.roll(laid, -1, axis=1)[..., 3]).all()      # east meets the west to the right
     assert packing(colors[1:], n_h, n_v) is None                          # a set with a tile missing: no packing
+
+
+def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_shared_default(monkeypatch):
+    """The held ring leaves straight runs that one pass only shortens: the Wang tiles re-cut with
+    RECUT_PASSES passes (more than the shared default), and on a small set those passes leave fewer straight seam
+    edges inside the tiles than the default's two."""
+    import btforge.plugins.synth.refine as refine
+    from btforge.buffers import CoordMap
+    from btforge.plugins.synth.recut import PASSES
+    from btforge.plugins.synth.visibility import seam_edges
+    from btforge.plugins.wang import build_tile_set, optimise
+    from btforge.plugins.wang.bench import procedural_exemplar
+    chosen = optimise.RECUT_PASSES
+    assert chosen > PASSES
+    asked = []
+    original = refine.refine_map
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs.get("recut_passes"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(refine, "refine_map", recorded)
+    stack = procedural_exemplar(96, lights=8)
+
+    def straight_edges(passes):
+        monkeypatch.setattr(optimise, "RECUT_PASSES", passes)
+        tiles, _, _ = build_tile_set(stack, tile=48, edge=12, seed=1)
+        w = tiles.tile_coords.shape[1]
+        laid = CoordMap(optimise.mosaic(tiles.tile_coords, 4), (stack.height, stack.width), tile=w)
+        return seam_edges(laid).straight_count
+
+    default, more = straight_edges(PASSES), straight_edges(chosen)
+    assert asked == [PASSES, chosen]
+    assert more < default
