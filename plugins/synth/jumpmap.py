@@ -22,8 +22,7 @@ from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import (MAX_NEIGHBORHOOD, POLISH, check_params, declare_synthesizer, refine_params, refined,
-                          search_param)
+from .synthesizer import MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined, search_param
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("jumpmap.cl")
@@ -365,7 +364,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "the shuffled blocks) but breaks up stones where each texel is copied four times (128 x 128: 0.92 -> "
               "2.17; at 2: 1.48)", low=0, high=64),
         *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
-                       coarse_refine=COARSE_ROUNDS, polish=POLISH),
+                       coarse_refine=COARSE_ROUNDS),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,

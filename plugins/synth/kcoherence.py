@@ -30,7 +30,7 @@ from .device import LOCAL, launch, round_up
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, POLISH, check_params, declare_synthesizer, refine_params, refined,
+from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined,
                           search_param)
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
@@ -473,7 +473,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
-        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS, polish=POLISH),
+        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,

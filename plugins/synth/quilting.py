@@ -28,7 +28,7 @@ from btforge.errors import BtforgeInputError
 from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
-from .synthesizer import POLISH, declare_synthesizer, refine_params, refined
+from .synthesizer import declare_synthesizer, refine_params, refined
 
 
 SEAMS = ("cut", "blend")
@@ -309,7 +309,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
               "matches itself better than the rest does)", low=0.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
-        *refine_params(auto_weight=AUTO_CONTRAST, polish=POLISH),
+        *refine_params(auto_weight=AUTO_CONTRAST),
     ],
 )
 def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,

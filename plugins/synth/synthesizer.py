@@ -76,13 +76,13 @@ POLISH = 1
 
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
-                  window: int | None = None, coarse_refine: int | None = None, polish: int | None = None,
+                  window: int | None = None, coarse_refine: int | None = None, polish: int = POLISH,
                   auto_weight: float = AUTO_CONTRAST) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
-    coarser scale, by default as many as ``refine`` without the param), with ``polish`` also a ``polish`` param
-    (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms, by default none without the param);
+    coarser scale, by default as many as ``refine`` without the param); ``polish``: the default of the ``polish``
+    param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
     ``auto_weight``: the contrast weight the automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
@@ -93,11 +93,10 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                            "(the finest runs 'refine' rounds): the coarse rounds set which exemplar areas are used "
                            "and how often, the fine ones cut the seams; cheap, since a coarse scale has a quarter "
                            "of the texels of the next", low=0, high=20))
-    if polish is not None:
-        extra.append(Param("polish", "int", polish, "final rounds of the refinement at full resolution with "
-                           f"{POLISH_WINDOW} x {POLISH_WINDOW} windows matched for their fit alone (no occurrence "
-                           "or contrast term): the cuts the earlier rounds left where windows met move to where the "
-                           "content agrees, while the exemplar areas used stay (0: none)", low=0, high=10))
+    extra.append(Param("polish", "int", polish, "final rounds of the refinement at full resolution with "
+                       f"{POLISH_WINDOW} x {POLISH_WINDOW} windows matched for their fit alone (no occurrence or "
+                       "contrast term): the cuts the earlier rounds left where windows met move to where the content "
+                       "agrees, while the exemplar areas used stay (0: none)", low=0, high=10))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
