@@ -1,15 +1,18 @@
-"""The measures of what the eye sees (seam and straight-seam visibility, evenness, the shuffled-block baseline),
+"""The measures of what the eye sees (seam and straight-seam visibility, evenness, a tiling's lattice share, the
+shuffled-block baseline),
 each checked on constructed maps whose answer is known."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.scoring import score
-from btforge.plugins.synth.visibility import evenness, missed_targets, seam_edges, shuffled_blocks
+from btforge.plugins.synth.visibility import evenness, lattice_share, missed_targets, seam_edges, shuffled_blocks
 
 SIZE, OUT = 48, 144
 
@@ -112,3 +115,59 @@ def test_missed_targets_names_each_target_missed_and_leaves_straight_seams_under
     assert missed_targets(few) == []
     assert missed_targets({**few, "straight_seam_share": 0.02}) == ["straight"]
     assert missed_targets({**good, "seam_visibility": None, "straight_seam_visibility": None}) == []
+
+
+def tiles_with_shared_band(tile: int, grid: int, band: int, seed: int = 0) -> np.ndarray:
+    """``[2, grid * tile, grid * tile, 3]`` images of independent noise tiles whose border band of ``band`` texels
+    is the same in every tile (what 2 + 2-colour Wang tiles approach along their edge strips)."""
+    rng = np.random.default_rng(seed)
+    images = rng.normal(size=(2, grid, tile, grid, tile, 3))
+    shared = rng.normal(size=(2, 1, tile, 1, tile, 3))
+    ring = np.ones((tile, tile), bool)
+    ring[band:tile - band, band:tile - band] = False
+    images = np.where(ring[None, None, :, None, :, None], shared, images)
+    return images.reshape(2, grid * tile, grid * tile, 3)
+
+
+def test_a_tiling_of_one_tile_has_lattice_share_one(tileable):
+    found = measured(tileable, periodic_copy(SIZE, OUT, tile=SIZE))
+    assert found["lattice_share"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_maps_that_lay_no_tiles_have_no_lattice_share(tileable):
+    assert measured(tileable, periodic_copy(SIZE, OUT))["lattice_share"] is None
+    assert lattice_share(np.ones((1, 20, 20, 3)), 16) is None  # a single whole tile
+
+
+def test_tiles_placed_independently_of_the_lattice_score_near_zero():
+    noise = tiles_with_shared_band(16, 8, band=0)
+    assert lattice_share(noise, 16) < 0.03
+    # blocks of the exemplar shuffled at random, read as tiles of their own side
+    rng = np.random.default_rng(4)
+    exemplar = rng.uniform(size=(2, 64, 64, 3))
+    coords = shuffled_blocks((64, 64), (128, 128), block=16, seed=5).coords
+    laid = exemplar[:, coords[..., 0], coords[..., 1]]
+    assert lattice_share(laid, 16) < 0.05
+
+
+@pytest.mark.parametrize("band", [1, 2, 4])
+def test_a_band_repeated_along_every_tile_border_shows_as_its_share_of_the_tile(band):
+    tile = 16
+    expected = 1 - ((tile - 2 * band) / tile) ** 2   # the band's share of a tile's texels, all of equal variance
+    assert lattice_share(tiles_with_shared_band(tile, 8, band, seed=band), tile) == pytest.approx(expected, abs=0.03)
+
+
+@settings(max_examples=25, deadline=None)
+@given(tile=st.integers(1, 24), size=st.integers(1, 64), value=st.sampled_from([0.0, 1e-6, 0.5, 1e4]),
+       seed=st.integers(0, 2 ** 16))
+def test_lattice_share_is_none_or_a_share_on_hard_inputs(tile, size, value, seed):
+    """Constant, tiny and huge images, tiles larger than the image, single texels: None or a finite share in
+    [0, 1]."""
+    rng = np.random.default_rng(seed)
+    images = np.full((2, size, size, 3), value)
+    if seed % 2:
+        images += rng.uniform(0, 2 * value + 1e-3, images.shape)
+    found = lattice_share(images, tile)
+    assert found is None or (np.isfinite(found) and 0.0 <= found <= 1.0)
+    if size // tile < 2 or (seed % 2 == 0):
+        assert found is None

@@ -33,10 +33,12 @@ from .textons import normalise_features
 SIZES = (64, 128, 192, 256)
 SCORE_KEYS = ("texture_statistics", "swd", "coherence", "completeness", "verbatim_share", "seam_ratio",
               "seam_visibility", "straight_seam_visibility", "straight_seam_share", "straight_step_visibility",
-              "evenness", "swd_vs_shuffled_blocks")
+              "evenness", "swd_vs_shuffled_blocks", "lattice_share")
 #: The measures of what the eye sees, with the column titles of the sheets.
 EYE_KEYS = {"seam_visibility": "seams", "straight_seam_visibility": "straight", "straight_step_visibility": "steps",
-            "evenness": "even", "swd_vs_shuffled_blocks": "swd/shuffled"}
+            "evenness": "even", "swd_vs_shuffled_blocks": "swd/shuffled", "lattice_share": "lattice"}
+#: Measures only a tiling has (the sheets leave them out of the other panels).
+TILING_KEYS = ("lattice_share",)
 RECALL_QUERIES = 2000   # queries whose exact neighbours are computed for the recall
 PROCEDURAL = "procedural"
 #: Lights of the sheets: from the upper left and from the right, both fairly low (relief shows).
@@ -454,7 +456,7 @@ def _sheet_label(name: str, row: dict | None, light: str, size) -> str:
         return first
     missed = {TARGET_KEYS[target] for target in row.get("targets_missed", "").split() if target in TARGET_KEYS}
     measures = [f"{title} {_marked(row.get(key), key in missed, TARGET_BOUNDS.get(key))}"
-                for key, title in EYE_KEYS.items()]
+                for key, title in EYE_KEYS.items() if key not in TILING_KEYS or row.get(key) is not None]
     # three a line: a 256-texel tile holds about 45 characters of the default font
     return "\n".join([first] + ["  ".join(measures[i:i + 3]) for i in range(0, len(measures), 3)])
 

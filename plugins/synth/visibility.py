@@ -10,6 +10,8 @@ images (how large the radiance jump across each output neighbour pair is):
   tiles (straight by design, named by the map's ``tile``);
 * evenness: ``exp(entropy) / n`` of the output's use of the exemplar's ``8 x 8``-texel cells (1: every cell used
   equally; an output that collapses onto a few regions scores low);
+* lattice share: for a tiling, the share of the output's radiance variance that sits at the same place in every
+  tile (0: the tiles' content is placed independently of the lattice; 1: every tile the same, a periodic texture);
 * the shuffled-block baseline: exemplar blocks laid at random, the layout a synthesizer's patch statistics are
   compared with.
 """
@@ -201,6 +203,34 @@ def evenness(coords: CoordMap, cell: int = EVENNESS_CELL) -> float:
         use = np.bincount(cells_of(coords.coords), minlength=n).astype(np.float64)
     p = use[use > 0] / use.sum()
     return float(np.exp(-(p * np.log(p)).sum()) / n)
+
+
+def lattice_share(out_enc: np.ndarray, tile: int) -> float | None:
+    """The share of ``out_enc [L, H, W, C]``'s variance that depends only on the place inside a ``tile x tile``
+    tile (its whole tiles, averaged over lights): how much of the texture every tile repeats at the same place,
+    which the eye sees as a lattice (the same feature at every tile corner, the same band along every border).
+
+    A one-way analysis of variance with the ``tile^2`` places as groups and the ``n`` tiles as observations: the
+    variance of the mean tile over its places, less the ``1 / n`` of the within-place variance that chance alone
+    leaves in a mean of ``n`` tiles, over the total variance.  Estimates below 0 (chance) are reported as 0.
+    None without two whole tiles or without variance under some light."""
+    lights, height, width, channels = out_enc.shape
+    rows, cols = (height // tile, width // tile) if tile > 0 else (0, 0)
+    n = rows * cols
+    if n < 2:
+        return None
+    x = out_enc[:, :rows * tile, :cols * tile].astype(np.float64)
+    x = x.reshape(lights, rows, tile, cols, tile, channels).transpose(0, 2, 4, 1, 3, 5)
+    x = x.reshape(lights, tile, tile, n, channels)
+    place_mean = x.mean(axis=3, keepdims=True)
+    grand_mean = place_mean.mean(axis=(1, 2), keepdims=True)
+    between = ((place_mean - grand_mean) ** 2).sum(-1).mean(axis=(1, 2, 3))
+    within = ((x - place_mean) ** 2).sum(-1).mean(axis=(1, 2, 3)) * n / (n - 1)
+    total = ((x - grand_mean) ** 2).sum(-1).mean(axis=(1, 2, 3))
+    # a constant image's variance is rounding left by the means, 1e-16 of its square or less
+    if not np.all(total > 1e-12 * (x ** 2).sum(-1).mean(axis=(1, 2, 3))):
+        return None
+    return float(np.clip(np.mean((between - within / n) / total), 0.0, 1.0))
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
