@@ -225,12 +225,12 @@ def lattice_share(out_enc: np.ndarray, tile: int) -> float | None:
     place_mean = x.mean(axis=3, keepdims=True)
     grand_mean = place_mean.mean(axis=(1, 2), keepdims=True)
     between = ((place_mean - grand_mean) ** 2).sum(-1).mean(axis=(1, 2, 3))
-    within = ((x - place_mean) ** 2).sum(-1).mean(axis=(1, 2, 3)) * n / (n - 1)
+    chance = ((x - place_mean) ** 2).sum(-1).mean(axis=(1, 2, 3)) / (n - 1)   # unbiased within-place variance / n
     total = ((x - grand_mean) ** 2).sum(-1).mean(axis=(1, 2, 3))
     # a constant image's variance is rounding left by the means, 1e-16 of its square or less
     if not np.all(total > 1e-12 * (x ** 2).sum(-1).mean(axis=(1, 2, 3))):
         return None
-    return float(np.clip(np.mean((between - within / n) / total), 0.0, 1.0))
+    return float(np.clip(np.mean((between - chance) / total), 0.0, 1.0))
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
