@@ -14,7 +14,7 @@ from btforge.plugins.synth.scoring import score
 from btforge.plugins.wang import build_tile_set, wang_tiles, wang_tiling
 from btforge.plugins.wang.bench import procedural_exemplar
 from btforge.plugins.wang.cuts import min_cut
-from btforge.plugins.wang.placement import placement_errors_numpy, placement_errors_opencl
+from btforge.plugins.wang.placement import local_placement_errors, placement_errors_numpy, placement_errors_opencl
 from btforge.plugins.wang.seams import corner_configurations, tiling_ids, tiling_report
 from btforge.plugins.wang.synthesis import quadrant_ties, synthesize_tiles
 from btforge.plugins.wang.tileset import TileSet, describe, read_tile_set
@@ -75,6 +75,27 @@ def test_placement_kernel_on_random_windows(ph, pw, d, seed):
     if len(offsets):  # the exact placement of a copied window costs nothing
         exact = feats[2 + offsets[:, 0], 1 + offsets[:, 1]]
         assert placement_errors_numpy(feats, offsets, exact, (ph, pw))[2, 1] == 0
+
+
+@pytest.mark.parametrize("kind", ["random", "constant", "black", "huge", "tiny"])
+def test_local_placement_errors_equal_the_reference(kind):
+    """The refinement's gathered search sums in the reference's order: the same float32 errors, bit for bit."""
+    feats, offsets, target, window = _placement_case(np.random.default_rng(5), kind, h=10, w=12)
+    assert np.array_equal(local_placement_errors(feats, offsets, target, window),
+                          placement_errors_numpy(feats, offsets, target, window))
+    assert local_placement_errors(feats, offsets[:0], target[:0], window).shape == (5, 6)
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 9), st.floats(1e-6, 1e6), st.integers(0, 2 ** 31 - 1))
+def test_local_placement_errors_on_random_windows(ph, pw, d, scale, seed):
+    rng = np.random.default_rng(seed)
+    feats = (rng.normal(size=(ph + 2, pw + 2, d)) * scale).astype(np.float32)
+    offsets = np.argwhere(rng.random((ph, pw)) < 0.6)
+    target = (rng.normal(size=(len(offsets), d)) * scale).astype(np.float32)
+    out = local_placement_errors(feats, offsets, target, (ph, pw))
+    assert np.isfinite(out).all() and (out >= 0).all()
+    assert np.array_equal(out, placement_errors_numpy(feats, offsets, target, (ph, pw)))
 
 
 def test_min_cut_follows_the_valley_and_respects_ties():
@@ -162,6 +183,36 @@ def test_straight_cuts_fail_where_graph_cuts_pass():
         r = seams.seam_ratios(seams.tile_set_seams(syn.tile_coords, syn.tile_colors, feats, EDGE), reference)
         worst[cut] = max(r["worst_mean_ratio"], r["worst_p99_ratio"])
     assert worst["graph"] <= 1.2 < worst["straight"], worst
+
+
+@pytest.mark.parametrize("colors, edge", [((2, 2), 4), ((3, 2), 6), ((1, 1), 2)])
+def test_tile_set_seams_gather_every_border_and_vertex_pair(colors, edge):
+    """The set's seam report, pair by pair: each valid adjacency's facing texels, and around each valid vertex the
+    pairs within edge / 2 of it, in the order of the configurations (a loop over them is the reference)."""
+    from btforge.plugins.wang import seams
+    rng = np.random.default_rng(sum(colors) + edge)
+    tile_colors = np.array([(n, e, s, w) for n in range(colors[0]) for e in range(colors[1])
+                            for s in range(colors[0]) for w in range(colors[1])], np.int32)
+    feats = rng.normal(size=(17, 19, 4)).astype(np.float32)
+    tile_coords = rng.integers(0, (17, 19), size=(len(tile_colors), 12, 12, 2)).astype(np.int32)
+    got = seams.tile_set_seams(tile_coords, tile_colors, feats, edge)
+
+    def gap(a, b):
+        return np.linalg.norm(feats[a[..., 0], a[..., 1]].astype(np.float64)
+                              - feats[b[..., 0], b[..., 1]].astype(np.float64), axis=-1).ravel()
+
+    horizontal, vertical = seams.adjacency_distances(tile_coords, tile_colors)
+    expected_h = np.concatenate([gap(tile_coords[a, :, -1], tile_coords[b, :, 0]) for a, b in horizontal])
+    expected_v = np.concatenate([gap(tile_coords[a, -1, :], tile_coords[b, 0, :]) for a, b in vertical])
+    q, corner_h, corner_v = edge // 2, [], []
+    for tl, tr, bl, br in seams.corner_configurations(tile_colors):
+        corner_h += [gap(tile_coords[tl, -q:, -1], tile_coords[tr, -q:, 0]), gap(tile_coords[bl, :q, -1], tile_coords[br, :q, 0])]
+        corner_v += [gap(tile_coords[tl, -1, -q:], tile_coords[bl, 0, -q:]), gap(tile_coords[tr, -1, :q], tile_coords[br, 0, :q])]
+    assert np.array_equal(got["h"], expected_h) and np.array_equal(got["v"], expected_v)
+    assert np.array_equal(got["corner_h"], np.concatenate(corner_h))
+    assert np.array_equal(got["corner_v"], np.concatenate(corner_v))
+    assert got["adjacencies"] == len(horizontal) + len(vertical)
+    assert all(len(got["local"][k]) == len(got[k]) and np.isfinite(got["local"][k]).all() for k in got["local"])
 
 
 @pytest.mark.shared_data

@@ -48,7 +48,7 @@ from .features import beside, edge_padded, pca_reduce, window_sums
 from .recut import PASSES as RECUT_PASSES
 from .recut import recut_straight_seams
 from .search import ContentCache, content_key
-from .search_base import leading_eigenpairs
+from .search_base import cores, leading_eigenpairs
 
 #: Appearance dimensions each texel keeps in the refinement (PCA of the synthesizer's features).
 TEXEL_DIMS = 6
@@ -353,7 +353,7 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
     if not searched.any():
         return current, distance
     rows = np.flatnonzero(searched)
-    _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS)
+    _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS, workers=cores())
     cand[rows, :k] = found.reshape(len(rows), k)
     rank = _rank_numpy if engine() == "numpy" else _rank_opencl
     extra = candidate_costs(index, query[rows], cand[rows], occurrence * index.spread * overuse, contrast)

@@ -24,6 +24,7 @@ from btforge.errors import BtforgeInputError
 from . import visibility
 from .coarse_steps import straight_step_visibility
 from .features import downsample
+from .search_base import cores
 
 #: Patches per image that enter one sliced-Wasserstein comparison (all of them when there are fewer).
 SWD_PATCH_CAP = 16384
@@ -192,7 +193,7 @@ class _NearestPatches:
     def query(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Index into the indexed patches and RMS distance per element, for each query patch."""
         k = min(RERANK_K, len(self.patches))
-        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k)
+        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k, workers=cores())   # per query: any split
         cand = cand.reshape(len(queries), k)
         diff = self.patches[cand] - queries[:, None, :]
         sq = np.einsum("nkd,nkd->nk", diff, diff)

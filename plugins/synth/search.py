@@ -52,7 +52,7 @@ from btforge.backend import get_backend
 from btforge.errors import BtforgeInputError
 
 # the windows are part of this module's interface (quilting, the tests); the lists and projections are used here
-from .search_base import (band_window, causal_window, empty_lists, l_shaped_window, packed,  # noqa: F401
+from .search_base import (band_window, causal_window, cores, empty_lists, l_shaped_window, packed,  # noqa: F401
                           principal_projection, smallest, square_window)
 
 KERNELS = Path(__file__).with_name("search.cl")
@@ -262,7 +262,7 @@ class FastIndex:
                               random_seed=HNSW_SEED)
         self.graph.set_num_threads(1)  # insertion order fixes the graph: results do not depend on timing
         self.graph.add_items(reduced, np.arange(len(reduced)))
-        self.graph.set_num_threads(max(1, _cores()))
+        self.graph.set_num_threads(max(1, cores()))
         self._lock = threading.Lock()
 
     def nominate(self, queries: np.ndarray, count: int) -> np.ndarray:
@@ -285,11 +285,6 @@ def ranked(exemplar: np.ndarray, queries: np.ndarray, rows: np.ndarray, k: int,
     dimension, sorted by (squared distance, index); -1 and inf pad lists with fewer than ``k`` candidates."""
     distances = candidate_distances_numpy if device == "numpy" else candidate_distances_opencl
     return smallest(packed(distances(exemplar, queries, rows), rows), k)
-
-
-def _cores() -> int:
-    import os
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def content_key(*arrays: np.ndarray, extra: object = ()) -> str:

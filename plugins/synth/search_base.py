@@ -3,6 +3,7 @@ lists, used by the search (:mod:`.search`) and its self-join (:mod:`.selfjoin`) 
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import numpy as np
 
@@ -14,6 +15,11 @@ FAST_MAX_DIMS = 24
 FAST_MIN_DIMS = 8
 SUBSPACE_EXTRA = 8          #: extra columns of the subspace iteration beyond the axes that can be kept
 SUBSPACE_ITERATIONS = 24
+
+
+def cores() -> int:
+    """The CPUs this process may run on (what a parallel k-d tree query or decode should use)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 # ============================================================================================ windows

@@ -21,14 +21,13 @@ a true neighbour no step nominated.  Recall against the exact engine is tested a
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from btforge.backend import get_backend, single_threaded_blas
 
-from .search_base import NONE_KEY, empty_lists, packed, principal_projection, smallest, square_window
+from .search_base import NONE_KEY, cores, empty_lists, packed, principal_projection, smallest, square_window
 
 KERNELS = Path(__file__).with_name("selfjoin.cl")
 TREE_DIMS = 8            #: principal components of the windows the kd-tree compares
@@ -113,7 +112,7 @@ def tree_seeds(image: np.ndarray, h: int, w: int, radius: int, allowed: np.ndarr
     reduced = window_components(image, h, w, radius, TREE_DIMS)
     tree = cKDTree(reduced[listed], leafsize=TREE_LEAF, balanced_tree=False, compact_nodes=False)
     count = min(count, len(listed))
-    _, rows = tree.query(reduced, k=count, eps=TREE_EPS, workers=len(os.sched_getaffinity(0)))
+    _, rows = tree.query(reduced, k=count, eps=TREE_EPS, workers=cores())
     rows = rows.reshape(len(reduced), count)
     return np.where(rows < len(listed), listed[np.minimum(rows, len(listed) - 1)], -1).astype(np.int32)
 

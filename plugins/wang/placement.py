@@ -89,6 +89,24 @@ class PlacementSearch:
         y1 = min(self.feats.shape[0] - ph, y + reach)
         x1 = min(self.feats.shape[1] - pw, x + reach)
         local = self.feats[y0:y1 + ph, x0:x1 + pw]
-        errors = placement_errors_numpy(local, offsets, target, window)
+        errors = local_placement_errors(local, offsets, target, window)
         dy, dx = np.unravel_index(int(np.argmin(errors)), errors.shape)
         return y0 + int(dy), x0 + int(dx)
+
+
+def local_placement_errors(feats: np.ndarray, offsets: np.ndarray, target: np.ndarray,
+                           window: tuple[int, int]) -> np.ndarray:
+    """:func:`placement_errors_numpy` at stride 1 for the few placements of a small ``feats`` (a refinement's
+    neighbourhood), with every offset's features gathered at once instead of one offset at a time; the float64
+    sums run over the offsets in the same order."""
+    feats, offsets, target, n_rows, n_cols = _checked(feats, offsets, target, window)
+    if len(offsets) == 0:
+        return np.zeros((n_rows, n_cols), np.float32)
+    rows = offsets[:, 0, None, None] + np.arange(n_rows)[None, :, None]          # [n, rows, 1]
+    cols = offsets[:, 1, None, None] + np.arange(n_cols)[None, None, :]          # [n, 1, cols]
+    diff = feats[rows, cols].astype(np.float64) - target.astype(np.float64)[:, None, None, :]
+    per_offset = np.einsum("nijd,nijd->nij", diff, diff)
+    acc = np.zeros((n_rows, n_cols), np.float64)
+    for part in per_offset:   # in offset order, as the reference adds them
+        acc += part
+    return acc.astype(np.float32)

@@ -65,13 +65,10 @@ def tile_set_seams(tile_coords: np.ndarray, colors: np.ndarray, feats: np.ndarra
     per tile edge mean (``edges [T, 4]``, N E S W, over every valid neighbour on that side)."""
     t, w = tile_coords.shape[:2]
     horizontal, vertical = adjacency_distances(tile_coords, colors)
-    pairs_h = [(tile_coords[a, :, -1], tile_coords[b, :, 0]) for a, b in horizontal]
-    pairs_v = [(tile_coords[a, -1, :], tile_coords[b, 0, :]) for a, b in vertical]
-    d_h = np.stack([_distances(feats, x, y) for x, y in pairs_h]) if pairs_h else np.zeros((0, w))
-    d_v = np.stack([_distances(feats, x, y) for x, y in pairs_v]) if pairs_v else np.zeros((0, w))
-    local = {"h": [_local_reference(feats, x, y, (0, 1)) for x, y in pairs_h],
-             "v": [_local_reference(feats, x, y, (1, 0)) for x, y in pairs_v],
-             "corner_h": [], "corner_v": []}
+    facing_h = (tile_coords[horizontal[:, 0], :, -1], tile_coords[horizontal[:, 1], :, 0])   # [pairs, w, 2] each
+    facing_v = (tile_coords[vertical[:, 0], -1, :], tile_coords[vertical[:, 1], 0, :])
+    d_h = _distances(feats, *facing_h).reshape(len(horizontal), w)
+    d_v = _distances(feats, *facing_v).reshape(len(vertical), w)
     edges = np.zeros((t, 4))
     for side, (pairs, dist, column) in enumerate([(vertical, d_v, 1), (horizontal, d_h, 0),
                                                    (vertical, d_v, 0), (horizontal, d_h, 1)]):
@@ -80,19 +77,17 @@ def tile_set_seams(tile_coords: np.ndarray, colors: np.ndarray, feats: np.ndarra
             edges[tile, side] = dist[mine].mean() if mine.any() else np.nan
     q = max(1, edge // 2)
     quads = corner_configurations(colors)
-    corner_h, corner_v = [], []
-    for tl, tr, bl, br in quads:
-        for name, out, step, x, y in (
-                ("corner_h", corner_h, (0, 1), tile_coords[tl, w - q:, -1], tile_coords[tr, w - q:, 0]),
-                ("corner_h", corner_h, (0, 1), tile_coords[bl, :q, -1], tile_coords[br, :q, 0]),
-                ("corner_v", corner_v, (1, 0), tile_coords[tl, -1, w - q:], tile_coords[bl, 0, w - q:]),
-                ("corner_v", corner_v, (1, 0), tile_coords[tr, -1, :q], tile_coords[br, 0, :q])):
-            out.append(_distances(feats, x, y))
-            local[name].append(_local_reference(feats, x, y, step))
-    def flat(parts):
-        return np.concatenate(parts) if parts else np.zeros(0)
-    return {"h": d_h.ravel(), "v": d_v.ravel(), "corner_h": flat(corner_h), "corner_v": flat(corner_v),
-            "local": {k: flat(v) for k, v in local.items()}, "edges": edges,
+    tl, tr, bl, br = quads.T
+    # per configuration, the pairs across each border within q of the vertex: above it, then below (left, right)
+    corner_h = (np.stack([tile_coords[tl, w - q:, -1], tile_coords[bl, :q, -1]], 1),
+                np.stack([tile_coords[tr, w - q:, 0], tile_coords[br, :q, 0]], 1))
+    corner_v = (np.stack([tile_coords[tl, -1, w - q:], tile_coords[tr, -1, :q]], 1),
+                np.stack([tile_coords[bl, 0, w - q:], tile_coords[br, 0, :q]], 1))
+    local = {"h": _local_reference(feats, *facing_h, (0, 1)), "v": _local_reference(feats, *facing_v, (1, 0)),
+             "corner_h": _local_reference(feats, *corner_h, (0, 1)),
+             "corner_v": _local_reference(feats, *corner_v, (1, 0))}
+    return {"h": d_h.ravel(), "v": d_v.ravel(), "corner_h": _distances(feats, *corner_h),
+            "corner_v": _distances(feats, *corner_v), "local": local, "edges": edges,
             "configurations": len(quads), "adjacencies": len(horizontal) + len(vertical)}
 
 

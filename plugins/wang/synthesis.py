@@ -403,6 +403,12 @@ def _typical_windows(feats: np.ndarray, size: int) -> np.ndarray:
     return ((box >= low) & (box <= high)).ravel()
 
 
+def corner_windows(feats: np.ndarray, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """What every corner sampling of ``feats`` with ``h x h`` samples searches: the windows' descriptors
+    (:func:`_patch_descriptors`) and the flat indices of the windows of typical contrast (:func:`_typical_windows`)."""
+    return _patch_descriptors(feats, h), np.flatnonzero(_typical_windows(feats, h))
+
+
 def _diverse(order: np.ndarray, n_cols: int, spacing: int, limit: int) -> list[tuple[int, int]]:
     chosen: list[tuple[int, int]] = []
     for index in order:
@@ -450,14 +456,15 @@ def straight_split(q: int, vertex: tuple[int, int]) -> np.ndarray:
 class Corners:
     """Step 1: a patch per corner sample and the cached cut of every quadrant combination."""
 
-    def __init__(self, feats: np.ndarray, h: int, n_h: int, n_v: int, rng: np.random.Generator, cut: str):
+    def __init__(self, feats: np.ndarray, h: int, n_h: int, n_v: int, rng: np.random.Generator, cut: str,
+                 windows: tuple[np.ndarray, np.ndarray] | None = None):
+        """``windows``: :func:`corner_windows` of ``feats`` and ``h``, when several samplings share them."""
         self.h, self.q, self.n_h, self.n_v = h, h // 2, n_h, n_v
         self.feats = feats
         slots = [f"L{a}" for a in range(n_h)] + [f"R{a}" for a in range(n_h)] + \
                 [f"T{c}" for c in range(n_v)] + [f"B{c}" for c in range(n_v)]
         n_cols = feats.shape[1] - h + 1
-        desc = _patch_descriptors(feats, h)
-        typical = np.flatnonzero(_typical_windows(feats, h))
+        desc, typical = corner_windows(feats, h) if windows is None else windows
         reference = int(typical[rng.integers(len(typical))])
         k = min(len(typical), 64 * len(slots))
         order, _ = knn(desc[typical], desc[reference:reference + 1], k, engine="exact")
@@ -470,6 +477,7 @@ class Corners:
                                     f"{h} x {h} patches for the corner samples", "lower 'edge' or use a larger exemplar")
         self.pool = pool
         assignment = dict(zip(slots, [pool[i] for i in rng.permutation(len(pool))[:len(slots)]]))
+        self._terms: dict = {}   # the descent's pairwise cost terms, by the places of their two patches
         self.positions = self._descend(assignment, slots)
         self.cut = cut
         self.masks, self.costs = {}, {}
@@ -534,25 +542,39 @@ class Corners:
         itself some pieces of different strips must touch."""
         kind = slot[0]
         partner = {"L": "R", "R": "L", "T": "B", "B": "T"}[kind]
-        y, x = positions[slot]
-        c = self.q - CENTRE // 2
-        mine = self.feats[y:y + self.h, x:x + self.h]
         total = 0.0
         for other in positions:
             if other == slot:
                 continue
-            py, px = positions[other]
-            theirs = self.feats[py:py + self.h, px:px + self.h]
-            centre = np.linalg.norm(mine[c:c + CENTRE, c:c + CENTRE] - theirs[c:c + CENTRE, c:c + CENTRE], axis=-1)
-            total += CENTRE_WEIGHT * self.h * centre.sum()
+            total += self._pair_terms(positions[slot], positions[other])[0]
             if other[0] == partner:
-                total += np.linalg.norm(mine - theirs, axis=-1).sum() / 4
+                total += self._pair_terms(positions[slot], positions[other])[1]
         for name, (hs, vs, _, _, _) in QUADRANTS.items():
             if kind == hs:
-                total += sum(self._difference(name, slot, f"{vs}{c}", positions).sum() for c in range(self.n_v))
+                total += sum(self._quadrant_term(name, positions[slot], positions[f"{vs}{c}"]) for c in range(self.n_v))
             elif kind == vs:
-                total += sum(self._difference(name, f"{hs}{a}", slot, positions).sum() for a in range(self.n_h))
+                total += sum(self._quadrant_term(name, positions[f"{hs}{a}"], positions[slot]) for a in range(self.n_h))
         return total
+
+    def _pair_terms(self, mine_at: tuple, theirs_at: tuple) -> tuple[float, float]:
+        """Two patches' difference at their centres (weighted) and over their whole (a quarter), computed once
+        per pair of places: the descent meets the same pairs many times."""
+        key = ("pair", mine_at, theirs_at)
+        if key not in self._terms:
+            (y, x), (py, px), c = mine_at, theirs_at, self.q - CENTRE // 2
+            mine = self.feats[y:y + self.h, x:x + self.h]
+            theirs = self.feats[py:py + self.h, px:px + self.h]
+            centre = np.linalg.norm(mine[c:c + CENTRE, c:c + CENTRE] - theirs[c:c + CENTRE, c:c + CENTRE], axis=-1)
+            self._terms[key] = (CENTRE_WEIGHT * self.h * centre.sum(), np.linalg.norm(mine - theirs, axis=-1).sum() / 4)
+        return self._terms[key]
+
+    def _quadrant_term(self, name: str, h_at: tuple, v_at: tuple) -> float:
+        """The summed difference of a quadrant's two pieces with its samples at ``h_at`` and ``v_at`` (once per
+        pair of places)."""
+        key = (name, h_at, v_at)
+        if key not in self._terms:
+            self._terms[key] = self._difference(name, "h", "v", {"h": h_at, "v": v_at}).sum()
+        return self._terms[key]
 
     def _descend(self, positions: dict, slots: list[str], sweeps: int = 2) -> dict:
         """Coordinate descent on the summed quadrant differences, each slot on a distinct pool patch."""
@@ -674,7 +696,8 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     timings, counts = {}, {}
 
     start = time.perf_counter()
-    drawn = [Corners(feats, h, n_h, n_v, rng, cut) for _ in range(CORNER_TRIALS)]
+    windows = corner_windows(feats, h)
+    drawn = [Corners(feats, h, n_h, n_v, rng, cut, windows) for _ in range(CORNER_TRIALS)]
     corner_scores = [c.seam_score() for c in drawn]
     corners = drawn[int(np.argmin(corner_scores))]
     timings["corners"] = time.perf_counter() - start
