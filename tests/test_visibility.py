@@ -12,7 +12,8 @@ from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.scoring import score
-from btforge.plugins.synth.visibility import evenness, lattice_share, missed_targets, seam_edges, shuffled_blocks
+from btforge.plugins.synth.visibility import (evenness, lattice_share, missed_targets, recurring_share, seam_edges,
+                                              shuffled_blocks)
 
 SIZE, OUT = 48, 144
 
@@ -148,6 +149,22 @@ def test_tiles_placed_independently_of_the_lattice_score_near_zero():
     coords = shuffled_blocks((64, 64), (128, 128), block=16, seed=5).coords
     laid = exemplar[:, coords[..., 0], coords[..., 1]]
     assert lattice_share(laid, 16) < 0.05
+
+
+def test_pieces_laid_at_the_same_place_in_every_tile_show_whatever_their_colours():
+    """Every tile holds a square at its centre, each tile's square and ground in colours of their own: the values at
+    a place do not recur (light squares in some tiles, dark in others), but the squares' outlines do, and the eye
+    sees a grid of squares."""
+    rng = np.random.default_rng(9)
+    tile, grid = 16, 6
+    inside = np.zeros((tile, tile), bool)
+    inside[4:12, 4:12] = True
+    colours = rng.uniform(size=(2, grid, grid, 2, 3))                  # per light and tile: ground, square
+    tiles = np.where(inside[None, None, None, :, :, None], colours[:, :, :, None, None, 1],
+                     colours[:, :, :, None, None, 0])                   # [L, rows, cols, tile, tile, 3]
+    images = tiles.transpose(0, 1, 3, 2, 4, 5).reshape(2, grid * tile, grid * tile, 3)
+    assert recurring_share(images, tile) < 0.1
+    assert lattice_share(images, tile) > 0.5
 
 
 @pytest.mark.parametrize("band", [1, 2, 4])

@@ -678,10 +678,12 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         ``lattice_share``
             With ``coords`` that lay tiles (a ``wang.tiling``; the map's ``tile``): the share of the output's
             variance that sits at the same place in every whole tile, averaged over lights (one-way analysis of
-            variance with the tile's places as groups, less what chance leaves in the mean of that many tiles).
-            0 = the tiles' content is placed independently of the lattice (shuffled blocks score 0 to about
-            0.06 at 16 tiles); 1 = every tile is the same.  What the eye sees as a lattice: the same band along
-            every tile border, the same feature at every corner, tiles repeated.  Empty for other maps.
+            variance with the tile's places as groups, less what chance leaves in the mean of that many tiles),
+            or the same share of its local contrast standardised per tile, whichever is larger.  0 = the tiles'
+            content is placed independently of the lattice (a quilted output read as 16 tiles scores about 0);
+            1 = every tile is the same.  What the eye sees as a lattice: the same band along every tile border,
+            the same feature at every corner, pieces whose outlines lie at the same place in every tile whatever
+            their colours, tiles repeated.  Empty for other maps.
         ``swd_vs_shuffled_blocks``
             ``swd`` over ``swd_shuffled_blocks``: the same distance for exemplar blocks of
             ``shuffled_block_side`` texels (32, at most half the exemplar's side) laid at random at the output's

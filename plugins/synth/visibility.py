@@ -10,8 +10,9 @@ images (how large the radiance jump across each output neighbour pair is):
   tiles (straight by design, named by the map's ``tile``);
 * evenness: ``exp(entropy) / n`` of the output's use of the exemplar's ``8 x 8``-texel cells (1: every cell used
   equally; an output that collapses onto a few regions scores low);
-* lattice share: for a tiling, the share of the output's radiance variance that sits at the same place in every
-  tile (0: the tiles' content is placed independently of the lattice; 1: every tile the same, a periodic texture);
+* lattice share: for a tiling, the share of the output's radiance variance, or of its local contrast, that sits
+  at the same place in every tile, whichever is larger (0: the tiles' content is placed independently of the
+  lattice; 1: every tile the same, a periodic texture);
 * the shuffled-block baseline: exemplar blocks laid at random, the layout a synthesizer's patch statistics are
   compared with.
 """
@@ -27,6 +28,11 @@ from btforge.buffers import CoordMap
 STRAIGHT_RUN = 12
 #: Side in texels of the exemplar cells whose use the evenness measures.
 EVENNESS_CELL = 8
+#: Side of the box over which the lattice share averages an image's local contrast (the outline of a piece as a
+#: band a few texels wide).  On Wang tilings of the synthesis bench's crops 3 and 5 agree (0.14-0.23); a grid of
+#: squares in colours of their own per tile scores 0.59 at 3, 0.39 at 5, where the tile borders' own edges blur into the
+#: squares' outlines.
+CONTRAST_BOX = 3
 #: Side of the blocks of the shuffled-block baseline (capped at half the exemplar's shorter side).
 BASELINE_BLOCK = 32
 
@@ -206,9 +212,35 @@ def evenness(coords: CoordMap, cell: int = EVENNESS_CELL) -> float:
 
 
 def lattice_share(out_enc: np.ndarray, tile: int) -> float | None:
+    """How much of ``out_enc [L, H, W, C]`` every ``tile x tile`` tile repeats at the same place, which the eye
+    sees as a lattice: the larger of the :func:`recurring_share` of the relit values (the same band along every
+    border, the same feature at every corner) and of their :func:`local_contrast`, standardised per tile
+    (:func:`tile_standardised`: the outlines of pieces laid at the same place in every tile, whatever their
+    colours, such as a grid of light and dark squares).  None without two whole tiles or without variance under
+    some light."""
+    values = recurring_share(out_enc, tile)
+    if values is None:
+        return None
+    outlines = recurring_share(tile_standardised(local_contrast(out_enc), tile)[..., None], tile)
+    return max(values, 0.0 if outlines is None else outlines)
+
+
+def tile_standardised(images: np.ndarray, tile: int) -> np.ndarray:
+    """``images [L, H, W]``'s whole ``tile x tile`` tiles, each less its mean over its own standard deviation (a
+    flat tile: 0): where a tile's edges lie, whatever their strength, so that pieces whose colours differ from tile
+    to tile but whose outlines lie at the same place count as recurring."""
+    lights, height, width = images.shape
+    rows, cols = height // tile, width // tile
+    x = images[:, :rows * tile, :cols * tile].astype(np.float64).reshape(lights, rows, tile, cols, tile)
+    centred = x - x.mean(axis=(2, 4), keepdims=True)
+    spread = np.sqrt((centred ** 2).mean(axis=(2, 4), keepdims=True))
+    standard = np.divide(centred, spread, out=np.zeros_like(centred), where=spread > 1e-12 * (1 + np.abs(x).max()))
+    return standard.reshape(lights, rows * tile, cols * tile)
+
+
+def recurring_share(out_enc: np.ndarray, tile: int) -> float | None:
     """The share of ``out_enc [L, H, W, C]``'s variance that depends only on the place inside a ``tile x tile``
-    tile (its whole tiles, averaged over lights): how much of the texture every tile repeats at the same place,
-    which the eye sees as a lattice (the same feature at every tile corner, the same band along every border).
+    tile (its whole tiles, averaged over lights).
 
     A one-way analysis of variance with the ``tile^2`` places as groups and the ``n`` tiles as observations: the
     variance of the mean tile over its places, less the ``1 / n`` of the within-place variance that chance alone
@@ -231,6 +263,18 @@ def lattice_share(out_enc: np.ndarray, tile: int) -> float | None:
     if not np.all(total > 1e-12 * (x ** 2).sum(-1).mean(axis=(1, 2, 3))):
         return None
     return float(np.clip(np.mean((between - chance) / total), 0.0, 1.0))
+
+
+def local_contrast(out_enc: np.ndarray, box: int = CONTRAST_BOX) -> np.ndarray:
+    """``[L, H, W]``: the radiance step to the next texel across and down (colour norm; at the image's last column
+    and row the step back, so that the border's steps are drawn like the others) combined as a gradient magnitude,
+    averaged over ``box x box`` texels: where the image has edges, whatever their colours."""
+    from scipy.ndimage import uniform_filter
+    x = out_enc.astype(np.float64)
+    across = np.diff(x, axis=2, append=x[:, :, -2:-1]) if x.shape[2] > 1 else np.zeros_like(x)
+    down = np.diff(x, axis=1, append=x[:, -2:-1]) if x.shape[1] > 1 else np.zeros_like(x)
+    magnitude = np.sqrt((across ** 2).sum(-1) + (down ** 2).sum(-1))
+    return uniform_filter(magnitude, size=(1, box, box), mode="nearest")
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,
