@@ -14,7 +14,7 @@ from btforge.plugins.synth.scoring import score
 from btforge.plugins.wang import build_tile_set, wang_tiles, wang_tiling
 from btforge.plugins.wang.bench import procedural_exemplar
 from btforge.plugins.wang.cuts import min_cut
-from btforge.plugins.wang.placement import local_placement_errors, placement_errors_numpy, placement_errors_opencl
+from btforge.plugins.wang.placement import placement_errors_numpy, placement_errors_opencl
 from btforge.plugins.wang.seams import corner_configurations, tiling_ids, tiling_report
 from btforge.plugins.wang.synthesis import quadrant_ties, synthesize_tiles
 from btforge.plugins.wang.tileset import TileSet, describe, read_tile_set
@@ -78,24 +78,33 @@ def test_placement_kernel_on_random_windows(ph, pw, d, seed):
 
 
 @pytest.mark.parametrize("kind", ["random", "constant", "black", "huge", "tiny"])
-def test_local_placement_errors_equal_the_reference(kind):
-    """The refinement's gathered search sums in the reference's order: the same float32 errors, bit for bit."""
-    feats, offsets, target, window = _placement_case(np.random.default_rng(5), kind, h=10, w=12)
-    assert np.array_equal(local_placement_errors(feats, offsets, target, window),
-                          placement_errors_numpy(feats, offsets, target, window))
-    assert local_placement_errors(feats, offsets[:0], target[:0], window).shape == (5, 6)
+@pytest.mark.parametrize("stride", [1, 2])
+def test_placement_twin_gives_the_same_errors_whatever_it_gathers_at_once(kind, stride, monkeypatch):
+    """The twin sums over the offsets in their order however many it gathers per step: one offset at a time gives
+    the same float32 errors, bit for bit."""
+    from btforge.plugins.wang import placement
+    feats, offsets, target, window = _placement_case(np.random.default_rng(5), kind)
+    gathered = placement_errors_numpy(feats, offsets, target, window, stride)
+    monkeypatch.setattr(placement, "GATHER_CAP", 1)
+    assert np.array_equal(placement_errors_numpy(feats, offsets, target, window, stride), gathered)
 
 
 @settings(max_examples=12, deadline=None)
-@given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 9), st.floats(1e-6, 1e6), st.integers(0, 2 ** 31 - 1))
-def test_local_placement_errors_on_random_windows(ph, pw, d, scale, seed):
+@given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 9), st.floats(1e-6, 1e6), st.integers(1, 64),
+       st.integers(0, 2 ** 31 - 1))
+def test_placement_twin_on_random_windows_and_gather_sizes(ph, pw, d, scale, cap, seed):
+    from btforge.plugins.wang import placement
     rng = np.random.default_rng(seed)
     feats = (rng.normal(size=(ph + 2, pw + 2, d)) * scale).astype(np.float32)
     offsets = np.argwhere(rng.random((ph, pw)) < 0.6)
     target = (rng.normal(size=(len(offsets), d)) * scale).astype(np.float32)
-    out = local_placement_errors(feats, offsets, target, (ph, pw))
+    out = placement_errors_numpy(feats, offsets, target, (ph, pw))
     assert np.isfinite(out).all() and (out >= 0).all()
-    assert np.array_equal(out, placement_errors_numpy(feats, offsets, target, (ph, pw)))
+    default, placement.GATHER_CAP = placement.GATHER_CAP, cap
+    try:
+        assert np.array_equal(placement_errors_numpy(feats, offsets, target, (ph, pw)), out)
+    finally:
+        placement.GATHER_CAP = default
 
 
 def test_min_cut_follows_the_valley_and_respects_ties():

@@ -193,7 +193,7 @@ class _NearestPatches:
     def query(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Index into the indexed patches and RMS distance per element, for each query patch."""
         k = min(RERANK_K, len(self.patches))
-        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k, workers=cores())   # per query: any split
+        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k, workers=cores())   # each query alone: the same lists on any workers
         cand = cand.reshape(len(queries), k)
         diff = self.patches[cand] - queries[:, None, :]
         sq = np.einsum("nkd,nkd->nk", diff, diff)

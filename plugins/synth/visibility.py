@@ -266,15 +266,16 @@ def recurring_share(out_enc: np.ndarray, tile: int) -> float | None:
 
 
 def local_contrast(out_enc: np.ndarray, box: int = CONTRAST_BOX) -> np.ndarray:
-    """``[L, H, W]``: the radiance step to the next texel across and down (colour norm; at the image's last column
-    and row the step back, so that the border's steps are drawn like the others) combined as a gradient magnitude,
-    averaged over ``box x box`` texels: where the image has edges, whatever their colours."""
+    """``[L, H, W]``: the radiance jumps to the next texel across and down (:func:`neighbour_jumps`; at the image's
+    last column and row the jump back, so that the border's jumps are drawn like the others) combined as a
+    gradient magnitude, averaged over ``box x box`` texels: where the image has edges, whatever their colours."""
     from scipy.ndimage import uniform_filter
-    x = out_enc.astype(np.float64)
-    across = np.diff(x, axis=2, append=x[:, :, -2:-1]) if x.shape[2] > 1 else np.zeros_like(x)
-    down = np.diff(x, axis=1, append=x[:, -2:-1]) if x.shape[1] > 1 else np.zeros_like(x)
-    magnitude = np.sqrt((across ** 2).sum(-1) + (down ** 2).sum(-1))
-    return uniform_filter(magnitude, size=(1, box, box), mode="nearest")
+    across, down = neighbour_jumps(out_enc.astype(np.float64), wrap=False)
+    if across.shape[2] > 1:
+        across[:, :, -1] = across[:, :, -2]
+    if down.shape[1] > 1:
+        down[:, -1, :] = down[:, -2, :]
+    return uniform_filter(np.sqrt(across ** 2 + down ** 2), size=(1, box, box), mode="nearest")
 
 
 def shuffled_blocks(exemplar_size: tuple[int, int], size: tuple[int, int], block: int = BASELINE_BLOCK,

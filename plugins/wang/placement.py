@@ -31,17 +31,25 @@ def _checked(feats, offsets, target, window, stride=1):
     return feats, offsets, target, n_rows, n_cols
 
 
+#: Gathered values per step of the NumPy twin (offsets x placements): a small search (the local refinement's few
+#: placements) gathers all its offsets in one step, a search over the whole exemplar a few offsets at a time.
+GATHER_CAP = 1 << 16
+
+
 def placement_errors_numpy(feats: np.ndarray, offsets: np.ndarray, target: np.ndarray,
                            window: tuple[int, int], stride: int = 1) -> np.ndarray:
     """Reference: ``[ceil((H - ph + 1) / stride), ceil((W - pw + 1) / stride)]`` float32 errors of the
-    placements at multiples of ``stride``, summed in float64."""
+    placements at multiples of ``stride``, summed in float64 over the offsets in their order."""
     feats, offsets, target, n_rows, n_cols = _checked(feats, offsets, target, window, stride)
     acc = np.zeros((n_rows, n_cols), np.float64)
-    rows, cols = (n_rows - 1) * stride + 1, (n_cols - 1) * stride + 1
-    for (dy, dx), t in zip(offsets, target):
-        part = feats[dy:dy + rows:stride, dx:dx + cols:stride]
-        diff = part.astype(np.float64) - t.astype(np.float64)
-        acc += np.einsum("ijd,ijd->ij", diff, diff)
+    chunk = max(1, GATHER_CAP // (n_rows * n_cols))
+    steps_y, steps_x = stride * np.arange(n_rows), stride * np.arange(n_cols)
+    for start in range(0, len(offsets), chunk):
+        dy, dx = offsets[start:start + chunk].T
+        part = feats[dy[:, None, None] + steps_y[None, :, None], dx[:, None, None] + steps_x[None, None, :]]
+        diff = part.astype(np.float64) - target[start:start + chunk].astype(np.float64)[:, None, None, :]
+        for error in np.einsum("nijd,nijd->nij", diff, diff):
+            acc += error
     return acc.astype(np.float32)
 
 
@@ -89,24 +97,7 @@ class PlacementSearch:
         y1 = min(self.feats.shape[0] - ph, y + reach)
         x1 = min(self.feats.shape[1] - pw, x + reach)
         local = self.feats[y0:y1 + ph, x0:x1 + pw]
-        errors = local_placement_errors(local, offsets, target, window)
+        errors = placement_errors_numpy(local, offsets, target, window)
         dy, dx = np.unravel_index(int(np.argmin(errors)), errors.shape)
         return y0 + int(dy), x0 + int(dx)
 
-
-def local_placement_errors(feats: np.ndarray, offsets: np.ndarray, target: np.ndarray,
-                           window: tuple[int, int]) -> np.ndarray:
-    """:func:`placement_errors_numpy` at stride 1 for the few placements of a small ``feats`` (a refinement's
-    neighbourhood), with every offset's features gathered at once instead of one offset at a time; the float64
-    sums run over the offsets in the same order."""
-    feats, offsets, target, n_rows, n_cols = _checked(feats, offsets, target, window)
-    if len(offsets) == 0:
-        return np.zeros((n_rows, n_cols), np.float32)
-    rows = offsets[:, 0, None, None] + np.arange(n_rows)[None, :, None]          # [n, rows, 1]
-    cols = offsets[:, 1, None, None] + np.arange(n_cols)[None, None, :]          # [n, 1, cols]
-    diff = feats[rows, cols].astype(np.float64) - target.astype(np.float64)[:, None, None, :]
-    per_offset = np.einsum("nijd,nijd->nij", diff, diff)
-    acc = np.zeros((n_rows, n_cols), np.float64)
-    for part in per_offset:   # in offset order, as the reference adds them
-        acc += part
-    return acc.astype(np.float32)

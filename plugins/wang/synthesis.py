@@ -546,9 +546,10 @@ class Corners:
         for other in positions:
             if other == slot:
                 continue
-            total += self._pair_terms(positions[slot], positions[other])[0]
+            centres, wholes = self._pair_terms(positions[slot], positions[other])
+            total += centres
             if other[0] == partner:
-                total += self._pair_terms(positions[slot], positions[other])[1]
+                total += wholes
         for name, (hs, vs, _, _, _) in QUADRANTS.items():
             if kind == hs:
                 total += sum(self._quadrant_term(name, positions[slot], positions[f"{vs}{c}"]) for c in range(self.n_v))
