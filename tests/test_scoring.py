@@ -301,3 +301,19 @@ def test_invalid_inputs(case):
         score(output=case["genuine"], exemplar=ex, coords=CoordMap(np.zeros((OUT, OUT, 2), np.int32), (16, 16)))
     with pytest.raises(BtforgeInputError, match="patch"):
         score(output=case["genuine"], exemplar=ex, patch=40)
+
+
+def test_sliced_wasserstein_reused_for_several_outputs_gives_each_its_own_figures():
+    """``synth.score`` measures the output and the shuffled-block baselines against one exemplar analysis; each
+    output's distances must be those a call of its own gives, whatever was measured before it."""
+    from btforge.plugins.synth.scoring import SlicedWasserstein, sliced_wasserstein_levels
+    rng = np.random.default_rng(3)
+    exemplar = rng.random((2, 40, 36, 3)).astype(np.float32)
+    outputs = [(rng.random((2, 70, 64, 3)).astype(np.float32), False),
+               (np.zeros((2, 50, 80, 3), np.float32), True),                  # constant: the hard case of sorting
+               (np.tile(exemplar, (1, 2, 2, 1)), False)]                      # a copy: close to the exemplar
+    shared = SlicedWasserstein(exemplar, patch=5, scales=3, projections=32, seed=4)
+    for image, wrap in outputs + outputs[::-1]:
+        alone = sliced_wasserstein_levels(exemplar, image, patch=5, scales=3, projections=32, seed=4, wrap=wrap)
+        assert shared.levels(image, wrap) == alone
+        assert len(alone) == 3 and all(np.isfinite(alone)) and min(alone) >= 0

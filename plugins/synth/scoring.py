@@ -173,10 +173,13 @@ def _sorted_quantiles(sorted_values: np.ndarray, n: int) -> np.ndarray:
     return sorted_values[lo] * (1 - frac) + sorted_values[hi] * frac
 
 
-def _sliced_wasserstein(a: np.ndarray, b: np.ndarray, directions: np.ndarray) -> float:
-    """Mean over unit directions of the 1-D Wasserstein-1 distance between the projected patch sets."""
-    pa = np.sort(a @ directions.T, axis=0)
-    pb = np.sort(b @ directions.T, axis=0)
+def _sorted_projections(patches: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """``[n, projections]``: the patches projected on each unit direction, each column sorted."""
+    return np.sort(patches @ directions.T, axis=0)
+
+
+def _sliced_wasserstein(pa: np.ndarray, pb: np.ndarray) -> float:
+    """Mean over directions of the 1-D Wasserstein-1 distance between two sets of sorted projections."""
     n = min(len(pa), len(pb))
     return float(np.mean(np.abs(_sorted_quantiles(pa, n) - _sorted_quantiles(pb, n))))
 
@@ -478,25 +481,58 @@ def sliced_wasserstein_levels(ex_enc: np.ndarray, out_enc: np.ndarray, *, patch:
                               projections: int, seed: int, wrap: bool) -> list[float]:
     """The sliced Wasserstein distance of patch distributions per Gaussian-pyramid level, averaged over lights
     (levels too small for a patch are left out)."""
-    dim = ex_enc.shape[3] * patch * patch
-    swd_levels: list[list[float]] = []
-    ex_level, out_level = list(ex_enc), list(out_enc)
-    for level in range(scales):
-        if level:
-            ex_level = [downsample(im, "reflect") for im in ex_level]
-            out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
-        if min(ex_level[0].shape[:2]) < patch or min(out_level[0].shape[:2]) < patch:
-            break
-        rng = np.random.default_rng([seed, 1, level])
-        directions = rng.standard_normal((projections, dim)).astype(np.float32)
-        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-        ex_views = [_patch_source(im, patch, False) for im in ex_level]
-        out_views = [_patch_source(im, patch, wrap) for im in out_level]
-        ex_pick = _pick(rng, ex_views[0].shape[0] * ex_views[0].shape[1], SWD_PATCH_CAP)
-        out_pick = _pick(rng, out_views[0].shape[0] * out_views[0].shape[1], SWD_PATCH_CAP)
-        swd_levels.append([_sliced_wasserstein(_gather(o, out_pick), _gather(e, ex_pick), directions)
-                           for o, e in zip(out_views, ex_views)])
-    return [float(np.mean(v)) for v in swd_levels]
+    return SlicedWasserstein(ex_enc, patch=patch, scales=scales, projections=projections, seed=seed).levels(
+        out_enc, wrap)
+
+
+class SlicedWasserstein:
+    """:func:`sliced_wasserstein_levels` against one exemplar for several outputs (the output, then the
+    shuffled-block baselines): the exemplar's pyramid, directions, sampled patches and sorted projections are
+    computed once per level and reused, and each output draws its sample from the same random state as it would
+    alone, so every figure is the one a call of its own gives."""
+
+    def __init__(self, ex_enc: np.ndarray, *, patch: int, scales: int, projections: int, seed: int):
+        self.patch, self.scales, self.projections, self.seed = patch, scales, projections, seed
+        self._ex_levels = [list(ex_enc)]
+        self._sorted: dict[int, tuple] = {}
+
+    def _exemplar_level(self, level: int) -> list[np.ndarray]:
+        while len(self._ex_levels) <= level:
+            self._ex_levels.append([downsample(im, "reflect") for im in self._ex_levels[-1]])
+        return self._ex_levels[level]
+
+    def _exemplar_projections(self, level: int) -> tuple:
+        """Directions, the exemplar's sorted projections per light, and the random state after its sample."""
+        if level not in self._sorted:
+            ex_level = self._exemplar_level(level)
+            dim = ex_level[0].shape[2] * self.patch * self.patch
+            rng = np.random.default_rng([self.seed, 1, level])
+            directions = rng.standard_normal((self.projections, dim)).astype(np.float32)
+            directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+            views = [_patch_source(im, self.patch, False) for im in ex_level]
+            pick = _pick(rng, views[0].shape[0] * views[0].shape[1], SWD_PATCH_CAP)
+            projected = [_sorted_projections(_gather(v, pick), directions) for v in views]
+            self._sorted[level] = (directions, projected, rng.bit_generator.state)
+        return self._sorted[level]
+
+    def levels(self, out_enc: np.ndarray, wrap: bool) -> list[float]:
+        """The distance of ``out_enc [L, H, W, C]`` per level, averaged over lights."""
+        swd_levels: list[float] = []
+        out_level = list(out_enc)
+        for level in range(self.scales):
+            if level:
+                out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
+            ex_shape = self._exemplar_level(level)[0].shape
+            if min(ex_shape[:2]) < self.patch or min(out_level[0].shape[:2]) < self.patch:
+                break
+            directions, ex_sorted, state = self._exemplar_projections(level)
+            rng = np.random.default_rng()
+            rng.bit_generator.state = state
+            views = [_patch_source(im, self.patch, wrap) for im in out_level]
+            pick = _pick(rng, views[0].shape[0] * views[0].shape[1], SWD_PATCH_CAP)
+            swd_levels.append(float(np.mean([_sliced_wasserstein(_sorted_projections(_gather(v, pick), directions), e)
+                                              for v, e in zip(views, ex_sorted)])))
+        return swd_levels
 
 
 def seam_ratio_of(out_enc: np.ndarray, block: int, coords: CoordMap | None, wrap: bool) -> tuple[float | None, list[str]]:
@@ -734,8 +770,8 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
     out_enc = _encode(out_lin, whites, domain)
     relit = _Relit(exemplar, lights_used, whites, domain, ex_enc, out_enc)
 
-    swd_per_level = sliced_wasserstein_levels(ex_enc, out_enc, patch=patch, scales=scales, projections=projections,
-                                              seed=seed, wrap=wrap)
+    against_exemplar = SlicedWasserstein(ex_enc, patch=patch, scales=scales, projections=projections, seed=seed)
+    swd_per_level = against_exemplar.levels(out_enc, wrap)
     found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=consistency_patch or patch,
                                   samples=samples, seed=seed, wrap=wrap, tolerance=tolerance)
     if ex_enc.shape[0] < 2:
@@ -754,7 +790,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         "seam_ratio": seam_ratio,
         "seam_source": " + ".join(seam_source) if seam_source else "none",
         **_eye_measures(relit, coords),
-        **_swd_against_baseline(relit, swd, patch=patch, scales=scales, projections=projections, seed=seed),
+        **_swd_against_baseline(relit, swd, against_exemplar, seed=seed),
         **_consistency(relit, coords, found, tolerance, consistency_threshold),
         "lights": ex_enc.shape[0],
         "lights_source": lights_source,
@@ -857,18 +893,16 @@ def _eye_measures(relit: _Relit, coords: CoordMap | None) -> dict:
             "lattice_share": visibility.lattice_share(relit.out_enc, int(coords.tile or 0))}
 
 
-def _swd_against_baseline(relit: _Relit, swd: float, *, patch: int, scales: int, projections: int,
-                          seed: int) -> dict:
+def _swd_against_baseline(relit: _Relit, swd: float, against_exemplar: SlicedWasserstein, *, seed: int) -> dict:
     """The sliced Wasserstein distance of shuffled exemplar blocks laid out at the output's size (mean of
-    :data:`BASELINE_LAYOUTS` layouts, the same projections), and the output's distance over it."""
+    :data:`BASELINE_LAYOUTS` layouts, the output's projections), and the output's distance over it."""
     ex_enc = relit.ex_enc
     size = relit.out_enc.shape[1:3]
     block = visibility.baseline_block(ex_enc.shape[1:3])
     distances = []
     for layout in range(BASELINE_LAYOUTS):
         shuffled = visibility.shuffled_blocks(ex_enc.shape[1:3], size, block, seed=seed * BASELINE_LAYOUTS + layout)
-        levels = sliced_wasserstein_levels(ex_enc, relit.replay(shuffled), patch=patch, scales=scales,
-                                           projections=projections, seed=seed, wrap=False)
+        levels = against_exemplar.levels(relit.replay(shuffled), wrap=False)
         distances.append(float(np.mean(levels)))
     baseline = float(np.mean(distances))
     return {"swd_shuffled_blocks": baseline, "swd_vs_shuffled_blocks": swd / baseline if baseline > 0 else None,
