@@ -85,25 +85,48 @@ def measure(size: int = 112, tilts=LOW_TILTS, baseline: bool = True, seed: int =
     return Consistency(stack.lights, np.array(ours), np.array(independent), np.array(fraction))
 
 
-def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.ndarray, valid: np.ndarray) -> float:
-    """Seam visibility of a block copy: the mean radiance jump (colour norm) between adjacent pixels of
-    ``image [H, W, C]`` whose ``source [H, W, 2]`` pixels are not adjacent in the reference, over the mean jump
+def block_seam_visibility(image: np.ndarray, source: np.ndarray, reference: np.ndarray, valid: np.ndarray,
+                          band: int = 0) -> float:
+    """Seam visibility of a block copy: the radiance jumps (colour norm) across block boundaries of ``image [H, W,
+    C]`` (adjacent pixels whose ``source [H, W, 2]`` pixels are not adjacent in the reference), over the jumps
     between adjacent ``valid`` pixels of ``reference [h, w, C]`` (1: block boundaries look like the reference's
-    own pixel-to-pixel changes)."""
+    own pixel-to-pixel changes).
+
+    ``band``: texels on each side of a boundary that feathering blended.  A feathered boundary shows the mean of
+    its two blocks on both sides, so the jump across it is small, and the step between the blocks moves to the
+    pixels ``band`` texels in, which are not boundaries.  Each boundary therefore counts with the largest jump
+    along its normal over the ``2 * band + 1`` pixel pairs centred on it, and the reference with the largest of
+    as many consecutive jumps: a seamless copy scores about 1 at any ``band``, and a step spread over the band
+    counts with its sharpest part.  ``band`` 0 is the jump across the boundary alone."""
     img, ref = image.astype(np.float64), reference.astype(np.float64)
-    jumps, seams = [], []
+    seam_peaks, reference_peaks = [], []
     for axis, step in ((1, (0, 1)), (0, (1, 0))):
         a = [slice(None), slice(None)]
         b = [slice(None), slice(None)]
         a[axis], b[axis] = slice(None, -1), slice(1, None)
         a, b = tuple(a), tuple(b)
-        jumps.append(np.linalg.norm(img[b] - img[a], axis=-1))
-        seams.append(np.any(source[b] != source[a] + np.array(step), axis=-1))
-        both = valid[a] & valid[b]
-        jumps.append(np.linalg.norm(ref[b] - ref[a], axis=-1)[both])
-    seam_jumps = np.concatenate([jumps[0][seams[0]], jumps[2][seams[1]]])
-    base = np.concatenate([jumps[1], jumps[3]]).mean()
-    return float(seam_jumps.mean() / base) if seam_jumps.size and base > 0 else 0.0
+        jumps = np.linalg.norm(img[b] - img[a], axis=-1)
+        seams = np.any(source[b] != source[a] + np.array(step), axis=-1)
+        peaks, whole = _band_peaks(jumps, np.ones(jumps.shape, bool), axis, band)
+        seam_peaks.append(peaks[seams & whole])
+        ref_peaks, ref_whole = _band_peaks(np.linalg.norm(ref[b] - ref[a], axis=-1), valid[a] & valid[b], axis, band)
+        reference_peaks.append(ref_peaks[ref_whole])
+    seam_peaks, reference_peaks = np.concatenate(seam_peaks), np.concatenate(reference_peaks)
+    if not seam_peaks.size or not reference_peaks.size or reference_peaks.mean() <= 0:
+        return 0.0
+    return float(seam_peaks.mean() / reference_peaks.mean())
+
+
+def _band_peaks(jumps: np.ndarray, valid: np.ndarray, axis: int, band: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair, the largest of the ``2 * band + 1`` jumps centred on it along ``axis``, and whether all of them
+    lie inside the image and are valid."""
+    if band == 0:
+        return jumps, valid
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+    size = 2 * band + 1
+    peaks = maximum_filter1d(np.where(valid, jumps, 0.0), size, axis=axis, mode="constant")
+    whole = minimum_filter1d(valid.astype(np.uint8), size, axis=axis, mode="constant", cval=0).astype(bool)
+    return peaks, whole
 
 
 def block_copy_seams(feather: int, size: int = 112, seed: int = 1, relax: int | None = None,
@@ -135,7 +158,7 @@ def field_block_seams(refs, field, feather: int, relax: int | None = None, colou
         warped, valid = blockcopy.warp(refs.image(v, l), float(choice.rotations[0]), bool(choice.mirrored[0]),
                                        images[0].shape)
         copy = blockcopy.block_copy(images[0], warped, valid, seed=k, feather=feather, relax=relax, colour=colour)
-        out.append(block_seam_visibility(copy.image, copy.source, warped, valid))
+        out.append(block_seam_visibility(copy.image, copy.source, warped, valid, band=feather))
     return out
 
 
