@@ -446,6 +446,41 @@ def test_block_seam_visibility_follows_a_step_that_feathering_moved_off_the_boun
     assert 0.7 < block_seam_visibility(copied, source, noise, valid, band=2) < 1.4
 
 
+@given(st.integers(0, 2**16), st.integers(3, 24), st.integers(3, 24), st.integers(0, 4),
+       st.sampled_from([1e-20, 1.0, 1e20]), st.sampled_from(["noise", "flat", "spike"]))
+@hsettings(max_examples=40, deadline=None)
+def test_block_seam_visibility_is_finite_and_reduces_to_the_boundary_jumps(seed, h, w, band, scale, kind):
+    """Any band: finite and >= 0 on noise, flat and single-spike images at any scale, with some reference pixels
+    invalid; band 0 is the mean jump across the boundaries over the reference's mean jump (a reference loop)."""
+    from btforge.plugins.liu.testing import block_seam_visibility
+    rng = np.random.default_rng(seed)
+    reference = {"noise": rng.random((30, 30, 3)), "flat": np.ones((30, 30, 3)),
+                 "spike": np.pad(np.ones((1, 1, 3)), ((14, 15), (14, 15), (0, 0)))}[kind] * scale
+    valid = rng.random((30, 30)) > 0.1
+    source = np.stack(np.mgrid[0:h, 0:w], -1)                                  # a copy of the corner ...
+    moved = rng.random((h, w, 1)) < 0.3                                         # ... with texels moved elsewhere
+    source = np.where(moved, rng.integers(0, 30, (h, w, 2)), source).astype(np.int32)
+    image = reference[source[..., 0], source[..., 1]].astype(np.float32)
+    value = block_seam_visibility(image, source, reference.astype(np.float32), valid, band=band)
+    assert np.isfinite(value) and value >= 0
+    if band == 0:
+        jumps, seams, ref_jumps = [], [], []
+        for axis, step in ((1, (0, 1)), (0, (1, 0))):
+            a = np.take(np.arange(h * w).reshape(h, w), range((h, w)[axis] - 1), axis=axis).ravel()
+            b = a + (1 if axis == 1 else w)
+            flat_src, flat_img = source.reshape(-1, 2), image.reshape(-1, 3).astype(np.float64)
+            seams.append(np.any(flat_src[b] != flat_src[a] + np.array(step), axis=-1))
+            jumps.append(np.linalg.norm(flat_img[b] - flat_img[a], axis=-1))
+            r = reference.astype(np.float32).astype(np.float64)
+            ra, rb = np.take(r, range(29), axis=axis), np.take(r, range(1, 30), axis=axis)
+            both = np.take(valid, range(29), axis=axis) & np.take(valid, range(1, 30), axis=axis)
+            ref_jumps.append(np.linalg.norm(rb - ra, axis=-1)[both])
+        seam_jumps = np.concatenate([j[s] for j, s in zip(jumps, seams)])
+        base = np.concatenate(ref_jumps).mean()
+        expected = seam_jumps.mean() / base if seam_jumps.size and base > 0 else 0.0
+        assert value == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
 def test_feathering_hides_block_boundaries_of_real_block_copies():
     from btforge.plugins.liu.testing import block_copy_seams
     hard, soft = np.mean(block_copy_seams(0)), np.mean(block_copy_seams(2))
