@@ -303,17 +303,21 @@ def test_invalid_inputs(case):
         score(output=case["genuine"], exemplar=ex, patch=40)
 
 
-def test_sliced_wasserstein_reused_for_several_outputs_gives_each_its_own_figures():
+def test_sliced_wasserstein_of_several_outputs_gives_each_its_own_figures():
     """``synth.score`` measures the output and the shuffled-block baselines against one exemplar analysis; each
-    output's distances must be those a call of its own gives, whatever was measured before it."""
-    from btforge.plugins.synth.scoring import SlicedWasserstein, sliced_wasserstein_levels
+    output's distances must be those a call of its own gives, whatever is measured beside it (outputs of other
+    sizes too, one too small for the coarsest level)."""
+    from btforge.plugins.synth.scoring import sliced_wasserstein_levels, sliced_wasserstein_of_outputs
     rng = np.random.default_rng(3)
     exemplar = rng.random((2, 40, 36, 3)).astype(np.float32)
     outputs = [(rng.random((2, 70, 64, 3)).astype(np.float32), False),
                (np.zeros((2, 50, 80, 3), np.float32), True),                  # constant: the hard case of sorting
-               (np.tile(exemplar, (1, 2, 2, 1)), False)]                      # a copy: close to the exemplar
-    shared = SlicedWasserstein(exemplar, patch=5, scales=3, projections=32, seed=4)
-    for image, wrap in outputs + outputs[::-1]:
-        alone = sliced_wasserstein_levels(exemplar, image, patch=5, scales=3, projections=32, seed=4, wrap=wrap)
-        assert shared.levels(image, wrap) == alone
-        assert len(alone) == 3 and all(np.isfinite(alone)) and min(alone) >= 0
+               (np.tile(exemplar, (1, 2, 2, 1)), False),                      # a copy: close to the exemplar
+               (rng.random((2, 12, 30, 3)).astype(np.float32), False)]        # too small for the third level
+    for group in (outputs, outputs[::-1]):
+        together = sliced_wasserstein_of_outputs(exemplar, group, patch=5, scales=3, projections=32, seed=4)
+        for (image, wrap), levels in zip(group, together):
+            alone = sliced_wasserstein_levels(exemplar, image, patch=5, scales=3, projections=32, seed=4, wrap=wrap)
+            assert levels == alone
+            assert 1 <= len(alone) <= 3 and all(np.isfinite(alone)) and min(alone) >= 0
+    assert [len(levels) for levels in together] == [2, 3, 3, 3]

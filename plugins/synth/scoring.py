@@ -481,58 +481,50 @@ def sliced_wasserstein_levels(ex_enc: np.ndarray, out_enc: np.ndarray, *, patch:
                               projections: int, seed: int, wrap: bool) -> list[float]:
     """The sliced Wasserstein distance of patch distributions per Gaussian-pyramid level, averaged over lights
     (levels too small for a patch are left out)."""
-    return SlicedWasserstein(ex_enc, patch=patch, scales=scales, projections=projections, seed=seed).levels(
-        out_enc, wrap)
+    return sliced_wasserstein_of_outputs(ex_enc, [(out_enc, wrap)], patch=patch, scales=scales,
+                                         projections=projections, seed=seed)[0]
 
 
-class SlicedWasserstein:
-    """:func:`sliced_wasserstein_levels` against one exemplar for several outputs (the output, then the
-    shuffled-block baselines): the exemplar's pyramid, directions, sampled patches and sorted projections are
-    computed once per level and reused, and each output draws its sample from the same random state as it would
-    alone, so every figure is the one a call of its own gives."""
-
-    def __init__(self, ex_enc: np.ndarray, *, patch: int, scales: int, projections: int, seed: int):
-        self.patch, self.scales, self.projections, self.seed = patch, scales, projections, seed
-        self._ex_levels = [list(ex_enc)]
-        self._sorted: dict[int, tuple] = {}
-
-    def _exemplar_level(self, level: int) -> list[np.ndarray]:
-        while len(self._ex_levels) <= level:
-            self._ex_levels.append([downsample(im, "reflect") for im in self._ex_levels[-1]])
-        return self._ex_levels[level]
-
-    def _exemplar_projections(self, level: int) -> tuple:
-        """Directions, the exemplar's sorted projections per light, and the random state after its sample."""
-        if level not in self._sorted:
-            ex_level = self._exemplar_level(level)
-            dim = ex_level[0].shape[2] * self.patch * self.patch
-            rng = np.random.default_rng([self.seed, 1, level])
-            directions = rng.standard_normal((self.projections, dim)).astype(np.float32)
-            directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-            views = [_patch_source(im, self.patch, False) for im in ex_level]
-            pick = _pick(rng, views[0].shape[0] * views[0].shape[1], SWD_PATCH_CAP)
-            projected = [_sorted_projections(_gather(v, pick), directions) for v in views]
-            self._sorted[level] = (directions, projected, rng.bit_generator.state)
-        return self._sorted[level]
-
-    def levels(self, out_enc: np.ndarray, wrap: bool) -> list[float]:
-        """The distance of ``out_enc [L, H, W, C]`` per level, averaged over lights."""
-        swd_levels: list[float] = []
-        out_level = list(out_enc)
-        for level in range(self.scales):
-            if level:
-                out_level = [downsample(im, "wrap" if wrap else "reflect") for im in out_level]
-            ex_shape = self._exemplar_level(level)[0].shape
-            if min(ex_shape[:2]) < self.patch or min(out_level[0].shape[:2]) < self.patch:
-                break
-            directions, ex_sorted, state = self._exemplar_projections(level)
-            rng = np.random.default_rng()
-            rng.bit_generator.state = state
-            views = [_patch_source(im, self.patch, wrap) for im in out_level]
-            pick = _pick(rng, views[0].shape[0] * views[0].shape[1], SWD_PATCH_CAP)
-            swd_levels.append(float(np.mean([_sliced_wasserstein(_sorted_projections(_gather(v, pick), directions), e)
-                                              for v, e in zip(views, ex_sorted)])))
-        return swd_levels
+def sliced_wasserstein_of_outputs(ex_enc: np.ndarray, outputs: list[tuple[np.ndarray, bool]], *, patch: int,
+                                  scales: int, projections: int, seed: int) -> list[list[float]]:
+    """:func:`sliced_wasserstein_levels` of several outputs (``(out_enc [L, H, W, C], wrap)`` each: the output and
+    the shuffled-block baselines) against one exemplar.  Per level the exemplar's directions and sample are drawn
+    once, and per light its projections are sorted once and serve every output before the next light's are made
+    (a few MB alive at a time).  Each output draws its sample from the random state that follows the exemplar's,
+    as it would alone, so every figure is the one a call of its own gives."""
+    swd_levels: list[list[float]] = [[] for _ in outputs]
+    ex_level = list(ex_enc)
+    out_levels = [list(out_enc) for out_enc, _ in outputs]
+    live = list(range(len(outputs)))            # the outputs still large enough for a patch
+    for level in range(scales):
+        if level:
+            ex_level = [downsample(im, "reflect") for im in ex_level]
+            for i in live:
+                out_levels[i] = [downsample(im, "wrap" if outputs[i][1] else "reflect") for im in out_levels[i]]
+        live = [i for i in live if min(out_levels[i][0].shape[:2]) >= patch]
+        if min(ex_level[0].shape[:2]) < patch or not live:
+            break
+        rng = np.random.default_rng([seed, 1, level])
+        directions = rng.standard_normal((projections, ex_level[0].shape[2] * patch * patch)).astype(np.float32)
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        ex_views = [_patch_source(im, patch, False) for im in ex_level]
+        ex_pick = _pick(rng, ex_views[0].shape[0] * ex_views[0].shape[1], SWD_PATCH_CAP)
+        after_exemplar = rng.bit_generator.state
+        views, picks = {}, {}
+        for i in live:
+            out_rng = np.random.default_rng()
+            out_rng.bit_generator.state = after_exemplar
+            views[i] = [_patch_source(im, patch, outputs[i][1]) for im in out_levels[i]]
+            picks[i] = _pick(out_rng, views[i][0].shape[0] * views[i][0].shape[1], SWD_PATCH_CAP)
+        per_light = {i: [] for i in live}
+        for light, ex_view in enumerate(ex_views):
+            ex_sorted = _sorted_projections(_gather(ex_view, ex_pick), directions)
+            for i in live:
+                out_sorted = _sorted_projections(_gather(views[i][light], picks[i]), directions)
+                per_light[i].append(_sliced_wasserstein(out_sorted, ex_sorted))
+        for i in live:
+            swd_levels[i].append(float(np.mean(per_light[i])))
+    return swd_levels
 
 
 def seam_ratio_of(out_enc: np.ndarray, block: int, coords: CoordMap | None, wrap: bool) -> tuple[float | None, list[str]]:
@@ -770,8 +762,8 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
     out_enc = _encode(out_lin, whites, domain)
     relit = _Relit(exemplar, lights_used, whites, domain, ex_enc, out_enc)
 
-    against_exemplar = SlicedWasserstein(ex_enc, patch=patch, scales=scales, projections=projections, seed=seed)
-    swd_per_level = against_exemplar.levels(out_enc, wrap)
+    swd_per_level, baseline_levels = _swd_with_baseline(relit, wrap, patch=patch, scales=scales,
+                                                        projections=projections, seed=seed)
     found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=consistency_patch or patch,
                                   samples=samples, seed=seed, wrap=wrap, tolerance=tolerance)
     if ex_enc.shape[0] < 2:
@@ -790,7 +782,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         "seam_ratio": seam_ratio,
         "seam_source": " + ".join(seam_source) if seam_source else "none",
         **_eye_measures(relit, coords),
-        **_swd_against_baseline(relit, swd, against_exemplar, seed=seed),
+        **_baseline_figures(relit, swd, baseline_levels),
         **_consistency(relit, coords, found, tolerance, consistency_threshold),
         "lights": ex_enc.shape[0],
         "lights_source": lights_source,
@@ -893,20 +885,26 @@ def _eye_measures(relit: _Relit, coords: CoordMap | None) -> dict:
             "lattice_share": visibility.lattice_share(relit.out_enc, int(coords.tile or 0))}
 
 
-def _swd_against_baseline(relit: _Relit, swd: float, against_exemplar: SlicedWasserstein, *, seed: int) -> dict:
-    """The sliced Wasserstein distance of shuffled exemplar blocks laid out at the output's size (mean of
-    :data:`BASELINE_LAYOUTS` layouts, the output's projections), and the output's distance over it."""
+def _swd_with_baseline(relit: _Relit, wrap: bool, *, patch: int, scales: int, projections: int,
+                       seed: int) -> tuple[list[float], list[list[float]]]:
+    """The output's sliced Wasserstein distance per level, and the same for shuffled exemplar blocks laid out at the
+    output's size (:data:`BASELINE_LAYOUTS` layouts, replayed and relit like the output), with the same
+    projections and exemplar sample."""
     ex_enc = relit.ex_enc
-    size = relit.out_enc.shape[1:3]
     block = visibility.baseline_block(ex_enc.shape[1:3])
-    distances = []
-    for layout in range(BASELINE_LAYOUTS):
-        shuffled = visibility.shuffled_blocks(ex_enc.shape[1:3], size, block, seed=seed * BASELINE_LAYOUTS + layout)
-        levels = against_exemplar.levels(relit.replay(shuffled), wrap=False)
-        distances.append(float(np.mean(levels)))
-    baseline = float(np.mean(distances))
+    layouts = [visibility.shuffled_blocks(ex_enc.shape[1:3], relit.out_enc.shape[1:3], block,
+                                          seed=seed * BASELINE_LAYOUTS + layout) for layout in range(BASELINE_LAYOUTS)]
+    outputs = [(relit.out_enc, wrap)] + [(relit.replay(shuffled), False) for shuffled in layouts]
+    levels = sliced_wasserstein_of_outputs(ex_enc, outputs, patch=patch, scales=scales, projections=projections,
+                                           seed=seed)
+    return levels[0], levels[1:]
+
+
+def _baseline_figures(relit: _Relit, swd: float, baseline_levels: list[list[float]]) -> dict:
+    """The shuffled blocks' distance (the mean of the layouts') and the output's distance over it."""
+    baseline = float(np.mean([float(np.mean(levels)) for levels in baseline_levels]))
     return {"swd_shuffled_blocks": baseline, "swd_vs_shuffled_blocks": swd / baseline if baseline > 0 else None,
-            "shuffled_block_side": block}
+            "shuffled_block_side": visibility.baseline_block(relit.ex_enc.shape[1:3])}
 
 
 def _noted(ctx, values: dict) -> dict:
