@@ -196,7 +196,8 @@ class _NearestPatches:
     def query(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Index into the indexed patches and RMS distance per element, for each query patch."""
         k = min(RERANK_K, len(self.patches))
-        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k, workers=cores())   # each query alone: the same lists on any workers
+        # each query is answered alone: the same lists on any number of workers
+        _, cand = self.tree.query((queries - self.mean) @ self.basis, k=k, workers=cores())
         cand = cand.reshape(len(queries), k)
         diff = self.patches[cand] - queries[:, None, :]
         sq = np.einsum("nkd,nkd->nk", diff, diff)
@@ -762,8 +763,8 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
     out_enc = _encode(out_lin, whites, domain)
     relit = _Relit(exemplar, lights_used, whites, domain, ex_enc, out_enc)
 
-    swd_per_level, baseline_levels = _swd_with_baseline(relit, wrap, patch=patch, scales=scales,
-                                                        projections=projections, seed=seed)
+    swd_per_level, baseline = _swd_with_baseline(relit, wrap, patch=patch, scales=scales, projections=projections,
+                                                 seed=seed)
     found = nearest_patch_metrics(ex_enc, out_enc, patch=patch, match_patch=consistency_patch or patch,
                                   samples=samples, seed=seed, wrap=wrap, tolerance=tolerance)
     if ex_enc.shape[0] < 2:
@@ -782,7 +783,7 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
         "seam_ratio": seam_ratio,
         "seam_source": " + ".join(seam_source) if seam_source else "none",
         **_eye_measures(relit, coords),
-        **_baseline_figures(relit, swd, baseline_levels),
+        **baseline,
         **_consistency(relit, coords, found, tolerance, consistency_threshold),
         "lights": ex_enc.shape[0],
         "lights_source": lights_source,
@@ -886,10 +887,11 @@ def _eye_measures(relit: _Relit, coords: CoordMap | None) -> dict:
 
 
 def _swd_with_baseline(relit: _Relit, wrap: bool, *, patch: int, scales: int, projections: int,
-                       seed: int) -> tuple[list[float], list[list[float]]]:
-    """The output's sliced Wasserstein distance per level, and the same for shuffled exemplar blocks laid out at the
-    output's size (:data:`BASELINE_LAYOUTS` layouts, replayed and relit like the output), with the same
-    projections and exemplar sample."""
+                       seed: int) -> tuple[list[float], dict]:
+    """The output's sliced Wasserstein distance per level, and the figures of the shuffled-block baseline: the
+    same distance for exemplar blocks laid out at the output's size (mean of :data:`BASELINE_LAYOUTS` layouts,
+    replayed and relit like the output, with the same projections and exemplar sample), and the output's
+    distance over it."""
     ex_enc = relit.ex_enc
     block = visibility.baseline_block(ex_enc.shape[1:3])
     layouts = [visibility.shuffled_blocks(ex_enc.shape[1:3], relit.out_enc.shape[1:3], block,
@@ -897,14 +899,11 @@ def _swd_with_baseline(relit: _Relit, wrap: bool, *, patch: int, scales: int, pr
     outputs = [(relit.out_enc, wrap)] + [(relit.replay(shuffled), False) for shuffled in layouts]
     levels = sliced_wasserstein_of_outputs(ex_enc, outputs, patch=patch, scales=scales, projections=projections,
                                            seed=seed)
-    return levels[0], levels[1:]
-
-
-def _baseline_figures(relit: _Relit, swd: float, baseline_levels: list[list[float]]) -> dict:
-    """The shuffled blocks' distance (the mean of the layouts') and the output's distance over it."""
-    baseline = float(np.mean([float(np.mean(levels)) for levels in baseline_levels]))
-    return {"swd_shuffled_blocks": baseline, "swd_vs_shuffled_blocks": swd / baseline if baseline > 0 else None,
-            "shuffled_block_side": visibility.baseline_block(relit.ex_enc.shape[1:3])}
+    swd = float(np.mean(levels[0]))
+    baseline = float(np.mean([float(np.mean(layout)) for layout in levels[1:]]))
+    return levels[0], {"swd_shuffled_blocks": baseline,
+                       "swd_vs_shuffled_blocks": swd / baseline if baseline > 0 else None,
+                       "shuffled_block_side": block}
 
 
 def _noted(ctx, values: dict) -> dict:

@@ -100,4 +100,3 @@ class PlacementSearch:
         errors = placement_errors_numpy(local, offsets, target, window)
         dy, dx = np.unravel_index(int(np.argmin(errors)), errors.shape)
         return y0 + int(dy), x0 + int(dx)
-
