@@ -96,9 +96,9 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "out of the tiles, unless that would leave out half the places or more (0: off)", low=0.0, high=1000.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
-        Param("refine", "int", ITERATIONS, "rounds of texture optimisation over the finished tiles' interiors (the shared "
-              "refinement of synth: 8 x 8 windows matched to the exemplar, kept whole where they match best and cut "
-              "where the appearance agrees), their border rings held so the tiles stay valid (0: off)",
+        Param("refine", "int", ITERATIONS, "rounds of texture optimisation over the finished tiles' interiors (the "
+              "shared refinement of synth: 8 x 8 windows matched to the exemplar, kept whole where they match best and "
+              "cut where the appearance agrees), their border rings held so the tiles stay valid (0: off)",
               low=0, high=20),
         Param("occurrence", "float", OCCURRENCE, "weight of that refinement's occurrence term: exemplar windows "
               "already used beyond their fair share over the whole tile set cost more (0: plain texture optimisation)",
@@ -145,8 +145,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
                                               interior=interior, centre=centre, edge_centre=edge_centre,
                                               typical=typical, rare=rare,
                                               relax=relax,
-                                              optimise={"iterations": refine, "occurrence": occurrence, "polish": polish,
-                                                        "pin": pin})
+                                              optimise={"iterations": refine, "occurrence": occurrence,
+                                                        "polish": polish, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())

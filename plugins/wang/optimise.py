@@ -106,9 +106,8 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
                    colors: np.ndarray | None = None, colour_counts: tuple[int, int] = (0, 0)) -> np.ndarray:
     """``tile_coords [T, w, w, 2]`` after ``iterations`` rounds of the shared refinement and ``polish`` rounds of
     its polish over appearance vectors ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module
-    docstring).  With the tiles'
-    ``colors [T, 4]`` (N, E, S, W) and ``colour_counts`` (horizontal, vertical) of a complete set, the tiles are
-    refined laid as one periodic valid tiling (:func:`packing`); otherwise row by row."""
+    docstring).  With the tiles' ``colors [T, 4]`` (N, E, S, W) and ``colour_counts`` (horizontal, vertical) of a
+    complete set, the tiles are refined laid as one periodic valid tiling (:func:`packing`); otherwise row by row."""
     from btforge.plugins.synth.bridging import TRIES as BRIDGE_TRIES
     from btforge.plugins.synth.refine import refine_map
     if iterations <= 0:
