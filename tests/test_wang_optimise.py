@@ -136,3 +136,26 @@ def test_the_polish_round_holds_the_borders_and_lowers_the_seams_the_weighted_ro
             ring = held
     np.testing.assert_array_equal(held, ring)
     assert np.isfinite(ratios[POLISH]) and ratios[POLISH] < ratios[0]
+
+
+def test_the_contrast_term_keeps_the_tiles_as_varied_as_the_exemplar():
+    """Nearest windows under a squared distance favour flatter ones, so the rounds drift towards the exemplar's
+    flatter areas; with the contrast term the tiles' local variation (the mean variation of their 8 x 8 windows)
+    stays nearer the exemplar's, and the held ring is the same."""
+    from btforge.plugins.synth.refine import exemplar_window_energy
+    from btforge.plugins.wang import build_tile_set
+    from btforge.plugins.wang.bench import procedural_exemplar
+    from btforge.plugins.wang.features import appearance_features
+    from btforge.plugins.wang.optimise import CONTRAST
+    assert CONTRAST > 0
+    stack = procedural_exemplar(96, lights=8)
+    feats = appearance_features(stack)
+    target = exemplar_window_energy(feats, 8).mean()
+    shortfall, rings = {}, {}
+    for contrast in (0.0, CONTRAST):
+        tiles, _, _ = build_tile_set(stack, tile=48, edge=12, seed=1, optimise={"contrast": contrast})
+        energy = [exemplar_window_energy(feats[c[..., 0], c[..., 1]], 8).mean() for c in tiles.tile_coords]
+        shortfall[contrast] = abs(float(np.mean(energy)) - target) / target
+        rings[contrast] = tiles.tile_coords[:, border_ring(48, 1)]
+    np.testing.assert_array_equal(rings[0.0], rings[CONTRAST])
+    assert shortfall[CONTRAST] < shortfall[0.0]

@@ -18,7 +18,7 @@ from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
-from .optimise import ITERATIONS, OCCURRENCE, PIN, POLISH
+from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH
 from .tileset import TileSet
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
@@ -103,6 +103,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("occurrence", "float", OCCURRENCE, "weight of that refinement's occurrence term: exemplar windows "
               "already used beyond their fair share over the whole tile set cost more (0: plain texture optimisation)",
               low=0.0, high=100.0),
+        Param("contrast", "float", CONTRAST, "weight of that refinement's contrast term: a candidate window with "
+              "less variation than the output window it would replace costs contrast x the shortfall, so the rounds "
+              "do not drift towards the exemplar's flatter areas and the set keeps its patch statistics (0: off)",
+              low=0.0, high=1000.0),
         Param("polish", "int", POLISH, "final rounds of that refinement with 8 x 8 windows matched for their fit "
               "alone (no occurrence term): the cuts the earlier rounds left move to where the content agrees, while "
               "the exemplar areas used stay (0: none)", low=0, high=10),
@@ -110,10 +114,10 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "(the tiles are refined laid as one valid periodic tiling, so the texels beyond see their neighbours)",
               low=1, high=256),
     ],
-    version="13",  # 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="14",  # 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               edge_centre, typical, rare, relax, refine, occurrence, polish, pin):
+               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -125,8 +129,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     at its middle (``edge_centre``): grown from its two corner samples alone, every strip would continue their few,
     similar areas, and lanes of them would run along every tile border.  A usage term (``usage``) spreads the
     patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
-    texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``polish``,
-    ``pin``) hides the cuts the filling left.  Distances are Euclidean in the
+    texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``contrast``,
+    ``polish``, ``pin``) hides the cuts the filling left.  Distances are Euclidean in the
     exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
@@ -146,7 +150,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
                                               typical=typical, rare=rare,
                                               relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence,
-                                                        "polish": polish, "pin": pin})
+                                                        "contrast": contrast, "polish": polish, "pin": pin})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())
