@@ -31,8 +31,8 @@ from btforge.buffers import CoordMap
 #: blocks goes from 1.05 unrefined to 1.45 after one round and 1.58 after four, while seams fall from 3.63 to 1.27:
 #: the rounds replace much of the filling, and nearest windows under a squared distance favour the exemplar's flatter
 #: ones.  With the term at 8 and eight rounds, which bring the seams back down, SWD over the seven stationary 192 x 192
-#: crops of the synthesis bench falls 1.13 -> 1.07 at the median (the procedural exemplar 1.52 -> 1.31, the fibres
-#: 1.41 -> 1.16), seams rise 1.15 -> 1.19, and the single outputs missing a target fall from 9 to 5 of 28.  The term at
+#: crops of the synthesis bench falls 1.13 -> 1.07 at the median (the procedural exemplar 1.58 -> 1.31, the fibres
+#: 1.58 -> 1.16), seams rise 1.15 -> 1.19, and the single outputs missing a target fall from 9 to 5 of 28.  The term at
 #: 8 with four rounds left seams of 1.35-1.37 on the procedural exemplar; at 16 more (Benchmarks).
 ITERATIONS = 8
 CONTRAST = 8.0
