@@ -7,6 +7,15 @@ import pytest
 from btforge.plugins.wang.optimise import border_ring, mosaic, unmosaic
 
 
+@pytest.fixture(scope="module")
+def exemplar96():
+    """A 96 x 96 procedural exemplar (8 lights) and its appearance features: small enough for whole tile sets."""
+    from btforge.plugins.wang.bench import procedural_exemplar
+    from btforge.plugins.wang.features import appearance_features
+    stack = procedural_exemplar(96, lights=8)
+    return stack, appearance_features(stack)
+
+
 @pytest.mark.parametrize("t, columns", [(16, 4), (5, 3), (1, 1), (7, 7)])
 def test_mosaic_round_trips(t, columns):
     tiles = np.random.default_rng(t).integers(0, 100, (t, 6, 6, 2))
@@ -82,7 +91,7 @@ def test_packing_lays_a_complete_set_once_as_a_valid_periodic_tiling(n_h, n_v, v
     assert packing(colors[1:], n_h, n_v) is None                          # a set with a tile missing: no packing
 
 
-def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_shared_default(monkeypatch):
+def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_shared_default(monkeypatch, exemplar96):
     """The held ring leaves straight runs that one pass only shortens: the Wang tiles re-cut with
     RECUT_PASSES passes (more than the shared default), and on a small set those passes leave fewer straight seam
     edges inside the tiles than the default's two."""
@@ -91,7 +100,6 @@ def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_share
     from btforge.plugins.synth.recut import PASSES
     from btforge.plugins.synth.visibility import seam_edges
     from btforge.plugins.wang import build_tile_set, optimise
-    from btforge.plugins.wang.bench import procedural_exemplar
     chosen = optimise.RECUT_PASSES
     assert chosen > PASSES
     asked = []
@@ -102,7 +110,7 @@ def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_share
         return original(*args, **kwargs)
 
     monkeypatch.setattr(refine, "refine_map", recorded)
-    stack = procedural_exemplar(96, lights=8)
+    stack = exemplar96[0]
 
     def straight_edges(passes):
         monkeypatch.setattr(optimise, "RECUT_PASSES", passes)
@@ -116,16 +124,13 @@ def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_share
     assert more < default
 
 
-def test_the_polish_round_holds_the_borders_and_lowers_the_seams_the_weighted_rounds_leave():
+def test_the_polish_round_holds_the_borders_and_lowers_the_seams_the_weighted_rounds_leave(exemplar96):
     """The refinement's rounds weigh the occurrence term; the polish round after them matches windows for their
     fit alone, so on a small set it leaves the held ring as it was and the tiles' seams lower than without it."""
     from btforge.plugins.wang import build_tile_set
-    from btforge.plugins.wang.bench import procedural_exemplar
-    from btforge.plugins.wang.features import appearance_features
     from btforge.plugins.wang.optimise import OCCURRENCE, POLISH
     assert POLISH >= 1
-    stack = procedural_exemplar(96, lights=8)
-    feats = appearance_features(stack)
+    stack, feats = exemplar96
     ratios = {}
     for polish in (0, POLISH):
         tiles, _, _ = build_tile_set(stack, tile=48, edge=12, seed=1,
@@ -138,18 +143,15 @@ def test_the_polish_round_holds_the_borders_and_lowers_the_seams_the_weighted_ro
     assert np.isfinite(ratios[POLISH]) and ratios[POLISH] < ratios[0]
 
 
-def test_the_contrast_term_keeps_the_tiles_as_varied_as_the_exemplar():
+def test_the_contrast_term_keeps_the_tiles_as_varied_as_the_exemplar(exemplar96):
     """Nearest windows under a squared distance favour flatter ones, so the rounds drift towards the exemplar's
     flatter areas; with the contrast term the tiles' local variation (the mean variation of their 8 x 8 windows)
     stays nearer the exemplar's, and the held ring is the same."""
     from btforge.plugins.synth.refine import exemplar_window_energy
     from btforge.plugins.wang import build_tile_set
-    from btforge.plugins.wang.bench import procedural_exemplar
-    from btforge.plugins.wang.features import appearance_features
     from btforge.plugins.wang.optimise import CONTRAST
     assert CONTRAST > 0
-    stack = procedural_exemplar(96, lights=8)
-    feats = appearance_features(stack)
+    stack, feats = exemplar96
     target = exemplar_window_energy(feats, 8).mean()
     shortfall, rings = {}, {}
     for contrast in (0.0, CONTRAST):

@@ -3,9 +3,9 @@
 Graph-cut filling leaves cuts where patches only roughly agree, most of them along the frame a tile's interior
 was filled against.  The finished tiles then go through the shared refinement
 (:func:`btforge.plugins.synth.refine.refine_map`: overlapping windows matched to the exemplar with an occurrence
-term, whole windows kept where they match best and cut where the appearance agrees, then corrections), laid side
-by side in one map so that the occurrence term spreads the whole set over the exemplar; the straight seams left are
-re-cut with bridging pieces (:mod:`btforge.plugins.synth.bridging`) as quilting's are.  A ring of ``pin`` texels
+term and a contrast term, whole windows kept where they match best and cut where the appearance agrees, then
+corrections), laid side by side in one map so that the occurrence term spreads the whole set over the exemplar; the
+straight seams left are re-cut with bridging pieces (:mod:`btforge.plugins.synth.bridging`) as quilting's are.  A ring of ``pin`` texels
 along every tile border is held: those texels are the halves of the edge strips that every tile of the same edge
 colour shares, so the tiles stay valid Wang tiles whatever happens inside.
 
@@ -117,9 +117,9 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
                    colour_counts: tuple[int, int] = (0, 0)) -> np.ndarray:
     """``tile_coords [T, w, w, 2]`` after ``iterations`` rounds of the shared refinement (occurrence and contrast
     weights ``occurrence``, ``contrast``) and ``polish`` rounds of its polish over appearance vectors
-    ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module
-    docstring).  With the tiles' ``colors [T, 4]`` (N, E, S, W) and ``colour_counts`` (horizontal, vertical) of a
-    complete set, the tiles are refined laid as one periodic valid tiling (:func:`packing`); otherwise row by row."""
+    ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module docstring).  With the tiles'
+    ``colors [T, 4]`` (N, E, S, W) and ``colour_counts`` (horizontal, vertical) of a complete set, the tiles are
+    refined laid as one periodic valid tiling (:func:`packing`); otherwise row by row."""
     from btforge.plugins.synth.bridging import TRIES as BRIDGE_TRIES
     from btforge.plugins.synth.refine import refine_map
     if iterations <= 0:
