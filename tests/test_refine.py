@@ -145,9 +145,10 @@ def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
     assert rounds_at == [SIZE // 2] * 2 + [SIZE] * 2
 
 
-def test_contrast_by_default_is_on_only_where_the_exemplar_is_about_as_large_as_the_output():
+def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
     """A negative (default) ``contrast`` becomes the synthesizer's weight (AUTO_CONTRAST, quilting's own) up to
-    AUTO_AREA x the exemplar's texels and 0 beyond; a given weight is kept; the stage notes the weight it used."""
+    AUTO_AREA x the exemplar's texels and its large-output weight beyond (0 unless it declares one: the jump map's
+    LARGE_CONTRAST); a given weight is kept; the stage notes the weight it used."""
     from btforge.context import StageContext
     from btforge.plugins.synth.quilting import AUTO_CONTRAST as QUILT_CONTRAST
     from btforge.plugins.synth.quilting import quilt
@@ -160,12 +161,20 @@ def test_contrast_by_default_is_on_only_where_the_exemplar_is_about_as_large_as_
     assert auto_contrast(0.0, (256, 256), (256, 256)) == 0.0
     assert auto_contrast(4.0, (256, 256), (64, 64)) == 4.0
     assert auto_contrast(AUTO, (64, 64), (64, 64), auto_weight=3.0) == 3.0
+    assert auto_contrast(AUTO, (256, 256), (192, 192), large_weight=5.0) == 5.0
+    assert auto_contrast(AUTO, (256, 256), (256, 256), large_weight=5.0) == AUTO_CONTRAST
+    assert auto_contrast(2.0, (256, 256), (64, 64), large_weight=5.0) == 2.0
     lights = hemisphere_lights(8)
     stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
                         np.array([[0.0, 0.0, 1.0]]))
     for size, expected in ((SIZE, QUILT_CONTRAST), (OUT, 0.0)):
         ctx = StageContext(node="quilt")
         quilt(ctx=ctx, exemplar=stack, size=[size, size], seed=0, block=12, overlap=4, refine=1, scales=0)
+        assert ctx.notes["contrast"] == expected
+    from btforge.plugins.synth.jumpmap import LARGE_CONTRAST, jumpmap
+    for size, expected in ((SIZE, AUTO_CONTRAST), (OUT, LARGE_CONTRAST)):
+        ctx = StageContext(node="jumpmap")
+        jumpmap(ctx=ctx, exemplar=stack, size=[size, size], seed=0, refine=1, scales=0, coarse_refine=0, polish=0)
         assert ctx.notes["contrast"] == expected
 
 

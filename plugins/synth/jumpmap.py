@@ -57,6 +57,14 @@ REFINE_OCCURRENCE = 2.0
 #: joined (the third pass takes the straight share from 2.0 % to 1.7 % on the procedural bumps and from 2.1 % to
 #: 1.3 % on the icon crop; more change little and cost about 0.2 s each there).
 RECUT_PASSES = 3
+#: The refinement's contrast weight where the output has more than :data:`.synthesizer.AUTO_AREA` x the exemplar's
+#: texels (up to that the shared 16 holds).  The walk keeps to some exemplar areas, and the rounds that spread its
+#: copies favour the flatter windows there: SWD over the shuffled blocks missed on the tablet at 128 (1.81), on
+#: item4 and item6 (2.46, 1.86) and swung with the seed on stones (0.98-1.55, seeds 0-3).  At 8, on the 21 crops of
+#: the synthesis bench (seeds 0-1), SWD falls on 17 (stones 1.20 -> 0.53, the tablet at 128 1.81 -> 1.47), seams
+#: rise by up to 0.14 (the SynthRTI relief 1.01 -> 1.15), and the targets missed go from 9 to 6 of 84; over seeds
+#: 0-3 SWD on stones stays within 0.48-0.57.  At 4 the targets missed were 7, at 16 6 with SWD higher on 9 crops.
+LARGE_CONTRAST = 8.0
 #: Bridging pieces offered per straight run and re-cut pass, one fewer than the others' three: the measures stay
 #: within 0.03 (the held-out procedural exemplar, the icon crop) and the jump map's re-cut takes less time.
 BRIDGE_TRIES = 2
@@ -340,7 +348,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="19",  # 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="20",  # 20: the refinement's contrast term at 8 by default where the output is larger than the exemplar; 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -364,7 +372,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
               "the shuffled blocks) but breaks up stones where each texel is copied four times (128 x 128: 0.92 -> "
               "2.17; at 2: 1.48)", low=0, high=64),
         *refine_params(refine=REFINE_ROUNDS, occurrence=REFINE_OCCURRENCE, window=REFINE_WINDOW,
-                       coarse_refine=COARSE_ROUNDS),
+                       coarse_refine=COARSE_ROUNDS, large_weight=LARGE_CONTRAST),
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
@@ -410,8 +418,10 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     cut into 32-texel pieces.  Their sides leave more straight seams of 12 texels, so the re-cut of straight
     seams runs :data:`RECUT_PASSES` passes instead of two, with bridging pieces as for the others.  Before it, a
     ``polish`` round of 8 x 8 windows without the occurrence and contrast terms moves the cuts the 12 x 12 windows
-    left to where the content agrees (the demo's coarse stucco: seams 1.33 -> 1.20).  ``refine: 0`` gives Zelinka
-    & Garland's walk alone.
+    left to where the content agrees (the demo's coarse stucco: seams 1.33 -> 1.20).  The contrast term
+    (``contrast``) weighs 16 where the output has at most 1.5 x the exemplar's texels, as for the others, and
+    :data:`LARGE_CONTRAST` (8) where it has more: the rounds that spread the walk's copies otherwise drift towards
+    the flatter windows of the areas it keeps to.  ``refine: 0`` gives Zelinka & Garland's walk alone.
 
     Outputs
     -------
@@ -446,7 +456,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                               window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine,
-                              bridges=BRIDGE_TRIES, contrast=contrast, polish=polish)}
+                              bridges=BRIDGE_TRIES, contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish)}
 
 
 STAGES = [jumpmap]

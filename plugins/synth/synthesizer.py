@@ -61,8 +61,9 @@ AUTO_CONTRAST = 16.0
 #: the optimisation leave exemplar areas out, and under a squared distance it leaves out the textured ones: at 256 x
 #: 256 from 256 x 256 and 224 x 224, SWD over the shuffled blocks missed on the procedural exemplar (1.62-2.34) and
 #: stones (1.84-2.62) for k-coherence or the jump map; with the term they pass (0.68-1.31).  Where the output is
-#: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and the term traded one missed target for
-#: another on 21 crops (Benchmarks).
+#: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and for quilting and k-coherence the term
+#: traded one missed target for another on 21 crops (Benchmarks), so there it is off unless a synthesizer declares a
+#: weight of its own (the jump map, whose walk drifts more: :data:`.jumpmap.LARGE_CONTRAST`).
 AUTO_AREA = 1.5
 #: Default side in texels of the refinement's windows (a synthesizer may declare its own ``window`` param).
 WINDOW = 8
@@ -77,13 +78,14 @@ POLISH = 1
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
                   window: int | None = None, coarse_refine: int | None = None, polish: int = POLISH,
-                  auto_weight: float = AUTO_CONTRAST) -> list[Param]:
+                  auto_weight: float = AUTO_CONTRAST, large_weight: float = 0.0) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
     coarser scale, by default as many as ``refine`` without the param); ``polish``: the default of the ``polish``
     param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
-    ``auto_weight``: the contrast weight the automatic ``contrast`` takes where it is on (:func:`auto_contrast`)."""
+    ``auto_weight``, ``large_weight``: the contrast weights the automatic ``contrast`` takes where the exemplar is
+    about as large as the output and where the output is larger (:func:`auto_contrast`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -111,7 +113,8 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "variation than the output window it would replace costs contrast x the shortfall, so the "
                   "optimisation does not drift towards the exemplar's flat areas; negative (the default): "
                   f"{auto_weight:g} where the output has at most {AUTO_AREA:g} x the exemplar's texels (an exemplar "
-                  "about as large as the output, where the drift shows), else 0; 0: off", low=-1.0, high=1000.0),
+                  f"about as large as the output, where the drift shows), else {large_weight:g}; 0: off",
+                  low=-1.0, high=1000.0),
             Param("scales", "int", scales, "coarser scales the refinement runs at first, each at half the resolution "
                   "of the next (2 x 2 averaged exemplar), while exemplar and output stay at least four windows "
                   f"({4 * side} texels{'' if window is None else ' by default'}) across there: structures larger "
@@ -119,28 +122,29 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "full resolution only)", low=0, high=6), *extra]
 
 
-def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST) -> float:
+def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,
+                  large_weight: float = 0.0) -> float:
     """``contrast`` where it is >= 0, else ``auto_weight`` where the output has at most :data:`AUTO_AREA` x the
-    exemplar's texels and 0 where it has more."""
+    exemplar's texels and ``large_weight`` where it has more."""
     if contrast >= 0:
         return contrast
     ratio = (output_shape[0] * output_shape[1]) / (exemplar_shape[0] * exemplar_shape[1])
-    return auto_weight if ratio <= AUTO_AREA else 0.0
+    return auto_weight if ratio <= AUTO_AREA else large_weight
 
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
             coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST,
-            polish: int = POLISH):
+            large_weight: float = 0.0, polish: int = POLISH):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
-    :func:`auto_contrast` with ``auto_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
+    :func:`auto_contrast` with ``auto_weight`` and ``large_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
     :data:`.refine.POLISH_WINDOW` windows without the terms), with its time and contrast weight noted."""
     import time
 
     from .refine import refine_map
-    contrast = auto_contrast(contrast, coords.coords.shape[:2], features.shape[:2], auto_weight)
+    contrast = auto_contrast(contrast, coords.coords.shape[:2], features.shape[:2], auto_weight, large_weight)
     ctx.note("contrast", contrast)
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
