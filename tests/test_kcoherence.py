@@ -380,8 +380,8 @@ def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monk
 
 def test_the_coarse_scale_runs_its_own_rounds(material, monkeypatch):
     """k-coherence asks the shared refinement for :data:`COARSE_ROUNDS` rounds at its coarse scale and ``refine``
-    rounds at the full resolution, then for its ``polish`` round (one by default); ``coarse_refine`` overrides the
-    first, and ``polish: 0`` leaves the last out."""
+    rounds at the full resolution, then for its ``polish`` rounds (:data:`POLISH_ROUNDS`, two, by default, one more
+    than the shared default); ``coarse_refine`` overrides the first, and ``polish: 0`` leaves the last out."""
     from btforge.plugins.synth import refine
     from btforge.plugins.synth.synthesizer import POLISH
     asked = []
@@ -389,4 +389,5 @@ def test_the_coarse_scale_runs_its_own_rounds(material, monkeypatch):
     monkeypatch.setattr(refine, "_refine_sources", lambda *a: asked.append(a[3]) or real(*a))
     kcoherence(exemplar=material, size=[48, 48], seed=2)
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1, coarse_refine=6, polish=0)
-    assert asked == [(2, kc.COARSE_ROUNDS), (POLISH, POLISH), (1, 6)] and kc.COARSE_ROUNDS > 2 and POLISH == 1
+    rounds = kc.POLISH_ROUNDS
+    assert asked == [(2, kc.COARSE_ROUNDS), (rounds, rounds), (1, 6)] and kc.COARSE_ROUNDS > 2 and rounds == POLISH + 1

@@ -147,8 +147,8 @@ def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
 
 def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
     """A negative (default) ``contrast`` becomes the synthesizer's weight (AUTO_CONTRAST, quilting's own) up to
-    AUTO_AREA x the exemplar's texels and its large-output weight beyond (0 unless it declares one: the jump map's
-    LARGE_CONTRAST); a given weight is kept; the stage notes the weight it used."""
+    AUTO_AREA x the exemplar's texels and its large-output weight beyond (0 unless it declares one: k-coherence's and
+    the jump map's LARGE_CONTRAST); a given weight is kept; the stage notes the weight it used."""
     from btforge.context import StageContext
     from btforge.plugins.synth.quilting import AUTO_CONTRAST as QUILT_CONTRAST
     from btforge.plugins.synth.quilting import quilt
@@ -175,6 +175,13 @@ def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
     for size, expected in ((SIZE, AUTO_CONTRAST), (OUT, LARGE_CONTRAST)):
         ctx = StageContext(node="jumpmap")
         jumpmap(ctx=ctx, exemplar=stack, size=[size, size], seed=0, refine=1, scales=0, coarse_refine=0, polish=0)
+        assert ctx.notes["contrast"] == expected
+    from btforge.plugins.synth.kcoherence import LARGE_CONTRAST as KC_LARGE
+    from btforge.plugins.synth.kcoherence import kcoherence
+    assert 0 < KC_LARGE != LARGE_CONTRAST
+    for size, expected in ((SIZE, AUTO_CONTRAST), (OUT, KC_LARGE)):
+        ctx = StageContext(node="kcoherence")
+        kcoherence(ctx=ctx, exemplar=stack, size=[size, size], seed=0, refine=1, scales=0, coarse_refine=0, polish=0)
         assert ctx.notes["contrast"] == expected
 
 

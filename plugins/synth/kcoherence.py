@@ -57,6 +57,16 @@ RECUT_PASSES = 3
 #: exemplar areas meet along the start's block edges, so more of them leave fewer straight cuts there (held-out
 #: procedural exemplar, seeds 0-7: straight-seam visibility 1.66 -> 1.46, benchmarks).
 COARSE_ROUNDS = 4
+#: The refinement's contrast weight where the output has more than :data:`.synthesizer.AUTO_AREA` x the exemplar's
+#: texels (up to that the shared 16 holds), and its polish rounds.  Without the term there, the rounds that spread the
+#: start's blocks over the exemplar favour its flatter windows: SWD over the shuffled blocks reached 1.54 on the fibres
+#: at 128 (a miss) and 1.37-1.38 on the fibres and the tablet at 192.  The term alone raised seams on every crop (the
+#: held-out procedural exemplar at 128 1.23 -> 1.28); a second polish round takes most of that back.  On 40 crops of
+#: the synthesis bench (seeds 0-1) both together lower SWD on 38 (the fibres at 128 1.54 -> 1.23, at 192 1.37 ->
+#: 1.02), raise seams by 0.01-0.03 at the medians (at most 0.09: the fibres at 96, 0.88 -> 0.97), and the targets
+#: missed go from 7 to 6.  A weight of 8 missed as often as none (Benchmarks).
+LARGE_CONTRAST = 4.0
+POLISH_ROUNDS = 2
 KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
 
@@ -446,7 +456,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="18",  # 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="19",  # 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -473,7 +483,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
-        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS),
+        *refine_params(scales=1, coarse_refine=COARSE_ROUNDS, polish=POLISH_ROUNDS, large_weight=LARGE_CONTRAST),
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
@@ -532,7 +542,8 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     the map finally goes through the shared texture optimisation with an occurrence term and corrections, at half
     resolution first (``scales: 1``, ``coarse_refine`` rounds there, ``refine`` at the full resolution), so seams
     follow the content instead of the block grid, and colour areas larger than a block are no longer cut into
-    squares; a ``polish`` round without the occurrence and contrast terms ends it.  ``scales: 2`` lowers seams
+    squares; ``polish`` rounds without the occurrence and contrast terms end it (two by default), and the contrast
+    term weighs 4 by default where the output has more than 1.5 x the exemplar's texels.  ``scales: 2`` lowers seams
     further (1.23 instead of 1.32 on the held-out procedural exemplar) but moves the patch statistics of fine
     textures away from the exemplar's (sliced Wasserstein distance 1.60 x the shuffled-block baseline's on
     fibres, against 1.21).
@@ -569,7 +580,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
     return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                               recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
-                              polish=polish)}
+                              large_weight=LARGE_CONTRAST, polish=polish)}
 
 
 STAGES = [kcoherence]
