@@ -282,3 +282,19 @@ def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
     monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
     jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1)
     assert asked == [(jm_module.RECUT_PASSES, jm_module.BRIDGE_TRIES)] and jm_module.RECUT_PASSES > recut.PASSES
+
+
+def test_the_refinement_ends_with_the_jump_maps_polish_rounds(material, monkeypatch):
+    """The jump map asks the shared refinement for its rounds, then for :data:`POLISH_ROUNDS` polish rounds (two, one
+    more than the shared default: its 12 x 12 windows leave more cuts to move); ``polish: 0`` leaves them out."""
+    from btforge.plugins.synth import refine
+    from btforge.plugins.synth.synthesizer import POLISH
+    asked = []
+    real = refine._refine_sources
+    monkeypatch.setattr(refine, "_refine_sources", lambda *a: asked.append(a[3]) or real(*a))
+    jumpmap(exemplar=material, size=[48, 48], seed=1)
+    rounds = jm_module.POLISH_ROUNDS
+    assert asked[-1] == (rounds, rounds) and rounds == POLISH + 1
+    asked.clear()
+    jumpmap(exemplar=material, size=[48, 48], seed=1, polish=0)
+    assert (rounds, rounds) not in asked and asked
