@@ -69,7 +69,7 @@ LARGE_CONTRAST = 8.0
 #: second moves more of the cuts the large windows left to where the content agrees: on 40 crops of the synthesis
 #: bench (seeds 0-1) seam visibility falls by 0.02-0.03 at the medians and rises on none by more than 0.01, SWD and
 #: evenness stay within the seeds' spread, and the cobbles' seams at 128 come to the target (1.34 -> 1.30).  The
-#: synthesis step takes about a fifth longer (Benchmarks).
+#: synthesis step takes about 15 % longer (Benchmarks).
 POLISH_ROUNDS = 2
 #: Bridging pieces offered per straight run and re-cut pass, one fewer than the others' three: the measures stay
 #: within 0.03 (the held-out procedural exemplar, the icon crop) and the jump map's re-cut takes less time.
@@ -424,10 +424,10 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     cut into 32-texel pieces.  Their sides leave more straight seams of 12 texels, so the re-cut of straight
     seams runs :data:`RECUT_PASSES` passes instead of two, with bridging pieces as for the others.  Before it, a
     ``polish`` (two rounds by default) of 8 x 8 windows without the occurrence and contrast terms moves the cuts
-    the 12 x 12 windows left to where the content agrees (the demo's coarse stucco: seams 1.33 -> 1.20 with one).  The contrast term
-    (``contrast``) weighs 16 where the output has at most 1.5 x the exemplar's texels, as for the others, and
-    :data:`LARGE_CONTRAST` (8) where it has more: the rounds that spread the walk's copies otherwise drift towards
-    the flatter windows of the areas it keeps to.  ``refine: 0`` gives Zelinka & Garland's walk alone.
+    the 12 x 12 windows left to where the content agrees (the demo's coarse stucco: seams 1.33 -> 1.20 with one).
+    The contrast term (``contrast``) weighs 16 where the output has at most 1.5 x the exemplar's texels, as for the
+    others, and :data:`LARGE_CONTRAST` (8) where it has more: the rounds that spread the walk's copies otherwise
+    drift towards the flatter windows of the areas it keeps to.  ``refine: 0`` gives Zelinka & Garland's walk alone.
 
     Outputs
     -------

@@ -60,10 +60,10 @@ COARSE_ROUNDS = 4
 #: The refinement's contrast weight where the output has more than :data:`.synthesizer.AUTO_AREA` x the exemplar's
 #: texels (up to that the shared 16 holds), and its polish rounds.  Without the term there, the rounds that spread the
 #: start's blocks over the exemplar favour its flatter windows: SWD over the shuffled blocks reached 1.54 on the fibres
-#: at 128 (a miss) and 1.37-1.38 on the fibres and the tablet at 192.  The term alone raised seams on every crop (the
-#: held-out procedural exemplar at 128 1.23 -> 1.28); a second polish round takes most of that back.  On 40 crops of
-#: the synthesis bench (seeds 0-1) both together lower SWD on 38 (the fibres at 128 1.54 -> 1.23, at 192 1.37 ->
-#: 1.02), raise seams by 0.01-0.03 at the medians (at most 0.09: the fibres at 96, 0.88 -> 0.97), and the targets
+#: at 128 (a miss) and 1.37-1.38 on the fibres and the tablet at 192.  The term alone raised seams on every stationary
+#: crop (the held-out procedural exemplar at 128 1.23 -> 1.28); a second polish round takes most of that back.  On 40
+#: crops of the synthesis bench (seeds 0-1) both together lower SWD on 38 (the fibres at 128 1.54 -> 1.23, at 192 1.37
+#: -> 1.02), raise seams by 0.01-0.03 at the medians (at most 0.09: the fibres at 96, 0.88 -> 0.97), and the targets
 #: missed go from 7 to 6.  A weight of 8 missed as often as none (Benchmarks).
 LARGE_CONTRAST = 4.0
 POLISH_ROUNDS = 2
