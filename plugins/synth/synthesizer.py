@@ -61,9 +61,10 @@ AUTO_CONTRAST = 16.0
 #: the optimisation leave exemplar areas out, and under a squared distance it leaves out the textured ones: at 256 x
 #: 256 from 256 x 256 and 224 x 224, SWD over the shuffled blocks missed on the procedural exemplar (1.62-2.34) and
 #: stones (1.84-2.62) for k-coherence or the jump map; with the term they pass (0.68-1.31).  Where the output is
-#: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and for quilting and k-coherence the term
-#: traded one missed target for another on 21 crops (Benchmarks), so there it is off unless a synthesizer declares a
-#: weight of its own (the jump map, whose walk drifts more: :data:`.jumpmap.LARGE_CONTRAST`).
+#: larger (256 from 192: 1.78 x) every exemplar area must be used anyway, and for quilting the term traded one missed
+#: target for another on 21 crops (Benchmarks), so there it is off unless a synthesizer declares a weight of its own
+#: (k-coherence, with a second polish round: :data:`.kcoherence.LARGE_CONTRAST`; the jump map, whose walk drifts
+#: more: :data:`.jumpmap.LARGE_CONTRAST`).
 AUTO_AREA = 1.5
 #: Default side in texels of the refinement's windows (a synthesizer may declare its own ``window`` param).
 WINDOW = 8
