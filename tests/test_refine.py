@@ -199,12 +199,44 @@ def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkey
     monkeypatch.setattr(refine, "optimise_step", recorded)
     start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
     plain = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0)
-    assert calls == [(12, (0.5, 4.0))] * 2
+    seam = refine.SEAM_WEIGHT
+    assert calls == [(12, (0.5, 4.0, seam))] * 2
     calls.clear()
     polished = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0, polish=1)
-    assert calls == [(12, (0.5, 4.0))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0))]
+    assert calls == [(12, (0.5, 4.0, seam))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0, seam))]
     assert seam_cost(stones, polished) < seam_cost(stones, plain)
     calls.clear()
     small = shuffled_blocks((SIZE, SIZE), (6, 6), block=3, seed=1)   # windows of 4 fit, the polish's 8 do not
     kept = refine_map(stones, small, iterations=1, occurrence=0.5, seed=0, patch=4, polish=1, recut=False)
     assert [patch for patch, _ in calls] == [4] and kept.coords.shape == (6, 6, 2)
+
+
+def test_a_heavier_seam_weight_leaves_less_costly_seams(stones):
+    """The vote weighs its seam cost by ``seam_weight``: heavier, its cuts run where the two sides continue each
+    other more closely, so the mean appearance jump across the seams falls (there need not be fewer of them)."""
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
+    costs = [seam_cost(stones, refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, seam_weight=w,
+                                          recut=False)) for w in (0.0, 1.0, 4.0)]
+    assert costs[0] > costs[1] > costs[2] and np.isfinite(costs).all()
+
+
+@pytest.mark.parametrize("name", ["synth.quilt", "synth.kcoherence", "synth.jumpmap", "wang.tiles"])
+def test_each_synthesizer_hands_its_seam_weight_to_every_round(name, monkeypatch):
+    """Every round of the refinement, the polish's too, weighs seams by the stage's ``seam_weight`` (its declared
+    default unless given)."""
+    from btforge import stage
+    from btforge.plugins.synth import refine
+    lights = hemisphere_lights(8)
+    stack = SampleStack(render_lights(make_pattern("stones", 48, 48, seed=2), lights)[None], lights,
+                        np.array([[0.0, 0.0, 1.0]]))
+    seen = []
+    real_step = refine.optimise_step
+    monkeypatch.setattr(refine, "optimise_step",
+                        lambda index, src, wrap, weights, *a, **k: seen.append(weights[2]) or
+                        real_step(index, src, wrap, weights, *a, **k))
+    declared = {p.name: p.default for p in stage(name).params}["seam_weight"]
+    size = {"tile": 16} if name == "wang.tiles" else {"size": [64, 64]}
+    for given in ({}, {"seam_weight": 2.5}):
+        seen.clear()
+        stage(name)(exemplar=stack, seed=0, **size, **given)
+        assert seen and set(seen) == {given.get("seam_weight", declared)}

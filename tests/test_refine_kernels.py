@@ -139,6 +139,34 @@ def test_sweep_kernel_matches_numpy(wrap, kind, shape):
     assert np.isin(a, votes).all()
 
 
+@pytest.mark.parametrize("seam_weight", [0.0, 0.3, 2.5, 4.0, 1e6])
+def test_sweep_kernel_matches_numpy_at_any_seam_weight(seam_weight):
+    rng = np.random.default_rng(int(seam_weight * 10) % 2**32)
+    texels = random_texels(rng, 11, 13, "random")
+    votes, data, labels = random_vote(rng, texels, 15, 17, slots=6)
+    a = _sweeps_opencl(texels, votes, data, labels, True, lambda labels: labels, seam_weight)
+    b = _sweeps_numpy(texels, votes, data, labels, True, lambda labels: labels, seam_weight)
+    assert np.array_equal(a, b)
+    if seam_weight == 0.0:      # no seam cost: every texel takes its least data cost (the first of equal ones)
+        finite = np.where(np.isfinite(data), data, np.inf)
+        assert np.array_equal(a, np.take_along_axis(votes, finite.argmin(axis=2)[..., None], 2)[..., 0])
+
+
+def test_a_seam_cost_leaves_fewer_seams_than_none():
+    rng = np.random.default_rng(5)
+    texels = random_texels(rng, 12, 12, "random")
+    votes, data, labels = random_vote(rng, texels, 24, 24, slots=6)
+
+    def seams(labels):
+        y, x = np.divmod(labels, 12)
+        return int(((np.diff(x, axis=1) != 1) | (np.diff(y, axis=1) != 0)).sum()
+                   + ((np.diff(y, axis=0) != 1) | (np.diff(x, axis=0) != 0)).sum())
+    none, *weighed = [seams(_sweeps_numpy(texels, votes, data, labels, False, lambda labels: labels, w))
+                      for w in (0.0, 1.0, 8.0)]
+    # iterated conditional modes stops at a local minimum, so heavier weights need not leave fewer still
+    assert all(count < 0.7 * none for count in weighed)
+
+
 def test_sweep_kernel_keeps_pinned_texels():
     rng = np.random.default_rng(3)
     texels = random_texels(rng, 12, 12, "random")

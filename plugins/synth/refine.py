@@ -61,7 +61,7 @@ CANDIDATES = 8
 SEARCH_EPS = 2.0
 #: Correction passes after each optimisation step.
 CORRECTIONS = 1
-#: Weight of the seam cost against the window match cost in the vote.
+#: Default weight of the seam cost against the window match cost in the vote (``refine_map(seam_weight=...)``).
 SEAM_WEIGHT = 1.0
 #: A coarser scale is refined first only while its exemplar and output are at least this many windows across.
 COARSE_FIT = 4
@@ -165,7 +165,8 @@ def exemplar_window_energy(texels: np.ndarray, patch: int) -> np.ndarray:
 def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occurrence: float, patch: int = 8,
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
-               coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0) -> CoordMap:
+               coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0,
+               seam_weight: float = SEAM_WEIGHT) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -179,7 +180,8 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     and pass).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would
     replace cost ``contrast`` x the shortfall (:func:`_best_windows`).  ``polish`` rounds at the finest scale
     follow, before the re-cut, with :data:`POLISH_WINDOW` x :data:`POLISH_WINDOW` windows and neither term
-    (:func:`_polished`)."""
+    (:func:`_polished`).  ``seam_weight`` weighs the vote's seam cost against the windows' match cost at every
+    scale and in the polish (:func:`_vote`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -192,9 +194,10 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
-    src = _refine_sources(features, src, coords.wrap, rounds, (occurrence, contrast), patch, rng, pinned, scales)
+    weights = (occurrence, contrast, seam_weight)
+    src = _refine_sources(features, src, coords.wrap, rounds, weights, patch, rng, pinned, scales)
     if polish > 0 and min(*coords.source_size, coords.height, coords.width) >= POLISH_WINDOW:
-        src = _polished(features, src, coords.wrap, polish, rng, pinned)
+        src = _polished(features, src, coords.wrap, polish, rng, pinned, seam_weight)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
                                    bridges)
@@ -204,7 +207,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
 def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, scales):
     """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0 and a half-size exemplar and
     output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here;
-    ``rounds``: (rounds here, rounds at each coarser scale); ``weights``: (occurrence, contrast)."""
+    ``rounds``: (rounds here, rounds at each coarser scale); ``weights``: (occurrence, contrast, seam)."""
     iterations, coarse_iterations = rounds
     if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
         src = _coarse_first(features, src, wrap, coarse_iterations, weights, patch, rng, pinned, scales - 1)
@@ -217,12 +220,13 @@ def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, sc
     return src
 
 
-def _polished(features, src, wrap, rounds, rng, pinned):
+def _polished(features, src, wrap, rounds, rng, pinned, seam_weight=SEAM_WEIGHT):
     """``src`` after ``rounds`` rounds at the finest scale with :data:`POLISH_WINDOW` windows, without the occurrence
     and contrast terms.  A synthesizer that refines with larger windows (the jump map's 12) keeps its structures
     whole but leaves its cuts where those windows met; small windows matched for their fit alone move the cuts
     to where the content agrees, and leave alone which exemplar areas are used, which the terms had settled."""
-    return _refine_sources(features, src, wrap, (rounds, rounds), (0.0, 0.0), POLISH_WINDOW, rng, pinned, 0)
+    return _refine_sources(features, src, wrap, (rounds, rounds), (0.0, 0.0, seam_weight), POLISH_WINDOW, rng,
+                           pinned, 0)
 
 
 def _coarse_first(features, src, wrap, iterations, weights, patch, rng, pinned, scales):
@@ -287,10 +291,10 @@ def window_starts(length: int, patch: int, stride: int, offset: int, wrap: bool)
     return np.unique(np.clip(starts, 0, max(0, length - patch)))
 
 
-def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights: tuple[float, float],
+def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights: tuple[float, float, float],
                   rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
-    """One texture-optimisation round: every window matched (with the occurrence and contrast terms, ``weights``:
-    their weights), then the coherent vote."""
+    """One texture-optimisation round: every window matched (with the occurrence and contrast terms), then the
+    coherent vote; ``weights``: (occurrence, contrast, seam)."""
     p = index.patch
     h, w = src.shape
     eh, ew = index.texels.shape[:2]
@@ -299,13 +303,14 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights: tupl
     ny, nx = rows.shape[:2]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(ny * nx, -1)
-    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, *weights)
+    occurrence, contrast, seam_weight = weights
+    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence, contrast)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
                  + ox[:, None, None] + np.arange(p)[None, None, :]).reshape(ny, nx, p, p)
     cost = (distance / (p * p)).reshape(ny, nx)
-    return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng, keep)
+    return _vote(index.texels, proposals, cost, rows, cols, src, wrap, rng, keep, seam_weight)
 
 
 def jittered_windows(h: int, w: int, patch: int, wrap: bool, rng: np.random.Generator):
@@ -419,10 +424,11 @@ def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
 
 
 def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-          src: np.ndarray, wrap: bool, rng: np.random.Generator, keep=lambda labels: labels) -> np.ndarray:
+          src: np.ndarray, wrap: bool, rng: np.random.Generator, keep=lambda labels: labels,
+          seam_weight: float = SEAM_WEIGHT) -> np.ndarray:
     """Each output texel's new source, among the sources its windows propose and its current one: a labelling
     of least data cost (the proposing window's match error per texel; the current source costs as much as the
-    best proposal) plus :data:`SEAM_WEIGHT` x seam cost (per 4-neighbour, 0 where the two sources continue each
+    best proposal) plus ``seam_weight`` x seam cost (per 4-neighbour, 0 where the two sources continue each
     other, else the squared appearance difference between the neighbour's texel and the candidate's exemplar
     neighbour), found by :data:`SWEEPS` checkerboard sweeps of iterated conditional modes from the
     least-data-cost labels.  Whole windows win where they match best, and cuts between them run where the
@@ -444,19 +450,20 @@ def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.
     data[:, -1] = np.minimum(data[:, :-1].min(axis=1), np.float32(1e30))  # a texel no window covers keeps its source
     start = np.argmin(data + np.float32(1e-6) * rng.random(data.shape, np.float32), axis=1)
     labels = keep(votes[np.arange(n), start].reshape(h, w))
-    return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap, keep)
+    return _iterated_modes(texels, votes.reshape(h, w, slots), data.reshape(h, w, slots), labels, wrap, keep,
+                           seam_weight)
 
 
 def _iterated_modes(texels: np.ndarray, votes: np.ndarray, data: np.ndarray, labels: np.ndarray,
-                    wrap: bool, keep=lambda labels: labels) -> np.ndarray:
+                    wrap: bool, keep=lambda labels: labels, seam_weight: float = SEAM_WEIGHT) -> np.ndarray:
     """:data:`SWEEPS` checkerboard sweeps: each texel takes the candidate (``votes [h, w, s]``, -1: none) of
-    least ``data`` + :data:`SEAM_WEIGHT` x seam cost against its 4-neighbours' current sources (without
+    least ``data`` + ``seam_weight`` x seam cost against its 4-neighbours' current sources (without
     ``wrap``, none across the output's border)."""
     sweeps = _sweeps_numpy if engine() == "numpy" else _sweeps_opencl
-    return sweeps(texels, votes, data, labels, wrap, keep)
+    return sweeps(texels, votes, data, labels, wrap, keep, seam_weight)
 
 
-def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
+def _sweeps_opencl(texels, votes, data, labels, wrap, keep, seam_weight=SEAM_WEIGHT):
     """:func:`_iterated_modes` by the kernel ``rf_sweep`` (one launch per half-sweep, from one labels buffer to
     the other; the same float32 sums in the same order as :func:`_sweeps_numpy`).  ``keep`` runs on the host
     after each half-sweep where it changes anything (pinned texels)."""
@@ -478,7 +485,7 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
         for part in (0, 1):
             launch(backend, kernel, (h, w), inputs[0], np.int32(eh), np.int32(ew), inputs[1], inputs[2],
                    np.int32(slots), current, following, np.int32(h), np.int32(w), np.int32(bool(wrap)),
-                   np.int32(part), np.float32(SEAM_WEIGHT), moved[0], moved[1], moved[2])
+                   np.int32(part), np.float32(seam_weight), moved[0], moved[1], moved[2])
             current, following = following, current
             moved = [moved[2], moved[0], moved[1]]
             if pinned:
@@ -489,7 +496,7 @@ def _sweeps_opencl(texels, votes, data, labels, wrap, keep):
     return labels.astype(np.int64)
 
 
-def _sweeps_numpy(texels, votes, data, labels, wrap, keep):
+def _sweeps_numpy(texels, votes, data, labels, wrap, keep, seam_weight=SEAM_WEIGHT):
     """The twin of ``rf_sweep``: :func:`_iterated_modes` in NumPy."""
     h, w, _ = votes.shape
     flat = texels.reshape(-1, texels.shape[2])
@@ -503,7 +510,7 @@ def _sweeps_numpy(texels, votes, data, labels, wrap, keep):
                 current = labels[neighbour]
                 seam = ((continued - flat[current][:, None, :]) ** 2).sum(axis=2)
                 seam[(continuation == current[:, None]) | outside[:, None]] = 0.0
-                total += SEAM_WEIGHT * seam
+                total += np.float32(seam_weight) * seam
             labels[active] = choices[np.arange(len(active)), np.argmin(total, axis=1)]
             labels = keep(labels.reshape(h, w)).ravel()
     return labels.reshape(h, w)

@@ -19,7 +19,7 @@ from btforge.errors import BtforgeInputError
 
 from .bridging import TRIES as BRIDGE_TRIES
 from .recut import PASSES as RECUT_PASSES
-from .refine import POLISH_WINDOW
+from .refine import POLISH_WINDOW, SEAM_WEIGHT
 from .scan_order import level_sizes
 
 MAX_K = 16
@@ -79,14 +79,16 @@ POLISH = 1
 
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
                   window: int | None = None, coarse_refine: int | None = None, polish: int = POLISH,
-                  auto_weight: float = AUTO_CONTRAST, large_weight: float = 0.0) -> list[Param]:
+                  auto_weight: float = AUTO_CONTRAST, large_weight: float = 0.0,
+                  seam_weight: float = SEAM_WEIGHT) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
     coarser scale, by default as many as ``refine`` without the param); ``polish``: the default of the ``polish``
     param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
     ``auto_weight``, ``large_weight``: the contrast weights the automatic ``contrast`` takes where the exemplar is
-    about as large as the output and where the output is larger (:func:`auto_contrast`)."""
+    about as large as the output and where the output is larger (:func:`auto_contrast`); ``seam_weight``: the
+    default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -100,6 +102,7 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                        f"{POLISH_WINDOW} x {POLISH_WINDOW} windows matched for their fit alone (no occurrence or "
                        "contrast term): the cuts the earlier rounds left where windows met move to where the content "
                        "agrees, while the exemplar areas used stay (0: none)", low=0, high=10))
+    extra.append(seam_weight_param(seam_weight))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
@@ -123,6 +126,14 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                   "full resolution only)", low=0, high=6), *extra]
 
 
+def seam_weight_param(default: float) -> Param:
+    """The ``seam_weight`` param of a synthesizer that runs the shared refinement (its default ``default``)."""
+    return Param("seam_weight", "float", default, "weight of the seam cost in the refinement's vote, against the "
+                 "windows' match cost: heavier, the vote cuts where the two sides continue each other more closely "
+                 "(less visible seams; the patch statistics may drift a little further from the exemplar's); 0: "
+                 "the windows' match alone", low=0.0, high=1000.0)
+
+
 def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,
                   large_weight: float = 0.0) -> float:
     """``contrast`` where it is >= 0, else ``auto_weight`` where the output has at most :data:`AUTO_AREA` x the
@@ -136,12 +147,13 @@ def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: fl
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
             coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST,
-            large_weight: float = 0.0, polish: int = POLISH):
+            large_weight: float = 0.0, polish: int = POLISH, seam_weight: float = SEAM_WEIGHT):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
     :func:`auto_contrast` with ``auto_weight`` and ``large_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
-    :data:`.refine.POLISH_WINDOW` windows without the terms), with its time and contrast weight noted."""
+    :data:`.refine.POLISH_WINDOW` windows without the terms); ``seam_weight``: the vote's seam cost weight; with its
+    time and contrast weight noted."""
     import time
 
     from .refine import refine_map
@@ -150,7 +162,7 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
                      patch=window, recut_passes=recut_passes, bridges=bridges, coarse_iterations=coarse_refine,
-                     contrast=contrast, polish=polish)
+                     contrast=contrast, polish=polish, seam_weight=seam_weight)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 

@@ -17,8 +17,9 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
+from btforge.plugins.synth.synthesizer import seam_weight_param
 
-from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH
+from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
 from .tileset import TileSet
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
@@ -113,11 +114,12 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
         Param("pin", "int", PIN, "texels along each tile border the refinement leaves as the edge strips laid them "
               "(the tiles are refined laid as one valid periodic tiling, so the texels beyond see their neighbours)",
               low=1, high=256),
+        seam_weight_param(SEAM_WEIGHT),
     ],
-    version="14",  # 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="15",  # 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin):
+               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -130,7 +132,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     similar areas, and lanes of them would run along every tile border.  A usage term (``usage``) spreads the
     patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``contrast``,
-    ``polish``, ``pin``) hides the cuts the filling left.  Distances are Euclidean in the
+    ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left.  Distances are Euclidean in the
     exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
@@ -150,7 +152,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
                                               typical=typical, rare=rare,
                                               relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence,
-                                                        "contrast": contrast, "polish": polish, "pin": pin})
+                                                        "contrast": contrast, "polish": polish, "pin": pin,
+                                                        "seam_weight": seam_weight})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
     ctx.note("btfels", tiles.statistics())
