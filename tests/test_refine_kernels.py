@@ -11,7 +11,7 @@ from btforge.plugins.synth import refine
 from btforge.plugins.synth.refine import (_correct_numpy, _correct_opencl, _rank_numpy, _rank_opencl,
                                           _sweeps_numpy, _sweeps_opencl, candidate_costs, exemplar_window_energy,
                                           refine_map, window_energy, window_index)
-from btforge.plugins.synth.visibility import shuffled_blocks
+from btforge.plugins.synth.visibility import seam_masks, shuffled_blocks
 
 D = 6
 
@@ -148,8 +148,7 @@ def test_sweep_kernel_matches_numpy_at_any_seam_weight(seam_weight):
     b = _sweeps_numpy(texels, votes, data, labels, True, lambda labels: labels, seam_weight)
     assert np.array_equal(a, b)
     if seam_weight == 0.0:      # no seam cost: every texel takes its least data cost (the first of equal ones)
-        finite = np.where(np.isfinite(data), data, np.inf)
-        assert np.array_equal(a, np.take_along_axis(votes, finite.argmin(axis=2)[..., None], 2)[..., 0])
+        assert np.array_equal(a, np.take_along_axis(votes, data.argmin(axis=2)[..., None], 2)[..., 0])
 
 
 def test_a_seam_cost_leaves_fewer_seams_than_none():
@@ -158,9 +157,7 @@ def test_a_seam_cost_leaves_fewer_seams_than_none():
     votes, data, labels = random_vote(rng, texels, 24, 24, slots=6)
 
     def seams(labels):
-        y, x = np.divmod(labels, 12)
-        return int(((np.diff(x, axis=1) != 1) | (np.diff(y, axis=1) != 0)).sum()
-                   + ((np.diff(y, axis=0) != 1) | (np.diff(x, axis=0) != 0)).sum())
+        return sum(int(mask.sum()) for mask in seam_masks(*np.divmod(labels, 12), wrap=False))
     none, *weighed = [seams(_sweeps_numpy(texels, votes, data, labels, False, lambda labels: labels, w))
                       for w in (0.0, 1.0, 8.0)]
     # iterated conditional modes stops at a local minimum, so heavier weights need not leave fewer still

@@ -49,8 +49,8 @@ RECUT_PASSES = 3
 #: 1.84 and 0.91 without the term).
 AUTO_CONTRAST = 8.0
 #: Weight of the seam cost in the refinement's vote, twice the shared default: its cuts run where the two sides continue
-#: each other more closely.  On the 21 main crops of the synthesis bench (seeds 0-1) seams fall on 19 and the bumps' pass
-#: (1.30 -> 1.26); SWD over the shuffled blocks rises by 0.03 at the median.  At 4 seams fall further but SWD rises on
+#: each other more closely.  On the 21 main crops of the synthesis bench (seeds 0-1) seams fall on 20 and the bumps' pass
+#: (1.305 -> 1.26); SWD over the shuffled blocks rises by 0.03 at the median.  At 4 seams fall further but SWD rises on
 #: 16 of the 21 (the fibres 1.26 -> 1.43, Benchmarks).
 SEAM_WEIGHT = 2.0
 
