@@ -443,7 +443,10 @@ def test_stage_on_a_sample_stack():
     coords = quilt(exemplar=stack, size=[40, 32], search="rejection", seed=2, **SMALL)["coords"]
     brute = quilt(exemplar=stack, size=[40, 32], search="brute", seed=2, **SMALL)["coords"]
     np.testing.assert_array_equal(coords.coords, brute.coords)
-    out = materialize(coords=coords, source=stack)["output"]
+    plain = quilt(exemplar=stack, size=[40, 32], search="rejection", seed=2, feather=0, **SMALL)["coords"]
+    np.testing.assert_array_equal(plain.coords, coords.coords)   # feathering only adds a blend layer (a stack blends)
+    assert not plain.blend_weight.size and coords.blend_weight.size
+    out = materialize(coords=plain, source=stack)["output"]
     rows, cols = coords.coords[..., 0], coords.coords[..., 1]
     np.testing.assert_array_equal(out.samples, stack.samples[:, :, rows, cols])
     assert texel_features(stack).shape == (24, 24, 18)

@@ -267,3 +267,11 @@ def test_an_exemplar_crop_may_start_at_a_given_texel():
     assert bench._slug(f"{capture}@10,20") == "icon_san_michele_at_10_20"
     with pytest.raises(BtforgeInputError, match="two whole numbers"):
         bench.crop_origin(f"{capture}@10")
+
+
+def test_the_bench_fits_blendable_crops_on_request():
+    """``--fit rgb`` fits the crops as linear RGB PTMs, which blend, so the synthesizers feather their seams."""
+    assert not bench.exemplar_model("procedural:stones", 24).blendable
+    model = bench.exemplar_model("procedural:stones", 24, "rgb")
+    assert model.blendable and model.variant == "rgb" and model.space == "linear"
+    assert bench._parser().parse_args(["--exemplar", "x", "--out", "y", "--fit", "rgb"]).fit == "rgb"

@@ -45,26 +45,33 @@ PROCEDURAL = "procedural"
 SHEET_LIGHTS = ((-0.5, 0.5, 0.707), (0.8, -0.1, 0.59))
 
 
-def exemplar_model(path: str, crop: int):
-    """The exemplar as an orthonormal LRGB PTM of the central ``synth.crop`` x ``synth.crop`` texels of a capture
+#: How ``btforge bench synthesis --fit`` fits the crops: an LRGB PTM (the default) or a linear RGB one, which
+#: blends (synthesizers then feather their seams, :mod:`.feather`).
+FITS = {"lrgb": {"variant": "lrgb"}, "rgb": {"variant": "rgb", "space": "linear"}}
+
+
+def exemplar_model(path: str, crop: int, fit: str = "lrgb"):
+    """The exemplar as an orthonormal PTM (``fit``: a key of :data:`FITS`) of the central ``synth.crop`` x
+    ``synth.crop`` texels of a capture
     (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar;
     ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file: that model,
     cropped; ``FILE@ROW,COL``: the crop of a capture or ``.ptm`` file with its upper-left texel there instead of
-    the central one)."""
+    the central one; a ``.ptm`` file keeps its own variant)."""
     from btforge import stage
+    fitted = FITS[fit]
     if path == PROCEDURAL:
         stack = benchmark_exemplar(crop, lights=16, seed=7)
-        return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
+        return stage("ptm.fit")(stack=stack, basis="orthonormal", **fitted)["model"]
     if str(path).startswith(PROCEDURAL + ":"):
         pattern = str(path).split(":", 1)[1]
         stack = stage("demo.material")(size=[crop, crop], lights=16, pattern=pattern, seed=7)["stack"]
-        return stage("ptm.fit")(stack=stack, variant="lrgb", basis="orthonormal")["model"]
+        return stage("ptm.fit")(stack=stack, basis="orthonormal", **fitted)["model"]
     path, origin = crop_origin(str(path))
     if path.endswith(".ptm"):
         return _cropped(stage("ptm.read")(path=path)["model"], crop, origin)
     from btforge.plugins.stackio.images import load_stack
     patch = _cropped(load_stack(Path(path)), crop, origin)
-    return stage("ptm.fit")(stack=patch, variant="lrgb", basis="orthonormal")["model"]
+    return stage("ptm.fit")(stack=patch, basis="orthonormal", **fitted)["model"]
 
 
 def crop_origin(exemplar: str) -> tuple[str, tuple[int, int] | None]:
@@ -224,6 +231,9 @@ def _parser() -> argparse.ArgumentParser:
                    "with the measures of what the eye sees)")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="exemplar sides (default 64 128 192 256)")
     p.add_argument("--size", type=int, default=256, help="output side in texels (default 256)")
+    p.add_argument("--fit", choices=sorted(FITS), default="lrgb", help="the PTM the crops are fitted as: lrgb "
+                   "(default) or rgb, a linear RGB PTM, which blends, so the synthesizers feather their seams "
+                   "(a .ptm file keeps its own variant)")
     p.add_argument("--repeat", type=int, default=1, help="re-syntheses with cached analysis; the median is reported")
     p.add_argument("--only", action="append", help="only these synthesizers (stage names)")
     p.add_argument("--lights", type=int, default=8, help="probe lights of the scores (default 8)")
@@ -271,7 +281,7 @@ def bench_synthesis(args: list[str]) -> int:
     target = Path(opts.out)
     rows, search_rows, seed_rows = [], [], []
     for crop in opts.sizes:
-        model = exemplar_model(opts.exemplar, crop)
+        model = exemplar_model(opts.exemplar, crop, opts.fit)
         label = f"{model.height}x{model.width}"
         if not opts.no_search:
             search_rows.append({"exemplar": label, **_search_figures(model)})

@@ -18,6 +18,7 @@ from btforge.backend import get_backend
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
+from .feather import feathered
 from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
@@ -354,7 +355,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="22",  # 22: param seam_weight (1 by default: the outputs are those of version 21); 21: two polish rounds by default (polish 2: seams lower on nearly every crop); 20: the refinement's contrast term at 8 by default where the output has more than 1.5 x the exemplar's texels (contrast -1); 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="23",  # 23: seams cross-faded over 1 texel on blendable exemplars (param feather); 22: param seam_weight (1 by default: the outputs are those of version 21); 21: two polish rounds by default (polish 2: seams lower on nearly every crop); 20: the refinement's contrast term at 8 by default where the output has more than 1.5 x the exemplar's texels (contrast -1); 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -383,7 +384,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, uniform: np.ndarray, f
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
             coverage, balance, overuse, refine, occurrence, contrast, scales, window, coarse_refine, polish,
-            seam_weight):
+            seam_weight, feather):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -461,10 +462,10 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     ctx.note("seconds_analysis", round(analysed - start, 3))
     ctx.note("seconds_synthesis", round(time.perf_counter() - analysed, 3))
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
-    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine,
-                              bridges=BRIDGE_TRIES, contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish,
-                              seam_weight=seam_weight)}
+    coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
+                     window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, bridges=BRIDGE_TRIES,
+                     contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
+    return {"coords": feathered(coords, feather, exemplar.blendable, features)}
 
 
 STAGES = [jumpmap]

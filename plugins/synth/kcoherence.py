@@ -27,6 +27,7 @@ from btforge.errors import BtforgeInputError
 
 from .block_start import CANDIDATES, matched_blocks
 from .device import LOCAL, launch, round_up
+from .feather import feathered
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
@@ -461,7 +462,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="20",  # 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="21",  # 21: seams cross-faded over 1 texel on blendable exemplars (param feather); 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -494,7 +495,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
                coverage, blocks, matching, keep, refine, occurrence, contrast, scales, coarse_refine, polish,
-               seam_weight):
+               seam_weight, feather):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -585,9 +586,10 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     ctx.note("seconds_analysis", round(result.seconds_analysis, 3))
     ctx.note("seconds_synthesis", round(result.seconds_synthesis, 3))
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
-    return {"coords": refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
-                              recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
-                              large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)}
+    coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
+                     recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
+                     large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
+    return {"coords": feathered(coords, feather, exemplar.blendable, features)}
 
 
 STAGES = [kcoherence]

@@ -18,6 +18,7 @@ from btforge import Param, declare_stage
 from btforge.errors import BtforgeInputError
 
 from .bridging import TRIES as BRIDGE_TRIES
+from .feather import FEATHER, MAX_FEATHER
 from .recut import PASSES as RECUT_PASSES
 from .refine import POLISH_WINDOW, SEAM_WEIGHT
 from .scan_order import level_sizes
@@ -80,7 +81,7 @@ POLISH = 1
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
                   window: int | None = None, coarse_refine: int | None = None, polish: int = POLISH,
                   auto_weight: float = AUTO_CONTRAST, large_weight: float = 0.0,
-                  seam_weight: float = SEAM_WEIGHT) -> list[Param]:
+                  seam_weight: float = SEAM_WEIGHT, feather: int = FEATHER) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
@@ -88,7 +89,8 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
     param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
     ``auto_weight``, ``large_weight``: the contrast weights the automatic ``contrast`` takes where the exemplar is
     about as large as the output and where the output is larger (:func:`auto_contrast`); ``seam_weight``: the
-    default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost)."""
+    default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost); ``feather``: the
+    default of the ``feather`` param (:func:`feather_param`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -103,6 +105,7 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                        "contrast term): the cuts the earlier rounds left where windows met move to where the content "
                        "agrees, while the exemplar areas used stay (0: none)", low=0, high=10))
     extra.append(seam_weight_param(seam_weight))
+    extra.append(feather_param(feather))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
@@ -132,6 +135,15 @@ def seam_weight_param(default: float) -> Param:
                  "windows' match cost: heavier, the vote cuts where the two sides continue each other more closely "
                  "(less visible seams; the patch statistics may drift a little further from the exemplar's); 0: "
                  "the windows' match alone", low=0.0, high=1000.0)
+
+
+def feather_param(default: int) -> Param:
+    """The ``feather`` param of a synthesizer whose map's seams may be cross-faded (:mod:`.feather`)."""
+    return Param("feather", "int", default, "texels on either side of a seam that cross-fade from one side's "
+                 "content to the other's, through the map's blend layer, where the step across the seam is over "
+                 "1.5 x the exemplar's own steps around its two sources: a cut between smooth areas reads as a "
+                 "ramp, not a step; only on exemplars whose records blend as their functions do (a linear RGB PTM, "
+                 "SH, a linear stack), the others keep a plain map (0: off)", low=0, high=MAX_FEATHER)
 
 
 def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,

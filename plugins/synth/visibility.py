@@ -149,17 +149,30 @@ class Visibility:
 
 def seam_visibility(out_enc: np.ndarray, ex_enc: np.ndarray, coords: CoordMap) -> Visibility:
     """Seam and straight-seam visibility of ``out_enc [L, H, W, C]`` (the map's relit output) against the
-    exemplar ``ex_enc``, in the same exposure-normalised domain."""
+    exemplar ``ex_enc``, in the same exposure-normalised domain.  Where the map blends texels beside a seam edge
+    (feathering, quilting's linear blend), the step moves onto the pairs beside the edge, which are not seam
+    edges: the edge then counts with the largest jump over the pairs along its normal that the blended texels
+    span, against the exemplar's mean largest of as many consecutive jumps (:func:`banded_jumps`)."""
     edges = seam_edges(coords)
     jump_c, jump_r = neighbour_jumps(out_enc, coords.wrap)
-    reference = exemplar_jump(ex_enc)
+    if coords.blend_weight.size:
+        blended = coords.blend_weight > 0
+        jump_c, span_c = banded_jumps(jump_c, edges.across_columns, blended, 1, coords.wrap)
+        jump_r, span_r = banded_jumps(jump_r, edges.across_rows, blended, 0, coords.wrap)
+        references = exemplar_band_jumps(ex_enc, int(max(span_c.max(), span_r.max())))
+    else:
+        span_c = span_r = None
+        references = np.array([0.0, exemplar_jump(ex_enc)])
 
     def ratio(mask_c, mask_r):
         n = int(mask_c.sum() + mask_r.sum())
-        if n == 0 or reference <= 0:
+        if n == 0 or references[1] <= 0:
             return None
         total = jump_c[:, mask_c].sum() + jump_r[:, mask_r].sum()
-        return float(total / (n * out_enc.shape[0]) / reference)
+        if span_c is None:
+            return float(total / (n * out_enc.shape[0]) / references[1])
+        reference = references[span_c[mask_c]].sum() + references[span_r[mask_r]].sum()
+        return float(total / (out_enc.shape[0] * reference)) if reference > 0 else None
 
     pairs = coords.height * (coords.width - (0 if coords.wrap else 1)) + coords.width * (
         coords.height - (0 if coords.wrap else 1))
@@ -167,6 +180,62 @@ def seam_visibility(out_enc: np.ndarray, ex_enc: np.ndarray, coords: CoordMap) -
                       ratio(edges.columns_straight, edges.rows_straight),
                       edges.straight_count / edges.count if edges.count else 0.0,
                       edges.count / max(1, pairs))
+
+
+#: The farthest from a seam edge, in texels on either side, that the blended band of a seam is followed.
+MAX_BAND = 8
+
+
+def banded_jumps(jumps: np.ndarray, edges: np.ndarray, blended: np.ndarray, axis: int, wrap: bool):
+    """``jumps [L, H, W]`` (as :func:`neighbour_jumps` gives them along ``axis``) with each seam edge of ``edges``
+    replaced by the largest jump over the pairs its blended band spans, and ``[H, W]`` how many pairs that is
+    (1 where no texel beside the edge is blended).  The band runs outwards from the edge while the texels are
+    blended (``blended [H, W]``), up to :data:`MAX_BAND` on either side."""
+    h, w = edges.shape
+    length = w if axis == 1 else h
+    out = jumps.copy()
+    span = np.ones((h, w), np.int64)
+    rows, cols = np.nonzero(edges)
+    along = cols if axis == 1 else rows
+    best = jumps[:, rows, cols].copy()
+    count = np.ones(len(rows), np.int64)
+    for side in (-1, 1):
+        alive = np.ones(len(rows), bool)
+        for step in range(1, MAX_BAND + 1):
+            texel = along - step + 1 if side < 0 else along + step   # the texel the band must reach
+            pair = along - step if side < 0 else along + step        # the pair it closes on its far side
+            if wrap:
+                texel, pair = texel % length, pair % length
+            alive &= (texel >= 0) & (texel < length) & (pair >= 0) & (pair < length - (0 if wrap else 1))
+            at = (rows, np.where(alive, texel, 0)) if axis == 1 else (np.where(alive, texel, 0), cols)
+            alive &= blended[at]
+            if not alive.any():
+                break
+            idx = np.flatnonzero(alive)
+            there = (rows[idx], pair[idx]) if axis == 1 else (pair[idx], cols[idx])
+            best[:, idx] = np.maximum(best[:, idx], jumps[:, there[0], there[1]])
+            count[idx] += 1
+    out[:, rows, cols] = best
+    span[rows, cols] = count
+    return out, span
+
+
+def exemplar_band_jumps(ex_enc: np.ndarray, longest: int) -> np.ndarray:
+    """``[longest + 1]``: at ``k`` the mean over the exemplar (both directions, all lights) of the largest of ``k``
+    consecutive neighbour jumps (0 at ``k = 0``; at 1 :func:`exemplar_jump`; a ``k`` longer than the exemplar's
+    rows or columns takes their whole length)."""
+    gx = np.linalg.norm(np.diff(ex_enc, axis=2), axis=3)
+    gy = np.linalg.norm(np.diff(ex_enc, axis=1), axis=3)
+    means = [0.0]
+    for k in range(1, longest + 1):
+        parts = []
+        for g, ax in ((gx, 2), (gy, 1)):
+            run = min(k, g.shape[ax])
+            n = g.shape[ax] - run + 1
+            if g.shape[ax] > 0:
+                parts.append(np.maximum.reduce([np.take(g, np.arange(i, i + n), axis=ax) for i in range(run)]))
+        means.append(float(sum(p.sum() for p in parts) / max(1, sum(p.size for p in parts))))
+    return np.array(means)
 
 
 def missed_targets(scores) -> list[str]:

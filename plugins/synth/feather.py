@@ -1,0 +1,116 @@
+"""Feathering a map's seams through its blend layer, for exemplars whose records mix like their functions.
+
+A cut between two copied regions is a step in radiance wherever the two sides do not continue each other.  On a
+grainy exemplar the step hides among the exemplar's own edges; on a smooth one (soft bumps, a leaf's shading) it
+shows.  Feathering cross-fades the two sides over ``band`` texels on either side of a seam edge: each texel
+there keeps its own source and takes as its blend partner the source across the edge continued to it, so the
+texels from one side's last unblended texel to the other's read as a linear ramp from one continued image to the
+other in ``2 * band + 1`` equal steps.  Every texel keeps its own source as the heavier one, so the map's seams
+(and everything measured from its dominant sources) stay where they were.  Only the seams whose step is larger
+than the exemplar's own steps around the two sources are feathered (:data:`FEATHER_STEP`).
+
+The blend layer replays exactly only on buffers whose records blend as their functions do (``blendable``: a linear
+RGB PTM, SH, a linear stack); on the others ``remap`` keeps each texel's heavier source and the output would be the
+unfeathered one, so those maps are left without a blend layer.  ``synth.score`` measures a blended map's seams over
+the blended band (:func:`.visibility.seam_visibility`), so a feathered step counts with its sharpest part.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from btforge.buffers import CoordMap
+
+from .visibility import dominant_source, seam_masks
+
+#: Texels on either side of a seam edge that blend by default.
+FEATHER = 1
+#: Seam edges are feathered where their appearance step is over this many times the exemplar's own steps around
+#: the two sources: the steps that stand out from their surroundings.  Cross-fading the others, which look like the
+#: exemplar's own edges there (grain, fibres), hides nothing and lays two patterns over each other (Benchmarks).
+FEATHER_STEP = 1.5
+#: The widest band the ``feather`` param allows.
+MAX_FEATHER = 8
+
+
+def feather_weight(distance: int, band: int) -> float:
+    """The blend partner's weight of a texel ``distance`` texels from a seam edge (1: beside it) in a band of
+    ``band``: the linear cross-fade over ``2 * band + 1`` steps, below one half at every distance."""
+    return (band + 1 - distance) / (2 * band + 1)
+
+
+def feathered(coords: CoordMap, band: int, blendable: bool = True, features: np.ndarray | None = None,
+              step: float = FEATHER_STEP) -> CoordMap:
+    """``coords`` with the texels within ``band`` of a seam edge blended with the source across that edge,
+    continued to them (the nearest edge where several are in reach; columns' edges before rows' on a tie).  The map
+    is returned as it is where ``band`` is 0, the exemplar is not ``blendable``, or the map has a blend layer.
+    With the exemplar's appearance vectors ``features [h, w, D]``, only the seam edges whose step between the two
+    sources' vectors is over ``step`` x the exemplar's steps around them are feathered (without: every one)."""
+    if band <= 0 or not blendable or coords.blend_weight.size:
+        return coords
+    src = dominant_source(coords)
+    h, w = src.shape[:2]
+    across_columns, across_rows = seam_masks(src[..., 0], src[..., 1], coords.wrap)
+    if features is not None and step > 0:
+        across_columns, across_rows = _visible(features, src, across_columns, across_rows, step)
+    nearest = np.full((h, w), band + 1, np.int64)
+    partner = src.copy()
+    weight = np.zeros((h, w), np.float32)
+    for distance in range(1, band + 1):
+        for axis, edges in ((1, across_columns), (0, across_rows)):
+            for side in (-1, 1):
+                texels, continued = _across(src, edges, axis, side, distance, coords)
+                closer = nearest[texels] > distance
+                chosen = tuple(t[closer] for t in texels)
+                nearest[chosen] = distance
+                partner[chosen] = continued[closer]
+                weight[chosen] = feather_weight(distance, band)
+    return CoordMap(coords.coords, coords.source_size, partner.astype(np.int32), weight, coords.wrap, coords.tile)
+
+
+def _across(src: np.ndarray, edges: np.ndarray, axis: int, side: int, distance: int, coords: CoordMap):
+    """For every seam edge of ``edges`` (along ``axis``), the texel ``distance`` texels from it on ``side`` (-1: the
+    lower, 1: the higher) and the source of the texel across the edge continued to it: ``(rows, cols)`` and
+    ``[n, 2]`` sources, left out where either texel falls outside the output (without wrap) or the continued
+    source outside the exemplar."""
+    h, w = src.shape[:2]
+    rows, cols = np.nonzero(edges)
+    low = np.stack([rows, cols], axis=1)
+    offset = np.zeros(2, np.int64)
+    offset[0 if axis == 0 else 1] = 1
+    high = low + offset
+    texel = low - (distance - 1) * offset if side < 0 else high + (distance - 1) * offset
+    other = high if side < 0 else low
+    if coords.wrap:
+        texel, other = texel % (h, w), other % (h, w)
+    inside = (texel >= 0).all(axis=1) & (texel < (h, w)).all(axis=1) & (other < (h, w)).all(axis=1)
+    texel, other = texel[inside], other[inside]
+    continued = src[other[:, 0], other[:, 1]] + side * distance * offset
+    keep = (continued >= 0).all(axis=1) & (continued < coords.source_size).all(axis=1)
+    return (texel[keep, 0], texel[keep, 1]), continued[keep]
+
+
+def _visible(features: np.ndarray, src: np.ndarray, across_columns: np.ndarray, across_rows: np.ndarray,
+             step: float) -> list[np.ndarray]:
+    """``across_columns, across_rows`` without the seam edges whose step between the two sources' appearance
+    vectors is at most ``step`` x the mean of the two sources' local steps (:func:`local_steps`)."""
+    f = np.asarray(features, np.float32)
+    local = local_steps(f)[src[..., 0], src[..., 1]]
+    here = f[src[..., 0], src[..., 1]]
+    kept = []
+    for axis, edges in ((1, across_columns), (0, across_rows)):
+        jump = np.linalg.norm(np.roll(here, -1, axis=axis) - here, axis=2)
+        kept.append(edges & (jump > step * 0.5 * (local + np.roll(local, -1, axis=axis))))
+    return kept
+
+
+def local_steps(features: np.ndarray) -> np.ndarray:
+    """``[h, w]``: each exemplar texel's mean step to its 4-neighbours (3 or 2 along the border) in appearance."""
+    rows = np.linalg.norm(np.diff(features, axis=0), axis=2)
+    cols = np.linalg.norm(np.diff(features, axis=1), axis=2)
+    total, count = np.zeros(features.shape[:2]), np.zeros(features.shape[:2])
+    for steps, axis in ((rows, 0), (cols, 1)):
+        for part in (slice(1, None), slice(None, -1)):
+            at = (part, slice(None)) if axis == 0 else (slice(None), part)
+            total[at] += steps
+            count[at] += 1
+    return total / np.maximum(count, 1)
