@@ -34,6 +34,14 @@ def two_halves(side: int, out: int, jump: int) -> CoordMap:
     return CoordMap(np.stack([rows, cols], axis=-1).astype(np.int32), (side, side))
 
 
+def agreeing_halves() -> CoordMap:
+    """The right half copies texels 10 rows down and 10 columns back, which on :func:`ramp_stack` hold the same
+    values: a seam down the middle whose sides continue each other."""
+    rows, cols = np.mgrid[0:32, 0:32]
+    right = cols >= 16
+    return CoordMap(np.stack([rows + 10 * right, cols - 10 * right], axis=-1).astype(np.int32), (64, 64))
+
+
 def measured(exemplar, coords) -> dict:
     output = materialize(coords=coords, source=exemplar)["output"]
     return score(output=output, exemplar=exemplar, coords=coords)["scores"].values
@@ -61,7 +69,7 @@ def test_the_cross_fade_is_a_linear_ramp_in_equal_steps():
     exemplar = ramp_stack(64)
     output = materialize(coords=feathered(two_halves(64, 32, 20), band), source=exemplar)["output"]
     row = output.samples[0, 0, 0, :, 0].astype(np.float64) * 64
-    # from column 13 (the last unblended of the left) to 18 (the first of the right): 5 steps of (1 + 20) / 5 + ...
+    # from column 13 (the last unblended of the left) to 18 (the first unblended of the right): 5 equal steps
     steps = np.diff(row[13:19])
     assert np.allclose(steps, steps.mean(), atol=1e-4)
     assert steps.mean() == pytest.approx((row[18] - row[13]) / 5)
@@ -77,32 +85,25 @@ def relit(exemplar, coords) -> tuple[np.ndarray, np.ndarray]:
 def test_a_feathered_step_still_counts_with_its_sharpest_part(band):
     """A 20-step jump on a ramp of unit steps: across ``2 band + 1`` equal pairs each pair rises 1 + 20 / (2 band
     + 1), and the exemplar's largest of as many consecutive steps is 1."""
-    exemplar = ramp_stack(64)
-    found = seam_visibility(*relit(exemplar, feathered(two_halves(64, 32, 20), band)), feathered(
-        two_halves(64, 32, 20), band)).seam_visibility
+    coords = feathered(two_halves(64, 32, 20), band)
+    found = seam_visibility(*relit(ramp_stack(64), coords), coords).seam_visibility
     assert found == pytest.approx(1 + 20 / (2 * band + 1), rel=1e-3)
 
 
 @pytest.mark.parametrize("band", [1, 2, 3])
 def test_a_feathered_seam_between_sides_that_agree_stays_invisible(band):
-    """The right half copies texels 10 rows down and 10 columns back, which on the ramp hold the same values: every
-    edge down the middle is a seam edge, and no more visible than the exemplar's own steps at any band."""
-    exemplar = ramp_stack(64)
-    rows, cols = np.mgrid[0:32, 0:32]
-    right = cols >= 16
-    coords = CoordMap(np.stack([rows + 10 * right, cols - 10 * right], axis=-1).astype(np.int32), (64, 64))
-    blended = feathered(coords, band)
+    """Every edge down the middle of :func:`agreeing_halves` is a seam edge, and no more visible than the exemplar's
+    own steps at any band."""
+    blended = feathered(agreeing_halves(), band)
     assert blended.blend_weight.max() > 0
-    assert seam_visibility(*relit(exemplar, blended), blended).seam_visibility == pytest.approx(1.0, rel=1e-3)
+    assert seam_visibility(*relit(ramp_stack(64), blended), blended).seam_visibility == pytest.approx(1.0, rel=1e-3)
 
 
 def test_only_seams_whose_step_stands_out_are_feathered():
     """With the exemplar's appearance vectors, a 20-step jump is feathered and a seam between sides that continue
     the ramp (a step like the exemplar's own) is not."""
     features = ramp_stack(64).samples[0].transpose(1, 2, 0, 3).reshape(64, 64, -1)
-    rows, cols = np.mgrid[0:32, 0:32]
-    right = cols >= 16
-    agreeing = CoordMap(np.stack([rows + 10 * right, cols - 10 * right], axis=-1).astype(np.int32), (64, 64))
+    agreeing = agreeing_halves()
     # the agreeing seam's step is the exemplar's own, so any threshold over 1 leaves it alone
     assert feathered(two_halves(64, 32, 20), 1, features=features, step=1.5).blend_weight.max() > 0
     assert feathered(agreeing, 1, features=features, step=1.5).blend_weight.max() == 0
@@ -129,7 +130,7 @@ def test_maps_that_cannot_or_need_not_blend_are_left_alone():
     assert feathered(blended, 2) is blended
 
 
-def test_without_a_blend_layer_the_measure_is_the_plain_mean_jump_ratio():
+def test_the_band_reference_starts_at_the_plain_mean_jump_and_grows_with_the_band():
     exemplar = ramp_stack(32)
     enc = exemplar.samples[0][..., :3].astype(np.float64)
     assert exemplar_band_jumps(enc, 3)[1] == pytest.approx(exemplar_jump(enc))

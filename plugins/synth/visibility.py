@@ -224,17 +224,16 @@ def exemplar_band_jumps(ex_enc: np.ndarray, longest: int) -> np.ndarray:
     """``[longest + 1]``: at ``k`` the mean over the exemplar (both directions, all lights) of the largest of ``k``
     consecutive neighbour jumps (0 at ``k = 0``; at 1 :func:`exemplar_jump`; a ``k`` longer than the exemplar's
     rows or columns takes their whole length)."""
-    gx = np.linalg.norm(np.diff(ex_enc, axis=2), axis=3)
-    gy = np.linalg.norm(np.diff(ex_enc, axis=1), axis=3)
+    jumps = [np.linalg.norm(np.diff(ex_enc, axis=2), axis=3),                    # along rows: the last axis
+             np.linalg.norm(np.diff(ex_enc, axis=1), axis=3).swapaxes(1, 2)]    # along columns, made the last
+    jumps = [j for j in jumps if j.shape[-1] > 0]
+    largest = list(jumps)
     means = [0.0]
     for k in range(1, longest + 1):
-        parts = []
-        for g, ax in ((gx, 2), (gy, 1)):
-            run = min(k, g.shape[ax])
-            n = g.shape[ax] - run + 1
-            if g.shape[ax] > 0:
-                parts.append(np.maximum.reduce([np.take(g, np.arange(i, i + n), axis=ax) for i in range(run)]))
-        means.append(float(sum(p.sum() for p in parts) / max(1, sum(p.size for p in parts))))
+        if k > 1:   # the largest of k consecutive: of k - 1, and the jump after them (while the run fits)
+            largest = [np.maximum(m[..., :-1], j[..., k - 1:]) if m.shape[-1] > 1 else m
+                       for m, j in zip(largest, jumps)]
+        means.append(float(sum(m.sum() for m in largest) / max(1, sum(m.size for m in largest))))
     return np.array(means)
 
 
