@@ -339,11 +339,15 @@ class PerTexel(Buffer):
         """A buffer of the same type whose texel (i, j) is this buffer's texel (rows[i, j], cols[i, j]).
 
         With a blend record, the result is ``(1 - w) * texel(rows, cols) + w * texel(blend_rows, blend_cols)``
-        (mixed by :meth:`blend_records`) for blendable buffers, and the texel with the larger weight otherwise.
+        (mixed by :meth:`blend_records`) for blendable buffers, the same in :meth:`blendable_form` (another buffer of
+        the same type) where that exists, and the texel with the larger weight otherwise.
         """
         ax = self.texel_axis
         use_blend = blend_weight is not None and bool(np.any(blend_weight > 0))
         if use_blend and not self.blendable:
+            form = self.blendable_form()
+            if form is not None:
+                return form.remap(rows, cols, blend_rows, blend_cols, blend_weight)
             second = blend_weight > 0.5
             rows, cols = np.where(second, blend_rows, rows), np.where(second, blend_cols, cols)
             use_blend = False
@@ -357,6 +361,12 @@ class PerTexel(Buffer):
                 gathered = self.blend_records(name, gathered, array[index + (blend_rows, blend_cols)], w)
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
+
+    def blendable_form(self) -> "PerTexel | None":
+        """The same functions in a buffer whose records blend (this buffer where it is ``blendable``), or None where
+        no such form exists.  :meth:`remap` blends through it, so a blend layer replays exactly where it exists
+        (override where a non-linear record has a linear equivalent, as an lrgb PTM has its rgb form)."""
+        return self if self.blendable else None
 
     def appearance_features(self) -> np.ndarray:
         """The texel fields concatenated per texel (override where distances between the raw records are not

@@ -44,25 +44,42 @@ def test_srgb8_stack_blends_in_linear_radiance():
     assert np.abs(out.linear() - linear.samples).max() < 0.01  # the same radiance as a linear stack, to 8 bits
 
 
-@pytest.mark.parametrize("variant,space,blendable", [("rgb", "linear", True), ("rgb", "srgb", False),
-                                                     ("lrgb", "linear", False)])
-def test_ptm_blends_only_when_linear_in_its_coefficients(variant, space, blendable):
+@pytest.mark.parametrize("variant,space,blends", [("rgb", "linear", "records"), ("rgb", "srgb", "no"),
+                                                  ("lrgb", "linear", "rgb form"), ("lrgb", "srgb", "no")])
+def test_ptm_blends_where_linear_in_its_functions(variant, space, blends):
     rng = np.random.default_rng(2)
     k = 3 if variant == "rgb" else 1
     albedo = rng.uniform(0.2, 1, (H, W, 3 if variant == "lrgb" else 0)).astype(np.float32)
     model = PTMModel(rng.normal(0.5, 0.2, (H, W, k, 6)).astype(np.float32), albedo, variant, space)
-    assert model.blendable is blendable
+    assert model.blendable is (blends == "records")
+    assert (model.blendable_form() is None) is (blends == "no")
     coords = blended_map()
     out = materialize(coords=coords, source=model)["output"]
     rows, cols = coords.coords[..., 0], coords.coords[..., 1]
     brows, bcols = coords.blend_coords[..., 0], coords.blend_coords[..., 1]
     w = coords.blend_weight[..., None, None]
-    if blendable:
-        expected = (1 - w) * model.coeffs[rows, cols] + w * model.coeffs[brows, bcols]
-    else:
+    if blends == "no":
         heavier = coords.blend_weight > 0.5
         expected = model.coeffs[np.where(heavier, brows, rows), np.where(heavier, bcols, cols)]
+    else:
+        # lrgb: each channel's polynomial is its colour times the luminance polynomial
+        per_channel = model.coeffs if variant == "rgb" else albedo[..., None] * model.coeffs
+        expected = (1 - w) * per_channel[rows, cols] + w * per_channel[brows, bcols]
+        assert out.variant == "rgb" and out.space == space and out.albedo.shape == (*rows.shape, 0)
     np.testing.assert_allclose(out.coeffs, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_an_lrgb_ptm_and_its_rgb_form_relight_alike():
+    rng = np.random.default_rng(5)
+    coeffs = rng.normal(0.0, 0.3, (H, W, 1, 6)).astype(np.float32)
+    coeffs[..., 5] += rng.choice([0.0, 0.6], (H, W, 1)).astype(np.float32)  # some texels negative at many lights
+    model = PTMModel(coeffs, rng.uniform(0, 1, (H, W, 3)).astype(np.float32), "lrgb", "linear")
+    form = model.blendable_form()
+    lights = np.array([[0, 0, 1], [0.6, 0.0, 0.8], [0.0, -0.8, 0.6], [-0.7, 0.7, 0.14]])
+    for engine in ("numpy", "opencl"):
+        # float32 sums in another order: relative error of a few ulps of the largest term
+        np.testing.assert_allclose(form.evaluate(lights, engine=engine), model.evaluate(lights, engine=engine),
+                                   rtol=1e-5, atol=1e-6)
 
 
 def test_coords_write_keeps_the_blend_record(tmp_path):

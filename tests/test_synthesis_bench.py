@@ -97,9 +97,12 @@ def test_the_bench_lays_wang_tiles_as_a_synthesizer(held_out):
     wang = bench.WangTiling(tile=16)
     first = wang(exemplar=held_out, size=[40, 40], seed=3)["coords"]
     assert first.coords.shape == (40, 40, 2) and first.tile == 16 and first.source_size == (64, 64)
+    assert first.blend_weight.shape == (40, 40) and (first.blend_weight > 0).any()  # a linear PTM: feathered
     again = wang(exemplar=held_out, size=[48, 48], seed=3)["coords"]
     assert len(wang._sets) == 1   # the seed's tile set is built once
     np.testing.assert_array_equal(again.coords[:40, :40], first.coords)
+    np.testing.assert_array_equal(again.blend_coords[:40, :40], first.blend_coords)
+    np.testing.assert_array_equal(again.blend_weight[:40, :40], first.blend_weight)
     other = wang(exemplar=held_out, size=[40, 40], seed=4)["coords"]
     assert len(wang._sets) == 2 and not np.array_equal(other.coords, first.coords)
 

@@ -1,6 +1,7 @@
 """Wang tiles (Leung et al. 2007): placement kernel, cuts, tile sets, BTFel tables, tilings, seams, rendering."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -301,26 +302,31 @@ def _plane_scene(cells: int, pixels: int, light) -> dict:
             "lights": [{"type": "directional", "direction": light, "intensity": 1.0}], "effects": []}
 
 
-def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural):
+@pytest.mark.parametrize("space", ["linear", "srgb"])
+def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural, space):
+    """The renderer reads a feathered set as materialize replays its tiling: blended where the model blends,
+    each texel's heavier source where it cannot (an sRGB PTM)."""
     from btforge.plugins.ptm.model import fit_ptm
     from btforge.plugins.render.geometry import build_mesh
     from btforge.plugins.render.renderer import Counters, render
     from btforge.plugins.render.loader import load_scene
     from btforge.plugins.synth import materialize
     from btforge.plugins.render.tiles import TILING_SEED
-    from btforge.plugins.wang.tiling import tiling_coords
+    from btforge.plugins.wang.tiling import tiling_map
     from btforge.stages import RunPaths
     stack, tiles, _, _ = procedural
-    model = fit_ptm(stack, "rgb")[0]
+    assert tiles.blends  # a linear stack blends, so the seams inside the tiles that stand out are feathered
+    model = dataclasses.replace(fit_ptm(stack, "rgb")[0], space=space)
     light = [0.3, 0.2, 0.93]
     cells = 4
     scene = load_scene(_plane_scene(cells, cells * TILE, light), RunPaths(Path.cwd(), Path.cwd()))
     image = render(scene, {"stone": model, "stone_tiles": tiles}, Counters())
     mesh = build_mesh(scene.spec.meshes[0], scene)
     ids = mesh_tiling(mesh.positions, mesh.triangles, mesh.corner_uv, (cells, cells), tiles, TILING_SEED).grids[0]
-    coords = CoordMap(tiling_coords(tiles, ids), tiles.source_size)
+    coords = tiling_map(tiles, ids)
     relit = materialize(coords=coords, source=model)["output"].evaluate(np.array([light]))[0, 0]
-    np.testing.assert_array_equal(image, relit)
+    # the blended records are summed in another order at lookup (float32): a few ulps
+    np.testing.assert_allclose(image, relit, rtol=1e-5, atol=1e-6)
 
 
 def test_tiled_scene_needs_its_tile_set():
@@ -350,6 +356,82 @@ def test_cube_face_edges_match_and_their_seams_are_reported(procedural):
     assert report["consistent_edges"] == 6 * 2 and report["rotated_edges"] == 6 * 2
     assert report["consistent_mean_ratio"] <= 1.2, report
     print("cube face-edge seams", report)
+
+
+def test_a_feathered_set_keeps_its_blend_layer_through_the_archive_and_the_tiling(procedural, tmp_path):
+    from btforge.plugins.wang.tiling import tiling_map
+    _, tiles, _, _ = procedural
+    assert tiles.blends and 0 < (tiles.blend_weight > 0).mean() < 0.6 and tiles.blend_weight.max() < 0.5
+    tiles.write(tmp_path / "set.wang")
+    back = read_tile_set(tmp_path / "set.wang")
+    for name in ("table", "indices", "blend_indices", "blend_weight"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(tiles, name))
+    ids = plane_tiling(tiles, 2, 3, False, 0)
+    coords = tiling_map(tiles, ids)
+    t = ids[1, 2]
+    lower_right = (slice(TILE, None), slice(2 * TILE, None))
+    np.testing.assert_array_equal(coords.blend_weight[lower_right], tiles.blend_weight[t])
+    np.testing.assert_array_equal(coords.blend_coords[lower_right], tiles.tile_map(t).blend_coords)
+    np.testing.assert_array_equal(coords.coords[lower_right], tiles.tile_coords[t])
+    # The weights are those of the feathered tile maps: no seam inside a tile stays unblended where it stands out,
+    # and a texel that blends keeps its own source as the heavier one.
+    moved = tiles.blend_weight > 0
+    assert (tiles.tile_blend_coords()[moved] != tiles.tile_coords[moved]).any(axis=-1).all()
+
+
+def test_a_plain_set_has_no_blend_layer_and_version_1_archives_still_read(procedural, tmp_path):
+    import json
+    import zipfile
+    stack, _, _, _ = procedural
+    plain, _, _ = build_tile_set(stack, tile=TILE, edge=EDGE, seed=0, feather=0)
+    assert not plain.blends and plain.tile_map(0).blend_weight.size == 0
+    plain.write(tmp_path / "new.wang")
+    with zipfile.ZipFile(tmp_path / "new.wang") as new, zipfile.ZipFile(tmp_path / "old.wang", "w") as old:
+        for name in new.namelist():
+            data = new.read(name)
+            if name == "manifest.json":
+                manifest = json.loads(data)
+                assert manifest["version"] == 2 and manifest["blends"] is False
+                manifest.pop("blends")
+                data = json.dumps({**manifest, "version": 1})
+            old.writestr(name, data)
+    np.testing.assert_array_equal(read_tile_set(tmp_path / "old.wang").indices, plain.indices)
+
+
+def test_tiles_are_feathered_only_where_the_exemplar_blends(procedural):
+    from btforge.plugins.wang import TILE_FEATHER_STEP, feathered_tiles
+    from btforge.plugins.wang.features import appearance_features
+    stack, tiles, _, _ = procedural
+    feats = appearance_features(stack)
+    args = (tiles.tile_coords, tiles.source_size, 1)
+    assert feathered_tiles(*args, False, feats) == {}                 # an sRGB PTM, Lafortune lobes
+    blend = feathered_tiles(*args, True, feats)
+    np.testing.assert_array_equal(blend["blend_weight"], tiles.blend_weight)
+    # a lower threshold feathers more of the seams inside the tiles, never fewer
+    lower = feathered_tiles(*args, True, feats, TILE_FEATHER_STEP / 2)["blend_weight"] > 0
+    assert lower.sum() > (tiles.blend_weight > 0).sum() and lower[tiles.blend_weight > 0].all()
+
+
+def test_the_sheet_shows_each_tile_as_materialize_replays_it(procedural):
+    from btforge.plugins.synth import materialize
+    from btforge.plugins.wang.sheet import relit_exemplar, tile_radiance
+    stack, tiles, _, _ = procedural
+    light = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
+    shown = tile_radiance(tiles, stack, relit_exemplar(stack, light))
+    for t in (0, tiles.n_tiles - 1):
+        replayed = materialize(coords=tiles.tile_map(t), source=stack)["output"]
+        np.testing.assert_allclose(shown[t], relit_exemplar(replayed, light), rtol=1e-5, atol=1e-6)
+
+
+def test_a_bad_blend_layer_is_named(procedural):
+    _, tiles, _, _ = procedural
+    fields = dict(table=tiles.table, indices=tiles.indices, tile_colors=tiles.tile_colors, edge_seams=tiles.edge_seams,
+                  colors_h=2, colors_v=2, source_size=tiles.source_size, edge=tiles.edge)
+    with pytest.raises(BtforgeInputError, match="'blend_indices' .* must both be"):
+        TileSet(**fields, blend_indices=tiles.blend_indices[:, :-1], blend_weight=tiles.blend_weight)
+    with pytest.raises(BtforgeInputError, match="'blend_weight' must lie in") as info:
+        TileSet(**fields, blend_indices=tiles.blend_indices + len(tiles.table), blend_weight=tiles.blend_weight + 1)
+    assert "'blend_indices' must lie in" in str(info.value)  # both problems at once
 
 
 def test_graph_runs_write_read_sheet_and_info(tmp_path):

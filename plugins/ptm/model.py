@@ -88,6 +88,18 @@ class PTMModel(ReflectanceModel):
         # srgb polynomial is decoded per light after evaluation, so its coefficients do not mix like radiance.
         return self.variant == "rgb" and self.space == "linear"
 
+    def blendable_form(self) -> "PTMModel | None":
+        """A linear lrgb PTM as the rgb PTM of the same functions (each channel's polynomial is its colour times the
+        luminance polynomial), whose coefficients blend as the functions do; None for an srgb lrgb PTM, whose
+        values are decoded after evaluation."""
+        if self.blendable:
+            return self
+        if self.variant != "lrgb" or self.space != "linear":
+            return None
+        coeffs = self.albedo[:, :, :, None] * self.coeffs  # [H, W, C, 6]: albedo [H, W, C] x luminance [H, W, 1, 6]
+        empty = np.zeros(self.coeffs.shape[:2] + (0,), np.float32)
+        return dataclasses.replace(self, coeffs=coeffs.astype(np.float32), albedo=empty, variant="rgb")
+
     def with_basis(self, basis: str) -> "PTMModel":
         """The same functions with coefficients in the ``raw`` or ``orthonormal`` (Legendre) basis."""
         if basis == self.basis:

@@ -206,6 +206,8 @@ class ModelShader:
 
     def __init__(self, name: str, model: ReflectanceModel, coord_map: CoordMap | None, uv: np.ndarray, wrap: str,
                  texels: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        if coord_map is not None and coord_map.blend_weight.size and not model.blendable:
+            model = model.blendable_form() or model  # blends as synth.materialize replays them, where it can
         self.name, self.model = name, model
         grid = (coord_map.height, coord_map.width) if coord_map is not None else (model.height, model.width)
         # ``texels``: the model's (rows, cols, weights) around each sample, found by the caller (a tile set)
@@ -446,7 +448,10 @@ def _shader_groups(built: BuiltScene, materials: Mapping[str, Any], groups, prim
         model = materials[spec.material]
         if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
             from .tiles import tiled_texels
-            texels = tiled_texels(built, mi, materials[f"{spec.material}_tiles"], prim[sel], uv[sel])
+            tiles = materials[f"{spec.material}_tiles"]
+            if tiles.blends and not model.blendable:
+                model = model.blendable_form() or model  # blends as synth.materialize replays a tiling
+            texels = tiled_texels(built, mi, tiles, prim[sel], uv[sel], blend=model.blendable)
             shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
             continue
         coord_map = materials.get(f"{spec.material}_map") if spec.coord_map else None

@@ -38,9 +38,10 @@ def tiling_of(built, mesh_index: int, tiles: TileSet) -> MeshTiling:
     return built.tilings[key]
 
 
-def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, uv: np.ndarray):
+def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, uv: np.ndarray, blend: bool = True):
     """``(rows, cols, weights)`` ``[4, N]`` of the exemplar texels around each sample (the renderer's bilinear
-    corners), read through the mesh's tiling."""
+    corners), read through the mesh's tiling; ``[8, N]`` where the set has a blend layer and the model blends
+    (``blend``): each corner's partner with its share of the corner's weight (else each corner's heavier texel)."""
     mesh = built.meshes[mesh_index]
     tiling = tiling_of(built, mesh_index, tiles)
     nu, nv = cells_of(mesh.spec)
@@ -50,7 +51,15 @@ def tiled_texels(built, mesh_index: int, tiles: TileSet, triangles: np.ndarray, 
     rows, cols, weights = texel_corners(uv, nv * w, nu * w, wrap)
     chart = np.broadcast_to(tiling.charts[triangles], rows.shape)
     tile = grids[chart, rows // w, cols // w]
-    btfel = tiles.indices[tile, rows % w, cols % w]
+    at = (tile, rows % w, cols % w)
+    btfel = tiles.indices[at]
+    if tiles.blends:
+        share = tiles.blend_weight[at].astype(np.float64)
+        if blend:
+            btfel = np.concatenate([btfel, tiles.blend_indices[at]])
+            weights = np.concatenate([weights * (1 - share), weights * share])
+        else:
+            btfel = np.where(share > 0.5, tiles.blend_indices[at], btfel)
     texels = tiles.table[btfel]
     return texels[..., 0].astype(np.int64), texels[..., 1].astype(np.int64), weights
 

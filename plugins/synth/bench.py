@@ -136,8 +136,13 @@ class WangTiling:
         rows, cols = (-(-int(side) // tiles.tile) for side in size)
         laid = stage("wang.tiling")(tiles=tiles, rows=rows, cols=cols, seed=seed)["coords"]
         h, w = (int(side) for side in size)
-        return {"coords": CoordMap(np.ascontiguousarray(laid.coords[:h, :w]), laid.source_size, wrap=False,
-                                   tile=laid.tile)}
+        return {"coords": CoordMap(_top_left(laid.coords, h, w), laid.source_size, _top_left(laid.blend_coords, h, w),
+                                   _top_left(laid.blend_weight, h, w), wrap=False, tile=laid.tile)}
+
+
+def _top_left(array: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The first ``height`` rows and ``width`` columns of a map's layer (an empty blend layer as it is)."""
+    return np.ascontiguousarray(array[:height, :width]) if array.size else array
 
 
 def bench_synthesizers(only: set[str]) -> dict:

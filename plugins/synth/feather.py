@@ -9,9 +9,10 @@ other in ``2 * band + 1`` equal steps.  Every texel keeps its own source as the 
 (and everything measured from its dominant sources) stay where they were.  Only the seams whose step is larger
 than the exemplar's own steps around the two sources are feathered (:data:`FEATHER_STEP`).
 
-The blend layer replays exactly only on buffers whose records blend as their functions do (``blendable``: a linear
-RGB PTM, SH, a linear stack); on the others ``remap`` keeps each texel's heavier source and the output would be the
-unfeathered one, so those maps are left without a blend layer.  ``synth.score`` measures a blended map's seams over
+The blend layer replays exactly only on buffers that have a form whose records blend as their functions do
+(``blendable_form``: a linear PTM, which an lrgb one reaches as the rgb PTM of the same functions, SH, a linear
+stack); on the others (an sRGB PTM, Lafortune lobes) ``remap`` keeps each texel's heavier source and the output
+would be the unfeathered one, so those maps are left without a blend layer.  ``synth.score`` measures a blended map's seams over
 the blended band (:func:`.visibility.seam_visibility`), so a feathered step counts with its sharpest part.
 """
 from __future__ import annotations
@@ -42,7 +43,7 @@ def feathered(coords: CoordMap, band: int, blendable: bool = True, features: np.
               step: float = FEATHER_STEP) -> CoordMap:
     """``coords`` with the texels within ``band`` of a seam edge blended with the source across that edge,
     continued to them (the nearest edge where several are in reach; columns' edges before rows' on a tie).  The map
-    is returned as it is where ``band`` is 0, the exemplar is not ``blendable``, or the map has a blend layer.
+    is returned as it is where ``band`` is 0, the exemplar has no blendable form, or the map has a blend layer.
     With the exemplar's appearance vectors ``features [h, w, D]``, only the seam edges whose step between the two
     sources' vectors is over ``step`` x the exemplar's steps around them are feathered (without: every one)."""
     if band <= 0 or not blendable or coords.blend_weight.size:

@@ -18,7 +18,7 @@ from btforge import Param, declare_stage
 from btforge.errors import BtforgeInputError
 
 from .bridging import TRIES as BRIDGE_TRIES
-from .feather import FEATHER, MAX_FEATHER
+from .feather import FEATHER, FEATHER_STEP, MAX_FEATHER
 from .recut import PASSES as RECUT_PASSES
 from .refine import POLISH_WINDOW, SEAM_WEIGHT
 from .scan_order import level_sizes
@@ -137,13 +137,15 @@ def seam_weight_param(default: float) -> Param:
                  "the windows' match alone", low=0.0, high=1000.0)
 
 
-def feather_param(default: int) -> Param:
-    """The ``feather`` param of a synthesizer whose map's seams may be cross-faded (:mod:`.feather`)."""
+def feather_param(default: int, step: float = FEATHER_STEP) -> Param:
+    """The ``feather`` param of a synthesizer whose map's seams may be cross-faded (:mod:`.feather`) where their
+    step is over ``step`` x the exemplar's own steps around them."""
     return Param("feather", "int", default, "texels on either side of a seam that cross-fade from one side's "
                  "content to the other's, through the map's blend layer, where the step across the seam is over "
-                 "1.5 x the exemplar's own steps around its two sources: a cut between smooth areas reads as a "
-                 "ramp, not a step; only on exemplars whose records blend as their functions do (a linear RGB PTM, "
-                 "SH, a linear stack), the others keep a plain map (0: off)", low=0, high=MAX_FEATHER)
+                 f"{step:g} x the exemplar's own steps around its two sources: a cut between smooth areas reads as a "
+                 "ramp, not a step; only on exemplars whose functions blend exactly (a linear PTM, whose lrgb form "
+                 "replays as rgb where it blends, SH, a linear stack), the others (an sRGB PTM) keep a plain map "
+                 "(0: off)", low=0, high=MAX_FEATHER)
 
 
 def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,

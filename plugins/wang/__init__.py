@@ -17,7 +17,8 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.synth.synthesizer import seam_weight_param
+from btforge.plugins.synth.feather import FEATHER, feathered
+from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
 from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
 from .tileset import TileSet
@@ -25,6 +26,11 @@ from .tileset import TileSet
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 SEARCH_DIMS = 16  # principal components of the appearance features the placement search compares
+#: The seams inside the tiles are feathered where their step is over this many times the exemplar's own steps
+#: around the two sources (the synthesizers: 1.5).  The tiles' interiors are cut into smaller pieces than the
+#: synthesizers' outputs: at 1.5 a tenth of plaster's texels blended, against a twentieth for k-coherence, and
+#: the cross-fades softened its grain (SWD over the shuffled blocks +0.19, a miss); at 2 the share is comparable.
+TILE_FEATHER_STEP = 2.0
 
 
 def texel_bytes(buffer) -> int:
@@ -34,9 +40,10 @@ def texel_bytes(buffer) -> int:
 
 
 def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed=0, cut="graph",
-                   engine="opencl", optimise=None, **options):
+                   engine="opencl", optimise=None, feather=FEATHER, **options):
     """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles`` (``optimise``: keywords
-    of :func:`.optimise.optimise_tiles`, its defaults when left out; ``{"iterations": 0}`` turns it off)."""
+    of :func:`.optimise.optimise_tiles`, its defaults when left out; ``{"iterations": 0}`` turns it off;
+    ``feather``: the band of :func:`btforge.plugins.synth.feather.feathered` over each tile's interior seams)."""
     from . import seams
     from .features import appearance_features, search_features
     from .synthesis import synthesize_tiles
@@ -53,10 +60,28 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     reference = seams.exemplar_reference(full)
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
     edge_seams = (measured["edges"] / np.maximum(ref_mean, 1e-30)).astype(np.float32)
+    source_size = (exemplar.height, exemplar.width)
+    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, exemplar.blendable_form() is not None, full,
+                            TILE_FEATHER_STEP)
     tiles = TileSet.from_coords(synthesis.tile_coords, synthesis.tile_colors, edge_seams, colors_h=colors[0],
-                                colors_v=colors[1], source_size=(exemplar.height, exemplar.width), edge=h,
-                                variants=variants, texel_bytes=texel_bytes(exemplar))
+                                colors_v=colors[1], source_size=source_size, edge=h, variants=variants,
+                                texel_bytes=texel_bytes(exemplar), **blend)
     return tiles, synthesis, seams.seam_ratios(measured, reference)
+
+
+def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, blendable: bool, feats: np.ndarray,
+                    step: float = TILE_FEATHER_STEP) -> dict:
+    """The blend layer (``blend_coords``, ``blend_weight``; empty where nothing blends) that feathers the seams
+    inside each tile as the synthesizers feather theirs.  Each tile is feathered on its own: the seams across a
+    tile border continue the shared edge strips, and the measure leaves the borders out."""
+    partners, weights = tile_coords.copy(), np.zeros(tile_coords.shape[:3], np.float32)
+    for t, coords in enumerate(tile_coords):
+        tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, blendable, feats, step)
+        if tile_map.blend_weight.size:
+            partners[t], weights[t] = tile_map.blend_coords, tile_map.blend_weight
+    if not weights.any():
+        return {}
+    return {"blend_coords": partners, "blend_weight": weights}
 
 
 @declare_stage(
@@ -115,11 +140,12 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
               "(the tiles are refined laid as one valid periodic tiling, so the texels beyond see their neighbours)",
               low=1, high=256),
         seam_weight_param(SEAM_WEIGHT),
+        feather_param(FEATHER, TILE_FEATHER_STEP),
     ],
-    version="15",  # 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="16",  # 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight):
+               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight, feather):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -132,8 +158,9 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     similar areas, and lanes of them would run along every tile border.  A usage term (``usage``) spreads the
     patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``contrast``,
-    ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left.  Distances are Euclidean in the
-    exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
+    ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left, and the seams inside the tiles that
+    still stand out are cross-faded (``feather``, as the synthesizers do, on exemplars that blend).  Distances are
+    Euclidean in the exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
     ``colors[0]^2 * colors[1]^2 * variants`` tiles is built.  The report gives the time per step, the BTFel
     statistics (referenced share, bytes of table and indices) and the seam ratios.
@@ -147,7 +174,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     h = tile // 4 if edge == 0 else edge
     check_sizes((exemplar.height, exemplar.width), tile, h, colors)
     tiles, synthesis, ratios = build_tile_set(exemplar, tile=tile, edge=edge, colors=colors, variants=variants,
-                                              seed=seed, usage_weight=usage, usage_unit=usage_unit,
+                                              seed=seed, feather=feather, usage_weight=usage, usage_unit=usage_unit,
                                               interior=interior, centre=centre, edge_centre=edge_centre,
                                               typical=typical, rare=rare,
                                               relax=relax,
@@ -182,10 +209,10 @@ def wang_tiling(ctx, tiles, *, rows, cols, periodic, seed):
     carries the tile size (``CoordMap.tile``), so seam measures can leave the tile borders out.
     """
     from .seams import tiling_report
-    from .tiling import plane_tiling, tiling_coords
+    from .tiling import plane_tiling, tiling_map
     ids = plane_tiling(tiles, rows, cols, periodic, seed)
     ctx.note("tiling", tiling_report(ids, tiles.tile_colors, tiles.n_tiles, periodic))
-    return {"coords": CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=periodic, tile=tiles.tile)}
+    return {"coords": tiling_map(tiles, ids, periodic)}
 
 
 @declare_stage("wang.write_tiles", deprecated_names=("tiles.write",), inputs={"tiles": "TileSet"},

@@ -32,13 +32,12 @@ def tile_sheet(tiles, exemplar, light, columns: int = 0, gap: int = 0) -> np.nda
     gap = gap or 2 * bar
     image = relit_exemplar(exemplar, np.asarray(light, np.float64) / np.linalg.norm(light))
     white = max(float(np.percentile(image, 99.5)), 1e-6)
-    texels = linear_to_srgb8(image / white)
+    shown = linear_to_srgb8(tile_radiance(tiles, exemplar, image) / white)       # [T, w, w, 3]
     n = tiles.n_tiles
     columns = columns or int(np.ceil(np.sqrt(n)))
     rows = int(np.ceil(n / columns))
     cell = w + 2 * bar + gap
     out = np.full((rows * cell + gap, columns * cell + gap, 3), 255, np.uint8)
-    coords = tiles.tile_coords
 
     def h_colour(c):
         return PALETTE[c % len(PALETTE)]
@@ -53,5 +52,20 @@ def tile_sheet(tiles, exemplar, light, columns: int = 0, gap: int = 0) -> np.nda
         out[y0 + bar + w:y0 + 2 * bar + w, x0 + bar:x0 + bar + w] = h_colour(south)
         out[y0 + bar:y0 + bar + w, x0:x0 + bar] = v_colour(west)
         out[y0 + bar:y0 + bar + w, x0 + bar + w:x0 + 2 * bar + w] = v_colour(east)
-        out[y0 + bar:y0 + bar + w, x0 + bar:x0 + bar + w] = texels[coords[t, ..., 0], coords[t, ..., 1]]
+        out[y0 + bar:y0 + bar + w, x0 + bar:x0 + bar + w] = shown[t]
     return out
+
+
+def tile_radiance(tiles, exemplar, image: np.ndarray) -> np.ndarray:
+    """``[T, w, w, 3]``: every tile's texels of the relit exemplar ``image``, cross-faded by the set's blend layer as
+    ``synth.materialize`` replays it (blended where the exemplar has a blendable form, else the heavier texel)."""
+    coords = tiles.tile_coords
+    own = image[coords[..., 0], coords[..., 1]]
+    if not tiles.blends:
+        return own
+    partners = tiles.tile_blend_coords()
+    other = image[partners[..., 0], partners[..., 1]]
+    weight = tiles.blend_weight[..., None]
+    if exemplar.blendable_form() is None:
+        return np.where(weight > 0.5, other, own)
+    return (1 - weight) * own + weight * other

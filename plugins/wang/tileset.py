@@ -3,7 +3,9 @@
 Tiles are never copies of reflectance data.  The **BTFel table** lists, once each, the exemplar texels any tile
 references (``table [B, 2]`` row, column, sorted); each tile is a ``w x w`` map of indices into it
 (``indices [T, w, w]``).  Tile ``t``'s coordinate map into the exemplar is ``table[indices[t]]``; replaying it on
-any per-texel buffer of the exemplar gives the tile's texels (Leung et al. 2007, section 5.3 and Table III).
+any per-texel buffer of the exemplar gives the tile's texels (Leung et al. 2007, section 5.3 and Table III).  A set
+whose interior seams are feathered also has a blend layer: ``blend_indices [T, w, w]`` into the same table and
+``blend_weight [T, w, w]`` (0 where a texel does not blend), replayed as a coordinate map's blend layer is.
 
 Colours: tile ``t`` has ``tile_colors[t] = (N, E, S, W)``; N and S take one of ``colors_h`` horizontal-edge
 colours, E and W one of ``colors_v`` vertical-edge colours.  Two tiles may sit side by side when the left one's
@@ -15,9 +17,11 @@ distance in that direction (1 = as smooth as the exemplar).
 
 **File format** (``wang.write_tiles``, ``.wang``): a ZIP archive holding ``manifest.json`` and one ``.npy`` file per
 array (``table.npy`` int32 [B, 2], ``indices.npy`` int32 [T, w, w], ``tile_colors.npy`` int32 [T, 4],
-``edge_seams.npy`` float32 [T, 4]).  The manifest: ``{"format": "btforge-wang-tiles", "version": 1,
-"colors_h", "colors_v", "variants", "tile", "edge", "source_size": [H, W], "texel_bytes", "tiles",
+``edge_seams.npy`` float32 [T, 4], and with a blend layer ``blend_indices.npy`` int32 [T, w, w] and
+``blend_weight.npy`` float32 [T, w, w]).  The manifest: ``{"format": "btforge-wang-tiles", "version": 2,
+"colors_h", "colors_v", "variants", "tile", "edge", "source_size": [H, W], "texel_bytes", "tiles", "blends",
 "btfels"}``; ``texel_bytes`` is the size of one exemplar texel of the representation the set was built on.
+Version 1 archives (no blend layer) are read as they are.
 """
 from __future__ import annotations
 
@@ -35,8 +39,10 @@ from btforge.errors import BtforgeInputError, file_reader
 from btforge.spill import read_npy
 
 FORMAT = "btforge-wang-tiles"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
 ARRAYS = ("table", "indices", "tile_colors", "edge_seams")
+BLEND_ARRAYS = ("blend_indices", "blend_weight")  # written and read only where the set has a blend layer
 
 
 LARGEST = 1 << 31  # bound of every size and count of a tile set
@@ -62,6 +68,8 @@ class TileSet(Buffer):
     edge: int
     variants: int = 1
     texel_bytes: int = 0
+    blend_indices: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 0), np.int32))
+    blend_weight: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 0), np.float32))
 
     def __post_init__(self):
         owner = "TileSet"
@@ -86,6 +94,7 @@ class TileSet(Buffer):
             problems.append(f"'table' must lie inside the {src_h} x {src_w} exemplar")
         if self.indices.size and (self.indices.min() < 0 or self.indices.max() >= len(self.table)):
             problems.append(f"'indices' must lie in [0, {len(self.table)})")
+        problems += self._blend_problems()
         n, e, s, w = self.tile_colors.T
         if t and (min(n.min(), s.min(), e.min(), w.min()) < 0 or max(n.max(), s.max()) >= self.colors_h
                   or max(e.max(), w.max()) >= self.colors_v):
@@ -95,21 +104,42 @@ class TileSet(Buffer):
         for name in ("colors_h", "colors_v", "edge", "variants", "texel_bytes"):
             object.__setattr__(self, name, int(getattr(self, name)))
         object.__setattr__(self, "source_size", (src_h, src_w))
-        for name in ARRAYS:
+        for name in ARRAYS + BLEND_ARRAYS:
             object.__setattr__(self, name, frozen(getattr(self, name)))
+
+    def _blend_problems(self) -> list[str]:
+        """What is wrong with the blend layer, if anything (none, or one of the indices' shape into the table)."""
+        if not self.blend_indices.size and not self.blend_weight.size:
+            return []
+        shape = self.indices.shape
+        index, weight = np.asarray(self.blend_indices), np.asarray(self.blend_weight)
+        if index.shape != shape or weight.shape != shape or index.dtype != np.int32 or weight.dtype != np.float32:
+            return [f"'blend_indices' (int32) and 'blend_weight' (float32) must both be {list(shape)} like 'indices', "
+                    f"found {index.dtype} {list(index.shape)} and {weight.dtype} {list(weight.shape)}"]
+        problems = []
+        if index.min() < 0 or index.max() >= len(self.table):
+            problems.append(f"'blend_indices' must lie in [0, {len(self.table)})")
+        if not np.isfinite(weight).all() or weight.min() < 0 or weight.max() > 1:
+            problems.append("'blend_weight' must lie in [0, 1]")
+        return problems
 
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
     def from_coords(cls, tile_coords: np.ndarray, tile_colors, edge_seams, *, colors_h: int, colors_v: int,
-                    source_size, edge: int, variants: int = 1, texel_bytes: int = 0) -> "TileSet":
-        """Build the BTFel table of tiles given as coordinate maps ``[T, w, w, 2]`` into the exemplar."""
+                    source_size, edge: int, variants: int = 1, texel_bytes: int = 0,
+                    blend_coords: np.ndarray | None = None, blend_weight: np.ndarray | None = None) -> "TileSet":
+        """Build the BTFel table of tiles given as coordinate maps ``[T, w, w, 2]`` into the exemplar (with their
+        blend layer: partners ``blend_coords [T, w, w, 2]`` and weights ``blend_weight [T, w, w]``)."""
         src_w = int(source_size[1])
-        flat = tile_coords[..., 0].astype(np.int64) * src_w + tile_coords[..., 1]
+        maps = [tile_coords] if blend_weight is None else [tile_coords, blend_coords]
+        flat = np.stack([m[..., 0].astype(np.int64) * src_w + m[..., 1] for m in maps])
         unique, inverse = np.unique(flat, return_inverse=True)
+        inverse = inverse.reshape(flat.shape).astype(np.int32)
         table = np.stack([unique // src_w, unique % src_w], 1).astype(np.int32)
-        return cls(table, inverse.reshape(flat.shape).astype(np.int32), np.asarray(tile_colors, np.int32),
-                   np.asarray(edge_seams, np.float32), colors_h, colors_v, tuple(source_size), edge, variants,
-                   texel_bytes)
+        blend = {} if blend_weight is None else {"blend_indices": inverse[1],
+                                                 "blend_weight": np.asarray(blend_weight, np.float32)}
+        return cls(table, inverse[0], np.asarray(tile_colors, np.int32), np.asarray(edge_seams, np.float32),
+                   colors_h, colors_v, tuple(source_size), edge, variants, texel_bytes, **blend)
 
     # -- views -----------------------------------------------------------------------------------------
     @property
@@ -125,9 +155,22 @@ class TileSet(Buffer):
         """``[T, w, w, 2]`` int32 exemplar coordinates of every tile texel, replayed from the BTFel table."""
         return self.table[self.indices]
 
+    @property
+    def blends(self) -> bool:
+        return bool(self.blend_weight.size)
+
+    def tile_blend_coords(self) -> np.ndarray:
+        """``[T, w, w, 2]`` int32 exemplar coordinates of every tile texel's blend partner (a set with a blend
+        layer)."""
+        return self.table[self.blend_indices]
+
     def tile_map(self, index: int) -> CoordMap:
-        """One tile as a coordinate map (for ``synth.materialize``)."""
-        return CoordMap(np.ascontiguousarray(self.tile_coords[index]), self.source_size)
+        """One tile as a coordinate map, with its blend layer if any (for ``synth.materialize``)."""
+        if not self.blends:
+            return CoordMap(np.ascontiguousarray(self.tile_coords[index]), self.source_size)
+        return CoordMap(np.ascontiguousarray(self.tile_coords[index]), self.source_size,
+                        blend_coords=np.ascontiguousarray(self.table[self.blend_indices[index]]),
+                        blend_weight=np.ascontiguousarray(self.blend_weight[index]))
 
     def lookup(self, n: int, e: int, s: int, w: int) -> np.ndarray:
         """Indices of the tiles (variants) with colours N, E, S, W."""
@@ -157,7 +200,7 @@ class TileSet(Buffer):
         return {"format": FORMAT, "version": VERSION, "colors_h": self.colors_h, "colors_v": self.colors_v,
                 "variants": self.variants, "tile": self.tile, "edge": self.edge,
                 "source_size": list(self.source_size), "texel_bytes": self.texel_bytes, "tiles": self.n_tiles,
-                "btfels": int(len(self.table))}
+                "btfels": int(len(self.table)), "blends": self.blends}
 
     def write(self, path) -> None:
         """Write the ``.wang`` archive (module docstring) atomically."""
@@ -165,7 +208,7 @@ class TileSet(Buffer):
         with atomic_output_path(Path(path)) as temporary:
             with zipfile.ZipFile(temporary, "w", zipfile.ZIP_DEFLATED) as archive:
                 archive.writestr("manifest.json", json.dumps(self.manifest(), indent=2))
-                for name in ARRAYS:
+                for name in ARRAYS + (BLEND_ARRAYS if self.blends else ()):
                     bio = io.BytesIO()
                     np.save(bio, getattr(self, name), allow_pickle=False)
                     archive.writestr(f"{name}.npy", bio.getvalue())
@@ -187,9 +230,10 @@ def read_manifest(path) -> tuple[dict, zipfile.ZipFile]:
         archive.close()
         raise BtforgeInputError(str(path), f"expected manifest format '{FORMAT}', found "
                                 f"{manifest.get('format') if isinstance(manifest, dict) else manifest!r}")
-    if manifest.get("version") != VERSION:
+    if manifest.get("version") not in READABLE_VERSIONS:
         archive.close()
-        raise BtforgeInputError(str(path), f"expected format version {VERSION}, found {manifest.get('version')!r}",
+        raise BtforgeInputError(str(path), f"expected format version {' or '.join(map(str, READABLE_VERSIONS))}, "
+                                f"found {manifest.get('version')!r}",
                                 "rewrite it with this btforge's wang.write_tiles")
     return manifest, archive
 
@@ -199,7 +243,7 @@ def read_tile_set(path) -> TileSet:
     manifest, archive = read_manifest(path)
     with archive:
         arrays = {}
-        for name in ARRAYS:
+        for name in ARRAYS + (BLEND_ARRAYS if manifest.get("blends") is True else ()):
             try:
                 data = archive.read(f"{name}.npy")
                 arrays[name] = read_npy(io.BytesIO(data), len(data), f"{path}, {name}.npy")
@@ -208,9 +252,10 @@ def read_tile_set(path) -> TileSet:
     missing = [k for k in ("colors_h", "colors_v", "source_size", "edge", "variants", "texel_bytes") if k not in manifest]
     if missing:
         raise BtforgeInputError(f"{path} manifest.json", f"lacks {', '.join(missing)}")
+    blend = {name: arrays[name] for name in BLEND_ARRAYS if name in arrays}
     return TileSet(arrays["table"], arrays["indices"], arrays["tile_colors"], arrays["edge_seams"],
                    manifest["colors_h"], manifest["colors_v"], tuple(manifest["source_size"]), manifest["edge"],
-                   manifest["variants"], manifest["texel_bytes"])
+                   manifest["variants"], manifest["texel_bytes"], **blend)
 
 
 def describe(path) -> dict:

@@ -17,6 +17,7 @@ import dataclasses
 
 import numpy as np
 
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
 N, E, S, W = range(4)
@@ -117,10 +118,22 @@ def plane_tiling(tiles, rows: int, cols: int, periodic: bool, seed: int) -> np.n
 
 def tiling_coords(tiles, ids: np.ndarray) -> np.ndarray:
     """The coordinate map ``[rows * w, cols * w, 2]`` of a tiling: tile (i, j) at rows i*w.., columns j*w.."""
-    rows, cols = ids.shape
-    w = tiles.tile
-    coords = tiles.tile_coords[ids]                                   # [rows, cols, w, w, 2]
-    return np.ascontiguousarray(coords.transpose(0, 2, 1, 3, 4).reshape(rows * w, cols * w, 2))
+    return _laid(tiles.tile_coords[ids])
+
+
+def tiling_map(tiles, ids: np.ndarray, wrap: bool = False) -> CoordMap:
+    """The tiling's coordinate map, with the tiles' blend layer laid out the same way where the set has one."""
+    blend = {}
+    if tiles.blends:
+        blend = {"blend_coords": _laid(tiles.tile_blend_coords()[ids]), "blend_weight": _laid(tiles.blend_weight[ids])}
+    return CoordMap(tiling_coords(tiles, ids), tiles.source_size, wrap=wrap, tile=tiles.tile, **blend)
+
+
+def _laid(per_tile: np.ndarray) -> np.ndarray:
+    """``[rows, cols, w, w, ...]`` per-tile arrays laid out as one ``[rows * w, cols * w, ...]`` grid."""
+    rows, cols, w = per_tile.shape[:3]
+    grid = per_tile.transpose(0, 2, 1, 3, *range(4, per_tile.ndim))
+    return np.ascontiguousarray(grid.reshape(rows * w, cols * w, *per_tile.shape[4:]))
 
 
 def is_periodic(ids: np.ndarray) -> bool:
