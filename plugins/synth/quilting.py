@@ -54,6 +54,11 @@ AUTO_CONTRAST = 8.0
 #: (1.305 -> 1.26); SWD over the shuffled blocks rises by 0.03 at the median.  At 4 seams fall further but SWD rises on
 #: 16 of the 21 (the fibres 1.26 -> 1.43, Benchmarks).
 SEAM_WEIGHT = 2.0
+#: Quilting feathers the seams whose step is over 2 x the exemplar's steps around their sources (the shared
+#: default: 1.5).  At 1.5 its cuts across the fibres blended a ninth of their texels and the fibres' SWD over the
+#: shuffled blocks rose from 1.42 to 1.58 over four seeds (a miss); at 2 it is 1.48, and the bumps' seams still pass
+#: (1.13 against 1.09, Benchmarks).
+FEATHER_STEP = 2.0
 
 
 # ----------------------------------------------------------------------------------------------- layout
@@ -297,7 +302,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="17",  # 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="17",  # 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -315,7 +320,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
               "matches itself better than the rest does)", low=0.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
-        *refine_params(auto_weight=AUTO_CONTRAST, seam_weight=SEAM_WEIGHT),
+        *refine_params(auto_weight=AUTO_CONTRAST, seam_weight=SEAM_WEIGHT, feather_step=FEATHER_STEP),
     ],
 )
 def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,
@@ -374,7 +379,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, contrast=contrast, auto_weight=AUTO_CONTRAST, polish=polish,
                      seam_weight=seam_weight)
-    return {"coords": feathered(coords, feather, exemplar.blendable_form() is not None, feats)}
+    return {"coords": feathered(coords, feather, exemplar.blendable_form() is not None, feats, FEATHER_STEP)}
 
 
 STAGES = [quilt]

@@ -81,7 +81,8 @@ POLISH = 1
 def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scales: int = SCALES,
                   window: int | None = None, coarse_refine: int | None = None, polish: int = POLISH,
                   auto_weight: float = AUTO_CONTRAST, large_weight: float = 0.0,
-                  seam_weight: float = SEAM_WEIGHT, feather: int = FEATHER) -> list[Param]:
+                  seam_weight: float = SEAM_WEIGHT, feather: int = FEATHER,
+                  feather_step: float = FEATHER_STEP) -> list[Param]:
     """The params of the shared refinement (:mod:`.refine`): ``refine`` rounds, the ``occurrence`` weight and the
     coarser ``scales`` refined first; with ``window`` also a ``window`` param (the windows' side, by default
     :data:`WINDOW` without the param), with ``coarse_refine`` also a ``coarse_refine`` param (the rounds at each
@@ -89,8 +90,8 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
     param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
     ``auto_weight``, ``large_weight``: the contrast weights the automatic ``contrast`` takes where the exemplar is
     about as large as the output and where the output is larger (:func:`auto_contrast`); ``seam_weight``: the
-    default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost); ``feather``: the
-    default of the ``feather`` param (:func:`feather_param`)."""
+    default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost); ``feather``,
+    ``feather_step``: the default of the ``feather`` param and the threshold it feathers at (:func:`feather_param`)."""
     extra = [] if window is None else [
         Param("window", "int", window, "side in texels of the refinement's windows, at every scale: larger windows "
               "keep larger pieces of the exemplar whole (longer fibres, whole colour areas) and reach further at "
@@ -105,7 +106,7 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
                        "contrast term): the cuts the earlier rounds left where windows met move to where the content "
                        "agrees, while the exemplar areas used stay (0: none)", low=0, high=10))
     extra.append(seam_weight_param(seam_weight))
-    extra.append(feather_param(feather))
+    extra.append(feather_param(feather, feather_step))
     side = WINDOW if window is None else window
     shown = f"{side} x {side}" if window is None else f"'window' x 'window' ({side} x {side} by default)"
     return [Param("refine", "int", refine, "rounds of texture optimisation the map goes through at the end: "
