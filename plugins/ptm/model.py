@@ -92,10 +92,8 @@ class PTMModel(ReflectanceModel):
         """A linear lrgb PTM as the rgb PTM of the same functions (each channel's polynomial is its colour times the
         luminance polynomial), whose coefficients blend as the functions do; None for an srgb lrgb PTM, whose
         values are decoded after evaluation."""
-        if self.blendable:
-            return self
         if self.variant != "lrgb" or self.space != "linear":
-            return None
+            return super().blendable_form()   # itself where linear rgb, else None
         coeffs = self.albedo[:, :, :, None] * self.coeffs  # [H, W, C, 6]: albedo [H, W, C] x luminance [H, W, 1, 6]
         empty = np.zeros(self.coeffs.shape[:2] + (0,), np.float32)
         return dataclasses.replace(self, coeffs=coeffs.astype(np.float32), albedo=empty, variant="rgb")

@@ -40,19 +40,22 @@ def feather_weight(distance: int, band: int) -> float:
 
 
 def feathered(coords: CoordMap, band: int, blendable: bool = True, features: np.ndarray | None = None,
-              step: float = FEATHER_STEP) -> CoordMap:
+              step: float = FEATHER_STEP, steps: np.ndarray | None = None) -> CoordMap:
     """``coords`` with the texels within ``band`` of a seam edge blended with the source across that edge,
     continued to them (the nearest edge where several are in reach; columns' edges before rows' on a tie).  The map
     is returned as it is where ``band`` is 0, the exemplar has no blendable form, or the map has a blend layer.
     With the exemplar's appearance vectors ``features [h, w, D]``, only the seam edges whose step between the two
-    sources' vectors is over ``step`` x the exemplar's steps around them are feathered (without: every one)."""
+    sources' vectors is over ``step`` x the exemplar's steps around them are feathered (without: every one);
+    ``steps``: :func:`local_steps` of ``features``, where the caller feathers many maps of one exemplar."""
     if band <= 0 or not blendable or coords.blend_weight.size:
         return coords
     src = dominant_source(coords)
     h, w = src.shape[:2]
     across_columns, across_rows = seam_masks(src[..., 0], src[..., 1], coords.wrap)
     if features is not None and step > 0:
-        across_columns, across_rows = _visible(features, src, across_columns, across_rows, step)
+        if steps is None:
+            steps = local_steps(np.asarray(features, np.float32))
+        across_columns, across_rows = _visible(features, steps, src, across_columns, across_rows, step)
     nearest = np.full((h, w), band + 1, np.int64)
     partner = src.copy()
     weight = np.zeros((h, w), np.float32)
@@ -90,13 +93,12 @@ def _across(src: np.ndarray, edges: np.ndarray, axis: int, side: int, distance: 
     return (texel[keep, 0], texel[keep, 1]), continued[keep]
 
 
-def _visible(features: np.ndarray, src: np.ndarray, across_columns: np.ndarray, across_rows: np.ndarray,
-             step: float) -> list[np.ndarray]:
+def _visible(features: np.ndarray, steps: np.ndarray, src: np.ndarray, across_columns: np.ndarray,
+             across_rows: np.ndarray, step: float) -> list[np.ndarray]:
     """``across_columns, across_rows`` without the seam edges whose step between the two sources' appearance
-    vectors is at most ``step`` x the mean of the two sources' local steps (:func:`local_steps`)."""
-    f = np.asarray(features, np.float32)
-    local = local_steps(f)[src[..., 0], src[..., 1]]
-    here = f[src[..., 0], src[..., 1]]
+    vectors is at most ``step`` x the mean of the two sources' local steps (``steps``, :func:`local_steps`)."""
+    local = steps[src[..., 0], src[..., 1]]
+    here = np.asarray(features, np.float32)[src[..., 0], src[..., 1]]
     kept = []
     for axis, edges in ((1, across_columns), (0, across_rows)):
         jump = np.linalg.norm(np.roll(here, -1, axis=axis) - here, axis=2)

@@ -17,7 +17,7 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.synth.feather import FEATHER, feathered
+from btforge.plugins.synth.feather import FEATHER, feathered, local_steps
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
 from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
@@ -74,9 +74,12 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, blendable: 
     """The blend layer (``blend_coords``, ``blend_weight``; empty where nothing blends) that feathers the seams
     inside each tile as the synthesizers feather theirs.  Each tile is feathered on its own: the seams across a
     tile border continue the shared edge strips, and the measure leaves the borders out."""
+    if band <= 0 or not blendable:
+        return {}
+    steps = local_steps(np.asarray(feats, np.float32))   # the exemplar's, once for every tile
     partners, weights = tile_coords.copy(), np.zeros(tile_coords.shape[:3], np.float32)
     for t, coords in enumerate(tile_coords):
-        tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, blendable, feats, step)
+        tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, blendable, feats, step, steps)
         if tile_map.blend_weight.size:
             partners[t], weights[t] = tile_map.blend_coords, tile_map.blend_weight
     if not weights.any():
