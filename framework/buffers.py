@@ -318,7 +318,8 @@ class PerTexel(Buffer):
     result can be replayed on any per-texel buffer without knowing its type.  ``blendable`` says whether two
     texels' records can be blended into the record of their weighted mean function (true for linear
     representations such as radiance, linear PTM and SH coefficients; false for non-linear ones such as
-    Lafortune lobes); :meth:`blend_records` does it.
+    Lafortune lobes); :meth:`blend_records` does it.  ``mixes_records`` is wider: it also holds where records are
+    linear in display values decoded after evaluation (an sRGB PTM), whose mix cross-fades what a screen shows.
     """
 
     type_name: ClassVar[str] = "PerTexel"
@@ -339,13 +340,13 @@ class PerTexel(Buffer):
         """A buffer of the same type whose texel (i, j) is this buffer's texel (rows[i, j], cols[i, j]).
 
         With a blend record, the result is ``(1 - w) * texel(rows, cols) + w * texel(blend_rows, blend_cols)``
-        (mixed by :meth:`blend_records`) for blendable buffers, the same in :meth:`blendable_form` (another buffer of
+        (mixed by :meth:`blend_records`) where the records mix, the same in :meth:`mixing_form` (another buffer of
         the same type) where that exists, and the texel with the larger weight otherwise.
         """
         ax = self.texel_axis
         use_blend = blend_weight is not None and bool(np.any(blend_weight > 0))
-        if use_blend and not self.blendable:
-            form = self.blendable_form()
+        if use_blend and not self.mixes_records:
+            form = self.mixing_form()
             if form is not None:
                 return form.remap(rows, cols, blend_rows, blend_cols, blend_weight)
             second = blend_weight > 0.5
@@ -362,11 +363,19 @@ class PerTexel(Buffer):
             changes[name] = gathered
         return dataclasses.replace(self, **changes)
 
-    def blendable_form(self) -> "PerTexel | None":
-        """The same functions in a buffer whose records blend (this buffer where it is ``blendable``), or None where
+    @property
+    def mixes_records(self) -> bool:
+        """Whether :meth:`blend_records` mixes two records into the record of a function between theirs: as
+        radiance where the buffer is ``blendable``; as display values where the records are linear in values that
+        evaluation decodes afterwards (sRGB PTM, SH and HSH coefficients), a cross-fade of what a screen shows, as
+        a viewer's texture filtering mixes them (override to say so)."""
+        return self.blendable
+
+    def mixing_form(self) -> "PerTexel | None":
+        """The same functions in a buffer whose records mix (this buffer where it ``mixes_records``), or None where
         no such form exists.  :meth:`remap` blends through it, so a blend layer replays exactly where it exists
-        (override where a non-linear record has a linear equivalent, as an lrgb PTM has its rgb form)."""
-        return self if self.blendable else None
+        (override where a record that does not mix has an equivalent that does, as an lrgb PTM has its rgb form)."""
+        return self if self.mixes_records else None
 
     def appearance_features(self) -> np.ndarray:
         """The texel fields concatenated per texel (override where distances between the raw records are not
@@ -383,10 +392,10 @@ class PerTexel(Buffer):
 
         Override where the stored values are not linear in what they represent (as an 8-bit sRGB stack does).
         """
-        if not self.blendable:
-            raise BtforgeInputError(f"buffer type '{self.type_name}'", "is not blendable: the mean of two of its "
-                                    "records is not the record of their mean function",
-                                    "pick the heavier texel instead (as remap does), or blend a linear representation")
+        if not self.mixes_records:
+            raise BtforgeInputError(f"buffer type '{self.type_name}'", "does not mix its records: the mean of two "
+                                    "of its records is not the record of a function between theirs",
+                                    "pick the heavier texel instead (as remap does), or blend its mixing_form()")
         mixed = (1 - weight) * first + weight * second
         dtype = getattr(self, name).dtype
         # Integer records (quantized coefficients) round to the nearest code instead of truncating.

@@ -304,8 +304,8 @@ def _plane_scene(cells: int, pixels: int, light) -> dict:
 
 @pytest.mark.parametrize("space", ["linear", "srgb"])
 def test_tiled_plane_equals_relight_of_the_materialized_tiling(procedural, space):
-    """The renderer reads a feathered set as materialize replays its tiling: blended where the model blends,
-    each texel's heavier source where it cannot (an sRGB PTM)."""
+    """The renderer reads a feathered set as materialize replays its tiling: records interpolated where they blend
+    as radiance, mixed per corner before evaluation where they mix as display values (an sRGB PTM)."""
     from btforge.plugins.ptm.model import fit_ptm
     from btforge.plugins.render.geometry import build_mesh
     from btforge.plugins.render.renderer import Counters, render
@@ -417,7 +417,7 @@ def test_the_sheet_shows_each_tile_as_materialize_replays_it(procedural):
     from btforge.plugins.wang.sheet import relit_exemplar, tile_radiance
     stack, tiles, _, _ = procedural
     light = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
-    shown = tile_radiance(tiles, stack, relit_exemplar(stack, light))
+    shown = tile_radiance(tiles, stack, light, relit_exemplar(stack, light))
     for t in (0, tiles.n_tiles - 1):
         replayed = materialize(coords=tiles.tile_map(t), source=stack)["output"]
         np.testing.assert_allclose(shown[t], relit_exemplar(replayed, light), rtol=1e-5, atol=1e-6)

@@ -51,6 +51,7 @@ class LightTableModel(ReflectanceModel):
     type_name: ClassVar[str] = "LightTableModel"
     texel_fields: ClassVar[tuple[str, ...]] = ("coeffs",)
     blendable: ClassVar[bool] = False  # coefficients of display values: a blend is not the blend of radiances
+    mixes_records: ClassVar[bool] = True  # but their mix is the mix of the display values, before the decode
     web_types: ClassVar[tuple[str, ...]] = ("rbf", "bilinear", "bln")   # web layouts web.read reads into this class
     web_colorspaces: ClassVar[tuple[str, ...]] = ("mrgb", "mycc")
 

@@ -88,12 +88,17 @@ class PTMModel(ReflectanceModel):
         # srgb polynomial is decoded per light after evaluation, so its coefficients do not mix like radiance.
         return self.variant == "rgb" and self.space == "linear"
 
-    def blendable_form(self) -> "PTMModel | None":
-        """A linear lrgb PTM as the rgb PTM of the same functions (each channel's polynomial is its colour times the
-        luminance polynomial), whose coefficients blend as the functions do; None for an srgb lrgb PTM, whose
-        values are decoded after evaluation."""
-        if self.variant != "lrgb" or self.space != "linear":
-            return super().blendable_form()   # itself where linear rgb, else None
+    @property
+    def mixes_records(self) -> bool:
+        # rgb coefficients are linear in each channel's value before the clip and decode: an srgb mix cross-fades
+        # the display values, as a viewer that filters the coefficient planes does.
+        return self.variant == "rgb"
+
+    def mixing_form(self) -> "PTMModel | None":
+        """An lrgb PTM as the rgb PTM of the same functions (each channel's polynomial is its colour times the
+        luminance polynomial, in the same space), whose coefficients mix as the functions' values do."""
+        if self.variant != "lrgb":
+            return super().mixing_form()   # itself
         coeffs = self.albedo[:, :, :, None] * self.coeffs  # [H, W, C, 6]: albedo [H, W, C] x luminance [H, W, 1, 6]
         empty = np.zeros(self.coeffs.shape[:2] + (0,), np.float32)
         return dataclasses.replace(self, coeffs=coeffs.astype(np.float32), albedo=empty, variant="rgb")

@@ -201,13 +201,15 @@ class ModelShader:
 
     Linear models whose per-texel records are floats (``blendable``) are looked up by interpolating the records
     of the 4 texels around each sample (8 with a blending coordinate map) into a one-record-per-sample model,
-    evaluated with nearest lookups; other models are evaluated at each corner texel and the values weighted.
+    evaluated with nearest lookups; other models are evaluated at each corner texel and the values weighted.  A
+    blend layer on a model whose records mix only as display values (an sRGB PTM) mixes each corner's record with
+    its partner's first, as ``synth.materialize`` replays the map, and weighs the corners' radiance as without one.
     """
 
     def __init__(self, name: str, model: ReflectanceModel, coord_map: CoordMap | None, uv: np.ndarray, wrap: str,
                  texels: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
-        if coord_map is not None and coord_map.blend_weight.size and not model.blendable:
-            model = model.blendable_form() or model  # blends as synth.materialize replays them, where it can
+        if coord_map is not None and coord_map.blend_weight.size and not model.mixes_records:
+            model = model.mixing_form() or model  # blends as synth.materialize replays them, where it can
         self.name, self.model = name, model
         grid = (coord_map.height, coord_map.width) if coord_map is not None else (model.height, model.width)
         # ``texels``: the model's (rows, cols, weights) around each sample, found by the caller (a tile set)
@@ -222,7 +224,7 @@ class ModelShader:
             if coord_map.blend_weight.size:
                 bw = coord_map.blend_weight[rows, cols].astype(np.float64)
                 other = coord_map.blend_coords[rows, cols]
-                if model.blendable:
+                if model.mixes_records:
                     rows = np.concatenate([coords[..., 0], other[..., 0]])
                     cols = np.concatenate([coords[..., 1], other[..., 1]])
                     weights = np.concatenate([weights * (1 - bw), weights * bw])
@@ -236,6 +238,29 @@ class ModelShader:
         self.view_dependent = bool(model.view_dependent)
         self.interpolates_records = model.evaluates_texels and model.blendable and all(
             getattr(model, f).dtype.kind == "f" for f in model.texel_fields)
+        # 8 corners are the 4 bilinear ones and their blend partners (a blend layer, from a map or a tile set)
+        self.mixes_pairs = len(weights) == 8 and not self.interpolates_records and model.mixes_records
+
+    @functools.cached_property
+    def mixed_corners(self) -> list:
+        """(one record per sample, its corner's weight) for each bilinear corner: the corner's record mixed with its
+        blend partner's by :meth:`~PerTexel.blend_records`, the record ``synth.materialize`` replays there."""
+        model = self.model
+        ax = model.texel_axis
+        lead = (slice(None),) * ax
+        corners = []
+        for k in range(4):
+            total = self.weights[k] + self.weights[k + 4]
+            share = np.divide(self.weights[k + 4], total, out=np.zeros_like(total), where=total > 0)
+            changes = {}
+            for field in model.texel_fields:
+                array = getattr(model, field)
+                w = share.astype(np.float32).reshape((1,) * ax + share.shape + (1,) * (array.ndim - ax - 2))
+                mixed = model.blend_records(field, array[lead + (self.rows[k], self.cols[k])],
+                                            array[lead + (self.rows[k + 4], self.cols[k + 4])], w)
+                changes[field] = np.expand_dims(mixed, ax + 1)
+            corners.append((dataclasses.replace(model, **changes).evaluation_form(), total))
+        return corners
 
     @functools.cached_property
     def flat(self) -> ReflectanceModel:
@@ -270,6 +295,15 @@ class ModelShader:
             values = self.flat.evaluate_texels(sel, np.zeros_like(sel), lights32, views32)
             return _to_rgb(np.asarray(values), self.model)
         total = np.zeros((len(sel), 3))
+        if self.mixes_pairs:
+            for flat, weight in self.mixed_corners:
+                wk = weight[sel]
+                use = wk > 0
+                if use.any():
+                    values = flat.evaluate_texels(sel[use], np.zeros(int(use.sum()), np.int64), lights32[use],
+                                                  None if views32 is None else views32[use])
+                    total[use] += wk[use, None] * _to_rgb(np.asarray(values), self.model)
+            return total
         for k in range(len(self.weights)):
             wk = self.weights[k][sel]
             use = wk > 0
@@ -286,6 +320,8 @@ class ModelShader:
         if key not in cache:
             cache[key] = model_transfer(self.model, order)
         table = cache[key]                                                  # [H, W, 3, n^2]
+        # A blend layer's partners are weighed as radiance here, the transfer being a projection of radiance: for
+        # records that mix as display values (mixes_pairs) it differs from the direct lights' mix inside the band.
         out = np.zeros((len(sel), 3, order * order))
         for k in range(len(self.weights)):
             out += self.weights[k][sel, None, None] * table[self.rows[k][sel], self.cols[k][sel]]
@@ -449,9 +485,9 @@ def _shader_groups(built: BuiltScene, materials: Mapping[str, Any], groups, prim
         if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
             from .tiles import tiled_texels
             tiles = materials[f"{spec.material}_tiles"]
-            if tiles.blends and not model.blendable:
-                model = model.blendable_form() or model  # blends as synth.materialize replays a tiling
-            texels = tiled_texels(built, mi, tiles, prim[sel], uv[sel], blend=model.blendable)
+            if tiles.blends and not model.mixes_records:
+                model = model.mixing_form() or model  # blends as synth.materialize replays a tiling
+            texels = tiled_texels(built, mi, tiles, prim[sel], uv[sel], blend=model.mixes_records)
             shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
             continue
         coord_map = materials.get(f"{spec.material}_map") if spec.coord_map else None

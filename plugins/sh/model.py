@@ -167,6 +167,10 @@ class SHModel(ReflectanceModel):
         # like radiance.
         return self.space == "linear"
 
+    @property
+    def mixes_records(self) -> bool:
+        return True  # linear in the evaluated values, before an srgb model's clip and decode
+
     def _radiance(self, values: np.ndarray) -> np.ndarray:
         """Evaluated values -> linear radiance: as they are (linear), or display values clipped to [0, 1] and
         decoded by the sRGB curve."""

@@ -9,10 +9,12 @@ other in ``2 * band + 1`` equal steps.  Every texel keeps its own source as the 
 (and everything measured from its dominant sources) stay where they were.  Only the seams whose step is larger
 than the exemplar's own steps around the two sources are feathered (:data:`FEATHER_STEP`).
 
-The blend layer replays exactly only on buffers that have a form whose records blend as their functions do
-(``blendable_form``: a linear PTM, which an lrgb one reaches as the rgb PTM of the same functions, SH, a linear
-stack); on the others (an sRGB PTM, Lafortune lobes) ``remap`` keeps each texel's heavier source and the output
-would be the unfeathered one, so those maps are left without a blend layer.  ``synth.score`` measures a blended map's seams over
+The blend layer replays on buffers whose records mix, directly or through their ``mixing_form``: radiance (a
+stack), linear PTM and SH coefficients, which mix as radiance does, and sRGB PTM, SH and HSH coefficients (an lrgb
+PTM through the rgb PTM of the same functions), which mix the display values, a cross-fade of what a screen shows
+over a band of one or two texels.  On the others (Lafortune lobes, neural codes) ``remap`` would keep each texel's
+heavier source and the output would be the unfeathered one, so those maps are left without a blend layer.
+``synth.score`` measures a blended map's seams over
 the blended band (:func:`.visibility.seam_visibility`), so a feathered step counts with its sharpest part.
 """
 from __future__ import annotations
@@ -39,15 +41,15 @@ def feather_weight(distance: int, band: int) -> float:
     return (band + 1 - distance) / (2 * band + 1)
 
 
-def feathered(coords: CoordMap, band: int, blendable: bool = True, features: np.ndarray | None = None,
+def feathered(coords: CoordMap, band: int, mixes: bool = True, features: np.ndarray | None = None,
               step: float = FEATHER_STEP, steps: np.ndarray | None = None) -> CoordMap:
     """``coords`` with the texels within ``band`` of a seam edge blended with the source across that edge,
     continued to them (the nearest edge where several are in reach; columns' edges before rows' on a tie).  The map
-    is returned as it is where ``band`` is 0, the exemplar has no blendable form, or the map has a blend layer.
+    is returned as it is where ``band`` is 0, the exemplar's records cannot mix (``mixes``), or the map has a blend layer.
     With the exemplar's appearance vectors ``features [h, w, D]``, only the seam edges whose step between the two
     sources' vectors is over ``step`` x the exemplar's steps around them are feathered (without: every one);
     ``steps``: :func:`local_steps` of ``features``, where the caller feathers many maps of one exemplar."""
-    if band <= 0 or not blendable or coords.blend_weight.size:
+    if band <= 0 or not mixes or coords.blend_weight.size:
         return coords
     src = dominant_source(coords)
     h, w = src.shape[:2]

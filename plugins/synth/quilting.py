@@ -302,7 +302,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="17",  # 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="18",  # 18: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -379,7 +379,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, contrast=contrast, auto_weight=AUTO_CONTRAST, polish=polish,
                      seam_weight=seam_weight)
-    return {"coords": feathered(coords, feather, exemplar.blendable_form() is not None, feats, FEATHER_STEP)}
+    return {"coords": feathered(coords, feather, exemplar.mixing_form() is not None, feats, FEATHER_STEP)}
 
 
 STAGES = [quilt]

@@ -144,9 +144,9 @@ def feather_param(default: int, step: float = FEATHER_STEP) -> Param:
     return Param("feather", "int", default, "texels on either side of a seam that cross-fade from one side's "
                  "content to the other's, through the map's blend layer, where the step across the seam is over "
                  f"{step:g} x the exemplar's own steps around its two sources: a cut between smooth areas reads as a "
-                 "ramp, not a step; only on exemplars whose functions blend exactly (a linear PTM, whose lrgb form "
-                 "replays as rgb where it blends, SH, a linear stack), the others (an sRGB PTM) keep a plain map "
-                 "(0: off)", low=0, high=MAX_FEATHER)
+                 "ramp, not a step; on exemplars whose records mix (a stack, PTM, SH and HSH coefficients; an lrgb PTM "
+                 "replays as the rgb PTM of its functions where it blends; sRGB coefficients mix display values), "
+                 "the others (Lafortune lobes, neural codes) keep a plain map (0: off)", low=0, high=MAX_FEATHER)
 
 
 def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,

@@ -61,7 +61,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
     edge_seams = (measured["edges"] / np.maximum(ref_mean, 1e-30)).astype(np.float32)
     source_size = (exemplar.height, exemplar.width)
-    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, exemplar.blendable_form() is not None, full,
+    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, exemplar.mixing_form() is not None, full,
                             TILE_FEATHER_STEP)
     tiles = TileSet.from_coords(synthesis.tile_coords, synthesis.tile_colors, edge_seams, colors_h=colors[0],
                                 colors_v=colors[1], source_size=source_size, edge=h, variants=variants,
@@ -69,17 +69,17 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     return tiles, synthesis, seams.seam_ratios(measured, reference)
 
 
-def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, blendable: bool, feats: np.ndarray,
+def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool, feats: np.ndarray,
                     step: float = TILE_FEATHER_STEP) -> dict:
     """The blend layer (``blend_coords``, ``blend_weight``; empty where nothing blends) that feathers the seams
     inside each tile as the synthesizers feather theirs.  Each tile is feathered on its own: the seams across a
     tile border continue the shared edge strips, and the measure leaves the borders out."""
-    if band <= 0 or not blendable:
+    if band <= 0 or not mixes:
         return {}
     steps = local_steps(np.asarray(feats, np.float32))   # the exemplar's, once for every tile
     partners, weights = tile_coords.copy(), np.zeros(tile_coords.shape[:3], np.float32)
     for t, coords in enumerate(tile_coords):
-        tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, blendable, feats, step, steps)
+        tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, mixes, feats, step, steps)
         if tile_map.blend_weight.size:
             partners[t], weights[t] = tile_map.blend_coords, tile_map.blend_weight
     if not weights.any():
@@ -145,7 +145,7 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, blendable: 
         seam_weight_param(SEAM_WEIGHT),
         feather_param(FEATHER, TILE_FEATHER_STEP),
     ],
-    version="16",  # 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="17",  # 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
                edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight, feather):

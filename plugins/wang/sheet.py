@@ -30,9 +30,10 @@ def tile_sheet(tiles, exemplar, light, columns: int = 0, gap: int = 0) -> np.nda
     w = tiles.tile
     bar = max(2, w // 16)
     gap = gap or 2 * bar
-    image = relit_exemplar(exemplar, np.asarray(light, np.float64) / np.linalg.norm(light))
+    light = np.asarray(light, np.float64) / np.linalg.norm(light)
+    image = relit_exemplar(exemplar, light)
     white = max(float(np.percentile(image, 99.5)), 1e-6)
-    shown = linear_to_srgb8(tile_radiance(tiles, exemplar, image) / white)       # [T, w, w, 3]
+    shown = linear_to_srgb8(tile_radiance(tiles, exemplar, light, image) / white)       # [T, w, w, 3]
     n = tiles.n_tiles
     columns = columns or int(np.ceil(np.sqrt(n)))
     rows = int(np.ceil(n / columns))
@@ -56,16 +57,11 @@ def tile_sheet(tiles, exemplar, light, columns: int = 0, gap: int = 0) -> np.nda
     return out
 
 
-def tile_radiance(tiles, exemplar, image: np.ndarray) -> np.ndarray:
-    """``[T, w, w, 3]``: every tile's texels of the relit exemplar ``image``, cross-faded by the set's blend layer as
-    ``synth.materialize`` replays it (blended where the exemplar has a blendable form, else the heavier texel)."""
-    coords = tiles.tile_coords
-    own = image[coords[..., 0], coords[..., 1]]
+def tile_radiance(tiles, exemplar, light: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """``[T, w, w, 3]``: every tile's texels of ``image``, the exemplar relit at ``light``; where the set blends,
+    each tile as ``synth.materialize`` replays it (its records mixed as radiance or as display values where they
+    mix, else the heavier texel), relit at the same light."""
     if not tiles.blends:
-        return own
-    partners = tiles.tile_blend_coords()
-    other = image[partners[..., 0], partners[..., 1]]
-    weight = tiles.blend_weight[..., None]
-    if exemplar.blendable_form() is None:
-        return np.where(weight > 0.5, other, own)
-    return (1 - weight) * own + weight * other
+        coords = tiles.tile_coords
+        return image[coords[..., 0], coords[..., 1]]
+    return np.stack([relit_exemplar(tiles.tile_map(t).apply(exemplar), light) for t in range(tiles.n_tiles)])

@@ -74,6 +74,10 @@ class HSHModel(ReflectanceModel):
     def blendable(self) -> bool:
         return self.space == "linear"
 
+    @property
+    def mixes_records(self) -> bool:
+        return True  # linear in the evaluated values, before an srgb model's clip and decode
+
     def evaluate(self, lights: np.ndarray, views: np.ndarray | None = None) -> np.ndarray:
         """Linear radiance ``[1, L, H, W, C]``: the HSH sum, clipped to [0, 1] and decoded when it is sRGB."""
         lights = unit_directions("lights", lights, owner="HSH evaluation")
