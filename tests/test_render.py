@@ -5,6 +5,8 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import yaml
 
 import btforge
@@ -199,6 +201,31 @@ def test_a_blended_map_renders_as_materialize_replays_it(space):
     np.testing.assert_allclose(image, direct, rtol=1e-5, atol=1e-6)  # the same sums in another order (float32)
     unblended, _ = draw(scene, {"stone": model, "stone_map": CoordMap(coords, (16, 24))})
     assert np.abs(image - unblended).max() > 0.01
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2 ** 16), scale=st.sampled_from([1e-4, 0.3, 40.0]),
+       weights=st.sampled_from([(0.0, 1.0), (1e-7, 1 - 1e-7), (0.0, 1 / 3, 0.5, 0.7)]),
+       variant=st.sampled_from(["rgb", "lrgb"]))
+def test_a_blended_map_on_hard_srgb_records_renders_as_materialize_replays_it(seed, scale, weights, variant):
+    """sRGB records mixed per corner before evaluation, as materialize mixes them: tiny, ordinary and huge
+    coefficients (most display values then clipped at 0 or 1), blend weights at and next to 0 and 1."""
+    rng = np.random.default_rng(seed)
+    k = 3 if variant == "rgb" else 1
+    coeffs = rng.normal(0.0, scale, (16, 24, k, 6)).astype(np.float32)
+    albedo = rng.uniform(0.0, 1.0, (16, 24, 3 if variant == "lrgb" else 0)).astype(np.float32)
+    model = PTMModel(coeffs, albedo, variant, "srgb")
+    rows, cols = np.mgrid[0:16, 0:24]
+    coords = np.stack([rows, (cols + 5) % 24], -1).astype(np.int32)
+    partner = rng.integers(0, [16, 24], (16, 24, 2)).astype(np.int32)
+    blended = CoordMap(coords, (16, 24), partner, rng.choice(weights, (16, 24)).astype(np.float32))
+    scene = plane_scene()
+    scene["meshes"]["ground"]["coord_map"] = True
+    image, _ = draw(scene, {"stone": model, "stone_map": blended})
+    direct, _ = draw(plane_scene(), {"stone": blended.apply(model)})
+    assert np.isfinite(image).all() and image.min() >= 0 and image.max() <= 1 + 1e-6  # decoded values lie in [0, 1]
+    # the same float32 sums in another order, then the clip and the decode (slope below 2.3 on [0, 1]): a few 1e-6
+    np.testing.assert_allclose(image, direct, rtol=1e-5, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------------------------- models
