@@ -242,6 +242,14 @@ class ModelShader:
         self.mixes_pairs = len(weights) == 8 and not self.interpolates_records and model.mixes_records
 
     @functools.cached_property
+    def corners(self) -> list:
+        """``(model, rows, cols, weights)`` per corner, each over every sample, for evaluating the corners one by
+        one: the model's own texels, or where pairs mix as display values one mixed record per sample."""
+        if not self.mixes_pairs:
+            return [(self.model, self.rows[k], self.cols[k], self.weights[k]) for k in range(len(self.weights))]
+        n = self.rows.shape[1]
+        return [(flat, np.arange(n), np.zeros(n, np.int64), weight) for flat, weight in self.mixed_corners()]
+
     def mixed_corners(self) -> list:
         """(one record per sample, its corner's weight) for each bilinear corner: the corner's record mixed with its
         blend partner's by :meth:`~PerTexel.blend_records`, the record ``synth.materialize`` replays there."""
@@ -295,22 +303,13 @@ class ModelShader:
             values = self.flat.evaluate_texels(sel, np.zeros_like(sel), lights32, views32)
             return _to_rgb(np.asarray(values), self.model)
         total = np.zeros((len(sel), 3))
-        if self.mixes_pairs:
-            for flat, weight in self.mixed_corners:
-                wk = weight[sel]
-                use = wk > 0
-                if use.any():
-                    values = flat.evaluate_texels(sel[use], np.zeros(int(use.sum()), np.int64), lights32[use],
-                                                  None if views32 is None else views32[use])
-                    total[use] += wk[use, None] * _to_rgb(np.asarray(values), self.model)
-            return total
-        for k in range(len(self.weights)):
-            wk = self.weights[k][sel]
+        for model, rows, cols, weights in self.corners:
+            wk = weights[sel]
             use = wk > 0
             if not use.any():
                 continue
-            values = self.model.evaluate_texels(self.rows[k][sel][use], self.cols[k][sel][use], lights32[use],
-                                                None if views32 is None else views32[use])
+            values = model.evaluate_texels(rows[sel][use], cols[sel][use], lights32[use],
+                                           None if views32 is None else views32[use])
             total[use] += wk[use, None] * _to_rgb(np.asarray(values), self.model)
         return total
 
