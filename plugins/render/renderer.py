@@ -196,6 +196,12 @@ def _to_rgb(values: np.ndarray, model) -> np.ndarray:
                             f"({', '.join(model.channels)})", "render an RGB or grey model")
 
 
+def _mixing(model: ReflectanceModel) -> ReflectanceModel:
+    """The model a blend layer reads: itself where its records mix, else its ``mixing_form`` where it has one (as
+    ``synth.materialize`` replays the layer), else itself (each texel's heavier source)."""
+    return model if model.mixes_records else (model.mixing_form() or model)
+
+
 class ModelShader:
     """A reflectance model looked up at the samples of one mesh (through a coordinate map if any).
 
@@ -208,8 +214,8 @@ class ModelShader:
 
     def __init__(self, name: str, model: ReflectanceModel, coord_map: CoordMap | None, uv: np.ndarray, wrap: str,
                  texels: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
-        if coord_map is not None and coord_map.blend_weight.size and not model.mixes_records:
-            model = model.mixing_form() or model  # blends as synth.materialize replays them, where it can
+        if coord_map is not None and coord_map.blend_weight.size:
+            model = _mixing(model)
         self.name, self.model = name, model
         grid = (coord_map.height, coord_map.width) if coord_map is not None else (model.height, model.width)
         # ``texels``: the model's (rows, cols, weights) around each sample, found by the caller (a tile set)
@@ -252,22 +258,15 @@ class ModelShader:
 
     def mixed_corners(self) -> list:
         """(one record per sample, its corner's weight) for each bilinear corner: the corner's record mixed with its
-        blend partner's by :meth:`~PerTexel.blend_records`, the record ``synth.materialize`` replays there."""
-        model = self.model
-        ax = model.texel_axis
-        lead = (slice(None),) * ax
+        blend partner's through :meth:`~PerTexel.remap`, the record ``synth.materialize`` replays there."""
         corners = []
         for k in range(4):
             total = self.weights[k] + self.weights[k + 4]
             share = np.divide(self.weights[k + 4], total, out=np.zeros_like(total), where=total > 0)
-            changes = {}
-            for field in model.texel_fields:
-                array = getattr(model, field)
-                w = share.astype(np.float32).reshape((1,) * ax + share.shape + (1,) * (array.ndim - ax - 2))
-                mixed = model.blend_records(field, array[lead + (self.rows[k], self.cols[k])],
-                                            array[lead + (self.rows[k + 4], self.cols[k + 4])], w)
-                changes[field] = np.expand_dims(mixed, ax + 1)
-            corners.append((dataclasses.replace(model, **changes).evaluation_form(), total))
+            column = (slice(None), None)    # the samples as an [N, 1] grid of texels
+            mixed = self.model.remap(self.rows[k][column], self.cols[k][column], self.rows[k + 4][column],
+                                     self.cols[k + 4][column], share[column].astype(np.float32))
+            corners.append((mixed.evaluation_form(), total))
         return corners
 
     @functools.cached_property
@@ -484,8 +483,8 @@ def _shader_groups(built: BuiltScene, materials: Mapping[str, Any], groups, prim
         if spec.tiles:  # a Wang tile set: each UV cell shows a tile, looked up through its BTFel table
             from .tiles import tiled_texels
             tiles = materials[f"{spec.material}_tiles"]
-            if tiles.blends and not model.mixes_records:
-                model = model.mixing_form() or model  # blends as synth.materialize replays a tiling
+            if tiles.blends:
+                model = _mixing(model)
             texels = tiled_texels(built, mi, tiles, prim[sel], uv[sel], blend=model.mixes_records)
             shader_groups.append((sel, ModelShader(spec.material, model, None, uv[sel], spec.wrap, texels)))
             continue

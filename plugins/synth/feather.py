@@ -41,6 +41,12 @@ def feather_weight(distance: int, band: int) -> float:
     return (band + 1 - distance) / (2 * band + 1)
 
 
+def records_mix(exemplar) -> bool:
+    """Whether a blend layer on ``exemplar`` replays as a cross-fade: its records mix, directly or through its
+    ``mixing_form`` (only then is that form built)."""
+    return exemplar.mixes_records or exemplar.mixing_form() is not None
+
+
 def feathered(coords: CoordMap, band: int, mixes: bool = True, features: np.ndarray | None = None,
               step: float = FEATHER_STEP, steps: np.ndarray | None = None) -> CoordMap:
     """``coords`` with the texels within ``band`` of a seam edge blended with the source across that edge,

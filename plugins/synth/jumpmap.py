@@ -18,7 +18,7 @@ from btforge.backend import get_backend
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
-from .feather import feathered
+from .feather import feathered, records_mix
 from .features import texel_features
 from .device import LOCAL, round_up
 from .scan_order import coherent_fraction, output_neighbours, pad_textons, wavefronts
@@ -465,7 +465,7 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, bridges=BRIDGE_TRIES,
                      contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
-    return {"coords": feathered(coords, feather, exemplar.mixing_form() is not None, features)}
+    return {"coords": feathered(coords, feather, records_mix(exemplar), features)}
 
 
 STAGES = [jumpmap]

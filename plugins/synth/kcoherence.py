@@ -27,7 +27,7 @@ from btforge.errors import BtforgeInputError
 
 from .block_start import CANDIDATES, matched_blocks
 from .device import LOCAL, launch, round_up
-from .feather import feathered
+from .feather import feathered, records_mix
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
@@ -589,7 +589,7 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
                      large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
-    return {"coords": feathered(coords, feather, exemplar.mixing_form() is not None, features)}
+    return {"coords": feathered(coords, feather, records_mix(exemplar), features)}
 
 
 STAGES = [kcoherence]

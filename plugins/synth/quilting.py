@@ -25,7 +25,7 @@ from btforge import Param
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 
-from .feather import feathered
+from .feather import feathered, records_mix
 from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
@@ -379,7 +379,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, contrast=contrast, auto_weight=AUTO_CONTRAST, polish=polish,
                      seam_weight=seam_weight)
-    return {"coords": feathered(coords, feather, exemplar.mixing_form() is not None, feats, FEATHER_STEP)}
+    return {"coords": feathered(coords, feather, records_mix(exemplar), feats, FEATHER_STEP)}
 
 
 STAGES = [quilt]

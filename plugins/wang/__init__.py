@@ -17,7 +17,7 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.synth.feather import FEATHER, feathered, local_steps
+from btforge.plugins.synth.feather import FEATHER, feathered, local_steps, records_mix
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
 from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
@@ -61,7 +61,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
     edge_seams = (measured["edges"] / np.maximum(ref_mean, 1e-30)).astype(np.float32)
     source_size = (exemplar.height, exemplar.width)
-    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, exemplar.mixing_form() is not None, full,
+    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, records_mix(exemplar), full,
                             TILE_FEATHER_STEP)
     tiles = TileSet.from_coords(synthesis.tile_coords, synthesis.tile_colors, edge_seams, colors_h=colors[0],
                                 colors_v=colors[1], source_size=source_size, edge=h, variants=variants,
