@@ -446,7 +446,7 @@ def test_stage_on_a_sample_stack():
     out = materialize(coords=plain, source=stack)["output"]
     rows, cols = coords.coords[..., 0], coords.coords[..., 1]
     np.testing.assert_array_equal(out.samples, stack.samples[:, :, rows, cols])
-    assert texel_features(stack).shape == (24, 24, 18)
+    assert texel_features(stack).shape == (24, 24, 16)   # 6 lights x 3 channels seen, their 16 principal components
 
 
 @pytest.mark.parametrize("params,named", [
@@ -466,6 +466,6 @@ def test_invalid_parameters_name_the_parameter(params, named):
 def test_benchmark_reports_identical_picks():
     figures = benchmark_quilt(exemplar_size=24, output_size=40, block=8, overlap=2, repeat=1)
     assert figures["identical_picks"] is True
-    assert figures["features"] == 9 and figures["candidates"] == 17 * 17
+    assert figures["features"] == 16 and figures["candidates"] == 17 * 17
     assert figures["brute_s"] > 0 and figures["rejection_s"] > 0 and figures["speedup"] > 0
     assert figures["rejected_after_projection"]

@@ -12,7 +12,7 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
 from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
 from btforge.plugins.synth import recut
-from btforge.plugins.synth.features import edge_padded, texel_features
+from btforge.plugins.synth.features import edge_padded
 from btforge.plugins.synth.visibility import seam_edges
 
 
@@ -32,7 +32,7 @@ def stones():
     lights = hemisphere_lights(8)
     stack = SampleStack(render_lights(make_pattern("stones", 64, 64, seed=3), lights)[None], lights,
                         np.array([[0.0, 0.0, 1.0]]))
-    features = texel_features(stack)
+    features = stack.appearance_features()   # linear radiance: the re-cut's mechanics, not the vectors' scale
     return features / features.std()
 
 

@@ -447,8 +447,8 @@ def display_levels(exemplar: np.ndarray) -> tuple[float, float]:
     white alone."""
     from btforge.buffers import linear_to_srgb
 
-    from .scoring import _white_points
-    white = float(_white_points(exemplar[None])[0])
+    from .features import white_points
+    white = float(white_points(exemplar[None])[0])
     black = float(np.percentile(linear_to_srgb(_rgb(exemplar) / white), BLACK_PERCENTILE))
     return white, min(black, BLACK_CAP)
 
@@ -535,7 +535,8 @@ def benchmark_quilt(exemplar_size: int = 128, output_size: int = 512, block: int
     """Time brute-force and rejection quilting on the same exemplar and check their picks are identical.
 
     The exemplar is the central ``exemplar_size`` crop of ``exemplar`` when given, else an lrgb PTM of random smooth
-    fields (9-D appearance vectors: 6 orthonormal coefficients + 3 colours).  Kernels are compiled by a warm-up
+    fields (its perceptual vectors: 25 lights' display values,
+    reduced to 16 principal components).  Kernels are compiled by a warm-up
     run first; each search then runs ``repeat`` times and medians are reported (seconds), with the speed-up, the mean
     fraction of candidates rejected after each projection, and the fraction whose full distance was computed.
     """

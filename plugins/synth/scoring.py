@@ -23,7 +23,7 @@ from btforge.errors import BtforgeInputError
 
 from . import visibility
 from .coarse_steps import straight_step_visibility
-from .features import downsample
+from .features import downsample, encoded, white_points
 from .search_base import cores
 
 #: Patches per image that enter one sliced-Wasserstein comparison (all of them when there are fewer).
@@ -36,8 +36,6 @@ PCA_DIMS = 16
 RERANK_K = 4
 #: A stack light counts as the one asked for when the directions are within this angle (degrees).
 LIGHT_MATCH_DEG = 0.1
-#: Each light is exposed so that this percentile of the exemplar's radiance maps to 1.
-WHITE_PERCENTILE = 99.5
 #: Lights used when neither input is a stack and no ``lights`` are given.
 DEFAULT_PROBE_LIGHTS = 8
 #: The map-free consistency samples ``samples // CONSISTENCY_SHARE`` texels ...
@@ -112,30 +110,6 @@ def _score_lights(output, exemplar, lights, paths) -> tuple[np.ndarray, str]:
         return output.lights, "output"
     from .features import probe_lights
     return probe_lights(DEFAULT_PROBE_LIGHTS), f"{DEFAULT_PROBE_LIGHTS} probe lights"
-
-
-def _encode(linear: np.ndarray, white: np.ndarray, domain: str) -> np.ndarray:
-    """Exposure-normalised perceptual values: ``linear / white`` per light, then sRGB-encoded or log."""
-    y = np.maximum(linear / white.reshape(-1, *([1] * (linear.ndim - 1))), 0.0).astype(np.float32)
-    if domain == "srgb":
-        # The sRGB curve, not clipped above 1, so highlights brighter than the white point still differ.
-        return np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055).astype(np.float32)
-    if domain == "log":
-        return (np.log2(y + 2.0 ** -8) / 8 + 1).astype(np.float32)
-    return y
-
-
-def _white_points(exemplar_linear: np.ndarray) -> np.ndarray:
-    whites = []
-    for frame in exemplar_linear:
-        flat = frame.reshape(-1)
-        if flat.size > 1 << 20:
-            flat = flat[:: flat.size // (1 << 20) + 1]
-        w = float(np.percentile(flat, WHITE_PERCENTILE))
-        if not w > 1e-12:
-            w = float(flat.max())
-        whites.append(w if w > 1e-12 else 1.0)
-    return np.array(whites, np.float32)
 
 
 # ----------------------------------------------------------------------------------------------- patches
@@ -758,9 +732,9 @@ def score(ctx, exemplar, output=None, coords=None, tiles=None, *, lights, patch,
     ex_lin = _relight(exemplar, lights_used, "exemplar")
     out_lin = _relight(output, lights_used, "output")
     _check_sizes(ex_lin.shape[1:3], out_lin.shape[1:3], coords, patch, consistency_patch or patch)
-    whites = _white_points(ex_lin)
-    ex_enc = _encode(ex_lin, whites, domain)
-    out_enc = _encode(out_lin, whites, domain)
+    whites = white_points(ex_lin)
+    ex_enc = encoded(ex_lin, whites, domain)
+    out_enc = encoded(out_lin, whites, domain)
     relit = _Relit(exemplar, lights_used, whites, domain, ex_enc, out_enc)
 
     swd_per_level, baseline = _swd_with_baseline(relit, wrap, patch=patch, scales=scales, projections=projections,
@@ -812,7 +786,7 @@ class _Relit:
         relit), encoded: blending relit radiance instead differs wherever evaluation is not linear in the
         records (clamps, sRGB codes, sRGB-space PTMs)."""
         replayed = coords.apply(_relit_view(self.exemplar))
-        return _encode(_relight(replayed, self.lights, "exemplar"), self.whites, self.domain)
+        return encoded(_relight(replayed, self.lights, "exemplar"), self.whites, self.domain)
 
 
 def _check_channels(ctx, output: PerTexel, exemplar: PerTexel) -> None:
