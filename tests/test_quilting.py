@@ -231,6 +231,34 @@ def test_a_tight_budget_gives_an_object_its_share_of_a_large_output():
         assert abs(shares["1"] - dark.mean()) < 0.1, (shares, float(dark.mean()))
 
 
+def test_the_automatic_budget_is_tight_only_where_the_output_is_at_most_twice_the_exemplar():
+    """A budget under 1 stays above the running fair share only up to 1 / (1 - budget) copies: 0.5 up to twice the
+    exemplar's texels, 1.5 beyond; a budget given (0 included) is kept."""
+    from btforge.plugins.synth.quilting import BUDGET, SMALL_OUTPUT_BUDGET, auto_budget
+    assert auto_budget(-1.0, (256, 256), (192, 192)) == SMALL_OUTPUT_BUDGET == 0.5
+    assert auto_budget(-1.0, (256, 256), (182, 182)) == SMALL_OUTPUT_BUDGET   # 1.98 x
+    assert auto_budget(-1.0, (256, 256), (180, 180)) == BUDGET == 1.5         # 2.02 x
+    assert auto_budget(-1.0, (256, 256), (128, 128)) == BUDGET
+    assert [auto_budget(b, (256, 256), (192, 192)) for b in (0.0, 1.0, 2.0)] == [0.0, 1.0, 2.0]
+
+
+@pytest.mark.shared_data
+def test_the_default_budget_gives_a_paintings_pale_ground_its_share(shared_data):
+    """RealRTI's item5 (figures on a pale ground), its central 192 x 192 texels grown to 256 x 256 (1.8 x the
+    area): at a budget of 1.5 the dark figures, whose blocks continue each other best, took 71 % of the output
+    (half of the exemplar is darker than its median); at the default 0.5 every part is copied about equally."""
+    from btforge import stage
+    model = exemplar_model(str(shared_data / "rti/realrti/item5/dirs.lp"), 192)
+    luminance = texel_features(model)[..., 0]
+    dark = luminance < np.median(luminance)
+
+    def dark_share(**budget):
+        coords = stage("synth.quilt")(exemplar=model, size=[256, 256], seed=0, **budget)["coords"].coords
+        return float(dark[coords[..., 0], coords[..., 1]].mean())
+    default, loose = dark_share(), dark_share(budget=1.5)
+    assert abs(default - 0.5) < 0.1 and loose > 0.65, (default, loose)
+
+
 def tiled(period=6, reps=4, dims=3, seed=0):
     tile = np.random.default_rng(seed).normal(size=(period, period, dims)).astype(np.float32)
     return np.tile(tile, (reps, reps, 1)), tile

@@ -39,10 +39,23 @@ class Consistency:
     shadow_fraction: np.ndarray  # [L] fraction of the template in shadow
 
 
+#: Quilting's copy budget for the scenes these measures quilt: its default before version 20, so the scenes (a 96 x 96
+#: field grown to 112 x 112, where the automatic budget would now be 0.5) stay the ones the figures were measured on.
+SCENE_BUDGET = 1.5
+
+
+def quilted_field(exemplar, size: int):
+    """The height field ``exemplar`` quilted to ``size^2`` (wrapping, seed 4): the scene the shadows are measured on."""
+    from btforge import stage
+    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4,
+                                  budget=SCENE_BUDGET)["coords"]
+    return stage("synth.materialize")(coords=coords, source=exemplar)["output"]
+
+
 def shadow_fixture(size: int = 112, tilts=LOW_TILTS, seed: int = 1):
     """``(references, field)``: the built-in material rendered under ``tilts`` at the 5 reference azimuths, and
     its height field quilted to ``size^2``."""
-    from btforge import SampleStack, stage
+    from btforge import SampleStack
     from btforge.plugins.demo.procedural import make_material, render_lights
     from btforge.plugins.height.field import HeightField
 
@@ -52,8 +65,7 @@ def shadow_fixture(size: int = 112, tilts=LOW_TILTS, seed: int = 1):
     dirs = np.array([direction(t, a) for t in tilts for a in REFERENCE_AZIMUTHS], np.float32)
     refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
     exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
-    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
-    return refs, stage("synth.materialize")(coords=coords, source=exemplar)["output"]
+    return refs, quilted_field(exemplar, size)
 
 
 def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: int) -> float:
@@ -61,7 +73,7 @@ def per_light_iou(refs, light: np.ndarray, shadow: np.ndarray, size: int, seed: 
     from btforge import SampleStack, stage
     nearest = int(np.argmax(refs.lights @ light))
     one = SampleStack(refs.samples[:, nearest:nearest + 1], refs.lights[nearest:nearest + 1], refs.views)
-    coords = stage("synth.quilt")(exemplar=one, size=[size, size], block=24, seed=seed)["coords"]
+    coords = stage("synth.quilt")(exemplar=one, size=[size, size], block=24, seed=seed, budget=SCENE_BUDGET)["coords"]
     flat = stage("synth.materialize")(coords=coords, source=one)["output"]
     return iou(dark_mask(flat.samples[0, 0]), shadow)
 
@@ -182,5 +194,4 @@ def exemplar_fixture(kind: str, size: int = 128):
         dirs = np.array([direction(t, a) for t in (45, 65) for a in REFERENCE_AZIMUTHS], np.float32)
         refs = SampleStack(render_lights(m, dirs)[None], dirs, [[0.0, 0.0, 1.0]])
         exemplar = HeightField.from_height(m.height, m.albedo, wrap=True)
-    coords = stage("synth.quilt")(exemplar=exemplar, size=[size, size], block=32, wrap=True, seed=4)["coords"]
-    return refs, stage("synth.materialize")(coords=coords, source=exemplar)["output"]
+    return refs, quilted_field(exemplar, size)

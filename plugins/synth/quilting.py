@@ -29,15 +29,36 @@ from .feather import feathered, records_mix
 from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
-from .synthesizer import declare_synthesizer, refine_params, refined
+from .synthesizer import AUTO, area_ratio, declare_synthesizer, refine_params, refined
 
 
 SEAMS = ("cut", "blend")
-#: Default copy budget: no exemplar area copied beyond 1.5 x its fair share (plus one copy).  At 2 the 192 x 192
-#: crop of the painted icon came out mostly ground (SWD 1.84 x the shuffled blocks, seeds 0-1; 0.93 at 1.5); the
-#: 192 x 192 stones, plaster and fibres come out the same at 1.5.  At 1 the held-out procedural exemplar's straight seams pass 2 %
-#: of its seams (1.43 over seeds 0-3).
+#: Copy budget where the output has more than :data:`BUDGET_AREA` x the exemplar's texels: no exemplar area copied
+#: beyond 1.5 x its fair share (plus one copy).  At 2 the 192 x 192 crop of the painted icon came out mostly ground
+#: (SWD 1.84 x the shuffled blocks, seeds 0-1; 0.93 at 1.5); the 192 x 192 stones, plaster and fibres come out the
+#: same at 1.5.  At 1 the held-out procedural exemplar's straight seams pass 2 % of its seams (1.43 over seeds 0-3).
 BUDGET = 1.5
+#: Copy budget where the output has at most :data:`BUDGET_AREA` x the exemplar's texels (256 x 256 from 192 x 192:
+#: 1.78 x): 0.5.  With the one copy always allowed, 1.5 let a 192 x 192 crop's easiest area be copied 3.7 times, and
+#: quilting's outputs of the paintings and of off-centre real crops were mostly their smoothest part (item5: brown
+#: and black, little of its pale ground; SWD over the shuffled blocks 2.39, item1 2.09, the SynthRTI relief at (0,
+#: 128) 2.35).  At 0.5 (1.9 copies at most) they are 0.50, 0.64 and 1.19 over seeds 0-1; over the 21 crops of 192 x
+#: 192 the targets missed go from 4 to 1 (the bumps' straight seams stay), and at 1 item1, item5 and fibres miss
+#: SWD (Benchmarks).
+SMALL_OUTPUT_BUDGET = 0.5
+#: ... the ratio of output to exemplar texels up to which :data:`SMALL_OUTPUT_BUDGET` holds.  A budget ``b`` under 1
+#: stays above the running fair share only while that share is at most ``1 / (1 - b)`` copies (2 at 0.5); beyond,
+#: every block is over it, the least-used alone are eligible, and the output of a grainy exemplar many times larger
+#: lost its patch statistics (the fibres at 128: 1.09 -> 1.41).
+BUDGET_AREA = 1.0 / (1.0 - SMALL_OUTPUT_BUDGET)
+
+
+def auto_budget(budget: float, output_shape, exemplar_shape) -> float:
+    """``budget`` where it is >= 0, else :data:`SMALL_OUTPUT_BUDGET` where the output has at most
+    :data:`BUDGET_AREA` x the exemplar's texels and :data:`BUDGET` where it has more."""
+    if budget >= 0:
+        return budget
+    return SMALL_OUTPUT_BUDGET if area_ratio(output_shape, exemplar_shape) <= BUDGET_AREA else BUDGET
 #: Passes of the refinement's re-cut of straight seams, as k-coherence and the jump map: the third pass finds the
 #: runs the first two have shortened or joined (over seeds 0-3 on the held-out procedural exemplar it takes the
 #: straight share of the seam edges from 2.2 % to 1.7 %; on the other exemplars of the quality table and the tablet,
@@ -302,7 +323,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="19",  # 19: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 18: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="20",  # 20: copy budget 0.5 where the output has at most 2 x the exemplar's texels (budget -1: automatic; 1.5 beyond); 19: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 18: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -313,11 +334,13 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
               choices=SEAMS),
         Param("tolerance", "float", 0.5, "candidates within (1 + tolerance) x the best overlap error are eligible; "
               "one is picked among them (see 'spread')", low=0.0),
-        Param("budget", "float", BUDGET, "a block is eligible only while its exemplar area is copied at most "
+        Param("budget", "float", AUTO, "a block is eligible only while its exemplar area is copied at most "
               "budget x its fair share (the texels copied so far spread evenly over the exemplar) plus one copy, "
-              "so a plain ground that matches itself everywhere cannot crowd out the exemplar's sparse features "
-              "(0: no limit; lower it, e.g. to 1, for an output many times the exemplar's area where a plain ground "
-              "matches itself better than the rest does)", low=0.0),
+              "so a plain ground that matches itself everywhere cannot crowd out the exemplar's other parts; "
+              f"negative (the default): {SMALL_OUTPUT_BUDGET:g} where the output has at most {BUDGET_AREA:g} x the "
+              f"exemplar's texels (each part used about equally), else {BUDGET:g}; 0: no limit; lower it, e.g. to 1, "
+              "for an output many times the exemplar's area where a plain ground matches itself better than the "
+              "rest does", low=-1.0),
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
         *refine_params(auto_weight=AUTO_CONTRAST, seam_weight=SEAM_WEIGHT, feather_step=FEATHER_STEP),
@@ -343,9 +366,10 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     where most of the exemplar is a smooth ground whose blocks continue each other almost exactly (an object on
     a ground, a relief with a few thin lines), only ground blocks are ever within it, and the output is ground.
     Within the budget the ground gets its share and the rest of the exemplar is used too (the occurrence idea of
-    Kaspar et al. 2015, as a hard limit).  On stationary exemplars it rarely binds.  The one copy it always allows
-    weighs most where the output is only a few times the exemplar's area; for an output many times larger, a
-    budget of 1.5 lets a plain ground take up to one and a half times its share, and 1 keeps it to about its share.
+    Kaspar et al. 2015, as a hard limit).  The one copy it always allows weighs most where the output is only a
+    few times the exemplar's area, so the automatic budget is 0.5 where the output has at most twice the
+    exemplar's texels (no part copied much more than the others: about two copies at most) and 1.5 where it has
+    more (a plain ground may take up to one and a half times its share; 1 keeps it to about its share).
 
     ``search: rejection`` (Hel-Or & Hel-Or 2002) projects every candidate's overlap, once per overlap shape, onto up
     to 1024 orthonormal Haar functions of the overlap (one feature dimension each, most energetic first); for each
@@ -373,7 +397,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     validate((exemplar.height, exemplar.width), size, block, overlap, wrap, tolerance)  # before any work
     feats = texel_features(exemplar)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
-                            seed=seed, spread=spread, budget=budget)
+                            seed=seed, spread=spread, budget=auto_budget(budget, size, (exemplar.height, exemplar.width)))
     for key, value in result.stats.items():
         ctx.note(key, value)
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,

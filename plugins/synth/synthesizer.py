@@ -155,8 +155,12 @@ def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: fl
     exemplar's texels and ``large_weight`` where it has more."""
     if contrast >= 0:
         return contrast
-    ratio = (output_shape[0] * output_shape[1]) / (exemplar_shape[0] * exemplar_shape[1])
-    return auto_weight if ratio <= AUTO_AREA else large_weight
+    return auto_weight if area_ratio(output_shape, exemplar_shape) <= AUTO_AREA else large_weight
+
+
+def area_ratio(output_shape, exemplar_shape) -> float:
+    """How many times the exemplar's texels the output has (``shape``: rows, columns first)."""
+    return (output_shape[0] * output_shape[1]) / (exemplar_shape[0] * exemplar_shape[1])
 
 
 def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: int, seed: int,
