@@ -209,6 +209,13 @@ def test_copy_budget_uses_all_of_an_object_on_a_plain_ground():
     assert even[0.0] < 0.3 and even[2.0] >= 0.5, even
 
 
+def quilted_share(model, mask: np.ndarray, seed: int, **params) -> float:
+    """The share of a 256 x 256 ``synth.quilt`` output of ``model`` (at ``params``) copied from texels in ``mask``."""
+    from btforge import stage
+    coords = stage("synth.quilt")(exemplar=model, size=[256, 256], seed=seed, **params)["coords"].coords
+    return float(mask[coords[..., 0], coords[..., 1]].mean())
+
+
 def test_a_tight_budget_gives_an_object_its_share_of_a_large_output():
     """The quilting demo's 96 x 96 patch of the icon (a dark object on a light ground, about half of it dark by a
     mid-luminance threshold) grown to 256 x 256, seven times its area.  The ground's blocks match each other best,
@@ -222,11 +229,9 @@ def test_a_tight_budget_gives_an_object_its_share_of_a_large_output():
     luminance = texel_features(model)[..., 0]
     dark = luminance < (luminance.min() + luminance.max()) / 2
 
-    def dark_share(seed, **budget):
-        coords = stage("synth.quilt")(exemplar=model, size=[256, 256], seed=seed, **budget)["coords"].coords
-        return float(dark[coords[..., 0], coords[..., 1]].mean())
     for seed in (0, 1):
-        shares = {"2": dark_share(seed, budget=2.0), "default": dark_share(seed), "1": dark_share(seed, budget=1.0)}
+        shares = {"2": quilted_share(model, dark, seed, budget=2.0), "default": quilted_share(model, dark, seed),
+                  "1": quilted_share(model, dark, seed, budget=1.0)}
         assert shares["2"] < 0.2 < shares["default"] < shares["1"], shares
         assert abs(shares["1"] - dark.mean()) < 0.1, (shares, float(dark.mean()))
 
@@ -247,15 +252,10 @@ def test_the_default_budget_gives_a_paintings_pale_ground_its_share(shared_data)
     """RealRTI's item5 (figures on a pale ground), its central 192 x 192 texels grown to 256 x 256 (1.8 x the
     area): at a budget of 1.5 the dark figures, whose blocks continue each other best, took 71 % of the output
     (half of the exemplar is darker than its median); at the default 0.5 every part is copied about equally."""
-    from btforge import stage
     model = exemplar_model(str(shared_data / "rti/realrti/item5/dirs.lp"), 192)
     luminance = texel_features(model)[..., 0]
     dark = luminance < np.median(luminance)
-
-    def dark_share(**budget):
-        coords = stage("synth.quilt")(exemplar=model, size=[256, 256], seed=0, **budget)["coords"].coords
-        return float(dark[coords[..., 0], coords[..., 1]].mean())
-    default, loose = dark_share(), dark_share(budget=1.5)
+    default, loose = quilted_share(model, dark, 0), quilted_share(model, dark, 0, budget=1.5)
     assert abs(default - 0.5) < 0.1 and loose > 0.65, (default, loose)
 
 

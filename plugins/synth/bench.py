@@ -536,8 +536,9 @@ def benchmark_quilt(exemplar_size: int = 128, output_size: int = 512, block: int
 
     The exemplar is the central ``exemplar_size`` crop of ``exemplar`` when given, else a linear lrgb PTM of random
     smooth fields (compared by its perceptual vectors: 25 lights' display values reduced to 16 principal
-    components).  Kernels are compiled by a warm-up run first; each search then runs ``repeat`` times and medians are reported (seconds), with the speed-up, the mean
-    fraction of candidates rejected after each projection, and the fraction whose full distance was computed.
+    components).  Kernels are compiled by a warm-up run first; each search then runs ``repeat`` times and medians
+    are reported (seconds), with the speed-up, the mean fraction of candidates rejected after each projection, and
+    the fraction whose full distance was computed.
     """
     if exemplar is not None:
         source = central_crop(exemplar, exemplar_size)

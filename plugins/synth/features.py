@@ -12,8 +12,8 @@ linear radiance), a texel is compared as ``synth.score`` and the eye compare it 
 :data:`FEATURE_LIGHTS` lights, each light exposed by the exemplar's white point and sRGB-encoded
 (:func:`perceptual_samples`).  In linear radiance a step in a shadow is a small number, so the search and the cuts
 put seams there, where the eye sees them first: on a smooth exemplar with dark craters (``procedural:bumps``) the
-straight seams left were 1.43 x the exemplar's own steps with quilting and with the jump map, 1.28 and 1.06 with
-these vectors (Benchmarks, "Texels compared as a screen shows them").  Models
+straight seams left were 1.43 x the exemplar's own steps with quilting (version 18) and with the jump map (25),
+1.28 and 1.06 with these vectors (Benchmarks, "Texels compared as a screen shows them").  Models
 fitted to display values (an sRGB PTM, SH or HSH fit, a ``.ptm`` file) keep their coefficients: those are already
 linear in what a screen shows.
 """

@@ -51,14 +51,6 @@ SMALL_OUTPUT_BUDGET = 0.5
 #: every block is over it, the least-used alone are eligible, and the output of a grainy exemplar many times larger
 #: lost its patch statistics (the fibres at 128: 1.09 -> 1.41).
 BUDGET_AREA = 1.0 / (1.0 - SMALL_OUTPUT_BUDGET)
-
-
-def auto_budget(budget: float, output_shape, exemplar_shape) -> float:
-    """``budget`` where it is >= 0, else :data:`SMALL_OUTPUT_BUDGET` where the output has at most
-    :data:`BUDGET_AREA` x the exemplar's texels and :data:`BUDGET` where it has more."""
-    if budget >= 0:
-        return budget
-    return SMALL_OUTPUT_BUDGET if area_ratio(output_shape, exemplar_shape) <= BUDGET_AREA else BUDGET
 #: Passes of the refinement's re-cut of straight seams, as k-coherence and the jump map: the third pass finds the
 #: runs the first two have shortened or joined (over seeds 0-3 on the held-out procedural exemplar it takes the
 #: straight share of the seam edges from 2.2 % to 1.7 %; on the other exemplars of the quality table and the tablet,
@@ -118,6 +110,14 @@ def axis_layout(size: int, block: int, overlap: int, wrap: bool) -> AxisLayout:
     ends = starts[1:] + (size,)
     seams = tuple(block - (e - s) for s, e in zip(starts, ends))  # seam i joins block i and block i + 1 (mod n)
     return AxisLayout(starts, (0,) + seams[:-1], (0,) * (n - 1) + (seams[-1],), size)
+
+
+def auto_budget(budget: float, output_shape, exemplar_shape) -> float:
+    """``budget`` where it is >= 0, else :data:`SMALL_OUTPUT_BUDGET` where the output has at most
+    :data:`BUDGET_AREA` x the exemplar's texels and :data:`BUDGET` where it has more."""
+    if budget >= 0:
+        return budget
+    return SMALL_OUTPUT_BUDGET if area_ratio(output_shape, exemplar_shape) <= BUDGET_AREA else BUDGET
 
 
 def validate(exemplar_size: tuple[int, int], size, block: int, overlap: int, wrap: bool, tolerance: float = 0.0):
@@ -350,9 +350,10 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
           occurrence, contrast, scales, polish, seam_weight, feather):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
-    Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors (for a PTM
-    the orthonormal Legendre coefficients, where vector distance equals function distance - Hel-Or, Malzbender &
-    Gelb 2003; for a stack the radiance under every light; PCA-reduced to 32 dimensions when longer).  Each block is chosen among the exemplar
+    Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors
+    (:func:`.features.texel_features`: for a PTM fitted to display values the orthonormal Legendre coefficients,
+    where vector distance equals function distance - Hel-Or, Malzbender & Gelb 2003; for a stack or a linear fit
+    its display values at probe lights, reduced to 16 principal components).  Each block is chosen among the exemplar
     blocks (every position lying wholly inside the exemplar) whose overlap with the already synthesized texture has
     a sum of squared differences within ``(1 + tolerance)`` x the best (with ``spread``, one whose exemplar area
     is copied least so far; else any, at random), and joined by a minimum-error boundary cut
@@ -397,7 +398,8 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     validate((exemplar.height, exemplar.width), size, block, overlap, wrap, tolerance)  # before any work
     feats = texel_features(exemplar)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
-                            seed=seed, spread=spread, budget=auto_budget(budget, size, (exemplar.height, exemplar.width)))
+                            seed=seed, spread=spread,
+                            budget=auto_budget(budget, size, (exemplar.height, exemplar.width)))
     for key, value in result.stats.items():
         ctx.note(key, value)
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
