@@ -1,6 +1,9 @@
 """Jump-map synthesis: shared analysis on OpenCL against NumPy, the walk, seams, tiles and relighting."""
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
 
 from btforge.plugins.synth import bench as synth_bench
 from btforge import BtforgeInputError
@@ -11,7 +14,8 @@ from btforge.plugins.synth import jumpmap as jm_module
 from btforge.plugins.synth import search, textons
 from btforge.plugins.synth import materialize
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.jumpmap import automatic_overuse, build_jump_map, jumpmap, walk
+from btforge.plugins.synth.jumpmap import ORDERS, automatic_overuse, build_jump_map, jumpmap, walk
+from btforge.plugins.synth.scan_order import hilbert_order
 
 LIGHTS = [[0, 0, 1], [1, 0, 1], [0, 1, 1], [-1, 0, 1]]
 
@@ -63,17 +67,19 @@ def test_jump_map_analysis_on_opencl_matches_numpy(material, case):
     (False, 0.0, (25, 25), "material"), (True, 0.3, (21, 18), "constant"), (False, 0.5, (1, 30), "material"),
 ])
 @pytest.mark.parametrize("balance,overuse", [(False, 4), (True, 4), (True, 1)])
-def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, balance, overuse):
+@pytest.mark.parametrize("order", ORDERS)
+def test_walk_kernel_matches_numpy(material, wrap, probability, size, case, balance, overuse, order):
     features = texel_features(material) if case == "material" else np.ones((9, 10, 2), np.float32)
     jm = build_jump_map(features, jumps=3, jump_probability=probability, neighborhood=5 if case == "material" else 3)
-    a, counts_a = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse)
-    b, counts_b = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse, engine="numpy")
+    a, counts_a = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse, order=order)
+    b, counts_b = walk(jm, size, wrap=wrap, seed=11, balance=balance, overuse=overuse, order=order, engine="numpy")
     np.testing.assert_array_equal(a, b)
     assert counts_a == counts_b
 
 
 def test_balance_evens_out_the_use_of_the_exemplar():
-    """The plain walk drifts right and down and piles up in pockets; the balanced one spreads its copies."""
+    """The plain walk gets caught in pockets whose jumps land in the pocket again; the balanced one spreads its
+    copies (in either order)."""
     from btforge.plugins.synth.bench import benchmark_exemplar
     jm = build_jump_map(texel_features(benchmark_exemplar(64, lights=8)), jumps=3, jump_probability=0.02)
     spread = {}
@@ -93,15 +99,60 @@ def test_overuse_brings_in_an_exemplar_region_no_neighbourhood_leads_to(engine):
     """Two unlike halves (a smooth ramp, fine noise): jumps land only on similar neighbourhoods, so a walk that
     started in one half crosses into the other only when it leaves an over-used cell.  At ``overuse`` 1 (a cell left
     at its fair share plus one cell's worth: at most 3 / 4 of this output in one half) the other half comes in; at
-    4 (the share for larger outputs) it stays out."""
+    4 (the share for larger outputs) it stays out.  In scanline order: a walk that only continues down and right
+    does not step back across the halves' border, as one along the Hilbert curve does."""
     rng = np.random.default_rng(3)
     ramp = np.linspace(0.2, 0.4, 48, dtype=np.float32)[None, :, None] + np.zeros((48, 1, 3), np.float32)
     noise = 0.6 + 0.3 * rng.random((48, 48, 3), dtype=np.float32)
     jm = build_jump_map(np.concatenate([ramp, noise], axis=1), jumps=3, jump_probability=0.02)
-    right = {overuse: float(np.median([(walk(jm, (96, 96), seed=s, overuse=overuse, engine=engine)[0][..., 1] >= 48)
+    right = {overuse: float(np.median([(walk(jm, (96, 96), seed=s, overuse=overuse, order="scanline",
+                                                 engine=engine)[0][..., 1] >= 48)
                                        .mean() for s in range(3)])) for overuse in (1, 4)}
     assert 0.2 <= right[1] <= 0.8, right
     assert min(right[4], 1 - right[4]) < 0.05, right
+
+
+@given(st.integers(1, 70), st.integers(1, 70))
+@settings(max_examples=60, deadline=None)
+def test_the_hilbert_order_visits_every_pixel_once_mostly_in_unit_steps(ho, wo):
+    order = hilbert_order(ho, wo)
+    np.testing.assert_array_equal(np.sort(order), np.arange(ho * wo))
+    ys, xs = np.divmod(order.astype(np.int64), wo)
+    steps = np.abs(np.diff(ys)) + np.abs(np.diff(xs))
+    side = 1 << max(0, (min(ho, wo) - 1).bit_length())
+    if min(ho, wo) == side and max(ho, wo) % side == 0:   # whole squares: every step to a 4-neighbour
+        assert (steps == 1).all()
+
+
+def copied_pieces(coords):
+    """Connected pieces of pixels copied with the same offset, their areas and how elongated the 20 largest are
+    (the square root of their coordinates' covariance eigenvalue ratio: 1 for a disc, large for a streak)."""
+    h, w = coords.shape[:2]
+    offset = (coords[..., 0].astype(np.int64) - np.arange(h)[:, None]) * 4 * w + coords[..., 1] - np.arange(w)
+    labels, count = np.zeros((h, w), np.int64), 0
+    for value in np.unique(offset):
+        piece, n = ndimage.label(offset == value)
+        labels[piece > 0] = piece[piece > 0] + count
+        count += n
+    areas = np.bincount(labels.ravel())[1:]
+    elongation = []
+    for index in np.argsort(areas)[::-1][:20]:
+        ys, xs = np.nonzero(labels == index + 1)
+        low, high = np.linalg.eigvalsh(np.cov(np.stack([ys, xs]).astype(np.float64)))
+        elongation.append(np.sqrt(high / max(low, 1e-9)))
+    return areas, float(np.median(elongation))
+
+
+def test_the_hilbert_walk_copies_patches_where_the_scanline_walk_copies_streaks():
+    """In scanline order a copy continues down and right only, and the pieces are diagonal streaks (measured: 3.9
+    x as long as wide at the median); along the Hilbert curve they grow on every side (1.6) and are larger."""
+    jm = build_jump_map(texel_features(synth_bench.benchmark_exemplar(64, lights=8)), jumps=3)
+    found = {order: [copied_pieces(walk(jm, (128, 128), seed=seed, order=order)[0]) for seed in range(3)]
+             for order in ORDERS}
+    elongation = {order: np.median([e for _, e in runs]) for order, runs in found.items()}
+    area = {order: np.median([(a ** 2).sum() / a.sum() for a, _ in runs]) for order, runs in found.items()}
+    assert elongation["hilbert"] < 0.6 * elongation["scanline"], elongation
+    assert area["hilbert"] > 1.2 * area["scanline"], area
 
 
 def test_the_automatic_overuse_grows_with_the_copies_of_each_exemplar_texel():
@@ -207,9 +258,8 @@ def test_wrap_makes_the_seam_as_coherent_as_the_interior(material):
         coherence[wrap] = np.mean([pair_coherence(c) for c in runs], axis=0)
         mismatch[wrap] = np.mean([seam_mismatch(c, features) for c in runs], axis=0)
     stats = coherence, mismatch
-    # The walk has no correction pass: the last row and column close the torus and must agree with both
-    # sides, so the seam is somewhat worse than the interior (the closing row more than the closing column),
-    # but far better than the random cut without wrap.
+    # The walk has no correction pass: the pixels that close the torus must agree with both sides, so the seam
+    # is somewhat worse than the interior, but far better than the random cut without wrap.
     assert mismatch[False][1] > 3 * mismatch[False][0], stats
     assert mismatch[True][1] < 2.5 * mismatch[True][0], stats
     assert mismatch[True][1] < 0.6 * mismatch[False][1], stats

@@ -238,13 +238,17 @@ def test_a_tight_budget_gives_an_object_its_share_of_a_large_output():
 
 def test_the_automatic_budget_is_tight_only_where_the_output_is_at_most_twice_the_exemplar():
     """A budget under 1 stays above the running fair share only up to 1 / (1 - budget) copies: 0.5 up to twice the
-    exemplar's texels, 1.5 beyond; a budget given (0 included) is kept."""
-    from btforge.plugins.synth.quilting import BUDGET, SMALL_OUTPUT_BUDGET, auto_budget
-    assert auto_budget(-1.0, (256, 256), (192, 192)) == SMALL_OUTPUT_BUDGET == 0.5
-    assert auto_budget(-1.0, (256, 256), (182, 182)) == SMALL_OUTPUT_BUDGET   # 1.98 x
-    assert auto_budget(-1.0, (256, 256), (180, 180)) == BUDGET == 1.5         # 2.02 x
-    assert auto_budget(-1.0, (256, 256), (128, 128)) == BUDGET
-    assert [auto_budget(b, (256, 256), (192, 192)) for b in (0.0, 1.0, 2.0)] == [0.0, 1.0, 2.0]
+    exemplar's texels, the synthesizer's own beyond (quilting 1.5, k-coherence's start none); a budget given (0
+    included) is kept."""
+    from btforge.plugins.synth.kcoherence import LARGE_BUDGET
+    from btforge.plugins.synth.quilting import BUDGET
+    from btforge.plugins.synth.synthesizer import SMALL_OUTPUT_BUDGET, auto_budget
+    assert auto_budget(-1.0, (256, 256), (192, 192), BUDGET) == SMALL_OUTPUT_BUDGET == 0.5
+    assert auto_budget(-1.0, (256, 256), (182, 182), BUDGET) == SMALL_OUTPUT_BUDGET   # 1.98 x
+    assert auto_budget(-1.0, (256, 256), (180, 180), BUDGET) == BUDGET == 1.5         # 2.02 x
+    assert auto_budget(-1.0, (256, 256), (128, 128), BUDGET) == BUDGET
+    assert auto_budget(-1.0, (256, 256), (128, 128), LARGE_BUDGET) == 0.0             # k-coherence's start: no limit
+    assert [auto_budget(b, (256, 256), (192, 192), BUDGET) for b in (0.0, 1.0, 2.0)] == [0.0, 1.0, 2.0]
 
 
 @pytest.mark.shared_data

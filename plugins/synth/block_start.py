@@ -7,6 +7,11 @@ piece, and where in it, is chosen by seam cost (as Graphcut Textures places a pa
 there): ``candidates`` origins are drawn from the open strata, and the one whose edges continue the pieces already
 laid beside it best is taken.  Random pieces (``candidates: 1``) meet as unrelated colour areas along straight
 block edges, which later passes can rarely hide; matched pieces continue the areas they meet.
+
+The strata even out the pieces' origins, not the exemplar texels they cover: within a stratum the seam cost picks
+the origins whose pieces are smoothest, and on a painting whose ornate border fills a few strata only in part the
+start held the plain face almost alone.  With a copy ``budget`` (:func:`~.synthesizer.within_copy_budget`) a
+piece whose exemplar area has been copied more than its share is not taken while others are.
 """
 from __future__ import annotations
 
@@ -15,6 +20,7 @@ import dataclasses
 import numpy as np
 
 from .features import edge_padded
+from .synthesizer import within_copy_budget
 
 #: Origins compared per piece by default (drawn from the open strata, several per stratum).
 CANDIDATES = 64
@@ -47,14 +53,16 @@ class Strata:
 
 
 def matched_blocks(rng: np.random.Generator, features: np.ndarray, size: tuple[int, int], block: int,
-                   candidates: int = CANDIDATES, wrap: bool = False) -> np.ndarray:
+                   candidates: int = CANDIDATES, wrap: bool = False, budget: float = 0.0) -> np.ndarray:
     """Flat exemplar sources ``[H * W]`` int32 of ``block x block`` pieces of ``features [eh, ew, d]`` (module
-    docstring); ``wrap``: the last row and column of pieces are matched across the output's edges too."""
+    docstring); ``wrap``: the last row and column of pieces are matched across the output's edges too; ``budget``
+    > 0: only candidates within that copy budget are taken (the least-used always are)."""
     eh, ew = features.shape[:2]
     ho, wo = size
     b = max(1, min(block, eh, ew))
     strata = Strata.of((eh, ew), b)
     used = np.zeros(strata.count, np.int64)
+    copied = np.zeros((eh, ew), np.int64)   # how often each exemplar texel has been laid
     padded = edge_padded(features)
     squares = np.einsum("nd,nd->n", padded, padded)
     src = np.full((ho, wo), -1, np.int64)
@@ -67,11 +75,20 @@ def matched_blocks(rng: np.random.Generator, features: np.ndarray, size: tuple[i
             hh, ww = min(b, ho - y0), min(b, wo - x0)
             best = 0
             if candidates > 1:
-                best = int(np.argmin(edge_costs(ew, padded, squares, src, (y0, x0, hh, ww), oy, ox, wrap)))
+                cost = edge_costs(ew, padded, squares, src, (y0, x0, hh, ww), oy, ox, wrap)
+                eligible = within_copy_budget(area_use(copied, oy, ox, b), copied.sum(), copied.size, b * b, budget)
+                best = int(np.argmin(cost if eligible is None else np.where(eligible, cost, np.inf)))
             used[drawn[best]] += 1
+            copied[oy[best]:oy[best] + hh, ox[best]:ox[best] + ww] += 1
             rows, cols = np.mgrid[0:hh, 0:ww]
             src[y0:y0 + hh, x0:x0 + ww] = (oy[best] + rows) * ew + ox[best] + cols
     return src.ravel().astype(np.int32)
+
+
+def area_use(copied: np.ndarray, oy: np.ndarray, ox: np.ndarray, block: int) -> np.ndarray:
+    """Per origin ``(oy, ox)``: the copies so far of the exemplar texels its ``block x block`` piece covers."""
+    table = np.pad(copied, ((1, 0), (1, 0))).cumsum(axis=0).cumsum(axis=1)
+    return table[oy + block, ox + block] - table[oy, ox + block] - table[oy + block, ox] + table[oy, ox]
 
 
 def edge_costs(ew: int, padded: np.ndarray, squares: np.ndarray, src: np.ndarray,

@@ -31,8 +31,8 @@ from .feather import feathered, records_mix
 from .features import downsample, texel_features
 from .scan_order import coherent_fraction, level_sizes, output_neighbours, pad_textons, search_offsets, wavefronts
 from .search import ContentCache, content_key, similar_texels
-from .synthesizer import (MAX_K, MAX_NEIGHBORHOOD, check_params, declare_synthesizer, refine_params, refined,
-                          search_param)
+from .synthesizer import (AUTO, BUDGET_AREA, MAX_K, MAX_NEIGHBORHOOD, SMALL_OUTPUT_BUDGET, auto_budget, check_params,
+                          declare_synthesizer, refine_params, refined, search_param)
 from .textons import DEFAULT_TEXTONS, Textons, normalise_features, texton_analysis
 
 KERNELS = Path(__file__).with_name("kcoherence.cl")
@@ -73,6 +73,9 @@ POLISH_ROUNDS = 2
 #: 0.01-0.08; the held-out procedural exemplar at 128 1.24 -> 1.17) with SWD lower on 11; at 2 they fall by less
 #: (Benchmarks).
 SEAM_WEIGHT = 4.0
+#: The start's copy budget where the output has more than :data:`.synthesizer.BUDGET_AREA` x the exemplar's texels:
+#: none (0), as before the budget; the strata alone spread the pieces where each exemplar texel is copied twice or more.
+LARGE_BUDGET = 0.0
 KEEP = 0.5                   #: default weight of a pixel's own source's cost in the correction passes
 ANALYSES_KEPT = 4            #: exemplar analyses kept in memory (keyed by content and analysis params)
 
@@ -375,7 +378,7 @@ class SynthesisResult:
 def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neighborhood: int = 5, levels: int = 3,
                wrap: bool = False, seed: int = 0, textons: int = DEFAULT_TEXTONS, search: str = "fast",
                corrections: int = CORRECTIONS, coverage: float = COVERAGE, blocks: int = BLOCKS, keep: float = KEEP,
-               matching: int = CANDIDATES, engine: str = "opencl",
+               matching: int = CANDIDATES, budget: float = 0.0, engine: str = "opencl",
                analysis: list[ExemplarLevel] | None = None) -> SynthesisResult:
     """Hierarchical k-coherence synthesis on ``[H, W, D]`` features; see :func:`kcoherence` for the method."""
     if engine not in ENGINES:
@@ -411,7 +414,7 @@ def synthesize(features: np.ndarray, size: tuple[int, int], *, k: int = 6, neigh
         ho, wo = out_sizes[l]
         if cur is None and blocks:
             # matched exemplar pieces: the correction passes repair their seams
-            cur, passes_causal = matched_blocks(rng, features, out_sizes[l], blocks, matching, wrap), []
+            cur, passes_causal = matched_blocks(rng, features, out_sizes[l], blocks, matching, wrap, budget), []
         else:
             cur, passes_causal = _level_start(cur, pyramid, l, out_sizes, rng, wrap, neighborhood // 2)
         passes = corrections + 1 if l == synthesized - 1 else corrections
@@ -462,7 +465,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="24",  # 24: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 23: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 22: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 21: seams cross-faded over 1 texel on blendable exemplars (param feather); 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="25",  # 25: the start's pieces within a copy budget (param budget, automatic: 0.5 up to twice the exemplar's texels, else none); 24: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 23: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 22: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 21: seams cross-faded over 1 texel on blendable exemplars (param feather); 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -486,6 +489,11 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
         Param("matching", "int", CANDIDATES, "exemplar origins compared for each piece of the start (drawn from the "
               "strata not yet used): the one whose edges continue the pieces already beside it best is laid, so "
               "colour areas continue across the pieces' edges (1: a random one)", low=1, high=MAX_MATCHING),
+        Param("budget", "float", AUTO, "copy budget of the start's pieces: a piece is taken only while its exemplar "
+              "area is copied at most budget x its fair share (the texels laid so far spread evenly over the "
+              f"exemplar) plus one copy, or where none is.  Negative (the default): {SMALL_OUTPUT_BUDGET:g} where the "
+              f"output has at most {BUDGET_AREA:g} x the exemplar's texels (the pieces' seam cost favours an "
+              "exemplar's plain parts), else 0: no limit", low=-1.0, high=100.0),
         Param("keep", "float", KEEP, "weight of a pixel's own source's cost in the correction passes: a source "
               "changes only to a candidate cheaper than this times its own cost (1: to any cheaper one)",
               low=0.0, high=1.0),
@@ -494,7 +502,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, matching, keep, refine, occurrence, contrast, scales, coarse_refine, polish,
+               coverage, blocks, matching, budget, keep, refine, occurrence, contrast, scales, coarse_refine, polish,
                seam_weight, feather):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
@@ -515,6 +523,11 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
        passes (4. below, ``corrections`` + 1 of them) repair the seams between the pieces.  The output thus
        copies large coherent pieces and uses the whole exemplar about evenly, which the hierarchical start
        below does not (its passes drift to a few easily continued regions; README, Benchmarks).
+       **Copy budget** (``budget``): the strata even out the pieces' origins, but within a stratum the seam cost
+       picks the smoothest piece, so an exemplar's plain parts are over-used (RealRTI item4 at 192 x 192: the
+       face, little of its ornate border; SWD over the shuffled blocks 2.08).  Where the output has at most twice
+       the exemplar's texels a piece is taken only while its exemplar area is copied at most 0.5 x its fair share
+       plus one copy, or where none is (quilting's rule, :func:`.synthesizer.within_copy_budget`): item4 1.40.
     2'. **Hierarchical start** (``blocks: 0``), coarsest level: the first n // 2 rows and columns are seeded
        with random exemplar texels; every other pixel takes, among the coherence sets of the coherent sources
        suggested by its causal (L-shaped) neighbours, the candidate whose neighbourhood differs least (sums of
@@ -574,7 +587,8 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     features = texel_features(exemplar)
     result = synthesize(features, size, k=k, neighborhood=neighborhood, levels=levels, wrap=wrap, seed=seed,
                         textons=textons, search=search, corrections=corrections,
-                        coverage=coverage, blocks=blocks, keep=keep, matching=matching)
+                        coverage=coverage, blocks=blocks, keep=keep, matching=matching,
+                        budget=auto_budget(budget, size, (exemplar.height, exemplar.width), LARGE_BUDGET))
     ctx.note("textons", [lv.textons.count for lv in result.levels])
     ctx.note("texton_error", [round(lv.textons.error, 4) for lv in result.levels])
     if k > 1:

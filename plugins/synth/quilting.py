@@ -29,7 +29,8 @@ from .feather import feathered, records_mix
 from .features import texel_features, window_sums
 from .quilt_search import SEARCHES, QuiltSearch
 from .quilt_seams import _region, _span, blend_alpha, cut_mask
-from .synthesizer import AUTO, area_ratio, declare_synthesizer, refine_params, refined
+from .synthesizer import (AUTO, BUDGET_AREA, SMALL_OUTPUT_BUDGET, auto_budget, declare_synthesizer,
+                          refine_params, refined, within_copy_budget)
 
 
 SEAMS = ("cut", "blend")
@@ -38,19 +39,6 @@ SEAMS = ("cut", "blend")
 #: (SWD 1.84 x the shuffled blocks, seeds 0-1; 0.93 at 1.5); the 192 x 192 stones, plaster and fibres come out the
 #: same at 1.5.  At 1 the held-out procedural exemplar's straight seams pass 2 % of its seams (1.43 over seeds 0-3).
 BUDGET = 1.5
-#: Copy budget where the output has at most :data:`BUDGET_AREA` x the exemplar's texels (256 x 256 from 192 x 192:
-#: 1.78 x): 0.5.  With the one copy always allowed, 1.5 let a 192 x 192 crop's easiest area be copied 3.7 times, and
-#: quilting's outputs of the paintings and of off-centre real crops were mostly their smoothest part (item5: brown
-#: and black, little of its pale ground; SWD over the shuffled blocks 2.39, item1 2.09, the SynthRTI relief at (0,
-#: 128) 2.35).  At 0.5 (1.9 copies at most) they are 0.50, 0.64 and 1.19 over seeds 0-1; over the 21 crops of 192 x
-#: 192 the targets missed go from 4 to 1 (the bumps' straight seams stay), and at 1 item1, item5 and fibres miss
-#: SWD (Benchmarks).
-SMALL_OUTPUT_BUDGET = 0.5
-#: ... the ratio of output to exemplar texels up to which :data:`SMALL_OUTPUT_BUDGET` holds.  A budget ``b`` under 1
-#: stays above the running fair share only while that share is at most ``1 / (1 - b)`` copies (2 at 0.5); beyond,
-#: every block is over it, the least-used alone are eligible, and the output of a grainy exemplar many times larger
-#: lost its patch statistics (the fibres at 128: 1.09 -> 1.41).
-BUDGET_AREA = 1.0 / (1.0 - SMALL_OUTPUT_BUDGET)
 #: Passes of the refinement's re-cut of straight seams, as k-coherence and the jump map: the third pass finds the
 #: runs the first two have shortened or joined (over seeds 0-3 on the held-out procedural exemplar it takes the
 #: straight share of the seam edges from 2.2 % to 1.7 %; on the other exemplars of the quality table and the tablet,
@@ -110,14 +98,6 @@ def axis_layout(size: int, block: int, overlap: int, wrap: bool) -> AxisLayout:
     ends = starts[1:] + (size,)
     seams = tuple(block - (e - s) for s, e in zip(starts, ends))  # seam i joins block i and block i + 1 (mod n)
     return AxisLayout(starts, (0,) + seams[:-1], (0,) * (n - 1) + (seams[-1],), size)
-
-
-def auto_budget(budget: float, output_shape, exemplar_shape) -> float:
-    """``budget`` where it is >= 0, else :data:`SMALL_OUTPUT_BUDGET` where the output has at most
-    :data:`BUDGET_AREA` x the exemplar's texels and :data:`BUDGET` where it has more."""
-    if budget >= 0:
-        return budget
-    return SMALL_OUTPUT_BUDGET if area_ratio(output_shape, exemplar_shape) <= BUDGET_AREA else BUDGET
 
 
 def validate(exemplar_size: tuple[int, int], size, block: int, overlap: int, wrap: bool, tolerance: float = 0.0):
@@ -244,20 +224,11 @@ class _Canvas:
         return window_sums(self.copied, (self.block, self.block)).ravel()
 
     def within_budget(self, usage: np.ndarray, budget: float) -> np.ndarray | None:
-        """Per candidate block, whether its exemplar area is copied at most ``budget`` x its fair share (the
-        texels copied so far spread evenly over the exemplar) plus one copy of the block; None when ``budget`` is
-        0.  The least-used blocks are always within it: below a budget of 1 every block can be over it, and a
-        choice must still be made.
-
-        Efros & Freeman's tolerance is relative to the best overlap error, so where most of the exemplar is a
-        plain ground whose blocks match each other almost exactly, only ground blocks are ever eligible and the
-        exemplar's sparse features never appear; the budget moves the choice on once the ground has had its share.
-        """
-        if budget <= 0:
-            return None
-        area = self.block * self.block
-        fair = area * self.copied.sum() / self.copied.size
-        return usage <= max(budget * fair + area, usage.min())
+        """Per candidate block, whether its exemplar area is within the copy budget
+        (:func:`~.synthesizer.within_copy_budget`; Efros & Freeman's tolerance is relative to the best overlap
+        error, so on a plain ground whose blocks match each other almost exactly only ground blocks would be
+        eligible)."""
+        return within_copy_budget(usage, self.copied.sum(), self.copied.size, self.block * self.block, budget)
 
     def place(self, region, origin: tuple[int, int], key: tuple[int, int, int, int]) -> None:
         r0, c0 = origin
@@ -399,7 +370,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     feats = texel_features(exemplar)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
                             seed=seed, spread=spread,
-                            budget=auto_budget(budget, size, (exemplar.height, exemplar.width)))
+                            budget=auto_budget(budget, size, (exemplar.height, exemplar.width), BUDGET))
     for key, value in result.stats.items():
         ctx.note(key, value)
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,

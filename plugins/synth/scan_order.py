@@ -68,3 +68,37 @@ def coherent_fraction(coords: np.ndarray, wrap: bool = False) -> float:
         v_ok = (c[1:, :, 0] == c[:-1, :, 0] + 1) & (c[1:, :, 1] == c[:-1, :, 1])
     total = h_ok.size + v_ok.size
     return float((h_ok.sum() + v_ok.sum()) / total) if total else 1.0
+
+
+def hilbert_curve(side: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the Hilbert curve over a ``side x side`` square (side a power of two), in the curve's
+    order: it starts at (0, 0), ends at (0, side - 1), and each step moves to a 4-neighbour."""
+    t = np.arange(side * side, dtype=np.int64)
+    y = np.zeros_like(t)
+    x = np.zeros_like(t)
+    s = 1
+    while s < side:
+        rx = (t // 2) & 1
+        ry = (t ^ rx) & 1
+        flip = (ry == 0) & (rx == 1)
+        x, y = np.where(flip, s - 1 - x, x), np.where(flip, s - 1 - y, y)
+        x, y = np.where(ry == 0, y, x), np.where(ry == 0, x, y)
+        x, y = x + s * rx, y + s * ry
+        t //= 4
+        s *= 2
+    return y, x
+
+
+def hilbert_order(ho: int, wo: int) -> np.ndarray:
+    """Flat indices of an ``ho x wo`` grid in Hilbert-curve order: squares as wide as the shorter side (rounded up
+    to a power of two), one after another along the longer side, each walked by :func:`hilbert_curve` (turned so
+    that it ends beside the next square); texels past the grid are skipped."""
+    side = 1 << max(0, (min(ho, wo) - 1).bit_length())
+    y, x = hilbert_curve(side)
+    if ho > wo:
+        y, x = x, y   # ends at (side - 1, 0), above the next square
+    squares = np.arange(-(-max(ho, wo) // side))[:, None] * side
+    ys = (y[None] + squares * (ho > wo)).ravel()
+    xs = (x[None] + squares * (ho <= wo)).ravel()
+    keep = (ys < ho) & (xs < wo)
+    return (ys[keep] * wo + xs[keep]).astype(np.int32)
