@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from .features import edge_padded
+from .features import edge_padded, window_sums
 from .synthesizer import within_copy_budget
 
 #: Origins compared per piece by default (drawn from the open strata, several per stratum).
@@ -76,19 +76,15 @@ def matched_blocks(rng: np.random.Generator, features: np.ndarray, size: tuple[i
             best = 0
             if candidates > 1:
                 cost = edge_costs(ew, padded, squares, src, (y0, x0, hh, ww), oy, ox, wrap)
-                eligible = within_copy_budget(area_use(copied, oy, ox, b), copied.sum(), copied.size, b * b, budget)
-                best = int(np.argmin(cost if eligible is None else np.where(eligible, cost, np.inf)))
+                if budget > 0:
+                    use = window_sums(copied, (b, b))[oy, ox]
+                    cost = np.where(within_copy_budget(use, copied.sum(), copied.size, b * b, budget), cost, np.inf)
+                best = int(np.argmin(cost))
             used[drawn[best]] += 1
             copied[oy[best]:oy[best] + hh, ox[best]:ox[best] + ww] += 1
             rows, cols = np.mgrid[0:hh, 0:ww]
             src[y0:y0 + hh, x0:x0 + ww] = (oy[best] + rows) * ew + ox[best] + cols
     return src.ravel().astype(np.int32)
-
-
-def area_use(copied: np.ndarray, oy: np.ndarray, ox: np.ndarray, block: int) -> np.ndarray:
-    """Per origin ``(oy, ox)``: the copies so far of the exemplar texels its ``block x block`` piece covers."""
-    table = np.pad(copied, ((1, 0), (1, 0))).cumsum(axis=0).cumsum(axis=1)
-    return table[oy + block, ox + block] - table[oy, ox + block] - table[oy + block, ox] + table[oy, ox]
 
 
 def edge_costs(ew: int, padded: np.ndarray, squares: np.ndarray, src: np.ndarray,

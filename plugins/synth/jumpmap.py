@@ -190,7 +190,7 @@ ORDERS = ("hilbert", "scanline")
 #: continues down and to the right and jumps break it off there, so the walk copies short diagonal streaks; along the
 #: curve a pixel's done neighbours lie on several sides, and the runs grow into patches.  On RealRTI item5 at 192 x
 #: 192 the walk alone then holds the pale ground as well as the dark coat (SWD over the shuffled blocks 2.40 ->
-#: 0.83, seams 1.74 -> 1.55, seed 0), and the refinement keeps it (2.71 -> 0.62 at seeds 0-1, Benchmarks).
+#: 0.83, seams 1.74 -> 1.55, seed 0), and the refinement keeps it (2.71 -> 0.53 at seeds 0-1, Benchmarks).
 ORDER = "hilbert"
 
 
@@ -242,7 +242,7 @@ def walk_opencl(jm: JumpMap, ho: int, wo: int, wrap: bool, visits: np.ndarray, u
     cw = -(-jm.width // BALANCE_CELL)
     src_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=4 * ho * wo)
     flags_dev = cl.Buffer(backend.context, cl.mem_flags.READ_WRITE, size=ho * wo)
-    # the device buffers must outlive the launch: set_args does not keep them alive
+    # the device buffers are kept until the results are read back
     inputs = [backend.to_device(a) for a in (
         np.zeros(ho * wo, np.uint8), visits, uniform, fallback, np.ascontiguousarray(jm.targets, np.int32),
         jm.cumulative, jm.probability, jm.textons.labels.ravel().astype(np.int32), pad_textons(jm.textons.labels, 1),
@@ -378,7 +378,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, visits: np.ndarray, un
         Param("balance", "bool", BALANCE, "usage-aware walk: a copy from an exemplar cell (8 x 8 texels) the "
               "output already holds more than overuse x its fair share of (plus one cell's worth) jumps whatever the "
               "draw; a jump goes to the target whose cell is used least so far, or to a random texel when even "
-              "that one is over-used (use counted after every wavefront); false: Zelinka & Garland's walk"),
+              "that one is over-used (use counted after every pixel); false: Zelinka & Garland's walk"),
         Param("order", "choice", ORDER, "the order the walk visits the output's pixels in: hilbert (along a Hilbert "
               "curve, Zelinka & Garland 2004: patches) or scanline (Zelinka & Garland 2002: diagonal streaks)",
               choices=ORDERS),
