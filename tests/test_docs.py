@@ -1,6 +1,6 @@
 """The docs stay true: the stage reference in docs/stages.md is what `btforge stages --markdown` prints, the README
-is a short front door that opens with the two CI commands, its links resolve, and no page reads like a
-development log."""
+is a short front door that opens with the two CI commands, its links resolve, every picture in the docs has a row
+in docs/images/SOURCES.md naming data the project may ship, and no page reads like a development log."""
 import re
 import sys
 from pathlib import Path
@@ -58,6 +58,40 @@ def test_relative_links_and_pictures_resolve():
             if not (page.parent / path).exists():
                 broken.append(f"{page.relative_to(ROOT)}: {target}")
     assert not broken, "links to missing files:\n" + "\n".join(broken)
+
+
+# Pictures in the docs show data the project may ship: docs/images/SOURCES.md names each one's data and licence.
+SOURCES = ROOT / "docs" / "images" / "SOURCES.md"
+PICTURE_FOLDERS = ("docs/images", "docs/wang", "docs/bench")
+PICTURE_SUFFIXES = {".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg"}
+SHIPPABLE = {"MIT", "procedural, ours", "ours (plot of figures)"}
+
+
+def _source_rows() -> dict[str, list[str]]:
+    """The rows of SOURCES.md's table whose first cell is a backticked file, by that file: [file, data, licence,
+    recipe]."""
+    rows = {}
+    for line in SOURCES.read_text().splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        named = re.fullmatch(r"`([^`]+)`", cells[0]) if line.startswith("|") else None
+        if named:
+            rows[named.group(1)] = cells
+    return rows
+
+
+def test_every_picture_in_the_docs_names_its_data_and_a_licence_we_may_ship():
+    rows = _source_rows()
+    pictures = sorted(str(path.relative_to(ROOT)) for folder in PICTURE_FOLDERS for path in (ROOT / folder).rglob("*")
+                      if path.suffix.lower() in PICTURE_SUFFIXES)
+    unlisted = [p for p in pictures if p not in rows]
+    unshippable = [f"{p}: {rows[p][2:3]}" for p in pictures
+                   if p in rows and (len(rows[p]) < 4 or rows[p][2] not in SHIPPABLE)]
+    gone = [p for p in rows if not (ROOT / p).exists()]
+    assert not unlisted, ("pictures without a row in docs/images/SOURCES.md (file, data, licence, how to make it): "
+                          + ", ".join(unlisted))
+    assert not unshippable, (f"pictures whose data is not ours or MIT (licence cell one of {sorted(SHIPPABLE)}); a "
+                             "picture rendered from an unlicensed capture is derived from it:\n" + "\n".join(unshippable))
+    assert not gone, "rows of docs/images/SOURCES.md for files that are gone: " + ", ".join(gone)
 
 
 # Words that date a text: who did what when, instead of what the software does now.
