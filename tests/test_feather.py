@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from btforge import stage
 from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.synth import materialize
-from btforge.plugins.synth.feather import FEATHER, feather_weight, feathered, local_steps
+from btforge.plugins.synth.feather import FEATHER, feather_weight, feathered, local_steps, smooth_bands
 from btforge.plugins.synth.scoring import score
 from btforge.plugins.synth.visibility import exemplar_band_jumps, exemplar_jump, seam_edges, seam_visibility
 
@@ -199,3 +199,44 @@ def test_each_synthesizer_feathers_an_srgb_ptm(name, tileable_stack):
     plain = stage(name)(exemplar=exemplar, size=[48, 48], seed=0, feather=0)["coords"]
     assert (coords.coords == plain.coords).all() and coords.blend_weight.size
     assert measured(exemplar, coords)["seam_visibility"] < measured(exemplar, plain)["seam_visibility"]
+
+
+def test_bands_are_widest_where_the_exemplar_is_flat_and_narrow_where_it_is_grainy():
+    """Half flat, half noise: a seam edge between flat sources gets the widest band, one between noisy sources one
+    texel, so grain is not averaged over a wide strip."""
+    rng = np.random.default_rng(3)
+    features = np.zeros((32, 32, 4), np.float32)
+    features[:, 16:] = rng.random((32, 16, 4))
+    steps = local_steps(features)
+    src = np.stack(np.mgrid[0:8, 0:8], axis=-1)
+    src[..., 1] += np.where(np.arange(8) < 4, 2, 22)[None, :]         # left half flat, right half noise
+    edges = np.ones((8, 8), bool)
+    bands = smooth_bands(steps, src, edges, 1, 3)
+    assert (bands[:, :3] == 3).all()                                  # both sources flat
+    assert (bands[:, 4:7] == 1).all()                                 # both sources in the noise
+    assert (smooth_bands(steps, src, ~edges, 1, 3) == 0).all()        # no seam edge, no band
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), widest=st.integers(1, 5), scale=st.sampled_from([0.0, 1e-6, 1.0, 1e6]))
+def test_bands_stay_within_one_and_the_widest_on_any_exemplar(seed, widest, scale):
+    """Any exemplar, a constant one (every step 0) included: each seam edge's band is an integer in [1, widest]."""
+    rng = np.random.default_rng(seed)
+    features = (rng.random((12, 12, 3)) * scale).astype(np.float32)
+    src = rng.integers(0, 12, (10, 10, 2))
+    edges = rng.random((10, 10)) < 0.5
+    bands = smooth_bands(local_steps(features), src, edges, seed % 2, widest)
+    assert (bands[edges] >= 1).all() and (bands[edges] <= widest).all() and (bands[~edges] == 0).all()
+
+
+def test_a_smooth_exemplar_is_feathered_wider_than_a_grainy_one():
+    """The same map on two flat halves of different colour and on the same with grain added: the seam between
+    them cross-fades over more texels where the exemplar is flat."""
+    coords = two_halves(64, 32, 20)                  # its sides copy columns 15 and 36 of the exemplar
+    flat = np.zeros((64, 64, 4), np.float32)
+    flat[:, 32:] = 1.0
+    grain = np.random.default_rng(0).random(flat.shape).astype(np.float32) * 0.2
+    smooth = feathered(coords, 3, features=flat, step=1.5)
+    grainy = feathered(coords, 3, features=flat + grain, step=1.5)
+    assert (smooth.blend_weight > 0).sum() == 6 * 32                 # three texels either side on every row
+    assert 0 < (grainy.blend_weight > 0).sum() < (smooth.blend_weight > 0).sum()

@@ -143,10 +143,12 @@ def seam_weight_param(default: float) -> Param:
 def feather_param(default: int, step: float = FEATHER_STEP) -> Param:
     """The ``feather`` param of a synthesizer whose map's seams may be cross-faded (:mod:`.feather`) where their
     step is over ``step`` x the exemplar's own steps around them."""
-    return Param("feather", "int", default, "texels on either side of a seam that cross-fade from one side's "
-                 "content to the other's, through the map's blend layer, where the step across the seam is over "
-                 f"{step:g} x the exemplar's own steps around its two sources: a cut between smooth areas reads as a "
-                 "ramp, not a step; on exemplars whose records mix (a stack, PTM, SH and HSH coefficients; an lrgb PTM "
+    return Param("feather", "int", default, "the widest band, in texels on either side of a seam, that cross-fades "
+                 "from one side's content to the other's, through the map's blend layer, where the step across the "
+                 f"seam is over {step:g} x the exemplar's own steps around its two sources: a cut between smooth areas "
+                 "reads as a ramp, not a step; the band is this wide where the exemplar is flat around the two "
+                 "sources and narrows to 1 where its steps there reach its mean step (grain is not blurred); on "
+                 "exemplars whose records mix (a stack, PTM, SH and HSH coefficients; an lrgb PTM "
                  "replays as the rgb PTM of its functions where it blends; sRGB coefficients mix display values), "
                  "the others (Lafortune lobes, neural codes) keep a plain map (0: off)", low=0, high=MAX_FEATHER)
 
