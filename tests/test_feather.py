@@ -163,6 +163,13 @@ def test_feathering_any_map_keeps_its_sources_and_is_measured_finitely(side, out
         assert done.blend_coords.min() >= 0 and done.blend_coords.max() < side
         assert 0 <= done.blend_weight.min() and done.blend_weight.max() < 0.5
     assert (done.coords == coords.coords).all()
+    # with appearance vectors only some seams stand out; a band never reaches across one that does not, so every
+    # texel that blends takes another source than its own
+    features = rng.random((side, side, 3)).astype(np.float32) * rng.random((side, side, 1)).astype(np.float32)
+    some = feathered(coords, band, features=features, step=1.5)
+    if some.blend_weight.size:
+        blends = some.blend_weight > 0
+        assert (some.blend_coords[blends] != coords.coords[blends]).any(axis=-1).all()
     images = rng.random((2, out, out, 3))
     ex = rng.random((2, side, side, 3))
     plain, banded = seam_visibility(images, ex, coords), seam_visibility(images, ex, done)

@@ -399,11 +399,12 @@ def test_a_plain_set_has_no_blend_layer_and_version_1_archives_still_read(proced
 
 
 def test_tiles_are_feathered_only_where_the_exemplar_blends(procedural):
+    from btforge.plugins.synth.feather import FEATHER
     from btforge.plugins.wang import TILE_FEATHER_STEP, feathered_tiles
     from btforge.plugins.wang.features import appearance_features
     stack, tiles, _, _ = procedural
     feats = appearance_features(stack)
-    args = (tiles.tile_coords, tiles.source_size, 1)
+    args = (tiles.tile_coords, tiles.source_size, FEATHER)
     assert feathered_tiles(*args, False, feats) == {}                 # an sRGB PTM, Lafortune lobes
     blend = feathered_tiles(*args, True, feats)
     np.testing.assert_array_equal(blend["blend_weight"], tiles.blend_weight)
