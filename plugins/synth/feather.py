@@ -120,22 +120,27 @@ def _visible(features: np.ndarray, steps: np.ndarray, src: np.ndarray, across_co
              across_rows: np.ndarray, step: float) -> list[np.ndarray]:
     """``across_columns, across_rows`` without the seam edges whose step between the two sources' appearance
     vectors is at most ``step`` x the mean of the two sources' local steps (``steps``, :func:`local_steps`)."""
-    local = steps[src[..., 0], src[..., 1]]
     here = np.asarray(features, np.float32)[src[..., 0], src[..., 1]]
     kept = []
     for axis, edges in ((1, across_columns), (0, across_rows)):
         jump = np.linalg.norm(np.roll(here, -1, axis=axis) - here, axis=2)
-        kept.append(edges & (jump > step * 0.5 * (local + np.roll(local, -1, axis=axis))))
+        kept.append(edges & (jump > step * steps_around(steps, src, axis)))
     return kept
+
+
+def steps_around(steps: np.ndarray, src: np.ndarray, axis: int) -> np.ndarray:
+    """``[H, W]``: for the edge after each texel along ``axis``, the mean of its two sources' local steps
+    (``steps``: :func:`local_steps`)."""
+    local = steps[src[..., 0], src[..., 1]]
+    return 0.5 * (local + np.roll(local, -1, axis=axis))
 
 
 def smooth_bands(steps: np.ndarray, src: np.ndarray, edges: np.ndarray, axis: int, widest: int) -> np.ndarray:
     """``[H, W]`` band of each seam edge of ``edges`` (along ``axis``; 0 elsewhere) of a map with exemplar sources
-    ``src [H, W, 2]``: ``widest`` where the exemplar is flat around the edge's two sources (their mean local step,
-    ``steps``: :func:`local_steps`), 1 where that reaches the exemplar's mean local step, rounded linearly between."""
-    local = steps[src[..., 0], src[..., 1]]
-    around = 0.5 * (local + np.roll(local, -1, axis=axis))
-    flatness = np.clip(1 - around / max(float(steps.mean()), np.finfo(np.float32).tiny), 0, 1)
+    ``src [H, W, 2]``: ``widest`` where the exemplar is flat around the edge's two sources (:func:`steps_around`),
+    1 where their steps reach the exemplar's mean local step, rounded linearly between."""
+    mean = max(float(steps.mean()), np.finfo(np.float32).tiny)
+    flatness = np.clip(1 - steps_around(steps, src, axis) / mean, 0, 1)
     return np.where(edges, 1 + np.rint((widest - 1) * flatness), 0).astype(np.int64)
 
 
