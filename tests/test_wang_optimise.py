@@ -52,8 +52,10 @@ def test_optimisation_holds_the_borders_and_hides_the_cuts():
     from btforge.plugins.wang.tiling import plane_tiling
     stack = procedural_exemplar(64, lights=16)
     feats = appearance_features(stack)
-    plain, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 0})
-    refined, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 4, "pin": 2})
+    strips = {"iterations": 4, "polish": 1, "seam_weight": 4.0}   # the same strips for both sets
+    plain, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 0}, strip_refine=strips)
+    refined, _, _ = build_tile_set(stack, tile=32, edge=8, seed=0, optimise={"iterations": 4, "pin": 2},
+                                   strip_refine=strips)
     ring = border_ring(32, 2)
     np.testing.assert_array_equal(refined.tile_coords[:, ring], plain.tile_coords[:, ring])
     assert (refined.tile_coords[:, ~ring] != plain.tile_coords[:, ~ring]).any()
@@ -64,6 +66,29 @@ def test_optimisation_holds_the_borders_and_hides_the_cuts():
     before, _ = _feature_seam_ratio(plain.tile_coords, feats)
     after, _ = _feature_seam_ratio(refined.tile_coords, feats)
     assert np.isfinite(after) and after < before
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_refined_edge_strip_keeps_its_corner_halves_and_shows_less_seam(exemplar96, seed):
+    """Every tile of a colour lays half of its strip, so the strip is refined before the frames are cut from it;
+    the corner halves, which the vertex squares share with three other strips, must stay as the corners laid them."""
+    from btforge.plugins.wang.synthesis import pixel_errors, refined_strip
+    _, feats = exemplar96
+    rng = np.random.default_rng(seed)
+    h, w = 8, 32
+    coords = np.zeros((h, w, 2), np.int32)
+    for x0 in range(0, w, 8):     # four unrelated exemplar pieces side by side: three straight cuts
+        py, px = rng.integers(0, 96 - 8, 2)
+        coords[:, x0:x0 + 8] = np.stack(np.mgrid[py:py + h, px:px + 8], -1)
+    region = np.ones((h, w), bool)
+    region[:, :4] = region[:, -4:] = False   # the corner halves
+    refined = refined_strip(feats, coords, region, seed, iterations=4, polish=1, seam_weight=4.0)
+    assert refined.shape == coords.shape and refined.dtype == coords.dtype
+    np.testing.assert_array_equal(refined[~region], coords[~region])
+    assert (refined >= 0).all() and (refined < 96).all()
+    # each texel's worst seam: the distance between each side and the other side's own continuation
+    before, after = pixel_errors(coords, feats), pixel_errors(refined, feats)
+    assert np.isfinite(after).all() and after.sum() < 0.9 * before.sum()
 
 
 @pytest.mark.parametrize("k", [1, 2, 3, 4, 5])
@@ -106,7 +131,8 @@ def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_share
     original = refine.refine_map
 
     def recorded(*args, **kwargs):
-        asked.append(kwargs.get("recut_passes"))
+        if "recut_passes" in kwargs:   # the tiles' refinement (each edge strip's leaves the re-cut at its default)
+            asked.append(kwargs["recut_passes"])
         return original(*args, **kwargs)
 
     monkeypatch.setattr(refine, "refine_map", recorded)
@@ -128,12 +154,13 @@ def test_the_polish_round_holds_the_borders_and_lowers_the_seams_the_weighted_ro
     """The refinement's rounds weigh the occurrence term; the polish round after them matches windows for their
     fit alone, so on a small set it leaves the held ring as it was and the tiles' seams lower than without it."""
     from btforge.plugins.wang import build_tile_set
-    from btforge.plugins.wang.optimise import OCCURRENCE, POLISH
+    from btforge.plugins.wang.optimise import ITERATIONS, OCCURRENCE, POLISH, SEAM_WEIGHT
     assert POLISH >= 1
     stack, feats = exemplar96
+    strips = {"iterations": ITERATIONS, "polish": POLISH, "seam_weight": SEAM_WEIGHT}   # the same strips for both
     ratios = {}
     for polish in (0, POLISH):
-        tiles, _, _ = build_tile_set(stack, tile=48, edge=12, seed=1,
+        tiles, _, _ = build_tile_set(stack, tile=48, edge=12, seed=1, strip_refine=strips,
                                      optimise={"occurrence": OCCURRENCE, "polish": polish})
         ratios[polish], _ = _feature_seam_ratio(tiles.tile_coords, feats)
         held = tiles.tile_coords[:, border_ring(48, 1)]

@@ -40,17 +40,23 @@ def texel_bytes(buffer) -> int:
 
 
 def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed=0, cut="graph",
-                   engine="opencl", optimise=None, feather=FEATHER, **options):
+                   engine="opencl", optimise=None, strip_refine=None, feather=FEATHER, **options):
     """``(TileSet, Synthesis, seam ratios)`` of an exemplar: the work of ``wang.tiles`` (``optimise``: keywords
     of :func:`.optimise.optimise_tiles`, its defaults when left out; ``{"iterations": 0}`` turns it off;
-    ``feather``: the band of :func:`btforge.plugins.synth.feather.feathered` over each tile's interior seams)."""
+    ``strip_refine``: keywords of :func:`.synthesis.refined_strip`, by default the iterations, polish and seam
+    weight of ``optimise``; ``feather``: the band of :func:`btforge.plugins.synth.feather.feathered` over each
+    tile's interior seams)."""
     from . import seams
     from .features import appearance_features, search_features
     from .synthesis import synthesize_tiles
     full = appearance_features(exemplar)
     feats = search_features(full, SEARCH_DIMS, seed)
     h = tile // 4 if edge == 0 else edge
-    synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine, **options)
+    if strip_refine is None:
+        strip_refine = {key: (optimise or {}).get(key, default) for key, default in
+                        (("iterations", ITERATIONS), ("polish", POLISH), ("seam_weight", SEAM_WEIGHT))}
+    synthesis = synthesize_tiles(feats, tile, h, tuple(colors), variants, seed, cut=cut, engine=engine,
+                                 strip_refine=strip_refine, **options)
     from .optimise import optimise_tiles   # texture optimisation of the interiors, borders held
     start = time.perf_counter()
     synthesis.tile_coords = optimise_tiles(full, synthesis.tile_coords, seed=seed, colors=synthesis.tile_colors,
@@ -125,9 +131,10 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
               "out of the tiles, unless that would leave out half the places or more (0: off)", low=0.0, high=1000.0),
         Param("relax", "int", 6, "sweeps of texel-level seam relaxation after filling each strip and interior "
               "(0: off)", low=0, high=64),
-        Param("refine", "int", ITERATIONS, "rounds of texture optimisation over the finished tiles' interiors (the "
-              "shared refinement of synth: 8 x 8 windows matched to the exemplar, kept whole where they match best and "
-              "cut where the appearance agrees), their border rings held so the tiles stay valid (0: off)",
+        Param("refine", "int", ITERATIONS, "rounds of texture optimisation (the shared refinement of synth: 8 x 8 "
+              "windows matched to the exemplar, kept whole where they match best and cut where the appearance "
+              "agrees), first over each finished edge strip with its corner halves held, then over the finished "
+              "tiles' interiors with their border rings held, so the tiles stay valid (0: off)",
               low=0, high=20),
         Param("occurrence", "float", OCCURRENCE, "weight of that refinement's occurrence term: exemplar windows "
               "already used beyond their fair share over the whole tile set cost more (0: plain texture optimisation)",
@@ -145,7 +152,7 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
         seam_weight_param(SEAM_WEIGHT),
         feather_param(FEATHER, TILE_FEATHER_STEP),
     ],
-    version="19",  # 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="20",  # 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
                edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight, feather):
@@ -159,7 +166,9 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     the few exemplar areas the corner samples came from.  Each edge strip, likewise, starts from a least-used piece
     at its middle (``edge_centre``): grown from its two corner samples alone, every strip would continue their few,
     similar areas, and lanes of them would run along every tile border.  A usage term (``usage``) spreads the
-    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; a
+    patches over the whole exemplar; a texel-level relaxation (``relax``) moves seams to where patches agree; the
+    shared refinement joins each strip's middle to its corner halves where the two sides agree (``refine`` rounds,
+    the corner halves held), since every tile of the strip's colour shows its cuts; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``contrast``,
     ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left, and the seams inside the tiles that
     still stand out are cross-faded (``feather``, as the synthesizers do, on exemplars that blend).  Distances are

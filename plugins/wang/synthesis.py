@@ -640,6 +640,22 @@ def _frame(corners: Corners, strips_h, strips_v, n, e, s, west, w: int) -> np.nd
     return tile
 
 
+def refined_strip(feats: np.ndarray, coords: np.ndarray, region: np.ndarray, seed: int, *, iterations: int,
+                  polish: int, seam_weight: float, contrast: float = 0.0) -> np.ndarray:
+    """An edge strip ``coords`` after the shared refinement (:func:`btforge.plugins.synth.refine.refine_map`), its
+    corner halves (outside ``region``) held, since the vertex squares the four strips of a vertex share meet there.
+    Every tile of the strip's colour lays half of it along its border, and the tiles' own refinement holds only its
+    border texel: a cut the filling left in a strip shows in each of those tiles, and the texels beside the held
+    texel are chopped into small pieces to continue it.  Refined first, the strip's middle is joined to its corner
+    halves and centre piece where the two sides agree.  No occurrence or contrast term: one strip uses too little
+    of the exemplar for either to mean anything (the filling's usage term spreads the strips over the exemplar)."""
+    from btforge.buffers import CoordMap
+    from btforge.plugins.synth.refine import refine_map
+    laid = CoordMap(coords, feats.shape[:2])
+    return np.array(refine_map(feats, laid, iterations=iterations, occurrence=0.0, pinned=~region, polish=polish,
+                               seed=seed, seam_weight=seam_weight, contrast=contrast).coords)
+
+
 def interior_window(w: int, h: int, interior: int = 0) -> int:
     """The side of the windows that fill a tile's interior: ``interior`` where given, else one and a half edge
     strips (``h + h / 2``), at most the interior's span ``w - h``.  Larger windows copy larger exemplar pieces
@@ -675,19 +691,21 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
                      relax: int = SWEEPS, usage_unit: str = USAGE_UNITS[0], interior: int = 0,
                      centre: float = CENTRE_SHARE, edge_centre: float = EDGE_CENTRE_SHARE,
                      typical: float = TYPICAL_SHARE,
-                     rare: float = RARE_FENCE) -> Synthesis:
+                     rare: float = RARE_FENCE, strip_refine: dict | None = None) -> Synthesis:
     """Build the complete tile set over appearance vectors ``feats [H, W, D]`` (module docstring); ``interior``:
     the side of the windows that fill the interiors (0: :func:`interior_window`'s default); ``centre``: the side,
     as a share of the tile's, of the least-used exemplar piece laid at each tile's centre first (0: none;
     :func:`centre_piece_side`); ``edge_centre``: the length, as a share of the tile side, of the least-used piece
     laid at each edge strip's middle first (0: none; :func:`centre_piece_side` too); ``typical``: the share of the
     exemplar's places, the most typical first, the centre pieces and the filling's patches come from; ``rare``: the fence beyond which a texel is rare and kept out of
-    them (:meth:`Filler.allowed_places`).
+    them (:meth:`Filler.allowed_places`); ``strip_refine``: keywords of :func:`refined_strip` for every finished edge
+    strip (``iterations``, ``polish``, ``seam_weight``; none or 0 iterations: the strips stay as filled).
 
     ``cut='straight'`` replaces every graph cut by a straight one (the baseline the seam tests compare with).
     """
     h = w // 4 if h is None else h
     check_sizes(feats.shape[:2], w, h, colors)
+    strip_refine = strip_refine or {}
     n_h, n_v = colors
     rng = np.random.default_rng(seed)
     feats = np.ascontiguousarray(feats, np.float32)
@@ -720,6 +738,9 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
             err = filler.fill(coords, region, (h, h))
             if relax:
                 coords[...] = relax_seams(coords, feats, region, relax)
+                err = pixel_errors(coords, feats)
+            if strip_refine.get("iterations", 0) > 0:
+                coords = refined_strip(feats, coords, region, seed, **strip_refine)
                 err = pixel_errors(coords, feats)
             filler.record(np.where(region[..., None], coords, -1))
             return coords, err
