@@ -647,8 +647,11 @@ def refined_strip(feats: np.ndarray, coords: np.ndarray, region: np.ndarray, see
     Every tile of the strip's colour lays half of it along its border, and the tiles' own refinement holds only its
     border texel: a cut the filling left in a strip shows in each of those tiles, and the texels beside the held
     texel are chopped into small pieces to continue it.  Refined first, the strip's middle is joined to its corner
-    halves and centre piece where the two sides agree.  No occurrence or contrast term: one strip uses too little
-    of the exemplar for either to mean anything (the filling's usage term spreads the strips over the exemplar)."""
+    halves and centre piece where the two sides agree.  No occurrence term: one strip uses too little of the
+    exemplar for it to mean anything (the filling's usage term spreads the strips over the exemplar).  ``contrast``
+    weighs the refinement's contrast term, off by default: at the tiles' weight of 8 it left item1's patch statistics
+    as far off (RealRTI item1, 192 x 192, seeds 0-1: SWD over the shuffled blocks 0.79 and 2.37, against 1.87 and
+    2.09 without it)."""
     from btforge.buffers import CoordMap
     from btforge.plugins.synth.refine import refine_map
     laid = CoordMap(coords, feats.shape[:2])
