@@ -43,8 +43,10 @@ import time
 
 import numpy as np
 
+from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth.features import window_sums
+from btforge.plugins.synth.refine import refine_map
 from btforge.plugins.synth.search import knn
 
 from .cuts import grid_edges, min_cut, min_cut_edges
@@ -641,22 +643,19 @@ def _frame(corners: Corners, strips_h, strips_v, n, e, s, west, w: int) -> np.nd
 
 
 def refined_strip(feats: np.ndarray, coords: np.ndarray, region: np.ndarray, seed: int, *, iterations: int,
-                  polish: int, seam_weight: float, contrast: float = 0.0) -> np.ndarray:
+                  polish: int, seam_weight: float) -> np.ndarray:
     """An edge strip ``coords`` after the shared refinement (:func:`btforge.plugins.synth.refine.refine_map`), its
     corner halves (outside ``region``) held, since the vertex squares the four strips of a vertex share meet there.
     Every tile of the strip's colour lays half of it along its border, and the tiles' own refinement holds only its
     border texel: a cut the filling left in a strip shows in each of those tiles, and the texels beside the held
     texel are chopped into small pieces to continue it.  Refined first, the strip's middle is joined to its corner
     halves and centre piece where the two sides agree.  No occurrence term: one strip uses too little of the
-    exemplar for it to mean anything (the filling's usage term spreads the strips over the exemplar).  ``contrast``
-    weighs the refinement's contrast term, off by default: at the tiles' weight of 8 it left item1's patch statistics
-    as far off (RealRTI item1, 192 x 192, seeds 0-1: SWD over the shuffled blocks 0.79 and 2.37, against 1.87 and
-    2.09 without it)."""
-    from btforge.buffers import CoordMap
-    from btforge.plugins.synth.refine import refine_map
+    exemplar for it to mean anything (the filling's usage term spreads the strips over the exemplar).  No contrast
+    term either: at the tiles' weight of 8 it left item1's patch statistics as far off (RealRTI item1, 192 x 192,
+    seeds 0-1: SWD over the shuffled blocks 0.79 and 2.37, against 1.87 and 2.09 without it)."""
     laid = CoordMap(coords, feats.shape[:2])
     return np.array(refine_map(feats, laid, iterations=iterations, occurrence=0.0, pinned=~region, polish=polish,
-                               seed=seed, seam_weight=seam_weight, contrast=contrast).coords)
+                               seed=seed, seam_weight=seam_weight).coords)
 
 
 def interior_window(w: int, h: int, interior: int = 0) -> int:
@@ -741,9 +740,9 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
             err = filler.fill(coords, region, (h, h))
             if relax:
                 coords[...] = relax_seams(coords, feats, region, relax)
-                err = pixel_errors(coords, feats)
             if strip_refine.get("iterations", 0) > 0:
                 coords = refined_strip(feats, coords, region, seed, **strip_refine)
+            if relax or strip_refine.get("iterations", 0) > 0:
                 err = pixel_errors(coords, feats)
             filler.record(np.where(region[..., None], coords, -1))
             return coords, err
