@@ -395,8 +395,8 @@ def test_search_param_switches_the_engine():
         kcoherence(exemplar=exemplar, size=[24, 24], search="fastest")
 
 
-def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monkeypatch):
-    """k-coherence asks the shared refinement for :data:`RECUT_PASSES` re-cut passes (one more than the shared
+def test_the_refinement_re_cuts_six_passes_with_bridging_pieces(material, monkeypatch):
+    """k-coherence asks the shared refinement for :data:`RECUT_PASSES` re-cut passes (four more than the shared
     default) with three bridging pieces per run; with ``refine: 0`` there is no re-cut at all."""
     from btforge.plugins.synth import recut, refine
     asked = []
@@ -405,7 +405,7 @@ def test_the_refinement_re_cuts_three_passes_with_bridging_pieces(material, monk
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=0)
     assert asked == []
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1)
-    assert asked == [(kc.RECUT_PASSES, 3)] and kc.RECUT_PASSES == recut.PASSES + 1
+    assert asked == [(kc.RECUT_PASSES, 3)] and kc.RECUT_PASSES == recut.PASSES + 4
 
 
 def test_the_coarse_scale_runs_its_own_rounds(material, monkeypatch):

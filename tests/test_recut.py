@@ -121,6 +121,41 @@ def test_a_run_across_a_pinned_ring_counts_its_whole_length():
     assert not recut.straight_runs(src[:11], 64, False, pinned[:11])[0][0].any()   # 11 texels: not straight
 
 
+def test_runs_whose_bands_overlap_are_offered_in_separate_groups():
+    runs = np.zeros((40, 60), bool)
+    runs[0:14, 9] = runs[0:14, 10] = True      # the two seams of a one-texel sliver
+    runs[20:34, 10] = True                      # below them: its band overlaps neither
+    runs[0:14, 40] = True                       # far to the right
+    groups = recut.apart_groups(runs, 0, wrap=False)
+    assert np.array_equal(np.logical_or.reduce(groups), runs)
+    assert sum(int(g.sum()) for g in groups) == int(runs.sum())          # every run in exactly one group
+    together = [g for g in groups if g[0, 9]][0]
+    assert not together[0, 10] and together[20, 10] and together[0, 40]
+    wrapped = np.zeros((20, 60), bool)
+    wrapped[0:14, 1] = wrapped[0:14, 58] = True                          # three columns apart across the wrap
+    assert len(recut.apart_groups(wrapped, 0, wrap=True)) == 2
+    assert len(recut.apart_groups(wrapped, 0, wrap=False)) == 1
+
+
+def test_a_sliver_between_two_pieces_is_covered_by_the_piece_that_joins_the_other():
+    """Columns 0-9 copy exemplar columns 2-11, column 10 is a sliver from column 30, columns 11-19 copy columns
+    20-28, whose first two match exemplar columns 12 and 13: the left piece continued over the sliver meets the
+    right piece at no cost, the right piece continued over it meets a far step.  Each of the sliver's two seams has
+    its own run; the left piece's continuation is offered only when the two runs' bands are not one proposal (the
+    sliver's own continuation overwrote it there)."""
+    rng = np.random.default_rng(4)
+    values = rng.normal(0.0, 0.1, 40)
+    values[19], values[20] = values[12], values[13]     # the right piece joins the left one's continuation
+    values[18] = 5.0                                    # ... and its own continuation leftwards is a far step
+    texels = np.repeat(values[None, :, None], 16, axis=0)
+    cols = np.concatenate([np.arange(2, 12), [30], np.arange(20, 29)])
+    src = np.arange(16)[:, None] * 40 + cols[None, :]
+    assert seam_energy(texels, src, False) > 1e-3
+    out = recut.recut_straight_seams(texels, src, wrap=False, passes=1)
+    assert seam_energy(texels, out, False) < 1e-9
+    assert (out[:, 10] % 40 == 12).all()
+
+
 def test_a_constant_exemplar_leaves_the_map_as_it_is():
     texels = np.ones((32, 32, 3), np.float32)
     src = two_blocks(32, 20, 20, (0, 0), (10, 12))

@@ -15,7 +15,9 @@ The cut runs where the two sides agree: the mortar between stones, the soft edge
 ``bridges`` (tries per run), the runs left then get a third kind of proposal: other pieces of the exemplar that
 join both sides (:mod:`.bridging`).  A move is kept only when it lowers the seam cost of the edges it touches.
 Pinned texels keep their sources, and a band stops at them (its continuations do not reach across a pinned ring
-into another tile of a mosaic).
+into another tile of a mosaic).  Runs whose bands overlap are re-cut in separate groups (:func:`apart_groups`): one
+proposal holds one continuation per texel, and the two seams of a sliver, a strip of a texel or two between two
+pieces, would otherwise offer the sliver's own continuation where the piece beyond it should be offered.
 
 A seam edge that lies in a straight run costs :data:`STRAIGHT_WEIGHT` x its appearance difference while it stays:
 the eye follows a straight cut along its whole length, while a cut that wanders shows only where it crosses
@@ -66,8 +68,9 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
         edges = straight_edges(src, ew, wrap)
         weights = straight_weights(edges, straight_weight)
         for run_mask, axis in straight_runs(src, ew, wrap, pinned, active, edges):
-            for proposal in continuations(src, (eh, ew), wrap, run_mask, axis, pinned):
-                src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
+            for group in apart_groups(run_mask, axis, wrap):
+                for proposal in continuations(src, (eh, ew), wrap, group, axis, pinned):
+                    src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
         if bridges:
             edges = straight_edges(src, ew, wrap)
             weights = straight_weights(edges, straight_weight)
@@ -116,6 +119,42 @@ def straight_weights(edges: tuple[np.ndarray, np.ndarray], weight: float) -> tup
     if weight == 1:
         return None
     return tuple(np.where(mask, weight, 1.0).ravel() for mask in edges)
+
+
+def apart_groups(run_mask: np.ndarray, axis: int, wrap: bool) -> list[np.ndarray]:
+    """The runs of ``run_mask`` (along ``axis``) split into groups whose bands do not overlap: within a group no two
+    runs lie within ``2 * BAND`` texels of each other across their direction where they overlap along it.  In one
+    proposal a band texel holds one run's continuation; where the bands of two runs overlap the later run's would
+    replace the earlier one's.  The two seams of a sliver (a strip of a texel or two between two pieces, as k-coherence
+    leaves them) are such a pair: the piece on the first side was then never offered across the sliver."""
+    labels, n = run_labels(run_mask, axis)
+    if n <= 1:
+        return [run_mask] if n else []
+    across_size = run_mask.shape[1 - axis]
+    from scipy.ndimage import find_objects
+    found = find_objects(labels)
+    groups: list[list[int]] = []
+    placed: list[list[tuple[int, int, int]]] = []   # per group: (across, first, stop) of its runs
+    for index, box in enumerate(found, start=1):
+        along, across = box[axis], box[1 - axis].start
+        mine = (across, along.start, along.stop)
+        for members, spans in zip(groups, placed):
+            if not any(_bands_meet(mine, other, across_size, wrap) for other in spans):
+                members.append(index)
+                spans.append(mine)
+                break
+        else:
+            groups.append([index])
+            placed.append([mine])
+    return [np.isin(labels, members) for members in groups]
+
+
+def _bands_meet(one: tuple[int, int, int], other: tuple[int, int, int], across_size: int, wrap: bool) -> bool:
+    """Whether the bands of two runs ``(across, first, stop)`` overlap."""
+    gap = abs(one[0] - other[0])
+    if wrap:
+        gap = min(gap, across_size - gap)
+    return gap <= 2 * BAND and one[1] < other[2] and other[1] < one[2]
 
 
 def _touching(run_mask: np.ndarray, axis: int, active: np.ndarray) -> np.ndarray:
