@@ -708,6 +708,7 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
     h = w // 4 if h is None else h
     check_sizes(feats.shape[:2], w, h, colors)
     strip_refine = strip_refine or {}
+    refine_strips = strip_refine.get("iterations", 0) > 0
     n_h, n_v = colors
     rng = np.random.default_rng(seed)
     feats = np.ascontiguousarray(feats, np.float32)
@@ -740,9 +741,9 @@ def synthesize_tiles(feats: np.ndarray, w: int = 64, h: int | None = None, color
             err = filler.fill(coords, region, (h, h))
             if relax:
                 coords[...] = relax_seams(coords, feats, region, relax)
-            if strip_refine.get("iterations", 0) > 0:
+            if refine_strips:
                 coords = refined_strip(feats, coords, region, seed, **strip_refine)
-            if relax or strip_refine.get("iterations", 0) > 0:
+            if relax or refine_strips:
                 err = pixel_errors(coords, feats)
             filler.record(np.where(region[..., None], coords, -1))
             return coords, err
