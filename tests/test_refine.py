@@ -8,7 +8,9 @@ from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
 from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
 from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.refine import jittered_windows, refine_map, window_starts
+from btforge.plugins.synth.features import window_sums
+from btforge.plugins.synth.refine import (appearance_classes, appearance_excess, jittered_windows, refine_map,
+                                          window_index, window_starts)
 from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks
 
 SIZE, OUT = 40, 72
@@ -187,7 +189,7 @@ def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
 
 def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkeypatch):
     """``polish`` adds rounds at the finest scale after the others, with 8 x 8 windows whatever ``patch`` is, and
-    without the occurrence and contrast terms; on a map refined with 12 x 12 windows it lowers the seam cost."""
+    without the occurrence, contrast and balance terms; on a map refined with 12 x 12 windows it lowers the seam cost."""
     from btforge.plugins.synth import refine
     calls = []
     real_step = refine.optimise_step
@@ -200,10 +202,10 @@ def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkey
     start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
     plain = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0)
     seam = refine.SEAM_WEIGHT
-    assert calls == [(12, (0.5, 4.0, seam))] * 2
+    assert calls == [(12, (0.5, 4.0, seam, 0.0))] * 2
     calls.clear()
     polished = refine_map(stones, start, iterations=2, occurrence=0.5, seed=0, patch=12, contrast=4.0, polish=1)
-    assert calls == [(12, (0.5, 4.0, seam))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0, seam))]
+    assert calls == [(12, (0.5, 4.0, seam, 0.0))] * 2 + [(refine.POLISH_WINDOW, (0.0, 0.0, seam, 0.0))]
     assert seam_cost(stones, polished) < seam_cost(stones, plain)
     calls.clear()
     small = shuffled_blocks((SIZE, SIZE), (6, 6), block=3, seed=1)   # windows of 4 fit, the polish's 8 do not
@@ -240,3 +242,28 @@ def test_each_synthesizer_hands_its_seam_weight_to_every_round(name, monkeypatch
         seen.clear()
         stage(name)(exemplar=stack, seed=0, **size, **given)
         assert seen and set(seen) == {given.get("seam_weight", declared)}
+
+
+def test_appearance_excess_is_zero_for_the_exemplar_itself_and_marks_an_overused_class(stones):
+    index = window_index(stones, 8)
+    labels, shares = appearance_classes(index.texels)
+    assert labels.shape == (SIZE * SIZE,) and np.isclose(shares.sum(), 1.0) and (shares > 0).all()
+    identity = np.arange(SIZE * SIZE).reshape(SIZE, SIZE)
+    assert np.allclose(appearance_excess(identity, index), 0.0)
+    commonest = int(np.argmax(shares))
+    one_class = np.resize(np.flatnonzero(labels == commonest), (OUT, OUT))   # a map of that class alone
+    excess = appearance_excess(one_class, index).reshape(index.grid)
+    share_in_window = window_sums((labels == commonest).reshape(SIZE, SIZE).astype(float), (8, 8)) / 64
+    assert np.allclose(excess, share_in_window * (1.0 / shares[commonest] - 1.0))
+    assert (excess[share_in_window > 0] > 0).all()
+
+
+def test_balance_term_brings_the_class_shares_towards_the_exemplar(stones):
+    labels, shares = appearance_classes(window_index(stones, 8).texels)
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=2)
+    def gap(coords):
+        src = coords.coords[..., 0] * SIZE + coords.coords[..., 1]
+        return np.abs(np.bincount(labels[src.ravel()], minlength=len(shares)) / src.size - shares).sum()
+    plain = refine_map(stones, start, iterations=3, occurrence=0.0, seed=0)
+    balanced = refine_map(stones, start, iterations=3, occurrence=0.0, seed=0, balance=16.0)
+    assert gap(balanced) < gap(plain)

@@ -80,6 +80,7 @@ ENGINE_VARIABLE = "BTFORGE_REFINE_ENGINE"
 
 #: Window indices kept: one per exemplar, patch and scale (three scales of four exemplars).
 _analyses = ContentCache(12)
+APPEARANCE_CLASSES = 16   # k-means classes of the exemplar's texels that the balance term counts
 
 
 def engine() -> str:
@@ -166,7 +167,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
                coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0,
-               seam_weight: float = SEAM_WEIGHT) -> CoordMap:
+               seam_weight: float = SEAM_WEIGHT, balance: float = 0.0) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -178,7 +179,9 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
     (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
     and pass).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would
-    replace cost ``contrast`` x the shortfall (:func:`_best_windows`).  ``polish`` rounds at the finest scale
+    replace cost ``contrast`` x the shortfall (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x
+    (the mean squared distance of two random windows) x how far its appearance classes are over-represented in the
+    output (:func:`appearance_excess`).  ``polish`` rounds at the finest scale
     follow, before the re-cut, with :data:`POLISH_WINDOW` x :data:`POLISH_WINDOW` windows and neither term
     (:func:`_polished`).  ``seam_weight`` weighs the vote's seam cost against the windows' match cost at every
     scale and in the polish (:func:`_vote`)."""
@@ -194,7 +197,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = np.where(coords.blend_weight > 0.5, partner, src)
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
-    weights = (occurrence, contrast, seam_weight)
+    weights = (occurrence, contrast, seam_weight, balance)
     src = _refine_sources(features, src, coords.wrap, rounds, weights, patch, rng, pinned, scales)
     if polish > 0 and min(*coords.source_size, coords.height, coords.width) >= POLISH_WINDOW:
         src = _polished(features, src, coords.wrap, polish, rng, pinned, seam_weight)
@@ -225,7 +228,7 @@ def _polished(features, src, wrap, rounds, rng, pinned, seam_weight=SEAM_WEIGHT)
     and contrast terms.  A synthesizer that refines with larger windows (the jump map's 12) keeps its structures
     whole but leaves its cuts where those windows met; small windows matched for their fit alone move the cuts
     to where the content agrees, and leave alone which exemplar areas are used, which the terms had settled."""
-    return _refine_sources(features, src, wrap, (rounds, rounds), (0.0, 0.0, seam_weight), POLISH_WINDOW, rng,
+    return _refine_sources(features, src, wrap, (rounds, rounds), (0.0, 0.0, seam_weight, 0.0), POLISH_WINDOW, rng,
                            pinned, 0)
 
 
@@ -303,8 +306,8 @@ def optimise_step(index: WindowIndex, src: np.ndarray, wrap: bool, weights: tupl
     ny, nx = rows.shape[:2]
     texels = index.texels.reshape(eh * ew, -1)
     query = texels[window_src].reshape(ny * nx, -1)
-    occurrence, contrast, seam_weight = weights
-    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence, contrast)
+    occurrence, contrast, seam_weight, balance = weights
+    origin, distance = _best_windows(index, query, window_src.reshape(-1, p, p), src, occurrence, contrast, balance)
     gy, gx = index.grid
     oy, ox = np.divmod(origin, gx)
     proposals = ((oy[:, None, None] + np.arange(p)[None, :, None]) * ew
@@ -333,11 +336,13 @@ def jittered_windows(h: int, w: int, patch: int, wrap: bool, rng: np.random.Gene
 
 
 def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray, src: np.ndarray,
-                  occurrence: float, contrast: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                  occurrence: float, contrast: float = 0.0, balance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per query window (``[n, p * p * d]``, copied from ``window_src [n, p, p]``), the exemplar window origin
     (flat in the window grid) of least cost and its squared distance: the full squared distance plus
     ``occurrence`` x (the mean squared distance of two random windows) x how far its texels are used beyond
-    their fair share, plus ``contrast`` x how much less variation it has than the query (:func:`window_energy`):
+    their fair share, plus ``balance`` x that mean distance x how far its appearance classes are over-represented in
+    the output (:func:`appearance_excess`), plus ``contrast`` x how much less variation it has than the query
+    (:func:`window_energy`):
     nearest windows under a squared distance favour flat ones, which differ from a textured query by its own
     variation where another textured window differs by both, so texture optimisation alone drifts towards an
     exemplar's flat areas.  Candidates: the window copied now and, unless that is a whole exemplar window used no
@@ -352,6 +357,11 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
     whole = (cy < gy) & (cx < gx) & (window_src == window_src[:, :1, :1] + offsets).all(axis=(1, 2))
     overuse = _overuse(src, index)
     searched = ~whole | (occurrence * overuse[current] > 0)
+    penalty = occurrence * index.spread * overuse     # per exemplar window, in squared-distance units
+    if balance > 0:
+        excess = appearance_excess(src, index)
+        searched |= excess[current] > 0
+        penalty = penalty + balance * index.spread * excess
     k = min(CANDIDATES, len(index.reduced))
     cand = np.repeat(current[:, None], k + 1, axis=1)
     distance = np.zeros(len(query))
@@ -361,7 +371,7 @@ def _best_windows(index: WindowIndex, query: np.ndarray, window_src: np.ndarray,
     _, found = index.tree.query((query[rows] - index.mean) @ index.basis, k=k, eps=SEARCH_EPS, workers=cores())
     cand[rows, :k] = found.reshape(len(rows), k)
     rank = _rank_numpy if engine() == "numpy" else _rank_opencl
-    extra = candidate_costs(index, query[rows], cand[rows], occurrence * index.spread * overuse, contrast)
+    extra = candidate_costs(index, query[rows], cand[rows], penalty, contrast)
     current[rows], distance[rows] = rank(index, query[rows], cand[rows], extra)
     return current, distance
 
@@ -421,6 +431,29 @@ def _overuse(src: np.ndarray, index: WindowIndex) -> np.ndarray:
     use = np.bincount(src.ravel(), minlength=eh * ew).reshape(eh, ew).astype(np.float64)
     fair = src.size / (eh * ew)
     return np.maximum(window_sums(use, (p, p)) / (p * p * fair) - 1.0, 0.0).ravel()
+
+
+def appearance_classes(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each exemplar texel's class among :data:`APPEARANCE_CLASSES` k-means classes of its appearance
+    (``texels [eh, ew, d]``; ``[eh * ew]`` labels), and each class's share of the exemplar (cached by content)."""
+    def make():
+        from scipy.cluster.vq import kmeans2
+        flat = texels.reshape(-1, texels.shape[2]).astype(np.float64)
+        k = min(APPEARANCE_CLASSES, len(flat))
+        _, labels = kmeans2(flat, k, seed=0, minit="++", iter=10)
+        return labels, np.bincount(labels, minlength=k) / len(labels)
+    return _analyses.get_or_make(content_key(texels, extra=("classes", APPEARANCE_CLASSES)), make)
+
+
+def appearance_excess(src: np.ndarray, index: WindowIndex) -> np.ndarray:
+    """Per exemplar window, the mean over its texels of how far their appearance class is over-represented in
+    ``src`` against the exemplar (the output's share of the class over the exemplar's, minus 1; >= 0)."""
+    labels, shares = appearance_classes(index.texels)
+    eh, ew = index.texels.shape[:2]
+    p = index.patch
+    used = np.bincount(labels[src.ravel()], minlength=len(shares)) / src.size
+    excess = np.maximum(used / np.maximum(shares, 1e-12) - 1.0, 0.0)
+    return (window_sums(excess[labels].reshape(eh, ew), (p, p)) / (p * p)).ravel()
 
 
 def _vote(texels: np.ndarray, proposals: np.ndarray, cost: np.ndarray, rows: np.ndarray, cols: np.ndarray,

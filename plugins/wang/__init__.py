@@ -20,7 +20,7 @@ from btforge.errors import BtforgeInputError
 from btforge.plugins.synth.feather import FEATHER, feathered, local_steps, records_mix
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
-from .optimise import CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
+from .optimise import BALANCE, CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
 from .tileset import TileSet
 
 BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
@@ -143,6 +143,10 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
               "less variation than the output window it would replace costs contrast x the shortfall, so the rounds "
               "do not drift towards the exemplar's flatter areas and the set keeps its patch statistics (0: off)",
               low=0.0, high=1000.0),
+        Param("balance", "float", BALANCE, "weight of that refinement's balance term: exemplar windows of the "
+              "appearance classes (16 k-means classes of the exemplar's texels) the set already holds beyond their "
+              "share of the exemplar cost more, so the rounds do not drift towards the exemplar's commonest areas "
+              "and leave its sparser features (bumps, shadows) out (0: off)", low=0.0, high=1000.0),
         Param("polish", "int", POLISH, "final rounds of that refinement with 8 x 8 windows matched for their fit "
               "alone (no occurrence term): the cuts the earlier rounds left move to where the content agrees, while "
               "the exemplar areas used stay (0: none)", low=0, high=10),
@@ -152,10 +156,11 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
         seam_weight_param(SEAM_WEIGHT),
         feather_param(FEATHER, TILE_FEATHER_STEP),
     ],
-    version="21",  # 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="22",  # 22: the interiors' refinement has a balance term of weight 16 (param balance); 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
-               edge_centre, typical, rare, relax, refine, occurrence, contrast, polish, pin, seam_weight, feather):
+               edge_centre, typical, rare, relax, refine, occurrence, contrast, balance, polish, pin, seam_weight,
+               feather):
     """Synthesize a complete Wang-tile set of an exemplar by graph cuts in its compressed domain.
 
     The four steps of Leung et al. 2007: corner sampling (cuts between corner samples cached), edge strips
@@ -170,7 +175,7 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
     shared refinement joins each strip's middle to its corner halves where the two sides agree (``refine`` rounds,
     the corner halves held), since every tile of the strip's colour shows its cuts; a
     texture optimisation of every interior with the tile borders held (``refine``, ``occurrence``, ``contrast``,
-    ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left, and the seams inside the tiles that
+    ``balance``, ``polish``, ``pin``, ``seam_weight``) hides the cuts the filling left, and the seams inside the tiles that
     still stand out are cross-faded (``feather``, as the synthesizers do, on exemplars that blend).  Distances are
     Euclidean in the exemplar's appearance features (a double-SH model weighted by its hemisphere Gram matrix, an orthonormal
     PTM's coefficients, a stack's radiance); the placement search runs on OpenCL.  Every one of the
@@ -191,7 +196,8 @@ def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usag
                                               typical=typical, rare=rare,
                                               relax=relax,
                                               optimise={"iterations": refine, "occurrence": occurrence,
-                                                        "contrast": contrast, "polish": polish, "pin": pin,
+                                                        "contrast": contrast, "balance": balance,
+                                                        "polish": polish, "pin": pin,
                                                         "seam_weight": seam_weight})
     ctx.note("seconds", {k: round(v, 3) for k, v in synthesis.timings.items()})
     ctx.note("patches", synthesis.counts)
