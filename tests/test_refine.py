@@ -7,8 +7,7 @@ import pytest
 from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
 from btforge.plugins.demo.procedural import hemisphere_lights, render_lights
-from btforge.plugins.synth.features import texel_features
-from btforge.plugins.synth.features import window_sums
+from btforge.plugins.synth.features import texel_features, window_sums
 from btforge.plugins.synth.refine import (appearance_classes, appearance_excess, jittered_windows, refine_map,
                                           window_index, window_starts)
 from btforge.plugins.synth.visibility import evenness, seam_edges, shuffled_blocks

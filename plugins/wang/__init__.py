@@ -18,6 +18,7 @@ from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
 from btforge.plugins.synth.feather import FEATHER, feathered, local_steps, records_mix
+from btforge.plugins.synth.refine import APPEARANCE_CLASSES
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
 from .optimise import BALANCE, CONTRAST, ITERATIONS, OCCURRENCE, PIN, POLISH, SEAM_WEIGHT
@@ -144,8 +145,8 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
               "do not drift towards the exemplar's flatter areas and the set keeps its patch statistics (0: off)",
               low=0.0, high=1000.0),
         Param("balance", "float", BALANCE, "weight of that refinement's balance term: exemplar windows of the "
-              "appearance classes (16 k-means classes of the exemplar's texels) the set already holds beyond their "
-              "share of the exemplar cost more, so the rounds do not drift towards the exemplar's commonest areas "
+              f"appearance classes ({APPEARANCE_CLASSES} k-means classes of the exemplar's texels) the set already "
+              "holds beyond their share of the exemplar cost more, so the rounds do not drift towards the exemplar's commonest areas "
               "and leave its sparser features (bumps, shadows) out (0: off)", low=0.0, high=1000.0),
         Param("polish", "int", POLISH, "final rounds of that refinement with 8 x 8 windows matched for their fit "
               "alone (no occurrence term): the cuts the earlier rounds left move to where the content agrees, while "

@@ -131,8 +131,7 @@ def optimise_tiles(features: np.ndarray, tile_coords: np.ndarray, *, iterations:
     weights ``occurrence``, ``contrast``) and ``polish`` rounds of its polish over appearance vectors
     ``features [H, W, D]``, every tile's ``pin``-texel border ring held (module docstring), the vote's seam cost
     weighted ``seam_weight``, the balance term ``balance``.  With the tiles' ``colors [T, 4]`` (N, E, S, W) and
-    ``colour_counts`` (horizontal,
-    vertical) of a complete set, the tiles are refined laid as one periodic valid tiling (:func:`packing`);
+    ``colour_counts`` (horizontal, vertical) of a complete set, the tiles are refined laid as one periodic valid tiling (:func:`packing`);
     otherwise row by row."""
     from btforge.plugins.synth.bridging import TRIES as BRIDGE_TRIES
     from btforge.plugins.synth.refine import refine_map
