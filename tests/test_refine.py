@@ -186,6 +186,35 @@ def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
         assert ctx.notes["contrast"] == expected
 
 
+def test_the_automatic_balance_is_on_where_the_exemplar_is_about_as_large_as_the_output():
+    """A negative (default) ``appearance_balance`` becomes AUTO_BALANCE up to AUTO_AREA x the exemplar's texels and 0
+    beyond; a given weight is kept; each synthesizer notes the weight it refined with."""
+    from btforge.context import StageContext
+    from btforge.plugins.synth.jumpmap import jumpmap
+    from btforge.plugins.synth.kcoherence import kcoherence
+    from btforge.plugins.synth.quilting import quilt
+    from btforge.plugins.synth.synthesizer import AUTO, AUTO_AREA, AUTO_BALANCE, auto_balance
+    assert AUTO_BALANCE > 0
+    assert auto_balance(AUTO, (256, 256), (256, 256)) == AUTO_BALANCE
+    assert auto_balance(AUTO, (256, 256), (320, 320)) == AUTO_BALANCE
+    assert auto_balance(AUTO, (int(100 * AUTO_AREA), 100), (100, 100)) == AUTO_BALANCE
+    assert auto_balance(AUTO, (int(100 * AUTO_AREA) + 1, 100), (100, 100)) == 0.0
+    assert auto_balance(AUTO, (256, 256), (192, 192)) == 0.0
+    assert auto_balance(AUTO, (64, 64), (64, 64), balance_weight=3.0) == 3.0
+    assert auto_balance(0.0, (256, 256), (256, 256)) == 0.0
+    assert auto_balance(4.0, (256, 256), (64, 64)) == 4.0
+    lights = hemisphere_lights(8)
+    stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
+                        np.array([[0.0, 0.0, 1.0]]))
+    few_rounds = {"refine": 1, "scales": 0, "polish": 0}
+    runs = [(quilt, {"block": 12, "overlap": 4}), (jumpmap, {"coarse_refine": 0}), (kcoherence, {"coarse_refine": 0})]
+    for stage, own in runs:
+        for size, expected in ((SIZE, AUTO_BALANCE), (OUT, 0.0)):
+            ctx = StageContext(node=stage.name)
+            stage(ctx=ctx, exemplar=stack, size=[size, size], seed=0, **few_rounds, **own)
+            assert ctx.notes["appearance_balance"] == expected
+
+
 def test_a_polish_round_runs_last_with_small_windows_and_no_terms(stones, monkeypatch):
     """``polish`` adds rounds at the finest scale after the others, with 8 x 8 windows whatever ``patch`` is, and
     without the occurrence, contrast and balance terms; on a map refined with 12 x 12 windows it lowers the seam cost."""

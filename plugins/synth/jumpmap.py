@@ -362,7 +362,7 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, visits: np.ndarray, un
 
 @declare_synthesizer(
     "synth.jumpmap", deprecated_names=("jumpmap",),
-    version="29",  # 29: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 28: seams cross-faded over 3 texels on either side (feather 3, was 1); 27: the walk follows a Hilbert curve by default (param order; scanline before); 26: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 25: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 24: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 23: seams cross-faded over 1 texel on blendable exemplars (param feather); 22: param seam_weight (1 by default: the outputs are those of version 21); 21: two polish rounds by default (polish 2: seams lower on nearly every crop); 20: the refinement's contrast term at 8 by default where the output has more than 1.5 x the exemplar's texels (contrast -1); 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
+    version="30",  # 30: the refinement's balance term on by default where the output has at most 1.5 x the exemplar's texels (param appearance_balance, -1: automatic, 16 there); 29: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 28: seams cross-faded over 3 texels on either side (feather 3, was 1); 27: the walk follows a Hilbert curve by default (param order; scanline before); 26: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 25: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 24: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 23: seams cross-faded over 1 texel on blendable exemplars (param feather); 22: param seam_weight (1 by default: the outputs are those of version 21); 21: two polish rounds by default (polish 2: seams lower on nearly every crop); 20: the refinement's contrast term at 8 by default where the output has more than 1.5 x the exemplar's texels (contrast -1); 19: one polish round by default (polish 1: seams lower on every crop measured); 18: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 17: param polish (final rounds of 8 x 8 windows without the occurrence and contrast terms, 0 by default); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: overuse automatic by default (half the copies per exemplar texel, at least 1; was 4); 14: 5 rounds at the coarse scales, 3 at the finest; 13: 5 rounds, occurrence 2, bridging pieces over straight seams; 12: 3 rounds of 12 x 12 refinement windows, further re-cut passes; 11: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 10: refinement on by default (refine 2), coarse scales first; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: in-degree balanced choices (coverage 1) and rate 0.05 by default; 5: usage-aware walk (balance) and rate 0.02; 6: the self-join seeded by a kd-tree; 7: the shared refinement; 8: refinement by a coherent vote, off by default (refine 0)
     seed_doc="random seed of the walk; the same seed gives the same result",
     params=[
         Param("jumps", "int", 3, "jump targets per exemplar texel", low=1, high=MAX_JUMPS),
@@ -393,8 +393,8 @@ def walk_numpy(jm: JumpMap, ho: int, wo: int, wrap: bool, visits: np.ndarray, un
     ],
 )
 def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighborhood, textons, search,
-            coverage, balance, order, overuse, refine, occurrence, contrast, scales, window, coarse_refine, polish,
-            seam_weight, feather):
+            coverage, balance, order, overuse, refine, occurrence, contrast, appearance_balance, scales, window,
+            coarse_refine, polish, seam_weight, feather):
     """Synthesize a larger texture with a jump map (Zelinka & Garland 2002); outputs a coordinate map.
 
     Analysis: for every exemplar texel, ``jumps`` texels with similar neighbourhoods (the shared search over
@@ -445,7 +445,10 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     the 12 x 12 windows left to where the content agrees (the demo's coarse stucco: seams 1.33 -> 1.20 with one).
     The contrast term (``contrast``) weighs 16 where the output has at most 1.5 x the exemplar's texels, as for the
     others, and :data:`LARGE_CONTRAST` (8) where it has more: the rounds that spread the walk's copies otherwise
-    drift towards the flatter windows of the areas it keeps to.  ``refine: 0`` gives Zelinka & Garland's walk alone.
+    drift towards the flatter windows of the areas it keeps to.  Where the output has at most 1.5 x the exemplar's
+    texels, the balance term (``appearance_balance``) charges windows of appearance classes the output holds beyond
+    their share of the exemplar (the tablet at 320: SWD over the shuffled blocks 1.51 -> 1.10).  ``refine: 0`` gives
+    Zelinka & Garland's walk alone.
 
     Outputs
     -------
@@ -480,7 +483,8 @@ def jumpmap(ctx, exemplar, *, size, wrap, seed, jumps, jump_probability, neighbo
     coords = CoordMap(coords, (exemplar.height, exemplar.width), wrap=wrap)
     coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      window=window, recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, bridges=BRIDGE_TRIES,
-                     contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
+                     contrast=contrast, large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight,
+                     balance=appearance_balance)
     return {"coords": feathered(coords, feather, records_mix(exemplar), features)}
 
 

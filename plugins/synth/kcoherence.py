@@ -467,7 +467,7 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
 
 @declare_synthesizer(
     "synth.kcoherence", deprecated_names=("kcoherence",),
-    version="27",  # 27: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it, in six re-cut passes (was 3); 26: seams cross-faded over 3 texels on either side (feather 3, was 1); 25: the start's pieces within a copy budget (param budget, automatic: 0.5 up to twice the exemplar's texels, else none); 24: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 23: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 22: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 21: seams cross-faded over 1 texel on blendable exemplars (param feather); 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
+    version="28",  # 28: the refinement's balance term on by default where the output has at most 1.5 x the exemplar's texels (param appearance_balance, -1: automatic, 16 there); 27: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it, in six re-cut passes (was 3); 26: seams cross-faded over 3 texels on either side (feather 3, was 1); 25: the start's pieces within a copy budget (param budget, automatic: 0.5 up to twice the exemplar's texels, else none); 24: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 23: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 22: linear lrgb exemplars feathered too, through the rgb PTM of the same functions; 21: seams cross-faded over 1 texel on blendable exemplars (param feather); 20: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 19: the refinement's contrast term at 4 by default where the output has more than 1.5 x the exemplar's texels (contrast -1), and two polish rounds (polish 2); 18: one polish round by default (param polish: seams lower, the procedural exemplar's at 128 pass); 17: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 16: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 15: four refinement rounds at the coarse scale (coarse_refine 4); 14: bridging pieces over straight seams, three re-cut passes; 13: the start's pieces matched at their edges (matching 64); 12: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 11: a coarse scale first (scales 1), windows jittered one by one; 10: occurrence weight 1 by default; 9: refinement with an approximate window search; 3: fast self-join by graph nominees + coherence propagation; 4: coverage tie-break in the correction passes (default 0.5); 5: stratified blocks (16) and keep (0.5); 6: the self-join seeded by a kd-tree, steps read window distances from the image; 7: the shared refinement; 8: refinement by a coherent vote
     seed_doc="random seed of the border; the same seed gives the same result",
     params=[
         Param("k", "int", 6, "candidates per neighbour: the coherent source and its k - 1 most similar texels",
@@ -504,8 +504,8 @@ def _level_start(cur, pyramid, l, out_sizes, rng, wrap, radius):
     ],
 )
 def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, textons, search, corrections,
-               coverage, blocks, matching, budget, keep, refine, occurrence, contrast, scales, coarse_refine, polish,
-               seam_weight, feather):
+               coverage, blocks, matching, budget, keep, refine, occurrence, contrast, appearance_balance, scales,
+               coarse_refine, polish, seam_weight, feather):
     """Synthesize a larger texture by hierarchical k-coherence search; outputs a coordinate map.
 
     Method (Tong et al. 2002 as used for BTFs by Bosserhoff & Nicoll):
@@ -566,7 +566,9 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     resolution first (``scales: 1``, ``coarse_refine`` rounds there, ``refine`` at the full resolution), so seams
     follow the content instead of the block grid, and colour areas larger than a block are no longer cut into
     squares; ``polish`` rounds without the occurrence and contrast terms end it (two by default), and the contrast
-    term weighs 4 by default where the output has more than 1.5 x the exemplar's texels.  ``scales: 2`` lowers seams
+    term weighs 4 by default where the output has more than 1.5 x the exemplar's texels; up to that the balance term
+    (``appearance_balance``) charges windows of appearance classes the output holds beyond their share of the
+    exemplar (the tablet at 256: SWD over the shuffled blocks 1.55 -> 1.35).  ``scales: 2`` lowers seams
     further (1.23 instead of 1.32 on the held-out procedural exemplar) but moves the patch statistics of fine
     textures away from the exemplar's (sliced Wasserstein distance 1.60 x the shuffled-block baseline's on
     fibres, against 1.21).
@@ -604,7 +606,8 @@ def kcoherence(ctx, exemplar, *, size, wrap, seed, k, neighborhood, levels, text
     coords = CoordMap(result.coords, (exemplar.height, exemplar.width), wrap=wrap)
     coords = refined(ctx, features, coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, coarse_refine=coarse_refine, contrast=contrast,
-                     large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight)
+                     large_weight=LARGE_CONTRAST, polish=polish, seam_weight=seam_weight,
+                     balance=appearance_balance)
     return {"coords": feathered(coords, feather, records_mix(exemplar), features)}
 
 
