@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from btforge import stage
 from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.synth import materialize
-from btforge.plugins.synth.feather import FEATHER, feather_weight, feathered, local_steps, smooth_bands
+from btforge.plugins.synth.feather import FEATHER, feather_weight, feathered, grain, local_steps, smooth_bands
 from btforge.plugins.synth.scoring import score
 from btforge.plugins.synth.visibility import exemplar_band_jumps, exemplar_jump, seam_edges, seam_visibility
 
@@ -247,3 +247,33 @@ def test_a_smooth_exemplar_is_feathered_wider_than_a_grainy_one():
     grainy = feathered(coords, 3, features=flat + grain, step=1.5)
     assert (smooth.blend_weight > 0).sum() == 6 * 32                 # three texels either side on every row
     assert 0 < (grainy.blend_weight > 0).sum() < (smooth.blend_weight > 0).sum()
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.floats(1e-6, 1e6), offset=st.floats(-100.0, 100.0))
+def test_grain_tells_grain_from_shading_whatever_the_units(seed, scale, offset):
+    """Independent noise scores near its expected mean step over spread (2 Gamma(2) / Gamma(1.5) / sqrt(3), about 1.30,
+    in 3 dimensions), a smooth ramp
+    with faint noise near 0, and a constant exactly 0; the ratio is finite and does not change when the vectors are
+    scaled or shifted (by up to 100 x their scale)."""
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(size=(32, 32, 3))
+    yy, xx = np.mgrid[0:32, 0:32] / 32.0
+    ramp = np.stack([yy, xx, yy * xx], axis=2) + 1e-3 * noise
+    for features, low, high in ((noise, 1.2, 1.4), (ramp, 0.0, 0.1)):
+        value = grain(features)
+        assert np.isfinite(value) and low < value < high, value
+        assert grain(features * scale + offset * scale) == pytest.approx(value, rel=1e-3)
+    assert grain(np.full((16, 16, 3), offset * scale)) == 0.0
+
+
+def test_the_tiles_feather_smooth_exemplars_at_a_lower_step():
+    """The Wang tiles' factor is the smooth one up to GRAIN_SMOOTH, the grainy one from GRAIN_GRAINY, and never
+    falls as the grain rises."""
+    from btforge.plugins.wang import (GRAIN_GRAINY, GRAIN_SMOOTH, SMOOTH_FEATHER_STEP, TILE_FEATHER_STEP,
+                                      tile_feather_step)
+    assert SMOOTH_FEATHER_STEP < TILE_FEATHER_STEP
+    assert tile_feather_step(0.0) == tile_feather_step(GRAIN_SMOOTH) == SMOOTH_FEATHER_STEP
+    assert tile_feather_step(GRAIN_GRAINY) == tile_feather_step(5.0) == TILE_FEATHER_STEP
+    factors = [tile_feather_step(g) for g in np.linspace(0, 1, 41)]
+    assert all(b >= a for a, b in zip(factors, factors[1:]))

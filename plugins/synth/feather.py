@@ -144,6 +144,18 @@ def smooth_bands(steps: np.ndarray, src: np.ndarray, edges: np.ndarray, axis: in
     return np.where(edges, 1 + np.rint((widest - 1) * flatness), 0).astype(np.int64)
 
 
+def grain(features: np.ndarray, steps: np.ndarray | None = None) -> float:
+    """How grainy an exemplar is: its mean local step (:func:`local_steps`, or ``steps``) over the spread of its
+    appearance vectors ``features [h, w, D]`` (the root mean squared distance from their mean).  Smooth shading
+    (soft bumps, a leaf, a painting) scores 0.1-0.2, a plaster or fibres whose every texel differs from its
+    neighbours about as much as from any other 0.8-0.9; 0 for a constant exemplar."""
+    flat = np.asarray(features, np.float64).reshape(-1, features.shape[-1])
+    spread = float(np.sqrt(((flat - flat.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    if steps is None:
+        steps = local_steps(flat.reshape(features.shape))
+    return float(steps.mean()) / spread if spread > 0 else 0.0
+
+
 def local_steps(features: np.ndarray) -> np.ndarray:
     """``[h, w]``: each exemplar texel's mean step to its 4-neighbours (3 or 2 along the border) in appearance."""
     rows = np.linalg.norm(np.diff(features, axis=0), axis=2)

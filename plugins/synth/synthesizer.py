@@ -158,12 +158,14 @@ def seam_weight_param(default: float) -> Param:
                  "the windows' match alone", low=0.0, high=1000.0)
 
 
-def feather_param(default: int, step: float = FEATHER_STEP) -> Param:
+def feather_param(default: int, step: float | str = FEATHER_STEP) -> Param:
     """The ``feather`` param of a synthesizer whose map's seams may be cross-faded (:mod:`.feather`) where their
-    step is over ``step`` x the exemplar's own steps around them."""
+    step is over ``step`` x the exemplar's own steps around them (a number, or the words for a factor that
+    depends on the exemplar)."""
+    factor = f"{step:g}" if isinstance(step, (int, float)) else step
     return Param("feather", "int", default, "the widest band, in texels on either side of a seam, that cross-fades "
                  "from one side's content to the other's, through the map's blend layer, where the step across the "
-                 f"seam is over {step:g} x the exemplar's own steps around its two sources: a cut between smooth areas "
+                 f"seam is over {factor} x the exemplar's own steps around its two sources: a cut between smooth areas "
                  "reads as a ramp, not a step; the band is this wide where the exemplar is flat around the two "
                  "sources and narrows to 1 where its steps there reach its mean step (grain is not blurred); on "
                  "exemplars whose records mix (a stack, PTM, SH and HSH coefficients; an lrgb PTM "

@@ -17,7 +17,7 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.synth.feather import FEATHER, feathered, local_steps, records_mix
+from btforge.plugins.synth.feather import FEATHER, feathered, grain, local_steps, records_mix
 from btforge.plugins.synth.refine import APPEARANCE_CLASSES
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
@@ -28,10 +28,27 @@ BTFORGE_PLUGIN_API = 1  # the btforge plugin API this plugin is written for
 
 SEARCH_DIMS = 16  # principal components of the appearance features the placement search compares
 #: The seams inside the tiles are feathered where their step is over this many times the exemplar's own steps
-#: around the two sources (the synthesizers: 1.5).  The tiles' interiors are cut into smaller pieces than the
-#: synthesizers' outputs: at 1.5 a tenth of plaster's texels blended, against a twentieth for k-coherence, and
-#: the cross-fades softened its grain (SWD over the shuffled blocks +0.19, a miss); at 2 the share is comparable.
+#: around the two sources (the synthesizers: 1.5) on a grainy exemplar ...  The tiles' interiors are cut into
+#: smaller pieces than the synthesizers' outputs: at 1.5 a tenth of plaster's texels blended, against a twentieth
+#: for k-coherence, and the cross-fades softened its grain (SWD over the shuffled blocks over seeds 0-3 1.41 -> 1.57,
+#: a miss); at 2 the share is comparable.
 TILE_FEATHER_STEP = 2.0
+#: ... and this many times on a smooth one, where a cut through soft shading is a step the eye finds and a
+#: cross-fade blends two ramps, not two grains: at 2 the bumps' and two leaves' seams missed (1.31-1.34 x the
+#: exemplar's neighbour jump at seeds 0-1), at 1.5 the leaves pass (1.22-1.24) and the bumps reach 1.31 (Benchmarks).
+SMOOTH_FEATHER_STEP = 1.5
+#: The exemplar's :func:`~btforge.plugins.synth.feather.grain` up to which the tiles take
+#: :data:`SMOOTH_FEATHER_STEP`, and from which :data:`TILE_FEATHER_STEP`, linearly between: the smooth exemplars
+#: measured score 0.11-0.25 (the bumps, leaves, a knit, paintings, the held-out procedural exemplar), the grainy
+#: ones 0.46-0.88 (the tablet, the stucco, stones, fibres, plaster).
+GRAIN_SMOOTH, GRAIN_GRAINY = 0.25, 0.5
+
+
+def tile_feather_step(grain_ratio: float) -> float:
+    """The step factor over which the seams inside the tiles are feathered, for an exemplar of ``grain_ratio``
+    (:func:`~btforge.plugins.synth.feather.grain`)."""
+    t = min(max((grain_ratio - GRAIN_SMOOTH) / (GRAIN_GRAINY - GRAIN_SMOOTH), 0.0), 1.0)
+    return SMOOTH_FEATHER_STEP + (TILE_FEATHER_STEP - SMOOTH_FEATHER_STEP) * t
 
 
 def texel_bytes(buffer) -> int:
@@ -68,8 +85,7 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
     ref_mean = np.array([np.mean(reference["v"]), np.mean(reference["h"])] * 2)
     edge_seams = (measured["edges"] / np.maximum(ref_mean, 1e-30)).astype(np.float32)
     source_size = (exemplar.height, exemplar.width)
-    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, records_mix(exemplar), full,
-                            TILE_FEATHER_STEP)
+    blend = feathered_tiles(synthesis.tile_coords, source_size, feather, records_mix(exemplar), full)
     tiles = TileSet.from_coords(synthesis.tile_coords, synthesis.tile_colors, edge_seams, colors_h=colors[0],
                                 colors_v=colors[1], source_size=source_size, edge=h, variants=variants,
                                 texel_bytes=texel_bytes(exemplar), **blend)
@@ -77,13 +93,16 @@ def build_tile_set(exemplar, *, tile=64, edge=0, colors=(2, 2), variants=1, seed
 
 
 def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool, feats: np.ndarray,
-                    step: float = TILE_FEATHER_STEP) -> dict:
+                    step: float | None = None) -> dict:
     """The blend layer (``blend_coords``, ``blend_weight``; empty where nothing blends) that feathers the seams
-    inside each tile as the synthesizers feather theirs.  Each tile is feathered on its own: the seams across a
-    tile border continue the shared edge strips, and the measure leaves the borders out."""
+    inside each tile as the synthesizers feather theirs, over ``step`` x the exemplar's own steps (by default
+    :func:`tile_feather_step` of its grain).  Each tile is feathered on its own: the seams across a tile border
+    continue the shared edge strips, and the measure leaves the borders out."""
     if band <= 0 or not mixes:
         return {}
     steps = local_steps(np.asarray(feats, np.float32))   # the exemplar's, once for every tile
+    if step is None:
+        step = tile_feather_step(grain(feats, steps))
     partners, weights = tile_coords.copy(), np.zeros(tile_coords.shape[:3], np.float32)
     for t, coords in enumerate(tile_coords):
         tile_map = feathered(CoordMap(np.ascontiguousarray(coords), source_size), band, mixes, feats, step, steps)
@@ -155,9 +174,9 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
               "(the tiles are refined laid as one valid periodic tiling, so the texels beyond see their neighbours)",
               low=1, high=256),
         seam_weight_param(SEAM_WEIGHT),
-        feather_param(FEATHER, TILE_FEATHER_STEP),
+        feather_param(FEATHER, f"{SMOOTH_FEATHER_STEP:g} (smooth exemplars) to {TILE_FEATHER_STEP:g} (grainy ones)"),
     ],
-    version="22",  # 22: the interiors' refinement has a balance term of weight 16 (param balance); 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="23",  # 23: the seams inside the tiles feathered over 1.5 x the exemplar's own steps on smooth exemplars (grain up to 0.25), 2 x on grainy ones (from 0.5), linearly between (was 2 on all); 22: the interiors' refinement has a balance term of weight 16 (param balance); 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
                edge_centre, typical, rare, relax, refine, occurrence, contrast, balance, polish, pin, seam_weight,
