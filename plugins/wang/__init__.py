@@ -40,7 +40,7 @@ SMOOTH_FEATHER_STEP = 1.5
 #: The exemplar's :func:`~btforge.plugins.synth.feather.grain` up to which the tiles take
 #: :data:`SMOOTH_FEATHER_STEP`, and from which :data:`TILE_FEATHER_STEP`, linearly between: the smooth exemplars
 #: measured score 0.11-0.25 (the bumps, leaves, a knit, paintings, the held-out procedural exemplar), the grainy
-#: ones 0.46-0.88 (the tablet, the stucco, stones, fibres, plaster).
+#: ones 0.49-0.88 (the stucco, stones, fibres, plaster), the cobbles, item2 and the tablet between (0.31-0.46).
 GRAIN_SMOOTH, GRAIN_GRAINY = 0.25, 0.5
 
 
