@@ -153,18 +153,18 @@ def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
     from btforge.context import StageContext
     from btforge.plugins.synth.quilting import AUTO_CONTRAST as QUILT_CONTRAST
     from btforge.plugins.synth.quilting import quilt
-    from btforge.plugins.synth.synthesizer import AUTO, AUTO_AREA, AUTO_CONTRAST, auto_contrast
-    assert auto_contrast(AUTO, (256, 256), (256, 256)) == AUTO_CONTRAST
-    assert auto_contrast(AUTO, (256, 256), (320, 320)) == AUTO_CONTRAST
-    assert auto_contrast(AUTO, (int(100 * AUTO_AREA), 100), (100, 100)) == AUTO_CONTRAST
-    assert auto_contrast(AUTO, (int(100 * AUTO_AREA) + 1, 100), (100, 100)) == 0.0
-    assert auto_contrast(AUTO, (256, 256), (192, 192)) == 0.0
-    assert auto_contrast(0.0, (256, 256), (256, 256)) == 0.0
-    assert auto_contrast(4.0, (256, 256), (64, 64)) == 4.0
-    assert auto_contrast(AUTO, (64, 64), (64, 64), auto_weight=3.0) == 3.0
-    assert auto_contrast(AUTO, (256, 256), (192, 192), large_weight=5.0) == 5.0
-    assert auto_contrast(AUTO, (256, 256), (256, 256), large_weight=5.0) == AUTO_CONTRAST
-    assert auto_contrast(2.0, (256, 256), (64, 64), large_weight=5.0) == 2.0
+    from btforge.plugins.synth.synthesizer import AUTO, AUTO_AREA, AUTO_CONTRAST, automatic_weight
+    assert automatic_weight(AUTO, (256, 256), (256, 256), AUTO_CONTRAST) == AUTO_CONTRAST
+    assert automatic_weight(AUTO, (256, 256), (320, 320), AUTO_CONTRAST) == AUTO_CONTRAST
+    assert automatic_weight(AUTO, (int(100 * AUTO_AREA), 100), (100, 100), AUTO_CONTRAST) == AUTO_CONTRAST
+    assert automatic_weight(AUTO, (int(100 * AUTO_AREA) + 1, 100), (100, 100), AUTO_CONTRAST) == 0.0
+    assert automatic_weight(AUTO, (256, 256), (192, 192), AUTO_CONTRAST) == 0.0
+    assert automatic_weight(0.0, (256, 256), (256, 256), AUTO_CONTRAST) == 0.0
+    assert automatic_weight(4.0, (256, 256), (64, 64), AUTO_CONTRAST) == 4.0
+    assert automatic_weight(AUTO, (64, 64), (64, 64), 3.0) == 3.0
+    assert automatic_weight(AUTO, (256, 256), (192, 192), AUTO_CONTRAST, 5.0) == 5.0
+    assert automatic_weight(AUTO, (256, 256), (256, 256), AUTO_CONTRAST, 5.0) == AUTO_CONTRAST
+    assert automatic_weight(2.0, (256, 256), (64, 64), AUTO_CONTRAST, 5.0) == 2.0
     lights = hemisphere_lights(8)
     stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
                         np.array([[0.0, 0.0, 1.0]]))
@@ -188,21 +188,13 @@ def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
 
 def test_the_automatic_balance_is_on_where_the_exemplar_is_about_as_large_as_the_output():
     """A negative (default) ``appearance_balance`` becomes AUTO_BALANCE up to AUTO_AREA x the exemplar's texels and 0
-    beyond; a given weight is kept; each synthesizer notes the weight it refined with."""
+    beyond (:func:`automatic_weight`, as the contrast weight): each synthesizer notes the weight it refined with."""
     from btforge.context import StageContext
     from btforge.plugins.synth.jumpmap import jumpmap
     from btforge.plugins.synth.kcoherence import kcoherence
     from btforge.plugins.synth.quilting import quilt
-    from btforge.plugins.synth.synthesizer import AUTO, AUTO_AREA, AUTO_BALANCE, auto_balance
+    from btforge.plugins.synth.synthesizer import AUTO_BALANCE
     assert AUTO_BALANCE > 0
-    assert auto_balance(AUTO, (256, 256), (256, 256)) == AUTO_BALANCE
-    assert auto_balance(AUTO, (256, 256), (320, 320)) == AUTO_BALANCE
-    assert auto_balance(AUTO, (int(100 * AUTO_AREA), 100), (100, 100)) == AUTO_BALANCE
-    assert auto_balance(AUTO, (int(100 * AUTO_AREA) + 1, 100), (100, 100)) == 0.0
-    assert auto_balance(AUTO, (256, 256), (192, 192)) == 0.0
-    assert auto_balance(AUTO, (64, 64), (64, 64), balance_weight=3.0) == 3.0
-    assert auto_balance(0.0, (256, 256), (256, 256)) == 0.0
-    assert auto_balance(4.0, (256, 256), (64, 64)) == 4.0
     lights = hemisphere_lights(8)
     stack = SampleStack(render_lights(make_pattern("stones", SIZE, SIZE, seed=2), lights)[None], lights,
                         np.array([[0.0, 0.0, 1.0]]))

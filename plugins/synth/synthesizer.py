@@ -55,7 +55,7 @@ OCCURRENCE = 1.0
 #: areas and copied blocks larger than a fine window are matched and cut as a whole (square patchworks of colour
 #: areas are gone; seams drop on every exemplar measured).
 SCALES = 2
-#: The ``contrast`` param's default: chosen per run by :func:`auto_contrast`.
+#: The ``contrast`` and ``appearance_balance`` params' default: chosen per run by :func:`automatic_weight`.
 AUTO = -1.0
 #: The contrast weight an automatic ``contrast`` takes (k-coherence, the jump map; quilting declares 8) where the
 #: exemplar is about as large as the output ...
@@ -101,9 +101,9 @@ def refine_params(*, refine: int = REFINE, occurrence: float = OCCURRENCE, scale
     coarser scale, by default as many as ``refine`` without the param); ``polish``: the default of the ``polish``
     param (final rounds of :data:`.refine.POLISH_WINDOW` windows without the terms);
     ``auto_weight``, ``large_weight``: the contrast weights the automatic ``contrast`` takes where the exemplar is
-    about as large as the output and where the output is larger (:func:`auto_contrast`); ``balance_weight``: the
+    about as large as the output and where the output is larger (:func:`automatic_weight`); ``balance_weight``: the
     weight the automatic ``appearance_balance`` takes where the exemplar is about as large as the output (off where
-    the output is larger, :func:`auto_balance`); ``seam_weight``: the
+    the output is larger); ``seam_weight``: the
     default of the ``seam_weight`` param (the vote's seam cost against the windows' match cost); ``feather``,
     ``feather_step``: the default of the ``feather`` param and the threshold it feathers at (:func:`feather_param`)."""
     extra = [] if window is None else [
@@ -173,21 +173,14 @@ def feather_param(default: int, step: float | str = FEATHER_STEP) -> Param:
                  "the others (Lafortune lobes, neural codes) keep a plain map (0: off)", low=0, high=MAX_FEATHER)
 
 
-def auto_contrast(contrast: float, output_shape, exemplar_shape, auto_weight: float = AUTO_CONTRAST,
-                  large_weight: float = 0.0) -> float:
-    """``contrast`` where it is >= 0, else ``auto_weight`` where the output has at most :data:`AUTO_AREA` x the
-    exemplar's texels and ``large_weight`` where it has more."""
-    if contrast >= 0:
-        return contrast
-    return auto_weight if area_ratio(output_shape, exemplar_shape) <= AUTO_AREA else large_weight
-
-
-def auto_balance(balance: float, output_shape, exemplar_shape, balance_weight: float = AUTO_BALANCE) -> float:
-    """``balance`` where it is >= 0, else ``balance_weight`` where the output has at most :data:`AUTO_AREA` x the
-    exemplar's texels and 0 where it has more."""
-    if balance >= 0:
-        return balance
-    return balance_weight if area_ratio(output_shape, exemplar_shape) <= AUTO_AREA else 0.0
+def automatic_weight(weight: float, output_shape, exemplar_shape, near_weight: float,
+                     large_weight: float = 0.0) -> float:
+    """A refinement term's weight: ``weight`` where it is >= 0, else ``near_weight`` where the output has at most
+    :data:`AUTO_AREA` x the exemplar's texels (the exemplar about as large as the output) and ``large_weight`` where
+    it has more (the automatic ``contrast`` and ``appearance_balance``)."""
+    if weight >= 0:
+        return weight
+    return near_weight if area_ratio(output_shape, exemplar_shape) <= AUTO_AREA else large_weight
 
 
 #: The copy budget (quilting's blocks, the pieces of k-coherence's start) where the output has at most
@@ -242,15 +235,16 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
-    :func:`auto_contrast` with ``auto_weight`` and ``large_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
+    :func:`automatic_weight` with ``auto_weight`` and ``large_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
     :data:`.refine.POLISH_WINDOW` windows without the terms); ``seam_weight``: the vote's seam cost weight; a negative
-    ``balance`` chosen by :func:`auto_balance` with ``balance_weight``; with its time, contrast and balance weights
+    ``balance`` chosen by :func:`automatic_weight` with ``balance_weight`` (0 on larger outputs); with its time, contrast and balance weights
     noted."""
     import time
 
     from .refine import refine_map
-    contrast = auto_contrast(contrast, coords.coords.shape[:2], features.shape[:2], auto_weight, large_weight)
-    balance = auto_balance(balance, coords.coords.shape[:2], features.shape[:2], balance_weight)
+    shapes = coords.coords.shape[:2], features.shape[:2]
+    contrast = automatic_weight(contrast, *shapes, auto_weight, large_weight)
+    balance = automatic_weight(balance, *shapes, balance_weight)
     ctx.note("contrast", contrast)
     ctx.note("appearance_balance", balance)
     start = time.perf_counter()
