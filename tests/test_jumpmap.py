@@ -332,7 +332,7 @@ def test_the_jump_maps_refinement_recuts_one_pass_more(material, monkeypatch):
     from btforge.plugins.synth import recut, refine
     asked = []
     real = recut.recut_straight_seams
-    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
+    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a, **k: asked.append(a[4:]) or real(*a, **k))
     jumpmap(exemplar=material, size=[64, 64], seed=3, refine=1)
     assert asked == [(jm_module.RECUT_PASSES, jm_module.BRIDGE_TRIES)] and jm_module.RECUT_PASSES > recut.PASSES
 

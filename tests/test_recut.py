@@ -66,7 +66,7 @@ def test_later_passes_re_cut_near_the_last_changes_and_never_cost_more(stones, s
                        for n in (1, 2, 3))
     energy = [seam_energy(stones, m, False) for m in (src, one, two, three)]
     assert energy[3] <= energy[2] <= energy[1] < energy[0]
-    assert not (three != two)[~recut._near(two != one, False)].any()
+    assert not (three != two)[~recut._near(two != one, False, recut.BAND)].any()
 
 
 def shuffled_block_sources(seed: int) -> np.ndarray:
@@ -284,6 +284,18 @@ def test_a_straight_seam_between_flat_colours_is_bridged_by_the_exemplars_own_tr
     assert energy[2] < 0.01 * energy[0]                # what seams are left run through one colour's grain
     assert bridged.min() >= 0 and bridged.max() < 64 * 64
 
+
+
+def test_a_wider_band_reaches_round_an_area_that_a_narrow_one_cannot():
+    """The left block ends 10 texels before the exemplar's own transition, the right block lies inside the second
+    colour: in a band of 8 no continuation reaches the transition and the cut stays as costly; in a band of 12 the
+    left block's continuation carries the transition into the output, and the cut runs through one colour's grain."""
+    texels = two_colour_exemplar()
+    src = two_blocks(64, 40, 40, (4, 2), (8, 44))
+    energy = [seam_energy(texels, m, False) for m in
+              (src, *(recut.recut_straight_seams(texels, src, wrap=False, band=band) for band in (8, 12)))]
+    assert energy[1] >= 0.9 * energy[0] > 0
+    assert energy[2] < 0.01 * energy[0]
 
 @settings(max_examples=40, deadline=None)
 @given(st.integers(4, 20), st.integers(4, 20), st.integers(0, 10_000), st.sampled_from([1e-6, 1.0, 1e4]))

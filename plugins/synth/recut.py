@@ -49,10 +49,11 @@ STRAIGHT_WEIGHT = 1.5
 
 def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned: np.ndarray | None = None,
                          passes: int = PASSES, bridges: int = 0,
-                         straight_weight: float = STRAIGHT_WEIGHT) -> np.ndarray:
+                         straight_weight: float = STRAIGHT_WEIGHT, band: int = BAND) -> np.ndarray:
     """``src [H, W]`` (flat exemplar indices into ``texels [eh, ew, d]``) with its straight seams re-cut (module
     docstring; ``bridges``: bridging patches also offered per run and pass, 0: none; ``straight_weight``: the
-    cost of a straight seam edge that stays, per unit of its appearance difference); ``pinned [H, W]``
+    cost of a straight seam edge that stays, per unit of its appearance difference; ``band``: the texels on
+    either side of a run that may take a continuation); ``pinned [H, W]``
     (optional) texels keep their sources.  A pass after the first re-cuts only the runs near the texels the pass
     before changed."""
     eh, ew = texels.shape[:2]
@@ -68,8 +69,8 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
         edges = straight_edges(src, ew, wrap)
         weights = straight_weights(edges, straight_weight)
         for run_mask, axis in straight_runs(src, ew, wrap, pinned, active, edges):
-            for group in apart_groups(run_mask, axis, wrap):
-                for proposal in continuations(src, (eh, ew), wrap, group, axis, pinned):
+            for group in apart_groups(run_mask, axis, wrap, band):
+                for proposal in continuations(src, (eh, ew), wrap, group, axis, pinned, band):
                     src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
         if bridges:
             edges = straight_edges(src, ew, wrap)
@@ -79,15 +80,15 @@ def recut_straight_seams(texels: np.ndarray, src: np.ndarray, wrap: bool, pinned
                 src = expansion_move(texels, src, proposal, wrap, pinned, padded, weights)
         if np.array_equal(before, src):
             break
-        active = _near(before != src, wrap)
+        active = _near(before != src, wrap, band)
     return src
 
 
-def _near(changed: np.ndarray, wrap: bool) -> np.ndarray:
+def _near(changed: np.ndarray, wrap: bool, band: int) -> np.ndarray:
     """The texels within reach of a changed one: a run further away meets the same sources and the same
     proposals as in the pass before, and the same cut would come out of it again."""
     from scipy.ndimage import maximum_filter
-    return maximum_filter(changed, size=2 * (BAND + 2) + 1, mode="wrap" if wrap else "constant")
+    return maximum_filter(changed, size=2 * (band + 2) + 1, mode="wrap" if wrap else "constant")
 
 
 def straight_runs(src: np.ndarray, ew: int, wrap: bool, pinned: np.ndarray, active: np.ndarray | None = None,
@@ -121,9 +122,9 @@ def straight_weights(edges: tuple[np.ndarray, np.ndarray], weight: float) -> tup
     return tuple(np.where(mask, weight, 1.0).ravel() for mask in edges)
 
 
-def apart_groups(run_mask: np.ndarray, axis: int, wrap: bool) -> list[np.ndarray]:
+def apart_groups(run_mask: np.ndarray, axis: int, wrap: bool, band: int = BAND) -> list[np.ndarray]:
     """The runs of ``run_mask`` (along ``axis``) split into groups whose bands do not overlap: within a group no two
-    runs lie within ``2 * BAND`` texels of each other across their direction where they overlap along it.  In one
+    runs lie within ``2 * band`` texels of each other across their direction where they overlap along it.  In one
     proposal a band texel holds one run's continuation; where the bands of two runs overlap the later run's would
     replace the earlier one's.  The two seams of a sliver (a strip of a texel or two between two pieces, as k-coherence
     leaves them) are such a pair: the piece on the first side was then never offered across the sliver."""
@@ -139,7 +140,7 @@ def apart_groups(run_mask: np.ndarray, axis: int, wrap: bool) -> list[np.ndarray
         along, across = box[axis], box[1 - axis].start
         mine = (across, along.start, along.stop)
         for members, spans in zip(groups, placed):
-            if not any(_bands_meet(mine, other, across_size, wrap) for other in spans):
+            if not any(_bands_meet(mine, other, across_size, wrap, band) for other in spans):
                 members.append(index)
                 spans.append(mine)
                 break
@@ -149,12 +150,13 @@ def apart_groups(run_mask: np.ndarray, axis: int, wrap: bool) -> list[np.ndarray
     return [np.isin(labels, members) for members in groups]
 
 
-def _bands_meet(one: tuple[int, int, int], other: tuple[int, int, int], across_size: int, wrap: bool) -> bool:
-    """Whether the bands of two runs ``(across, first, stop)`` overlap."""
+def _bands_meet(one: tuple[int, int, int], other: tuple[int, int, int], across_size: int, wrap: bool,
+                band: int) -> bool:
+    """Whether the bands (``band`` texels on either side) of two runs ``(across, first, stop)`` overlap."""
     gap = abs(one[0] - other[0])
     if wrap:
         gap = min(gap, across_size - gap)
-    return gap <= 2 * BAND and one[1] < other[2] and other[1] < one[2]
+    return gap <= 2 * band and one[1] < other[2] and other[1] < one[2]
 
 
 def _touching(run_mask: np.ndarray, axis: int, active: np.ndarray) -> np.ndarray:
@@ -167,9 +169,10 @@ def _touching(run_mask: np.ndarray, axis: int, active: np.ndarray) -> np.ndarray
 
 
 def continuations(src: np.ndarray, source_size: tuple[int, int], wrap: bool, run_mask: np.ndarray, axis: int,
-                  pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  pinned: np.ndarray, band: int = BAND) -> tuple[np.ndarray, np.ndarray]:
     """Per output texel, the continuation (flat exemplar index, -1: none) of the first and of the second side's
-    source of the seam edges in ``run_mask`` whose band holds it (a band ends at the output's border without
+    source of the seam edges in ``run_mask`` whose band (``band`` texels on either side) holds it (a band ends at
+    the output's border without
     ``wrap``, at the exemplar's border and at a pinned texel)."""
     eh, ew = source_size
     h, w = src.shape
@@ -180,7 +183,7 @@ def continuations(src: np.ndarray, source_size: tuple[int, int], wrap: bool, run
         origin = (first + side * step) % (h, w)
         source = np.stack(np.divmod(src[origin[:, 0], origin[:, 1]], ew), axis=1)
         proposal = np.full((h, w), -1, np.int64)
-        for direction, offsets in ((-1, range(0, BAND)), (1, range(1, BAND + 1))):
+        for direction, offsets in ((-1, range(0, band)), (1, range(1, band + 1))):
             alive = np.ones(len(first), bool)
             for k in offsets:
                 delta = direction * k * step

@@ -45,6 +45,7 @@ import numpy as np
 from btforge.buffers import CoordMap
 
 from .features import beside, edge_padded, pca_reduce, window_sums
+from .recut import BAND as RECUT_BAND
 from .recut import PASSES as RECUT_PASSES
 from .recut import recut_straight_seams
 from .search import ContentCache, content_key
@@ -167,7 +168,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
                coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0,
-               seam_weight: float = SEAM_WEIGHT, balance: float = 0.0) -> CoordMap:
+               seam_weight: float = SEAM_WEIGHT, balance: float = 0.0, recut_band: int = RECUT_BAND) -> CoordMap:
     """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
     ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
     A blended texel is refined from its heavier source and keeps its blend where that source stays; the
@@ -178,13 +179,13 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     ``iterations``), while their exemplar and output stay :data:`COARSE_FIT` windows across
     (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
     (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
-    and pass).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would
-    replace cost ``contrast`` x the shortfall (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x
-    (the mean squared distance of two random windows) x how far its appearance classes are over-represented in the
-    output (:func:`appearance_excess`).  ``polish`` rounds at the finest scale
-    follow, before the re-cut, with :data:`POLISH_WINDOW` x :data:`POLISH_WINDOW` windows and neither term
-    (:func:`_polished`).  ``seam_weight`` weighs the vote's seam cost against the windows' match cost at every
-    scale and in the polish (:func:`_vote`)."""
+    and pass, in bands of ``recut_band`` texels on either side of a run). ``contrast`` > 0 makes a candidate window
+    with less variation than the output window it would replace cost ``contrast`` x the shortfall
+    (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x (the mean squared distance of two random
+    windows) x how far its appearance classes are over-represented in the output (:func:`appearance_excess`).
+    ``polish`` rounds at the finest scale follow, before the re-cut, with :data:`POLISH_WINDOW` x
+    :data:`POLISH_WINDOW` windows and neither term (:func:`_polished`). ``seam_weight`` weighs the vote's seam cost
+    against the windows' match cost at every scale and in the polish (:func:`_vote`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -203,7 +204,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
         src = _polished(features, src, coords.wrap, polish, rng, pinned, seam_weight)
     if recut:
         src = recut_straight_seams(window_index(features, patch).texels, src, coords.wrap, pinned, recut_passes,
-                                   bridges)
+                                   bridges, band=recut_band)
     return _with_kept_blends(coords, src)
 
 
