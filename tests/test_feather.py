@@ -270,8 +270,8 @@ def test_grain_tells_grain_from_shading_whatever_the_units(seed, scale, offset):
 def test_the_tiles_feather_smooth_exemplars_at_a_lower_step():
     """The Wang tiles' factor is the smooth one up to GRAIN_SMOOTH, the grainy one from GRAIN_GRAINY, and never
     falls as the grain rises."""
-    from btforge.plugins.wang import (GRAIN_GRAINY, GRAIN_SMOOTH, SMOOTH_FEATHER_STEP, TILE_FEATHER_STEP,
-                                      tile_feather_step)
+    from btforge.plugins.synth.feather import GRAIN_GRAINY, GRAIN_SMOOTH
+    from btforge.plugins.wang import SMOOTH_FEATHER_STEP, TILE_FEATHER_STEP, tile_feather_step
     assert SMOOTH_FEATHER_STEP < TILE_FEATHER_STEP
     assert tile_feather_step(0.0) == tile_feather_step(GRAIN_SMOOTH) == SMOOTH_FEATHER_STEP
     assert tile_feather_step(GRAIN_GRAINY) == tile_feather_step(5.0) == TILE_FEATHER_STEP

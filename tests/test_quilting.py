@@ -16,7 +16,7 @@ from btforge.plugins.synth.quilt_search import (
     shape_texels, ssd_numpy, ssd_opencl, summed_area,
 )
 from btforge.plugins.synth.quilt_seams import min_cut
-from btforge.plugins.synth.bench import benchmark_quilt, exemplar_model, smooth_fields
+from btforge.plugins.synth.bench import benchmark_quilt, exemplar_model, smooth_fields, smooth_ptm_exemplar
 from btforge.plugins.synth.quilting import axis_layout, quilt, quilt_features
 
 BLOCK, OVERLAP = 8, 2
@@ -249,6 +249,26 @@ def test_the_automatic_budget_is_tight_only_where_the_output_is_at_most_twice_th
     assert auto_budget(-1.0, (256, 256), (128, 128), BUDGET) == BUDGET
     assert auto_budget(-1.0, (256, 256), (128, 128), LARGE_BUDGET) == 0.0             # k-coherence's start: no limit
     assert [auto_budget(b, (256, 256), (192, 192), BUDGET) for b in (0.0, 1.0, 2.0)] == [0.0, 1.0, 2.0]
+
+
+def test_the_automatic_overlap_is_wider_on_a_smooth_exemplar():
+    """``overlap: 0`` gives a smooth exemplar (fields smoothed over 8 texels, grain about 0.2) a quarter of the block
+    and a grainy one (white noise) Efros & Freeman's sixth, never less as the exemplar grows smoother, and always a
+    valid overlap; the stage notes the one it used, and an overlap given is kept."""
+    from btforge.plugins.synth.feather import grain
+    from btforge.plugins.synth.quilting import auto_overlap
+    smooth = smooth_ptm_exemplar(48, sigma=8.0)
+    noise = np.random.default_rng(0).standard_normal((48, 48, 9)).astype(np.float32)
+    assert grain(texel_features(smooth)) < 0.25 < 0.5 < grain(noise)
+    assert auto_overlap(32, grain(texel_features(smooth))) == 8 and auto_overlap(32, grain(noise)) == 32 // 6
+    for block in range(3, 65):
+        overlaps = [auto_overlap(block, g) for g in np.linspace(0.0, 1.0, 21)]
+        assert all(1 <= o and 2 * o < block for o in overlaps)
+        assert all(a >= b for a, b in zip(overlaps, overlaps[1:]))
+    for overlap, noted in ((0, 4), (3, 3)):
+        ctx = StageContext(node="quilt")
+        quilt(ctx=ctx, exemplar=smooth, size=[48, 48], seed=0, block=16, overlap=overlap, refine=0, feather=0)
+        assert ctx.notes["overlap"] == noted
 
 
 @pytest.mark.shared_data

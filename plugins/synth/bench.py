@@ -517,10 +517,11 @@ def smooth_fields(size: int, channels: int, seed: int = 0, sigma: float = 3.0) -
     return fields.astype(np.float32)
 
 
-def smooth_ptm_exemplar(size: int = 128, seed: int = 0):
-    """An lrgb PTM (orthonormal basis) whose 6 coefficients and 3 colours are random smooth fields."""
+def smooth_ptm_exemplar(size: int = 128, seed: int = 0, sigma: float = 3.0):
+    """An lrgb PTM (orthonormal basis) whose 6 coefficients and 3 colours are random smooth fields (``sigma``: their
+    smoothing, :func:`smooth_fields`)."""
     from btforge.plugins.ptm.model import PTMModel
-    f = smooth_fields(size, 9, seed)
+    f = smooth_fields(size, 9, seed, sigma)
     scale = np.array([0.15, 0.08, 0.08, 0.05, 0.04, 0.04], np.float32)
     coeffs = f[..., :6] * scale
     coeffs[..., 0] += 0.8  # the constant term: mean brightness

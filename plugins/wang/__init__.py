@@ -17,7 +17,7 @@ import numpy as np
 from btforge import REQUIRED, Param, declare_stage, hookimpl
 from btforge.buffers import CoordMap
 from btforge.errors import BtforgeInputError
-from btforge.plugins.synth.feather import FEATHER, feathered, grain, local_steps, records_mix
+from btforge.plugins.synth.feather import FEATHER, by_grain, feathered, grain, local_steps, records_mix
 from btforge.plugins.synth.refine import APPEARANCE_CLASSES
 from btforge.plugins.synth.synthesizer import feather_param, seam_weight_param
 
@@ -37,18 +37,13 @@ TILE_FEATHER_STEP = 2.0
 #: cross-fade blends two ramps, not two grains: at 2 the bumps' and two leaves' seams missed (1.31-1.34 x the
 #: exemplar's neighbour jump at seeds 0-1), at 1.5 the leaves pass (1.22-1.24) and the bumps reach 1.31 (Benchmarks).
 SMOOTH_FEATHER_STEP = 1.5
-#: The exemplar's :func:`~btforge.plugins.synth.feather.grain` up to which the tiles take
-#: :data:`SMOOTH_FEATHER_STEP`, and from which :data:`TILE_FEATHER_STEP`, linearly between: the smooth exemplars
-#: measured score 0.11-0.25 (the bumps, leaves, a knit, paintings, the held-out procedural exemplar), the grainy
-#: ones 0.49-0.88 (the stucco, stones, fibres, plaster), the cobbles, item2 and the tablet between (0.31-0.46).
-GRAIN_SMOOTH, GRAIN_GRAINY = 0.25, 0.5
 
 
 def tile_feather_step(grain_ratio: float) -> float:
     """The step factor over which the seams inside the tiles are feathered, for an exemplar of ``grain_ratio``
-    (:func:`~btforge.plugins.synth.feather.grain`)."""
-    t = min(max((grain_ratio - GRAIN_SMOOTH) / (GRAIN_GRAINY - GRAIN_SMOOTH), 0.0), 1.0)
-    return SMOOTH_FEATHER_STEP + (TILE_FEATHER_STEP - SMOOTH_FEATHER_STEP) * t
+    (:func:`~btforge.plugins.synth.feather.grain`): :data:`SMOOTH_FEATHER_STEP` on a smooth exemplar,
+    :data:`TILE_FEATHER_STEP` on a grainy one (:func:`~btforge.plugins.synth.feather.by_grain`)."""
+    return by_grain(grain_ratio, SMOOTH_FEATHER_STEP, TILE_FEATHER_STEP)
 
 
 def texel_bytes(buffer) -> int:
@@ -176,7 +171,7 @@ def feathered_tiles(tile_coords: np.ndarray, source_size, band: int, mixes: bool
         seam_weight_param(SEAM_WEIGHT),
         feather_param(FEATHER, f"{SMOOTH_FEATHER_STEP:g} (smooth exemplars) to {TILE_FEATHER_STEP:g} (grainy ones)"),
     ],
-    version="23",  # 23: the seams inside the tiles feathered over 1.5 x the exemplar's own steps on smooth exemplars (grain up to 0.25), 2 x on grainy ones (from 0.5), linearly between (was 2 on all); 22: the interiors' refinement has a balance term of weight 16 (param balance); 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
+    version="24",  # 24: straight seams in the edge strips and the interiors re-cut in bands of 12 texels on either side (were 8); 23: the seams inside the tiles feathered over 1.5 x the exemplar's own steps on smooth exemplars (grain up to 0.25), 2 x on grainy ones (from 0.5), linearly between (was 2 on all); 22: the interiors' refinement has a balance term of weight 16 (param balance); 21: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 20: each edge strip refined before the frames are cut from it (its corner halves held); 19: the seams inside the tiles cross-faded over 3 texels on either side (feather 3, was 1); 18: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 17: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 16: the seams inside the tiles feathered on exemplars that blend (param feather, as the synthesizers'); 15: the refinement's vote weighs seams 4 x (param seam_weight: seams lower on every crop measured); 14: eight refinement rounds (were four) with a contrast term of weight 8 (param contrast): the set keeps its patch statistics; 13: the refinement's occurrence weight 0.5 (was 0.1) and one polish round (param polish); 12: the straight seams left in the tiles are re-cut in up to six passes (were two); 11: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 10: the re-cut sees straight seams that cross the held border ring whole (they were split into runs too short to re-cut); 9: the refinement lays the set as one valid periodic tiling and holds one texel (pin 1, was 2); 8: a least-used exemplar piece at each edge strip's middle (edge_centre 0.5); 7: the filling stops once a region is covered (its later patches never changed it); param typical (was centre_typical) ranks places by their most unusual texel and holds the filling's patches too; pieces holding a rare texel (param rare) stay out; 6: a least-used exemplar piece at each tile's centre (centre 0.5); 5: the straight seams left in the tiles are re-cut with bridging pieces too; 4: straight seams inside the tiles re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 3: the refinement's windows jittered one by one
 )
 def wang_tiles(ctx, exemplar, *, tile, edge, colors, variants, seed, usage, usage_unit, interior, centre,
                edge_centre, typical, rare, relax, refine, occurrence, contrast, balance, polish, pin, seam_weight,
