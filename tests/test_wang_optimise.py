@@ -131,7 +131,7 @@ def test_the_interiors_straight_seams_are_re_cut_with_more_passes_than_the_share
     original = refine.refine_map
 
     def recorded(*args, **kwargs):
-        if "recut_passes" in kwargs:   # the tiles' refinement (each edge strip's leaves the re-cut at its default)
+        if "recut_passes" in kwargs:   # the tiles' refinement (each edge strip's leaves the passes at the default)
             asked.append(kwargs["recut_passes"])
         return original(*args, **kwargs)
 
@@ -188,3 +188,25 @@ def test_the_contrast_term_keeps_the_tiles_as_varied_as_the_exemplar(exemplar96)
         rings[contrast] = tiles.tile_coords[:, border_ring(48, 1)]
     np.testing.assert_array_equal(rings[0.0], rings[CONTRAST])
     assert shortfall[CONTRAST] < shortfall[0.0]
+
+
+def test_the_strips_and_the_interiors_are_re_cut_in_the_tiles_wider_band(monkeypatch, exemplar96):
+    """The runs left in the tiles cut through areas whose far side lies beyond the shared band: every refinement of
+    a tile set (each edge strip's and the interiors') re-cuts in RECUT_BAND texels on either side, wider than the
+    shared default."""
+    import btforge.plugins.synth.refine as refine
+    from btforge.plugins.synth.recut import BAND
+    from btforge.plugins.wang import build_tile_set, optimise, synthesis
+    assert optimise.RECUT_BAND > BAND
+    asked = []
+    original = refine.refine_map
+
+    def recorded(*args, **kwargs):
+        asked.append(("interiors" if "recut_passes" in kwargs else "strip", kwargs.get("recut_band")))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(refine, "refine_map", recorded)
+    monkeypatch.setattr(synthesis, "refine_map", recorded)
+    build_tile_set(exemplar96[0], tile=48, edge=12, seed=1)
+    assert {kind for kind, _ in asked} == {"strip", "interiors"}
+    assert all(band == optimise.RECUT_BAND for _, band in asked)
