@@ -401,7 +401,7 @@ def test_the_refinement_re_cuts_six_passes_with_bridging_pieces(material, monkey
     from btforge.plugins.synth import recut, refine
     asked = []
     real = recut.recut_straight_seams
-    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a: asked.append(a[4:]) or real(*a))
+    monkeypatch.setattr(refine, "recut_straight_seams", lambda *a, **k: asked.append(a[4:]) or real(*a, **k))
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=0)
     assert asked == []
     kcoherence(exemplar=material, size=[48, 48], seed=2, refine=1)

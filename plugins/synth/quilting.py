@@ -379,14 +379,17 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     ``rejected_after_projection`` lists the mean fraction of candidates ruled out after each projection;
     ``full_distance_fraction`` the fraction whose full distance was computed.
     """
+    exemplar_size = (exemplar.height, exemplar.width)
+    validate(exemplar_size, size, block, overlap or max(1, block // 6), wrap, tolerance)  # before any work
     feats = texel_features(exemplar)
     steps = local_steps(feats)
-    overlap = overlap or auto_overlap(block, grain(feats, steps))
-    validate((exemplar.height, exemplar.width), size, block, overlap, wrap, tolerance)  # before the quilting
+    if not overlap:   # the automatic overlap, whose periodic layout is checked too
+        overlap = auto_overlap(block, grain(feats, steps))
+        validate(exemplar_size, size, block, overlap, wrap, tolerance)
     ctx.note("overlap", overlap)
     result = quilt_features(feats, size, block, overlap, search=search, seam=seam, tolerance=tolerance, wrap=wrap,
                             seed=seed, spread=spread,
-                            budget=auto_budget(budget, size, (exemplar.height, exemplar.width), BUDGET))
+                            budget=auto_budget(budget, size, exemplar_size, BUDGET))
     for key, value in result.stats.items():
         ctx.note(key, value)
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
