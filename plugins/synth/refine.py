@@ -179,12 +179,12 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     ``iterations``), while their exemplar and output stay :data:`COARSE_FIT` windows across
     (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
     (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
-    and pass, in bands of ``recut_band`` texels on either side of a run). ``contrast`` > 0 makes a candidate window
+    and pass, in bands of ``recut_band`` texels on either side of a run).  ``contrast`` > 0 makes a candidate window
     with less variation than the output window it would replace cost ``contrast`` x the shortfall
     (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x (the mean squared distance of two random
     windows) x how far its appearance classes are over-represented in the output (:func:`appearance_excess`).
     ``polish`` rounds at the finest scale follow, before the re-cut, with :data:`POLISH_WINDOW` x
-    :data:`POLISH_WINDOW` windows and neither term (:func:`_polished`). ``seam_weight`` weighs the vote's seam cost
+    :data:`POLISH_WINDOW` windows and neither term (:func:`_polished`).  ``seam_weight`` weighs the vote's seam cost
     against the windows' match cost at every scale and in the polish (:func:`_vote`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
