@@ -9,7 +9,7 @@ from btforge.errors import BtforgeInputError
 from btforge.plugins.demo.patterns import make_pattern
 
 
-@pytest.mark.parametrize("kind", ["stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco"])
+@pytest.mark.parametrize("kind", ["stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco", "cracks"])
 def test_pattern_is_a_valid_tileable_material(kind):
     m = make_pattern(kind, 48, 40, seed=1)
     assert m.shape == (48, 40)
@@ -24,12 +24,12 @@ def test_pattern_is_a_valid_tileable_material(kind):
 
 
 def test_patterns_differ_and_bad_names_are_clear_errors():
-    kinds = ("stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco")
+    kinds = ("stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco", "cracks")
     heights = [make_pattern(k, 32, 32, seed=0).height for k in kinds]
     for i in range(len(kinds)):
         for j in range(i):
             assert not np.allclose(heights[i], heights[j]), (kinds[i], kinds[j])
-    with pytest.raises(BtforgeInputError, match="stones, plaster, fibres, cobbles, gravel, strands, stucco"):
+    with pytest.raises(BtforgeInputError, match="stones, plaster, fibres, cobbles, gravel, strands, stucco, cracks"):
         make_pattern("bricks", 32, 32)
     with pytest.raises(BtforgeInputError, match="8 x 8"):
         make_pattern("stones", 4, 32)

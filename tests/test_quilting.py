@@ -521,3 +521,25 @@ def test_benchmark_reports_identical_picks():
     assert figures["features"] == 16 and figures["candidates"] == 17 * 17
     assert figures["brute_s"] > 0 and figures["rejection_s"] > 0 and figures["speedup"] > 0
     assert figures["rejected_after_projection"]
+
+
+def test_the_refinement_skips_a_coarse_scale_that_keeps_too_little_of_a_grainy_exemplar(monkeypatch):
+    """White noise keeps about a quarter of its variance at half resolution, under the default ``coarse_keep``:
+    no round runs at the coarse scale there unless ``coarse_keep`` is 0; a smooth exemplar's coarse rounds run."""
+    from scipy.ndimage import gaussian_filter
+
+    from btforge.plugins.synth import refine
+    sizes = []
+    real_step = refine.optimise_step
+    monkeypatch.setattr(refine, "optimise_step",
+                        lambda index, *a, **k: sizes.append(index.texels.shape[0]) or real_step(index, *a, **k))
+    rng = np.random.default_rng(4)
+    lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
+    noise = rng.uniform(0.2, 0.8, (1, 4, 64, 64, 3))
+    smooth = 0.5 + 4.0 * (gaussian_filter(noise, (0, 0, 4, 4, 0), mode="wrap") - 0.5)
+    few = {"size": [64, 64], "seed": 0, "refine": 1, "polish": 0}
+    for samples, keep, coarse in ((noise, None, False), (noise, 0.0, True), (smooth, None, True)):
+        sizes.clear()
+        stack = SampleStack(np.clip(samples, 0.01, 1.0).astype(np.float32), lights, np.array([[0.0, 0.0, 1.0]]))
+        quilt(exemplar=stack, **few, **({} if keep is None else {"coarse_keep": keep}))
+        assert (32 in sizes) == coarse and 64 in sizes

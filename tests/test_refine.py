@@ -146,6 +146,48 @@ def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
     assert rounds_at == [SIZE // 2] * 2 + [SIZE] * 2
 
 
+def test_halved_features_are_block_means_and_their_variance_is_the_blocks_share():
+    from btforge.plugins.synth.quilting import COARSE_KEEP
+    from btforge.plugins.synth.refine import appearance_variance, halved, keeps_structure
+    rng = np.random.default_rng(3)
+    blocks = np.repeat(np.repeat(rng.standard_normal((10, 12, 3)), 2, 0), 2, 1)   # constant on 2 x 2 blocks
+    checker = np.indices((20, 24)).sum(0) % 2 * 2.0 - 1.0                        # zero mean in every block
+    assert np.allclose(halved(blocks), blocks[::2, ::2])
+    assert appearance_variance(np.full((6, 6, 2), 0.7)) == pytest.approx(0.0, abs=1e-20)
+    assert halved(np.zeros((7, 9, 1))).shape == (3, 4, 1)
+    for share in (COARSE_KEEP - 0.02, COARSE_KEEP + 0.02):
+        # the blocks carry `share` of the variance and the checker the rest, which halving removes exactly
+        detail = checker[..., None] * np.ones(3) * np.sqrt(appearance_variance(blocks) / 3 * (1 - share) / share)
+        features = blocks + detail
+        kept = appearance_variance(halved(features)) / appearance_variance(features)
+        assert kept == pytest.approx(share, abs=1e-9)
+        assert keeps_structure(halved(features), appearance_variance(features), COARSE_KEEP) == (share >= COARSE_KEEP)
+
+
+def test_a_coarse_scale_is_refined_only_where_it_keeps_the_exemplars_structure(monkeypatch):
+    """White noise keeps a quarter of its variance at half resolution: its coarse windows all look alike, and the
+    coarse rounds are skipped where a share of 0.53 must be kept; a smooth field keeps nearly all of it, and they
+    run."""
+    from scipy.ndimage import gaussian_filter
+
+    from btforge.plugins.synth import refine
+    rounds_at = []
+    real_step = refine.optimise_step
+    monkeypatch.setattr(refine, "optimise_step",
+                        lambda index, *a, **k: rounds_at.append(index.texels.shape[0]) or real_step(index, *a, **k))
+    rng = np.random.default_rng(0)
+    noise = rng.standard_normal((SIZE, SIZE, 4)).astype(np.float32)
+    smooth = gaussian_filter(noise, (4, 4, 0), mode="wrap").astype(np.float32)
+    start = shuffled_blocks((SIZE, SIZE), (OUT, OUT), block=12, seed=1)
+    for features, coarse_rounds in ((noise, []), (smooth, [SIZE // 2])):
+        rounds_at.clear()
+        refine_map(features, start, iterations=1, occurrence=0.3, seed=0, patch=4, scales=1, coarse_keep=0.53)
+        assert rounds_at == coarse_rounds + [SIZE]
+    rounds_at.clear()   # without a share to keep, every scale that fits runs (the default)
+    refine_map(noise, start, iterations=1, occurrence=0.3, seed=0, patch=4, scales=1)
+    assert rounds_at == [SIZE // 2, SIZE]
+
+
 def test_the_default_contrast_weight_depends_on_how_much_larger_the_output_is():
     """A negative (default) ``contrast`` becomes the synthesizer's weight (AUTO_CONTRAST, quilting's own) up to
     AUTO_AREA x the exemplar's texels and its large-output weight beyond (0 unless it declares one: k-coherence's and

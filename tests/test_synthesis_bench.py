@@ -273,6 +273,17 @@ def test_an_exemplar_crop_may_start_at_a_given_texel():
         bench.crop_origin(f"{capture}@10")
 
 
+@pytest.mark.shared_data
+def test_a_ptm_in_relights_web_layout_is_an_exemplar_too(shared_data):
+    """``info.json`` (relight's web layout, as OpenLIME reads it) is read as the PTM it holds, and cropped."""
+    info = shared_data / "ptm/openlime_relight_ptm/info.json"
+    whole = stage("ptm.read")(path=str(info))["model"]
+    model = bench.exemplar_model(f"{info}@0,8", 32)
+    assert (model.height, model.width) == (32, 32)
+    expected = stage("synth.crop")(input=whole, origin=[0, 8], size=[32, 32])["output"]
+    np.testing.assert_array_equal(model.coeffs, expected.coeffs)
+
+
 def test_the_bench_fits_blendable_crops_on_request():
     """``--fit rgb`` fits the crops as linear RGB PTMs, which blend, so the synthesizers feather their seams."""
     assert not bench.exemplar_model("procedural:stones", 24).blendable

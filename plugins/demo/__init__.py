@@ -36,9 +36,10 @@ def pattern_material(pattern: str, size, *, bumps: int = 40, bump_height: float 
         Param("pattern", "choice", "bumps", "the kind of material: bumps (cosine-cap bumps with a fine weave on "
               "soft colour regions), stones (raised stones with sharp edges and dark grout), plaster (grainy relief, "
               "mottled colour), fibres (strands mostly along one direction), cobbles (large flat cells in a few "
-              "colours, narrow grooves), gravel (small pale cells), strands (long, nearly parallel strands) or stucco "
-              "(coarse plaster); 'bumps' is the only one that reads the param 'bumps', 'bump_height' scales every "
-              "pattern's relief", choices=PATTERNS),
+              "colours, narrow grooves), gravel (small pale cells), strands (long, nearly parallel strands), stucco "
+              "(coarse plaster) or cracks (dried mud: flat cells parted by a network of thin dark cracks); 'bumps' "
+              "is the only one that reads the param 'bumps', 'bump_height' scales every pattern's relief",
+              choices=PATTERNS),
     ],
 )
 def demo_material(ctx, *, size, lights, min_elevation, bumps, bump_height, shadows, seed, pattern):

@@ -10,9 +10,12 @@ Each pattern is a tileable height field with an albedo, returned as a :class:`Pr
 * ``cobbles``: large flat-topped cells (about 36 texels across) in a few distinct colours, with narrow grooves;
 * ``gravel``: small cells (about 10 texels across) in two pale colours;
 * ``strands``: long strands (60-120 texels) within 8 degrees of one direction, on a dark ground;
-* ``stucco``: a coarse plaster, lumps and undulations larger than the plaster's and stronger mottles.
+* ``stucco``: a coarse plaster, lumps and undulations larger than the plaster's and stronger mottles;
+* ``cracks``: dried mud, flat pale cells about 30 texels across parted by a network of dark cracks about 2 texels
+  wide, each cell's rim curled up a little: a network of thin lines, which a cut ends wherever it crosses one.
 
-The last four are kinds no synthesizer default was chosen on.
+``cobbles``, ``gravel``, ``strands`` and ``stucco`` are kinds no synthesizer default was chosen on; ``cracks`` came
+after them.
 """
 from __future__ import annotations
 
@@ -24,14 +27,14 @@ from btforge.errors import BtforgeInputError
 
 from .procedural import ProceduralMaterial, normals_from_height
 
-PATTERNS = ("bumps", "stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco")
+PATTERNS = ("bumps", "stones", "plaster", "fibres", "cobbles", "gravel", "strands", "stucco", "cracks")
 
 
 def make_pattern(kind: str, height: int, width: int, *, seed: int = 0, relief: float = 4.0) -> ProceduralMaterial:
     """The ``kind`` of :data:`PATTERNS` (not ``bumps``, which is :func:`make_material`) at ``height x width``
     texels; ``relief`` scales its heights (texel widths)."""
     makers = {"stones": _stones, "plaster": _plaster, "fibres": _fibres, "cobbles": _cobbles, "gravel": _gravel,
-              "strands": _strands, "stucco": _stucco}
+              "strands": _strands, "stucco": _stucco, "cracks": _cracks}
     if kind not in makers:
         raise BtforgeInputError("demo pattern", f"expected one of {', '.join(makers)}, found {kind!r}",
                                 "pick a pattern by name, or make_material() for bumps")
@@ -126,6 +129,18 @@ def _stucco(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.nd
     mottle = 0.18 * _grain(rng, h, w, 9.0) + 0.06 * _grain(rng, h, w, 1.5)
     albedo = np.array([0.7, 0.62, 0.55]) * (1.0 + mottle)[..., None]
     return 0.6 * height, albedo
+
+
+def _cracks(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Periodic cells about 30 texels across; a crack where the distance to the cell border is under about a
+    texel, falling to a dark floor; the cells' rims, within 12 texels of a crack, raised by up to a third."""
+    border, owner, n = _cells(rng, h, w, 30.0)
+    flat = np.clip(border / 1.2, 0.0, 1.0)
+    curl = 0.3 * np.clip(1.0 - border / 12.0, 0.0, 1.0)
+    height = flat * (1.0 + curl) + 0.1 * _grain(rng, h, w, 2.0)
+    mud = np.array([0.72, 0.6, 0.45]) * rng.uniform(0.9, 1.1, n)[owner][..., None]
+    albedo = mud * (1.0 + 0.08 * _grain(rng, h, w, 1.5))[..., None]
+    return height, albedo * flat[..., None] + 0.08 * (1.0 - flat[..., None])
 
 
 def _fibres(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:

@@ -52,11 +52,10 @@ FITS = {"lrgb": {"variant": "lrgb"}, "rgb": {"variant": "rgb", "space": "linear"
 
 def exemplar_model(path: str, crop: int, fit: str = "lrgb"):
     """The exemplar as an orthonormal PTM (``fit``: a key of :data:`FITS`) of the central ``synth.crop`` x
-    ``synth.crop`` texels of a capture
-    (``procedural``: the demo material rendered under 16 lights, a held-out real-like exemplar;
-    ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file: that model,
-    cropped; ``FILE@ROW,COL``: the crop of a capture or ``.ptm`` file with its upper-left texel there instead of
-    the central one; a ``.ptm`` file keeps its own variant)."""
+    ``synth.crop`` texels of a capture (``procedural``: the demo material rendered under 16 lights, a held-out real-like
+    exemplar; ``procedural:PATTERN``: the demo material's pattern, e.g. ``procedural:stones``; a ``.ptm`` file or a PTM
+    in relight's web layout (its ``info.json``): that model, cropped; ``FILE@ROW,COL``: the crop of a capture or
+    ``.ptm`` file with its upper-left texel there instead of the central one; a ``.ptm`` file keeps its own variant)."""
     from btforge import stage
     fitted = FITS[fit]
     if path == PROCEDURAL:
@@ -67,7 +66,7 @@ def exemplar_model(path: str, crop: int, fit: str = "lrgb"):
         stack = stage("demo.material")(size=[crop, crop], lights=16, pattern=pattern, seed=7)["stack"]
         return stage("ptm.fit")(stack=stack, basis="orthonormal", **fitted)["model"]
     path, origin = crop_origin(str(path))
-    if path.endswith(".ptm"):
+    if path.endswith(".ptm") or Path(path).name == "info.json":   # a PTM file, or one in relight's web layout
         return _cropped(stage("ptm.read")(path=path)["model"], crop, origin)
     from btforge.plugins.stackio.images import load_stack
     patch = _cropped(load_stack(Path(path)), crop, origin)
@@ -227,10 +226,10 @@ def measure_search(model, queries: int = RECALL_QUERIES, k: int = 6) -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="btforge bench synthesis", description=bench_synthesis.__doc__.splitlines()[0])
-    p.add_argument("--exemplar", required=True, help="the capture (.lp) or PTM file (.ptm) whose central "
-                   "crops are the exemplars (FILE@ROW,COL: the crops with their upper-left texel there), "
-                   "'procedural' for the demo material, or 'procedural:PATTERN' for one of its patterns (stones, "
-                   "plaster, fibres, cobbles, gravel, strands, stucco)")
+    p.add_argument("--exemplar", required=True, help="the capture (.lp), PTM file (.ptm) or PTM in relight's web "
+                   "layout (its info.json) whose central crops are the exemplars (FILE@ROW,COL: the crops with "
+                   "their upper-left texel there), 'procedural' for the demo material, or 'procedural:PATTERN' for "
+                   "one of its patterns (stones, plaster, fibres, cobbles, gravel, strands, stucco, cracks)")
     p.add_argument("--out", required=True, help="folder for synthesis.csv, seeds.csv, search.csv, synthesis.png and "
                    "one sheet per exemplar size (sheet_NAME_HxW.png: the exemplar and every output at two lights, "
                    "with the measures of what the eye sees)")

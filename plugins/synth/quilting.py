@@ -60,6 +60,16 @@ SEAM_WEIGHT = 2.0
 #: shuffled blocks rose from 1.42 to 1.58 over four seeds (a miss); at 2 it is 1.48, and the bumps' seams still pass
 #: (1.13 against 1.09, Benchmarks).
 FEATHER_STEP = 2.0
+#: A coarser scale of the refinement runs only where its 2 x 2 averaged exemplar keeps at least this share of the
+#: exemplar's appearance variance (:func:`.refine.keeps_structure`).  Quilting's blocks keep an exemplar's structures
+#: whole; where grain or a network of thin lines carries most of the variance, the coarse windows all look alike,
+#: and the re-arrangement chosen there cut the demo's cracks into ends in mid-cell and left crack-free areas (192 x
+#: 192, seeds 0-3: SWD over the shuffled blocks 2.41, 0.88, 2.35, 1.33 with its quarter scale, which keeps 0.50).
+#: At 0.6 the quarter scale is skipped on the cracks, the stucco (0.56), stones, gravel, fibres and strands (0.25-0.44)
+#: and the half scale too on the plaster (0.59 there); both stay on everything smoother (the bumps keep 0.95 at the
+#: quarter scale and need it: their straight seams 1.17 -> 1.44 without it).  On grain the coarse scales traded patch
+#: statistics for seams: the fibres' SWD 1.45 -> 0.97, seams 0.80 -> 0.85 (Benchmarks).
+COARSE_KEEP = 0.6
 
 
 #: The automatic overlap (``overlap: 0``), as a share of the block side: a quarter on a smooth exemplar, a sixth (Efros
@@ -304,7 +314,7 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
 
 @declare_synthesizer(
     "synth.quilt", deprecated_names=("quilt",),
-    version="24",  # 24: the automatic overlap (overlap 0) is a quarter of the block on smooth exemplars, a sixth on grainy ones, by the exemplar's grain (was a sixth on all); 23: the refinement's balance term on by default where the output has at most 1.5 x the exemplar's texels (param appearance_balance, -1: automatic, 16 there); 22: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 21: seams cross-faded over 3 texels on either side (feather 3, was 1); 20: copy budget 0.5 where the output has at most 2 x the exemplar's texels (budget -1: automatic; 1.5 beyond); 19: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 18: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
+    version="25",  # 25: a coarser scale of the refinement only where it keeps 0.6 of the exemplar's appearance variance (param coarse_keep): the quarter scale skipped on grainy exemplars and thin-line networks; 24: the automatic overlap (overlap 0) is a quarter of the block on smooth exemplars, a sixth on grainy ones, by the exemplar's grain (was a sixth on all); 23: the refinement's balance term on by default where the output has at most 1.5 x the exemplar's texels (param appearance_balance, -1: automatic, 16 there); 22: straight seams whose re-cut bands overlap are re-cut in separate groups, so a sliver's far piece is offered across it; 21: seams cross-faded over 3 texels on either side (feather 3, was 1); 20: copy budget 0.5 where the output has at most 2 x the exemplar's texels (budget -1: automatic; 1.5 beyond); 19: linear exemplars (stacks, linear fits of light only) compared as a screen shows them, at 25 probe lights sRGB-encoded, 16 principal components; 18: sRGB PTM, SH and HSH exemplars feathered too, their records mixed as display values; 17: linear lrgb exemplars feathered too, through the rgb PTM of the same functions, at steps over 2 x the exemplar's around them (was 1.5); 16: seams cross-faded over 1 texel on blendable exemplars (param feather); 15: the refinement's vote weighs seams 2 x (param seam_weight: seams lower, the bumps' pass); 14: one polish round by default (param polish: seams lower, the knit's pass); 13: the re-cut weighs a straight seam edge that stays 1.5 x its appearance difference (about half the straight seams); 12: the refinement's contrast term on by default where the exemplar is about as large as the output (contrast -1: automatic); 11: copy budget 1.5; 10: three re-cut passes; 9: bridging pieces over straight seams; 8: a copy budget (2) on the blocks' exemplar areas; 7: straight seams re-cut by minimum cuts, the refinement's candidate distances summed in a fixed order (OpenCL kernels); 6: coarse scales first (scales 2), windows jittered one by one; 5: occurrence weight 1 by default; 2: the shared refinement; 3: refinement by a coherent vote; 4: approximate window search, whole windows kept
     params=[
         Param("block", "int", 32, "block side in texels", low=3),
         Param("overlap", "int", 0, "overlap between neighbouring blocks in texels (1 <= overlap < block / 2); "
@@ -327,10 +337,14 @@ def _quilt_stats(searcher: QuiltSearch, search: str, blocks: int, dims: int, sta
         Param("spread", "bool", True, "pick, among the eligible blocks, one whose exemplar area the output copies "
               "least so far (ties at random), so every part of the exemplar gets used; false: any eligible block"),
         *refine_params(auto_weight=AUTO_CONTRAST, seam_weight=SEAM_WEIGHT, feather_step=FEATHER_STEP),
+        Param("coarse_keep", "float", COARSE_KEEP, "share of the exemplar's appearance variance a coarser scale of "
+              "the refinement must keep (its 2 x 2 averaged exemplar against the exemplar) to be refined: where grain "
+              "or thin lines carry more, the coarse windows all look alike, and the re-arrangement chosen there cuts "
+              "through what the blocks kept whole (0: every scale 'scales' allows)", low=0.0, high=1.0),
     ],
 )
 def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tolerance, budget, spread, refine,
-          occurrence, contrast, appearance_balance, scales, polish, seam_weight, feather):
+          occurrence, contrast, appearance_balance, scales, polish, seam_weight, feather, coarse_keep):
     """Synthesize a larger texture by image quilting of per-texel reflectance functions.
 
     Exemplar blocks are laid in raster order (Efros & Freeman 2001) on the texels' appearance vectors
@@ -361,13 +375,15 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
     candidates, and only the survivors get full distances.  Safety margins make it exact: it returns the same
     eligible blocks, hence the same picks, as ``search: brute``.  The stored projections take up to 128 MB.
 
-    **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``; :mod:`.refine`): the map finally goes
-    through the shared texture optimisation with an occurrence term and corrections, at two coarser scales first,
-    so seams follow the content, and structures larger than the fine windows (colour areas, cut stones) are
-    matched as a whole; ``polish`` final rounds without the occurrence and contrast terms then move the cuts left
-    where windows met to where the content agrees.  Where the output has at most 1.5 x the exemplar's texels the
-    balance term (``appearance_balance``) charges windows of appearance classes the output holds beyond their share
-    of the exemplar (the held-out procedural exemplar at 256: SWD over the shuffled blocks 0.93 -> 0.83).
+    **Refinement** (``refine`` rounds, ``occurrence`` weight, ``scales``; :mod:`.refine`): the map finally goes through
+    the shared texture optimisation with an occurrence term and corrections, at two coarser scales first, so seams
+    follow the content, and structures larger than the fine windows (colour areas, cut stones) are matched as a whole (a
+    coarser scale only where it keeps ``coarse_keep`` of the exemplar's appearance variance: on a grainy exemplar or a
+    network of thin cracks the quarter scale is skipped); ``polish`` final rounds without the occurrence and contrast
+    terms then move the cuts left where windows met to where the content agrees.  Where the output has at most 1.5 x the
+    exemplar's texels the balance term (``appearance_balance``) charges windows of appearance classes the output holds
+    beyond their share of the exemplar (the held-out procedural exemplar at 256: SWD over the shuffled blocks 0.93 ->
+    0.83).
 
     Outputs
     -------
@@ -394,7 +410,7 @@ def quilt(ctx, exemplar, *, size, wrap, seed, block, overlap, search, seam, tole
         ctx.note(key, value)
     coords = refined(ctx, feats, result.coords, refine=refine, occurrence=occurrence, scales=scales, seed=seed,
                      recut_passes=RECUT_PASSES, contrast=contrast, auto_weight=AUTO_CONTRAST, polish=polish,
-                     seam_weight=seam_weight, balance=appearance_balance)
+                     seam_weight=seam_weight, balance=appearance_balance, coarse_keep=coarse_keep)
     return {"coords": feathered(coords, feather, records_mix(exemplar), feats, FEATHER_STEP, steps)}
 
 

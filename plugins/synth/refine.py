@@ -168,24 +168,25 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
                seed: int = 0, pinned: np.ndarray | None = None, scales: int = 0, recut: bool = True,
                recut_passes: int = RECUT_PASSES, bridges: int = 0,
                coarse_iterations: int | None = None, contrast: float = 0.0, polish: int = 0,
-               seam_weight: float = SEAM_WEIGHT, balance: float = 0.0, recut_band: int = RECUT_BAND) -> CoordMap:
-    """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after
-    ``iterations`` rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections.
-    A blended texel is refined from its heavier source and keeps its blend where that source stays; the
-    result has the input's wrap and tile.  A map or exemplar smaller than a window is returned as it is.
-    ``pinned`` (boolean ``[H, W]``, optional) marks output texels that keep their sources (and blends): they
-    still serve as context for their neighbours' windows, seams and corrections.  ``scales`` coarser scales (each
-    at half the resolution of the next) are refined first, ``coarse_iterations`` rounds each (by default
-    ``iterations``), while their exemplar and output stay :data:`COARSE_FIT` windows across
-    (:func:`_coarse_first`).  With ``recut`` the straight seams left are then re-cut by minimum cuts
-    (:func:`.recut.recut_straight_seams`, up to ``recut_passes`` passes, with ``bridges`` bridging patches per run
-    and pass, in bands of ``recut_band`` texels on either side of a run).  ``contrast`` > 0 makes a candidate window
-    with less variation than the output window it would replace cost ``contrast`` x the shortfall
-    (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x (the mean squared distance of two random
-    windows) x how far its appearance classes are over-represented in the output (:func:`appearance_excess`).
-    ``polish`` rounds at the finest scale follow, before the re-cut, with :data:`POLISH_WINDOW` x
-    :data:`POLISH_WINDOW` windows and neither term (:func:`_polished`).  ``seam_weight`` weighs the vote's seam cost
-    against the windows' match cost at every scale and in the polish (:func:`_vote`)."""
+               seam_weight: float = SEAM_WEIGHT, balance: float = 0.0, recut_band: int = RECUT_BAND,
+               coarse_keep: float = 0.0) -> CoordMap:
+    """``coords`` (a map into the exemplar whose appearance vectors are ``features [eh, ew, D]``) after ``iterations``
+    rounds of texture optimisation with an occurrence weight ``occurrence`` and corrections. A blended texel is refined
+    from its heavier source and keeps its blend where that source stays; the result has the input's wrap and tile.  A
+    map or exemplar smaller than a window is returned as it is. ``pinned`` (boolean ``[H, W]``, optional) marks output
+    texels that keep their sources (and blends): they still serve as context for their neighbours' windows, seams and
+    corrections.  ``scales`` coarser scales (each at half the resolution of the next) are refined first,
+    ``coarse_iterations`` rounds each (by default ``iterations``), while their exemplar and output stay
+    :data:`COARSE_FIT` windows across (:func:`_coarse_first`), and while a coarse exemplar keeps at least
+    ``coarse_keep`` of the finest one's appearance variance (:func:`keeps_structure`; 0: always).  With ``recut`` the
+    straight seams left are then re-cut by minimum cuts (:func:`.recut.recut_straight_seams`, up to ``recut_passes``
+    passes, with ``bridges`` bridging patches per run and pass, in bands of ``recut_band`` texels on either side of a
+    run).  ``contrast`` > 0 makes a candidate window with less variation than the output window it would replace cost
+    ``contrast`` x the shortfall (:func:`_best_windows`); ``balance`` > 0 makes it cost ``balance`` x (the mean squared
+    distance of two random windows) x how far its appearance classes are over-represented in the output
+    (:func:`appearance_excess`). ``polish`` rounds at the finest scale follow, before the re-cut, with
+    :data:`POLISH_WINDOW` x :data:`POLISH_WINDOW` windows and neither term (:func:`_polished`).  ``seam_weight`` weighs
+    the vote's seam cost against the windows' match cost at every scale and in the polish (:func:`_vote`)."""
     pinned = _pinned_mask(pinned, coords)
     if iterations <= 0 or min(coords.source_size) < patch or min(coords.height, coords.width) < patch:
         return coords  # no whole window fits: nothing to match
@@ -199,7 +200,7 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     rng = np.random.default_rng([seed, 7])
     rounds = (iterations, iterations if coarse_iterations is None else coarse_iterations)
     weights = (occurrence, contrast, seam_weight, balance)
-    src = _refine_sources(features, src, coords.wrap, rounds, weights, patch, rng, pinned, scales)
+    src = _refine_sources(features, src, coords.wrap, rounds, weights, patch, rng, pinned, scales, coarse_keep)
     if polish > 0 and min(*coords.source_size, coords.height, coords.width) >= POLISH_WINDOW:
         src = _polished(features, src, coords.wrap, polish, rng, pinned, seam_weight)
     if recut:
@@ -208,13 +209,43 @@ def refine_map(features: np.ndarray, coords: CoordMap, *, iterations: int, occur
     return _with_kept_blends(coords, src)
 
 
-def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, scales):
-    """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0 and a half-size exemplar and
-    output still hold :data:`COARSE_FIT` windows across, at half resolution (:func:`_coarse_first`), then here;
-    ``rounds``: (rounds here, rounds at each coarser scale); ``weights``: (occurrence, contrast, seam)."""
+def halved(features: np.ndarray) -> np.ndarray:
+    """``features [eh, ew, D]`` at half resolution: the mean of each 2 x 2 block (an odd last row or column dropped)."""
+    ch, cw = features.shape[0] // 2, features.shape[1] // 2
+    return features[:2 * ch, :2 * cw].reshape(ch, 2, cw, 2, -1).mean(axis=(1, 3))
+
+
+def appearance_variance(features: np.ndarray) -> float:
+    """The summed variance of the appearance vectors ``features [h, w, D]`` (their mean squared distance from
+    their mean)."""
+    flat = np.asarray(features, np.float64).reshape(-1, features.shape[-1])
+    return float(((flat - flat.mean(axis=0)) ** 2).sum(axis=1).mean())
+
+
+def keeps_structure(coarse: np.ndarray, finest_variance: float, share: float) -> bool:
+    """Whether a coarse exemplar ``coarse`` keeps at least ``share`` of the finest exemplar's appearance variance
+    (``finest_variance``).  Where most of it lies in finer detail (thin cracks, grain, fine fibres), the coarse
+    windows all look alike: matched there, the map is re-arranged by what the texture does not show, and the cuts
+    it leaves can break what it does show (quilting's blocks keep the demo's cracks whole; re-arranged at the
+    quarter scale, which keeps 0.50 of their variance, the cracks end in mid-cell: see ``synth.quilt``)."""
+    return appearance_variance(coarse) >= share * finest_variance
+
+
+def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, scales, coarse_keep=0.0,
+                    finest_variance=None):
+    """The refinement of flat sources ``src [H, W]``: first, while ``scales`` > 0, a half-size exemplar and
+    output still hold :data:`COARSE_FIT` windows across and the half-size exemplar keeps ``coarse_keep`` of the
+    variance (:func:`keeps_structure` against ``finest_variance``, by default this exemplar's), at half resolution
+    (:func:`_coarse_first`), then here; ``rounds``: (rounds here, rounds at each coarser scale); ``weights``:
+    (occurrence, contrast, seam)."""
     iterations, coarse_iterations = rounds
     if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
-        src = _coarse_first(features, src, wrap, coarse_iterations, weights, patch, rng, pinned, scales - 1)
+        coarse = halved(features)
+        if finest_variance is None:
+            finest_variance = appearance_variance(features)
+        if keeps_structure(coarse, finest_variance, coarse_keep):
+            src = _coarse_first(features, coarse, src, wrap, coarse_iterations, weights, patch, rng, pinned,
+                                scales - 1, coarse_keep, finest_variance)
     index = window_index(features, patch)
     keep = (lambda new: new) if pinned is None else (lambda new, start=src: np.where(pinned, start, new))
     for _ in range(iterations):
@@ -233,20 +264,21 @@ def _polished(features, src, wrap, rounds, rng, pinned, seam_weight=SEAM_WEIGHT)
                            pinned, 0)
 
 
-def _coarse_first(features, src, wrap, iterations, weights, patch, rng, pinned, scales):
+def _coarse_first(features, coarse_features, src, wrap, iterations, weights, patch, rng, pinned, scales,
+                  coarse_keep, finest_variance):
     """``src`` after the refinement of its half-resolution version (2 x 2 averaged exemplar, every other output
     texel's source halved): where a coarse texel changed source, its 2 x 2 output texels take the new source's
     2 x 2 exemplar texels; elsewhere (and where pinned) the fine sources stay.  Windows of the same size cover
     twice the texture there, so structures larger than a window (colour areas, the sides of copied blocks) are
     matched and cut as a whole."""
     eh, ew = features.shape[:2]
-    ch, cw = eh // 2, ew // 2
-    coarse_features = features[:2 * ch, :2 * cw].reshape(ch, 2, cw, 2, -1).mean(axis=(1, 3))
+    ch, cw = coarse_features.shape[:2]
     sy, sx = np.divmod(src[::2, ::2], ew)
     before = np.minimum(sy // 2, ch - 1) * cw + np.minimum(sx // 2, cw - 1)
     coarse_pinned = None if pinned is None else pinned[::2, ::2]
     after = _refine_sources(coarse_features, before, wrap and src.shape[0] % 2 == 0 and src.shape[1] % 2 == 0,
-                            (iterations, iterations), weights, patch, rng, coarse_pinned, scales)
+                            (iterations, iterations), weights, patch, rng, coarse_pinned, scales, coarse_keep,
+                            finest_variance)
     h, w = src.shape
     rows, cols = np.arange(h) // 2, np.arange(w) // 2
     changed = (after != before)[np.ix_(rows, cols)]

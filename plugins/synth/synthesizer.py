@@ -231,14 +231,15 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
             window: int = WINDOW, recut_passes: int = RECUT_PASSES, bridges: int = BRIDGE_TRIES,
             coarse_refine: int | None = None, contrast: float = AUTO, auto_weight: float = AUTO_CONTRAST,
             large_weight: float = 0.0, polish: int = POLISH, seam_weight: float = SEAM_WEIGHT,
-            balance: float = AUTO, balance_weight: float = AUTO_BALANCE):
+            balance: float = AUTO, balance_weight: float = AUTO_BALANCE, coarse_keep: float = 0.0):
     """``coords`` through the shared refinement (:func:`.refine.refine_map`, ``window`` x ``window`` windows,
     ``coarse_refine`` rounds at the coarser scales (by default ``refine``), its re-cut of straight seams
     ``recut_passes`` passes, with ``bridges`` bridging patches per run and pass; a negative ``contrast`` chosen by
     :func:`automatic_weight` with ``auto_weight`` and ``large_weight``; ``polish`` final rounds (:data:`POLISH` by default) of
     :data:`.refine.POLISH_WINDOW` windows without the terms); ``seam_weight``: the vote's seam cost weight; a negative
-    ``balance`` chosen by :func:`automatic_weight` with ``balance_weight`` (0 on larger outputs); with its time, contrast and balance weights
-    noted."""
+    ``balance`` chosen by :func:`automatic_weight` with ``balance_weight`` (0 on larger outputs); ``coarse_keep``:
+    the share of the exemplar's appearance variance a coarser scale must keep to be refined (0: always); with its
+    time, contrast and balance weights noted."""
     import time
 
     from .refine import refine_map
@@ -250,7 +251,8 @@ def refined(ctx, features, coords, *, refine: int, occurrence: float, scales: in
     start = time.perf_counter()
     out = refine_map(features, coords, iterations=refine, occurrence=occurrence, seed=seed, scales=scales,
                      patch=window, recut_passes=recut_passes, bridges=bridges, coarse_iterations=coarse_refine,
-                     contrast=contrast, polish=polish, seam_weight=seam_weight, balance=balance)
+                     contrast=contrast, polish=polish, seam_weight=seam_weight, balance=balance,
+                     coarse_keep=coarse_keep)
     ctx.note("seconds_refinement", round(time.perf_counter() - start, 3))
     return out
 
