@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from btforge.buffers import CoordMap, SampleStack
 from btforge.plugins.demo.patterns import make_pattern
@@ -164,6 +166,33 @@ def test_halved_features_are_block_means_and_their_variance_is_the_blocks_share(
         assert keeps_structure(halved(features), appearance_variance(features), COARSE_KEEP) == (share >= COARSE_KEEP)
 
 
+@settings(max_examples=40, deadline=None)
+@given(rows=st.integers(2, 12), cols=st.integers(2, 12), dims=st.integers(1, 6), seed=st.integers(0, 2 ** 16),
+       exponent=st.integers(-12, 12), offset=st.floats(-1.0, 1.0), smooth=st.booleans())
+def test_the_kept_share_is_bounded_and_does_not_depend_on_scale_or_offset(rows, cols, dims, seed, exponent, offset,
+                                                                          smooth):
+    """Hard cases: values from 1e-12 to 1e12 wide, shifted by up to a million times their spread, noise or
+    block-constant fields.  Block means never hold more variance than the texels (even sizes), and scaling or
+    shifting the features leaves the kept share, hence the decision, as it was: it is a property of the texture, not
+    of its units.  (Each deviation from the mean loses about 2e-16 x shift / spread of its precision in float64, at
+    most 2e-10 here, so 1e-6 is a safe relative tolerance; a shift beyond that ratio would leave no digits.)"""
+    from btforge.plugins.synth.refine import appearance_variance, halved, keeps_structure
+    rng = np.random.default_rng(seed)
+    base = rng.standard_normal((rows, cols, dims))
+    if smooth:
+        base = np.repeat(np.repeat(base, 2, 0), 2, 1)[:2 * rows, :2 * cols]
+    else:
+        base = base[:2 * (rows // 2), :2 * (cols // 2)]
+    shares = []
+    for features in (base, (base + offset * 1e6) * 10.0 ** exponent):
+        total, kept = appearance_variance(features), appearance_variance(halved(features))
+        assert np.isfinite(total) and np.isfinite(kept) and 0.0 <= kept <= total * (1 + 1e-9) + 1e-300
+        shares.append(kept / total)
+    assert shares[1] == pytest.approx(shares[0], rel=1e-6, abs=1e-9)
+    if smooth:   # block-constant: halving keeps it all
+        assert keeps_structure(halved(base), appearance_variance(base), 0.999)
+
+
 def test_a_coarse_scale_is_refined_only_where_it_keeps_the_exemplars_structure(monkeypatch):
     """White noise keeps a quarter of its variance at half resolution: its coarse windows all look alike, and the
     coarse rounds are skipped where a share of 0.53 must be kept; a smooth field keeps nearly all of it, and they
@@ -300,10 +329,10 @@ def test_each_synthesizer_hands_its_seam_weight_to_every_round(name, monkeypatch
                         real_step(index, src, wrap, weights, *a, **k))
     declared = {p.name: p.default for p in stage(name).params}["seam_weight"]
     size = {"tile": 16} if name == "wang.tiles" else {"size": [64, 64]}
-    for given in ({}, {"seam_weight": 2.5}):
+    for chosen in ({}, {"seam_weight": 2.5}):
         seen.clear()
-        stage(name)(exemplar=stack, seed=0, **size, **given)
-        assert seen and set(seen) == {given.get("seam_weight", declared)}
+        stage(name)(exemplar=stack, seed=0, **size, **chosen)
+        assert seen and set(seen) == {chosen.get("seam_weight", declared)}
 
 
 def test_appearance_excess_is_zero_for_the_exemplar_itself_and_marks_an_overused_class(stones):

@@ -26,6 +26,8 @@ gathered through it.  :func:`refine_map` improves the map where the eye looks fi
 
 With ``scales`` > 0 the first two steps run first on half-resolution versions of the map and the exemplar (recursively),
 so that an 8 x 8 window also spans 16 and 32 texels and structures larger than a fine window are matched whole.
+With ``coarse_keep`` a coarser scale runs only while its averaged exemplar keeps that share of the exemplar's
+appearance variance (:func:`keeps_structure`): where grain or thin lines carry the rest, its windows all look alike.
 
 The window index (PCA of the windows, a SciPy k-d tree), the tree query and the vote's bookkeeping run in NumPy on
 the host; the hot loops run as OpenCL kernels (``refine.cl``): the candidates' full distances (``rf_rank``), the
