@@ -150,7 +150,8 @@ def test_coarse_scales_run_their_own_rounds(stones, monkeypatch):
 
 def test_halved_features_are_block_means_and_their_variance_is_the_blocks_share():
     from btforge.plugins.synth.quilting import COARSE_KEEP
-    from btforge.plugins.synth.refine import appearance_variance, halved, keeps_structure
+    from btforge.plugins.synth.features import appearance_variance
+    from btforge.plugins.synth.refine import halved, keeps_structure
     rng = np.random.default_rng(3)
     blocks = np.repeat(np.repeat(rng.standard_normal((10, 12, 3)), 2, 0), 2, 1)   # constant on 2 x 2 blocks
     checker = np.indices((20, 24)).sum(0) % 2 * 2.0 - 1.0                        # zero mean in every block
@@ -176,7 +177,8 @@ def test_the_kept_share_is_bounded_and_does_not_depend_on_scale_or_offset(rows, 
     shifting the features leaves the kept share, hence the decision, as it was: it is a property of the texture, not
     of its units.  (Each deviation from the mean loses about 2e-16 x shift / spread of its precision in float64, at
     most 2e-10 here, so 1e-6 is a safe relative tolerance; a shift beyond that ratio would leave no digits.)"""
-    from btforge.plugins.synth.refine import appearance_variance, halved, keeps_structure
+    from btforge.plugins.synth.features import appearance_variance
+    from btforge.plugins.synth.refine import halved, keeps_structure
     rng = np.random.default_rng(seed)
     base = rng.standard_normal((rows, cols, dims))
     if smooth:

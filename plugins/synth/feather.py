@@ -28,6 +28,7 @@ import numpy as np
 
 from btforge.buffers import CoordMap
 
+from .features import appearance_variance
 from .visibility import dominant_source, seam_masks
 
 #: The widest band by default, in texels on either side of a seam edge (:func:`smooth_bands`).  Against one texel
@@ -163,10 +164,9 @@ def grain(features: np.ndarray, steps: np.ndarray | None = None) -> float:
     appearance vectors ``features [h, w, D]`` (the root mean squared distance from their mean).  Smooth shading
     (soft bumps, a leaf, a painting) scores 0.1-0.2, a plaster or fibres whose every texel differs from its
     neighbours about as much as from any other 0.8-0.9; 0 for a constant exemplar."""
-    flat = np.asarray(features, np.float64).reshape(-1, features.shape[-1])
-    spread = float(np.sqrt(((flat - flat.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    spread = float(np.sqrt(appearance_variance(features)))
     if steps is None:
-        steps = local_steps(flat.reshape(features.shape))
+        steps = local_steps(np.asarray(features, np.float64))
     return float(steps.mean()) / spread if spread > 0 else 0.0
 
 

@@ -126,6 +126,13 @@ def downsample(image: np.ndarray, mode: str = "mirror") -> np.ndarray:
     return np.ascontiguousarray(blurred[::2, ::2], dtype=np.float32)
 
 
+def appearance_variance(features: np.ndarray) -> float:
+    """The summed variance of the appearance vectors ``features [h, w, D]`` (their mean squared distance from
+    their mean), in float64."""
+    flat = np.asarray(features, np.float64).reshape(-1, features.shape[-1])
+    return float(((flat - flat.mean(axis=0)) ** 2).sum(axis=1).mean())
+
+
 def window_sums(values: np.ndarray, window: tuple[int, int]) -> np.ndarray:
     """Sum of ``values [H, W, ...]`` over every placement of a ``window = (rows, cols)`` inside it,
     ``[H - rows + 1, W - cols + 1, ...]``, from one summed-area table (float64 for float values, int64 for integer

@@ -46,7 +46,7 @@ import numpy as np
 
 from btforge.buffers import CoordMap
 
-from .features import beside, edge_padded, pca_reduce, window_sums
+from .features import appearance_variance, beside, edge_padded, pca_reduce, window_sums
 from .recut import BAND as RECUT_BAND
 from .recut import PASSES as RECUT_PASSES
 from .recut import recut_straight_seams
@@ -217,13 +217,6 @@ def halved(features: np.ndarray) -> np.ndarray:
     return features[:2 * ch, :2 * cw].reshape(ch, 2, cw, 2, -1).mean(axis=(1, 3))
 
 
-def appearance_variance(features: np.ndarray) -> float:
-    """The summed variance of the appearance vectors ``features [h, w, D]`` (their mean squared distance from
-    their mean)."""
-    flat = np.asarray(features, np.float64).reshape(-1, features.shape[-1])
-    return float(((flat - flat.mean(axis=0)) ** 2).sum(axis=1).mean())
-
-
 def keeps_structure(coarse: np.ndarray, finest_variance: float, share: float) -> bool:
     """Whether a coarse exemplar ``coarse`` keeps at least ``share`` of the finest exemplar's appearance variance
     (``finest_variance``).  Where most of it lies in finer detail (thin cracks, grain, fine fibres), the coarse
@@ -243,9 +236,9 @@ def _refine_sources(features, src, wrap, rounds, weights, patch, rng, pinned, sc
     iterations, coarse_iterations = rounds
     if scales > 0 and min(features.shape[0], features.shape[1], *src.shape) >= 2 * COARSE_FIT * patch:
         coarse = halved(features)
-        if finest_variance is None:
+        if finest_variance is None and coarse_keep > 0:
             finest_variance = appearance_variance(features)
-        if keeps_structure(coarse, finest_variance, coarse_keep):
+        if coarse_keep <= 0 or keeps_structure(coarse, finest_variance, coarse_keep):
             src = _coarse_first(features, coarse, src, wrap, coarse_iterations, weights, patch, rng, pinned,
                                 scales - 1, coarse_keep, finest_variance)
     index = window_index(features, patch)
