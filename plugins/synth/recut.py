@@ -172,8 +172,7 @@ def continuations(src: np.ndarray, source_size: tuple[int, int], wrap: bool, run
                   pinned: np.ndarray, band: int = BAND) -> tuple[np.ndarray, np.ndarray]:
     """Per output texel, the continuation (flat exemplar index, -1: none) of the first and of the second side's
     source of the seam edges in ``run_mask`` whose band (``band`` texels on either side) holds it (a band ends at
-    the output's border without
-    ``wrap``, at the exemplar's border and at a pinned texel)."""
+    the output's border without ``wrap``, at the exemplar's border and at a pinned texel)."""
     eh, ew = source_size
     h, w = src.shape
     step = np.array([0, 1]) if axis == 0 else np.array([1, 0])
